@@ -1,0 +1,577 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import distance_transform_edt
+from torch.autograd import gradcheck
+
+from ptrack.costs import (
+    JointKeyframe,
+    JointLimits,
+    Keyframe,
+    Objective,
+    ObjectiveValue,
+    PoseEval,
+    Reprojection,
+    Silhouette,
+    Smoothness,
+    cauchy,
+    distance_transform,
+    geman_mcclure,
+    huber,
+    l2,
+    robust_loss,
+    robust_loss_derivative,
+)
+from ptrack.errors import InputError
+
+LOSSES = ["l2", "huber", "cauchy", "geman_mcclure"]
+D64 = torch.float64
+
+
+def gen(seed=0):
+    return torch.Generator().manual_seed(seed)
+
+
+def ev(q=None, joints=None, pixels=None, joint_pixels=None, dtype=D64):
+    """A PoseEval with only the fields a test needs; the rest are small dummies."""
+    z = torch.zeros(1, dtype=dtype)
+    return PoseEval(
+        q=z if q is None else q,
+        joints=z if joints is None else joints,
+        pixels=z if pixels is None else pixels,
+        depth=z,
+        joint_pixels=joint_pixels,
+    )
+
+
+# ---------------------------------------------------------------- robust losses
+
+
+@pytest.mark.parametrize("name", LOSSES)
+def test_loss_equals_s_near_zero(name):
+    s = torch.tensor([0.0, 1e-8, 1e-6, 1e-4], dtype=D64)
+    rho = robust_loss(name)(s, 1.0)
+    torch.testing.assert_close(rho, s, rtol=2e-4, atol=0.0)
+
+
+@pytest.mark.parametrize("name", ["huber", "cauchy", "geman_mcclure"])
+def test_robust_losses_grow_subquadratically(name):
+    r = torch.tensor([2.0, 4.0, 8.0, 16.0], dtype=D64)
+    rho = robust_loss(name)(r.square(), 1.0)
+    assert (rho < r.square()).all()
+    ratio = rho / r.square()
+    assert (ratio[1:] < ratio[:-1]).all()  # rho(r^2) / r^2 keeps falling
+
+
+def test_loss_closed_forms_and_scale():
+    s = torch.tensor([0.25, 9.0, 100.0], dtype=D64)
+    torch.testing.assert_close(l2(s), s)
+    huber_expected = torch.tensor([0.25, 2 * 2 * 3.0 - 4, 2 * 2 * 10.0 - 4], dtype=D64)
+    torch.testing.assert_close(huber(s, 2.0), huber_expected)
+    torch.testing.assert_close(cauchy(s, 2.0), 4 * torch.log1p(s / 4))
+    torch.testing.assert_close(geman_mcclure(s, 2.0), 4 * s / (s + 4))
+    assert (geman_mcclure(torch.tensor([1e12], dtype=D64), 2.0) <= 4.0).all()
+
+
+@pytest.mark.parametrize("name", LOSSES)
+def test_loss_derivative_matches_autograd(name):
+    s = torch.tensor([0.0, 0.3, 1.7, 40.0], dtype=D64, requires_grad=True)
+    (g,) = torch.autograd.grad(robust_loss(name)(s, 1.3).sum(), s)
+    assert torch.isfinite(g).all()
+    torch.testing.assert_close(robust_loss_derivative(name)(s.detach(), 1.3), g)
+
+
+def test_unknown_loss_raises():
+    with pytest.raises(InputError, match="tukey"):
+        robust_loss("tukey")
+    with pytest.raises(InputError, match="tukey"):
+        Reprojection(torch.zeros(2, 2), torch.ones(2), loss="tukey")
+
+
+# ---------------------------------------------------------------- reprojection
+
+
+def test_reprojection_zero_at_observation():
+    obs = torch.rand(5, 2, generator=gen(), dtype=D64) * 100
+    term = Reprojection(obs, torch.ones(5), sigma_px=3.0)
+    e = ev(pixels=obs.clone())
+    assert term.residual(e).abs().max() == 0
+    assert term.energy(e) == 0
+
+
+def test_reprojection_hand_computed():
+    obs = torch.tensor([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0]], dtype=D64)
+    conf = torch.tensor([1.0, 0.25, 0.0], dtype=D64)
+    pix = obs + torch.tensor([[2.0, 0.0], [4.0, -4.0], [7.0, 7.0]], dtype=D64)
+    term = Reprojection(obs, conf, sigma_px=2.0, loss="cauchy", scale=1.0)
+    r = term.residual(ev(pixels=pix))
+    torch.testing.assert_close(r, torch.tensor([1.0, 0.0, 1.0, -1.0, 0.0, 0.0], dtype=D64))
+    expected = 0.5 * (math.log1p(1.0) + math.log1p(2.0) + 0.0)
+    torch.testing.assert_close(term.energy(ev(pixels=pix)), torch.tensor(expected, dtype=D64))
+    w = term.robust_weights(ev(pixels=pix))
+    torch.testing.assert_close(w, torch.tensor([0.5, 0.5, 1 / 3, 1 / 3, 1.0, 1.0], dtype=D64))
+    l2_term = Reprojection(obs, conf, sigma_px=2.0, loss="l2")
+    torch.testing.assert_close(l2_term.energy(ev(pixels=pix)), torch.tensor(1.5, dtype=D64))
+
+
+def test_reprojection_ignores_missing_nan_keypoints():
+    obs = torch.tensor([[1.0, 2.0], [float("nan"), float("nan")]], dtype=D64)
+    term = Reprojection(obs, torch.tensor([1.0, 0.0]))
+    pix = torch.tensor([[2.0, 2.0], [5.0, 5.0]], dtype=D64, requires_grad=True)
+    energy = term.energy(ev(pixels=pix))
+    (g,) = torch.autograd.grad(energy, pix)
+    assert torch.isfinite(energy) and torch.isfinite(g).all()
+    assert (g[1] == 0).all() and g[0, 0] > 0
+    torch.testing.assert_close(energy, 0.5 * torch.log1p(torch.tensor(1.0, dtype=D64)))
+
+
+def test_reprojection_batched_particles_match_loop():
+    obs = torch.rand(4, 2, generator=gen(1), dtype=D64) * 50
+    conf = torch.tensor([1.0, 0.5, 0.0, 2.0], dtype=D64)
+    term = Reprojection(obs, conf, sigma_px=1.5, loss="huber")
+    pix = obs + torch.randn(6, 4, 2, generator=gen(2), dtype=D64) * 3
+    assert term.residual(ev(pixels=pix)).shape == (6, 8)
+    energy = term.energy(ev(pixels=pix))
+    assert energy.shape == (6,)
+    loop = torch.stack([term.energy(ev(pixels=p)) for p in pix])
+    torch.testing.assert_close(energy, loop)
+
+
+def test_reprojection_trajectory_shapes():
+    obs = torch.rand(3, 4, 2, generator=gen(3), dtype=D64)
+    term = Reprojection(obs, torch.ones(3, 4))
+    pix = torch.rand(5, 3, 4, 2, generator=gen(4), dtype=D64)
+    assert term.residual(ev(pixels=pix)).shape == (5, 24)
+    assert term.energy(ev(pixels=pix)).shape == (5,)
+    assert term.robust_weights(ev(pixels=pix)).shape == (5, 24)
+    per_frame = sum(Reprojection(obs[t], torch.ones(4)).energy(ev(pixels=pix[:, t]))
+                    for t in range(3))
+    torch.testing.assert_close(term.energy(ev(pixels=pix)), per_frame)
+
+
+def test_reprojection_float32():
+    obs = torch.rand(4, 2, generator=gen(5), dtype=D64)
+    term = Reprojection(obs, torch.ones(4))
+    pix = torch.rand(2, 4, 2, generator=gen(6))
+    assert term.energy(ev(pixels=pix, dtype=torch.float32)).dtype == torch.float32
+
+
+@pytest.mark.parametrize("loss", LOSSES)
+def test_reprojection_gradcheck(loss):
+    obs = torch.rand(3, 2, generator=gen(7), dtype=D64)
+    term = Reprojection(obs, torch.tensor([1.0, 0.3, 2.0]), sigma_px=0.5, loss=loss, scale=0.7)
+    pix = (obs + torch.randn(2, 3, 2, generator=gen(8), dtype=D64)).requires_grad_()
+    assert gradcheck(lambda p: term.energy(ev(pixels=p)), (pix,))
+
+
+def test_reprojection_input_errors():
+    with pytest.raises(InputError, match="NaN"):
+        Reprojection(torch.tensor([[float("nan"), 1.0]]), torch.ones(1))
+    with pytest.raises(InputError, match="confidence"):
+        Reprojection(torch.zeros(3, 2), torch.ones(4))
+    with pytest.raises(InputError, match="confidence"):
+        Reprojection(torch.zeros(3, 2), -torch.ones(3))
+    with pytest.raises(InputError, match="observed"):
+        Reprojection(torch.zeros(3, 3), torch.ones(3))
+    with pytest.raises(InputError, match="sigma_px"):
+        Reprojection(torch.zeros(3, 2), torch.ones(3), sigma_px=-1.0)
+    term = Reprojection(torch.zeros(3, 2), torch.ones(3))
+    with pytest.raises(InputError, match=r"\(5, 2\)"):
+        term.energy(ev(pixels=torch.zeros(5, 2)))
+
+
+# ---------------------------------------------------------------- joint limits
+
+
+def test_joint_limits_zero_inside_quadratic_outside():
+    term = JointLimits(torch.tensor([-1.0, 0.0]), torch.tensor([1.0, 2.0]), sigma=0.1)
+    inside = torch.tensor([[0.5, 1.0], [-1.0, 2.0]], dtype=D64)
+    assert (term.energy(ev(q=inside)) == 0).all()
+    for delta in (0.1, 0.2):
+        above = torch.tensor([1.0 + delta, 1.0], dtype=D64)
+        below = torch.tensor([0.0, -delta], dtype=D64)
+        expected = torch.tensor(0.5 * (delta / 0.1) ** 2, dtype=D64)
+        torch.testing.assert_close(term.energy(ev(q=above)), expected)
+        torch.testing.assert_close(term.energy(ev(q=below)), expected)
+    torch.testing.assert_close(term.residual(ev(q=torch.tensor([1.3, -0.5], dtype=D64))),
+                               torch.tensor([3.0, -5.0], dtype=D64))
+
+
+def test_joint_limits_infinite_bounds():
+    inf = math.inf
+    term = JointLimits(torch.tensor([-inf, 0.0, -inf]), torch.tensor([inf, inf, 1.0]))
+    q = torch.tensor([1e6, 1e6, -1e6], dtype=D64, requires_grad=True)
+    energy = term.energy(ev(q=q))
+    (g,) = torch.autograd.grad(energy, q)
+    assert energy == 0 and (g == 0).all()
+    q2 = torch.tensor([0.0, -0.1, 1.1], dtype=D64)
+    torch.testing.assert_close(term.residual(ev(q=q2)), torch.tensor([0.0, -2.0, 2.0], dtype=D64))
+
+
+def test_joint_limits_batched_and_time_axis():
+    lo, hi = -torch.ones(3), torch.ones(3)
+    q = torch.randn(4, 5, 3, generator=gen(9), dtype=D64) * 2
+    frame = JointLimits(lo, hi)
+    traj = JointLimits(lo, hi, time_axis=True)
+    assert frame.energy(ev(q=q)).shape == (4, 5)
+    assert traj.residual(ev(q=q)).shape == (4, 15)
+    torch.testing.assert_close(traj.energy(ev(q=q)), frame.energy(ev(q=q)).sum(-1))
+    per_dof = JointLimits(lo, hi, sigma=torch.tensor([0.1, 0.2, 0.4]))
+    torch.testing.assert_close(per_dof.residual(ev(q=torch.tensor([2.0, 2.0, 2.0], dtype=D64))),
+                               torch.tensor([10.0, 5.0, 2.5], dtype=D64))
+
+
+def test_joint_limits_gradcheck():
+    term = JointLimits(torch.tensor([-1.0, 0.0, -math.inf]), torch.tensor([1.0, 0.5, 0.0]),
+                       sigma=0.3, time_axis=True)
+    q = torch.tensor([[[1.4, -0.3, 0.7], [0.2, 0.9, -2.0]]], dtype=D64, requires_grad=True)
+    assert gradcheck(lambda x: term.energy(ev(q=x)), (q,))
+
+
+def test_joint_limits_input_errors():
+    with pytest.raises(InputError, match="lower <= upper"):
+        JointLimits(torch.tensor([1.0]), torch.tensor([0.0]))
+    with pytest.raises(InputError, match=r"\(2,\) and \(3,\)"):
+        JointLimits(torch.zeros(2), torch.ones(3))
+    with pytest.raises(InputError, match="sigma"):
+        JointLimits(torch.zeros(2), torch.ones(2), sigma=-0.1)
+    with pytest.raises(InputError, match="ev.q"):
+        JointLimits(torch.zeros(2), torch.ones(2)).energy(ev(q=torch.zeros(4, 3)))
+
+
+# ---------------------------------------------------------------- smoothness
+
+
+def test_smoothness_constant_and_linear():
+    term = Smoothness(dt=0.1, sigma_velocity=2.0, sigma_acceleration=5.0)
+    const = torch.ones(6, 3, dtype=D64) * 0.7
+    assert term.energy(ev(q=const)) == 0
+    slope = torch.tensor([1.0, -2.0, 0.5], dtype=D64)
+    linear = torch.arange(6, dtype=D64)[:, None] * slope
+    accel_only = Smoothness(dt=0.1, sigma_acceleration=5.0)
+    vel_only = Smoothness(dt=0.1, sigma_velocity=2.0)
+    torch.testing.assert_close(accel_only.energy(ev(q=linear)), torch.tensor(0.0, dtype=D64))
+    expected = 0.5 * 5 * ((slope / 0.1 / 2.0) ** 2).sum()
+    torch.testing.assert_close(vel_only.energy(ev(q=linear)), expected)
+    torch.testing.assert_close(term.energy(ev(q=linear)), expected)
+
+
+def test_smoothness_hand_computed_acceleration_and_shapes():
+    q = torch.tensor([[0.0], [1.0], [4.0], [9.0]], dtype=D64)
+    term = Smoothness(dt=0.5, sigma_velocity=1.0, sigma_acceleration=4.0)
+    r = term.residual(ev(q=q))
+    torch.testing.assert_close(r, torch.tensor([2.0, 6.0, 10.0, 2.0, 2.0], dtype=D64))
+    batch = torch.randn(3, 7, 4, generator=gen(10), dtype=D64)
+    assert term.residual(ev(q=batch)).shape == (3, 6 * 4 + 5 * 4)
+    assert term.energy(ev(q=batch)).shape == (3,)
+
+
+def test_smoothness_none_sigmas_and_dof_scale():
+    q = torch.randn(2, 5, 3, generator=gen(11), dtype=D64)
+    nothing = Smoothness(dt=0.1)
+    assert nothing.residual(ev(q=q)).shape == (2, 0)
+    assert (nothing.energy(ev(q=q)) == 0).all()
+    scaled = Smoothness(dt=0.1, sigma_velocity=1.0, dof_scale=torch.tensor([0.0, 2.0, 0.0]))
+    plain = Smoothness(dt=0.1, sigma_velocity=1.0)
+    torch.testing.assert_close(scaled.energy(ev(q=q)), 4 * plain.energy(ev(q=q[..., 1:2])))
+
+
+def test_smoothness_on_joints():
+    joints = torch.randn(2, 4, 5, 3, generator=gen(12), dtype=D64)
+    term = Smoothness(dt=1 / 30, sigma_velocity=1.0, sigma_acceleration=1.0, on="joints",
+                      dof_scale=torch.ones(5))
+    assert term.energy(ev(joints=joints)).shape == (2,)
+    still = joints[:, :1].expand(2, 4, 5, 3)
+    assert (term.energy(ev(joints=still)) == 0).all()
+
+
+def test_smoothness_gradcheck():
+    term = Smoothness(dt=0.2, sigma_velocity=0.5, sigma_acceleration=2.0,
+                      dof_scale=torch.tensor([1.0, 0.3]))
+    q = torch.randn(2, 5, 2, generator=gen(13), dtype=D64, requires_grad=True)
+    assert gradcheck(lambda x: term.energy(ev(q=x)), (q,))
+
+
+def test_smoothness_input_errors():
+    with pytest.raises(InputError, match="dt"):
+        Smoothness(dt=0.0, sigma_velocity=1.0)
+    with pytest.raises(InputError, match="sigma_acceleration"):
+        Smoothness(dt=0.1, sigma_acceleration=-1.0)
+    with pytest.raises(InputError, match="on"):
+        Smoothness(dt=0.1, on="pixels")
+    with pytest.raises(InputError, match="dof_scale"):
+        term = Smoothness(dt=0.1, sigma_velocity=1.0, dof_scale=torch.ones(4))
+        term.energy(ev(q=torch.zeros(3, 2)))
+
+
+# ---------------------------------------------------------------- keyframes
+
+
+def spd(d, seed):
+    a = torch.randn(d, d, generator=gen(seed), dtype=D64)
+    return a @ a.T + d * torch.eye(d, dtype=D64)
+
+
+def test_keyframe_full_covariance_matches_mahalanobis():
+    cov = spd(3, 14)
+    target = torch.randn(2, 3, generator=gen(15), dtype=D64)
+    q = torch.randn(5, 3, generator=gen(16), dtype=D64)
+    term = Keyframe(torch.tensor([1, 4]), target, cov)
+    e = q[[1, 4]] - target
+    expected = 0.5 * torch.einsum("fi,ij,fj->", e, torch.linalg.inv(cov), e)
+    torch.testing.assert_close(term.energy(ev(q=q)), expected)
+
+
+def test_keyframe_partial_full_covariance_uses_sub_block():
+    covs = torch.stack([spd(4, 17), spd(4, 18)])
+    target = torch.randn(2, 4, generator=gen(19), dtype=D64)
+    mask = torch.tensor([[True, False, True, True], [False, True, False, False]])
+    target[~mask] = float("nan")
+    q = torch.randn(3, 6, 4, generator=gen(20), dtype=D64)
+    term = Keyframe(torch.tensor([0, 5]), target, covs, mask=mask)
+    r = term.residual(ev(q=q))
+    assert r.shape == (3, 8)
+    expected = torch.zeros(3, dtype=D64)
+    for j, t in enumerate((0, 5)):
+        keep = mask[j]
+        e = q[:, t, keep] - target[j, keep]
+        sub = covs[j][keep][:, keep]
+        expected += 0.5 * torch.einsum("ni,ij,nj->n", e, torch.linalg.inv(sub), e)
+    torch.testing.assert_close(term.energy(ev(q=q)), expected)
+    assert (r.reshape(3, 2, 4)[:, ~mask] == 0).all()
+
+
+def test_keyframe_partial_diagonal_and_forms_agree():
+    var = torch.tensor([0.5, 2.0, 0.1], dtype=D64)
+    target = torch.tensor([[1.0, float("nan"), 3.0], [0.0, 1.0, 0.0]], dtype=D64)
+    mask = torch.tensor([[True, False, True], [True, True, True]])
+    q = torch.randn(4, 3, generator=gen(21), dtype=D64)
+    e = q[[0, 2]] - torch.nan_to_num(target)
+    expected = 0.5 * ((e**2 / var) * mask).sum()
+    forms = [var, var.expand(2, 3).clone(), torch.diag(var), torch.diag_embed(var.expand(2, 3))]
+    for cov in forms:
+        term = Keyframe(torch.tensor([0, 2]), target, cov, mask=mask)
+        torch.testing.assert_close(term.energy(ev(q=q)), expected)
+    inf_var = torch.tensor([[0.5, math.inf, 0.1], [0.5, 2.0, 0.1]], dtype=D64)
+    term = Keyframe(torch.tensor([0, 2]), torch.nan_to_num(target), inf_var)
+    torch.testing.assert_close(term.energy(ev(q=q)), expected)
+
+
+def test_keyframe_ambiguous_square_covariance():
+    target = torch.zeros(2, 2)
+    with pytest.raises(InputError, match="ambiguous"):
+        Keyframe(torch.tensor([0, 1]), target, torch.eye(2))
+    q = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=D64)
+    var = torch.tensor([[4.0, 1.0], [1.0, 1.0]])
+    diag = Keyframe(torch.tensor([0, 1]), target, var, diagonal=True)
+    torch.testing.assert_close(diag.energy(ev(q=q)), torch.tensor(0.5 * (0.25 + 1.0), dtype=D64))
+
+
+def test_keyframe_gradcheck_and_batch():
+    cov = spd(3, 22)
+    mask = torch.tensor([[True, True, False], [True, True, True]])
+    term = Keyframe(torch.tensor([2, 0]), torch.randn(2, 3, generator=gen(23)), cov, mask=mask)
+    q = torch.randn(2, 4, 3, generator=gen(24), dtype=D64, requires_grad=True)
+    assert term.energy(ev(q=q)).shape == (2,)
+    assert gradcheck(lambda x: term.energy(ev(q=x)), (q,))
+
+
+def test_keyframe_input_errors():
+    with pytest.raises(InputError, match="positive definite"):
+        Keyframe(torch.tensor([0]), torch.zeros(1, 2), torch.tensor([[1.0, 2.0], [2.0, 1.0]]))
+    with pytest.raises(InputError, match="times"):
+        Keyframe(torch.tensor([-1]), torch.zeros(1, 2), torch.ones(2))
+    with pytest.raises(InputError, match="times"):
+        Keyframe(torch.tensor([0.5]), torch.zeros(1, 2), torch.ones(2))
+    with pytest.raises(InputError, match="NaN"):
+        Keyframe(torch.tensor([0]), torch.full((1, 2), float("nan")), torch.ones(2))
+    with pytest.raises(InputError, match="covariance"):
+        Keyframe(torch.tensor([0]), torch.zeros(1, 2), torch.ones(3))
+    with pytest.raises(InputError, match="mask"):
+        Keyframe(torch.tensor([0]), torch.zeros(1, 2), torch.ones(2),
+                 mask=torch.ones(1, 3, dtype=torch.bool))
+    term = Keyframe(torch.tensor([7]), torch.zeros(1, 2), torch.ones(2))
+    with pytest.raises(InputError, match="keyframe time 7"):
+        term.energy(ev(q=torch.zeros(5, 2)))
+
+
+def test_joint_keyframe_hand_computed_and_gradcheck():
+    target = torch.zeros(2, 3, 3, dtype=D64)
+    target[0, 1] = float("nan")
+    mask = torch.tensor([[True, False, True], [True, True, True]])
+    term = JointKeyframe(torch.tensor([1, 3]), target, mask, sigma_m=0.1)
+    joints = torch.randn(2, 4, 3, 3, generator=gen(25), dtype=D64, requires_grad=True)
+    energy = term.energy(ev(joints=joints))
+    expected = (0.5 * ((joints[:, 1, [0, 2]] / 0.1) ** 2).sum((-1, -2))
+                + 0.5 * ((joints[:, 3] / 0.1) ** 2).sum((-1, -2)))
+    torch.testing.assert_close(energy, expected)
+    assert term.residual(ev(joints=joints)).shape == (2, 18)
+    assert gradcheck(lambda x: term.energy(ev(joints=x)), (joints,))
+    with pytest.raises(InputError, match="target_joints"):
+        JointKeyframe(torch.tensor([0]), torch.zeros(1, 3, 2))
+    with pytest.raises(InputError, match="sigma_m"):
+        JointKeyframe(torch.tensor([0]), torch.zeros(1, 3, 3), sigma_m=0.0)
+
+
+# ---------------------------------------------------------------- silhouette
+
+
+def box_mask(h=20, w=24):
+    m = torch.zeros(h, w, dtype=torch.bool)
+    m[5:15, 6:14] = True
+    return m
+
+
+def test_distance_transform_matches_scipy():
+    g = gen(26)
+    masks = torch.rand(3, 17, 23, generator=g) > 0.93
+    masks[1] = False
+    masks[1, 4, 9] = True
+    got = distance_transform(masks)
+    for m, d in zip(masks, got):
+        np.testing.assert_allclose(d.numpy(), distance_transform_edt(~m.numpy()), atol=1e-12)
+    assert torch.isinf(distance_transform(torch.zeros(4, 5, dtype=torch.bool))).all()
+
+
+def test_silhouette_zero_inside():
+    term = Silhouette(box_mask(), bones=((0, 1), (1, 2)), sigma_px=2.0)
+    jp = torch.tensor([[7.0, 6.0], [10.0, 10.0], [12.5, 13.0]], dtype=D64)
+    assert term.residual(ev(joint_pixels=jp)).shape == (16,)
+    assert term.energy(ev(joint_pixels=jp)) == 0
+
+
+def test_silhouette_outside_positive_and_pulls_inward():
+    term = Silhouette(box_mask(), bones=((0, 1),), sigma_px=2.0, samples_per_bone=5)
+    jp = torch.tensor([[17.0, 8.0], [19.0, 12.0]], dtype=D64, requires_grad=True)
+    energy = term.energy(ev(joint_pixels=jp))
+    (g,) = torch.autograd.grad(energy, jp)
+    assert energy > 0
+    assert (g[:, 0] > 0).all()  # descent (-g) moves both joints left, towards the box
+    assert g[:, 1].abs().max() < 1e-9
+    # a sample at the parent joint (17, 8) is 4 px right of the box edge at column 13
+    torch.testing.assert_close(term.residual(ev(joint_pixels=jp))[0], torch.tensor(2.0, dtype=D64))
+
+
+def test_silhouette_outside_image_still_pulls_inward():
+    term = Silhouette(box_mask(), bones=((0, 1),))
+    jp = torch.tensor([[-10.0, 10.0], [-30.0, 10.0]], dtype=D64, requires_grad=True)
+    energy = term.energy(ev(joint_pixels=jp))
+    (g,) = torch.autograd.grad(energy, jp)
+    assert torch.isfinite(energy) and energy > 0
+    assert (g[:, 0] < 0).all()
+    torch.testing.assert_close(term.residual(ev(joint_pixels=jp))[0], torch.tensor(16.0, dtype=D64))
+
+
+def test_silhouette_trajectory_batch_and_empty_frame():
+    masks = torch.stack([box_mask(), torch.zeros(20, 24, dtype=torch.bool), box_mask()])
+    term = Silhouette(masks, bones=((0, 1), (0, 2)), samples_per_bone=4, loss="cauchy")
+    size = torch.tensor([24.0, 20.0], dtype=D64)
+    jp = torch.rand(5, 3, 3, 2, generator=gen(27), dtype=D64) * size
+    r = term.residual(ev(joint_pixels=jp))
+    assert r.shape == (5, 3 * 2 * 4)
+    assert term.energy(ev(joint_pixels=jp)).shape == (5,)
+    assert (r.reshape(5, 3, 8)[:, 1] == 0).all()
+    single = Silhouette(box_mask(), bones=((0, 1), (0, 2)), samples_per_bone=4, loss="cauchy")
+    torch.testing.assert_close(r.reshape(5, 3, 8)[:, 2], single.residual(ev(joint_pixels=jp[:, 2])))
+
+
+def test_silhouette_gradcheck():
+    term = Silhouette(box_mask(), bones=((0, 1), (1, 2)), samples_per_bone=3, loss="huber",
+                      scale=2.0)
+    jp = torch.tensor([[[18.3, 7.7], [9.2, 3.1]], [[-2.6, 8.4], [11.1, 17.8]]], dtype=D64)
+    third = torch.tensor([[[20.45, 16.2]], [[4.15, 9.35]]], dtype=D64)
+    jp = torch.cat([jp, third], dim=1).requires_grad_()
+    assert gradcheck(lambda x: term.energy(ev(joint_pixels=x)), (jp,))
+
+
+def test_silhouette_input_errors():
+    with pytest.raises(InputError, match="joint_pixels"):
+        Silhouette(box_mask(), bones=((0, 1),)).energy(ev())
+    with pytest.raises(InputError, match="masks"):
+        Silhouette(box_mask().float(), bones=((0, 1),))
+    with pytest.raises(InputError, match="bones"):
+        Silhouette(box_mask(), bones=())
+    with pytest.raises(InputError, match="samples_per_bone"):
+        Silhouette(box_mask(), bones=((0, 1),), samples_per_bone=1)
+    with pytest.raises(InputError, match="J >"):
+        Silhouette(box_mask(), bones=((0, 4),)).energy(ev(joint_pixels=torch.zeros(3, 2)))
+
+
+# ---------------------------------------------------------------- objective
+
+
+def trajectory_objective(weights=None):
+    obs = torch.rand(4, 3, 2, generator=gen(28), dtype=D64) * 10
+    terms = {
+        "reprojection": Reprojection(obs, torch.ones(4, 3), sigma_px=2.0, loss="cauchy"),
+        "limits": JointLimits(-torch.ones(2), torch.ones(2), sigma=0.5, time_axis=True),
+        "smooth": Smoothness(dt=0.1, sigma_velocity=5.0, sigma_acceleration=50.0),
+        "keyframe": Keyframe(torch.tensor([0]), torch.zeros(1, 2), torch.tensor([0.1, 0.2])),
+    }
+    return Objective(terms, weights)
+
+
+def trajectory_eval(n=3, requires_grad=False):
+    q = torch.randn(n, 4, 2, generator=gen(29), dtype=D64) * 1.5
+    pix = torch.rand(n, 4, 3, 2, generator=gen(30), dtype=D64) * 10
+    return q.requires_grad_(requires_grad), pix.requires_grad_(requires_grad)
+
+
+def test_objective_breakdown_sums_to_total_and_applies_weights():
+    q, pix = trajectory_eval()
+    plain = trajectory_objective()
+    weighted = trajectory_objective({"limits": 3.0, "smooth": 0.0})
+    e = ev(q=q, pixels=pix)
+    value = weighted(e)
+    assert isinstance(value, ObjectiveValue) and value.total.shape == (3,)
+    assert set(value.terms) == {"reprojection", "limits", "smooth", "keyframe"}
+    torch.testing.assert_close(sum(value.terms.values()), value.total)
+    base = plain(e).terms
+    torch.testing.assert_close(value.terms["limits"], 3.0 * base["limits"])
+    assert (value.terms["smooth"] == 0).all()
+    torch.testing.assert_close(value.terms["reprojection"], plain.terms["reprojection"].energy(e))
+
+
+def test_objective_residuals_and_robust_weights():
+    q, pix = trajectory_eval()
+    obj = trajectory_objective({"keyframe": 4.0})
+    e = ev(q=q, pixels=pix)
+    r, w = obj.residuals(e), obj.robust_weights(e)
+    assert r.shape == w.shape == (3, 24 + 8 + 6 + 4 + 2)
+    assert ((w > 0) & (w <= 1)).all()
+    # least-squares terms: 0.5 |sqrt(w) r|^2 is their weighted energy
+    priors = {k: v for k, v in obj.terms.items() if k != "reprojection"}
+    least_squares = Objective(priors, {"keyframe": 4.0})
+    half_square = 0.5 * least_squares.residuals(e).square().sum(-1)
+    torch.testing.assert_close(half_square, least_squares(e).total)
+    # IRLS weights give the exact gradient of the robust total: J^T W r
+    q2, pix2 = trajectory_eval(requires_grad=True)
+    e2 = ev(q=q2, pixels=pix2)
+    (g,) = torch.autograd.grad(obj(e2).total.sum(), pix2)
+    rr = obj.residuals(e2)
+    irls = (rr * obj.robust_weights(e2).detach() * rr.detach()).sum()
+    (g_irls,) = torch.autograd.grad(irls, pix2)
+    torch.testing.assert_close(g, g_irls)
+
+
+def test_objective_gradcheck():
+    obj = trajectory_objective({"limits": 2.0})
+    q, pix = trajectory_eval(n=2, requires_grad=True)
+    assert gradcheck(lambda a, b: obj(ev(q=a, pixels=b)).total, (q, pix))
+
+
+def test_objective_input_errors():
+    with pytest.raises(InputError, match="bogus"):
+        trajectory_objective({"bogus": 1.0})
+    with pytest.raises(InputError, match="limits"):
+        trajectory_objective({"limits": -1.0})
+    with pytest.raises(InputError, match="at least one"):
+        Objective({})
+    with pytest.raises(InputError, match="not a cost term"):
+        Objective({"x": 3.0})
+    mixed = Objective({"frame_limits": JointLimits(-torch.ones(2), torch.ones(2)),
+                       "smooth": Smoothness(dt=0.1, sigma_velocity=1.0)})
+    with pytest.raises(InputError, match="batch shape"):
+        mixed(ev(q=torch.zeros(3, 4, 2, dtype=D64)))
