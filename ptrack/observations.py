@@ -1,0 +1,470 @@
+"""2D observations of a moving skeleton, and the lossy channel that produces them from 3D joints.
+
+The channel follows DiFranco, Cham & Rehg (2001), section 2: the true 3D states go through noise,
+perspective projection and deletion. `simulate_observations` projects world joints with a `Camera`,
+adds Gaussian pixel noise, then deletes keypoints at random, in contiguous occlusion bursts and in
+whole dropped frames, and finally replaces some of the kept keypoints with gross outliers (random
+displacements or left/right swaps) that still carry confidence 1, as a real detector's would.
+
+`Observations` is the record every estimator consumes; users bring their own 2D detections as a
+plain ``.npz`` archive (numpy arrays, no pickles) with these keys:
+
+    keypoints       float (T, K, 2)  pixels (u right, v down); may be NaN where confidence is 0
+    confidence      float (T, K)     in [0, 1]; 0 = missing
+    times           float (T,)       seconds, strictly increasing
+    keypoint_names  str   (K,)
+    camera          str   ()         JSON of `Camera.to_dict()`: {"K", "R", "t", "width", "height"}
+      or the arrays K (3, 3), R (3, 3), t (3,), width (), height () instead of `camera`
+    masks           bool  (T, H, W)  optional silhouettes (any integer dtype: nonzero = foreground)
+
+`load_npz(path, camera=...)` may supply the camera instead of the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ptrack.camera import Camera
+from ptrack.errors import InputError
+
+
+def _float_tensor(value: Any, name: str, like: Tensor | None = None) -> Tensor:
+    try:
+        x = torch.as_tensor(value)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise InputError(f"{name} is not numeric: {e}") from e
+    if x.dtype == torch.bool or x.is_complex():
+        raise InputError(f"{name} must be real numbers, got dtype {x.dtype}")
+    if like is not None:
+        return x.to(dtype=like.dtype, device=like.device)
+    return x if x.is_floating_point() else x.to(torch.get_default_dtype())
+
+
+@dataclass(frozen=True, eq=False)
+class Observations:
+    """2D keypoint observations of one camera over T observation frames.
+
+    keypoints: (T, K, 2) pixels; entries with confidence 0 may hold anything, NaN included.
+    confidence: (T, K) in [0, 1], 0 = missing; converted to keypoints' dtype and device.
+    times: (T,) seconds, strictly increasing (a reconstruction may have more frames than this).
+    camera: the `Camera`, cast to keypoints' dtype and device.
+    keypoint_names: (K,) names.
+    masks: optional (T, H, W) bool silhouettes with H, W = camera.height, camera.width.
+
+    Array-likes are converted to tensors. Inconsistent shapes, non-finite visible keypoints,
+    confidence outside [0, 1], non-increasing times and all-zero confidence raise `InputError`.
+    """
+
+    keypoints: Tensor
+    confidence: Tensor
+    times: Tensor
+    camera: Camera
+    keypoint_names: tuple[str, ...]
+    masks: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        kp = _float_tensor(self.keypoints, "Observations.keypoints")
+        if kp.ndim != 3 or kp.shape[-1] != 2:
+            raise InputError(f"Observations.keypoints must have shape (T, K, 2), got {tuple(kp.shape)}")
+        T, K = kp.shape[:2]
+        if T == 0 or K == 0:
+            raise InputError(f"Observations.keypoints is empty, shape {tuple(kp.shape)}")
+        conf = _float_tensor(self.confidence, "Observations.confidence", like=kp)
+        if tuple(conf.shape) != (T, K):
+            raise InputError(
+                f"Observations.confidence must have shape (T, K) = {(T, K)} to match keypoints "
+                f"{tuple(kp.shape)}, got {tuple(conf.shape)}"
+            )
+        times = _float_tensor(self.times, "Observations.times", like=kp)
+        if tuple(times.shape) != (T,):
+            raise InputError(
+                f"Observations.times must have shape (T,) = {(T,)}, got {tuple(times.shape)}"
+            )
+        if not isinstance(self.camera, Camera):
+            raise InputError(f"Observations.camera must be a Camera, got {type(self.camera).__name__}")
+        names = self.keypoint_names
+        if isinstance(names, str) or not all(isinstance(n, str) for n in names):
+            raise InputError(f"Observations.keypoint_names must be a sequence of strings, got {names!r}")
+        names = tuple(names)
+        if len(names) != K:
+            raise InputError(f"Observations.keypoint_names must have K = {K} names, got {len(names)}")
+        with torch.no_grad():
+            if not bool(((conf >= 0) & (conf <= 1)).all()):
+                raise InputError("Observations.confidence has values outside [0, 1] (or NaN)")
+            seen = conf > 0
+            if not bool(seen.any()):
+                raise InputError(
+                    "Observations: the camera sees none of the keypoints (all confidence 0)"
+                )
+            bad = seen & ~torch.isfinite(kp).all(dim=-1)
+            if bool(bad.any()):
+                t, k = (int(i) for i in bad.nonzero()[0])
+                raise InputError(
+                    f"Observations.keypoints has NaN/inf where confidence > 0, first at frame {t}, "
+                    f"keypoint {k} ({names[k]!r})"
+                )
+            if not bool(torch.isfinite(times).all()):
+                raise InputError("Observations.times has non-finite values")
+            if T > 1 and not bool((times[1:] > times[:-1]).all()):
+                t = int((times[1:] <= times[:-1]).nonzero()[0])
+                raise InputError(
+                    f"Observations.times must be strictly increasing, got {float(times[t])} then "
+                    f"{float(times[t + 1])} at frames {t}, {t + 1}"
+                )
+        masks = self.masks
+        if masks is not None:
+            masks = torch.as_tensor(masks, device=kp.device)
+            expected = (T, self.camera.height, self.camera.width)
+            if tuple(masks.shape) != expected:
+                raise InputError(
+                    f"Observations.masks must have shape (T, H, W) = {expected} (camera "
+                    f"{self.camera.width}x{self.camera.height}), got {tuple(masks.shape)}"
+                )
+            if masks.dtype != torch.bool:
+                raise InputError(f"Observations.masks must be bool, got {masks.dtype}")
+        object.__setattr__(self, "keypoints", kp)
+        object.__setattr__(self, "confidence", conf)
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "camera", self.camera.to(kp.device, kp.dtype))
+        object.__setattr__(self, "keypoint_names", names)
+        object.__setattr__(self, "masks", masks)
+
+    @property
+    def num_frames(self) -> int:
+        return self.keypoints.shape[0]
+
+    @property
+    def num_keypoints(self) -> int:
+        return self.keypoints.shape[1]
+
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> Observations:
+        """A copy on ``device`` with floating tensors (and the camera) cast to ``dtype``."""
+        masks = None if self.masks is None else self.masks.to(device)
+        return Observations(
+            keypoints=self.keypoints.to(device=device, dtype=dtype),
+            confidence=self.confidence.to(device=device, dtype=dtype),
+            times=self.times.to(device=device, dtype=dtype),
+            camera=self.camera,
+            keypoint_names=self.keypoint_names,
+            masks=masks,
+        )
+
+    def save_npz(self, path: str | Path) -> None:
+        """Write the layout described in the module docstring (compressed, exactly at ``path``)."""
+        arrays = {
+            "keypoints": self.keypoints.detach().cpu().numpy(),
+            "confidence": self.confidence.detach().cpu().numpy(),
+            "times": self.times.detach().cpu().numpy(),
+            "keypoint_names": np.array(self.keypoint_names, dtype=str),
+            "camera": np.array(json.dumps(self.camera.to_dict())),
+        }
+        if self.masks is not None:
+            arrays["masks"] = self.masks.cpu().numpy()
+        with open(path, "wb") as f:
+            np.savez_compressed(f, **arrays)
+
+    @classmethod
+    def load_npz(cls, path: str | Path, camera: Camera | None = None) -> Observations:
+        """Read the layout described in the module docstring; ``camera`` overrides the file's.
+
+        Float arrays keep their dtype (float16 and integers become float32). A missing file, a
+        missing key or a wrong dtype/shape raises `InputError` naming the file and key.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"observation file not found: {path}")
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            raise InputError(f"{path}: cannot read as an .npz archive without pickles ({e})") from e
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise InputError(f"{path}: not an .npz archive (a single .npy array?)")
+        with data:
+            try:
+                arrays = {key: data[key] for key in data.files}
+            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+                raise InputError(f"{path}: cannot read an array ({e})") from e
+
+        def need(key: str) -> np.ndarray:
+            if key not in arrays:
+                raise InputError(f"{path}: missing key {key!r} (has {sorted(arrays)})")
+            return arrays[key]
+
+        def numeric(key: str) -> np.ndarray:
+            a = need(key)
+            if a.dtype.kind not in "fiu":
+                raise InputError(f"{path}: key {key!r} must be a numeric array, got dtype {a.dtype}")
+            return a if a.dtype in (np.float32, np.float64) else a.astype(np.float32)
+
+        kp = torch.from_numpy(numeric("keypoints"))
+        names = need("keypoint_names")
+        if names.dtype.kind not in "US" or names.ndim != 1:
+            raise InputError(
+                f"{path}: key 'keypoint_names' must be a 1-D string array, got dtype {names.dtype} "
+                f"shape {names.shape}"
+            )
+        names = tuple(n.decode() if isinstance(n, bytes) else str(n) for n in names.tolist())
+        if camera is None:
+            camera = _camera_from_arrays(arrays, path)
+        masks = arrays.get("masks")
+        if masks is not None:
+            if masks.dtype.kind not in "biu":
+                raise InputError(f"{path}: key 'masks' must be bool or integer, got dtype {masks.dtype}")
+            masks = torch.from_numpy(masks != 0)
+        try:
+            return cls(
+                keypoints=kp,
+                confidence=torch.from_numpy(numeric("confidence")),
+                times=torch.from_numpy(numeric("times")),
+                camera=camera,
+                keypoint_names=names,
+                masks=masks,
+            )
+        except InputError as e:
+            raise InputError(f"{path}: {e}") from None
+
+
+def _camera_from_arrays(arrays: dict[str, np.ndarray], path: Path) -> Camera:
+    try:
+        if "camera" in arrays:
+            text = arrays["camera"]
+            if text.dtype.kind not in "US" or text.ndim != 0:
+                raise InputError(
+                    f"key 'camera' must be a JSON string, got dtype {text.dtype} shape {text.shape}"
+                )
+            try:
+                d = json.loads(str(text.item().decode() if text.dtype.kind == "S" else text.item()))
+            except json.JSONDecodeError as e:
+                raise InputError(f"key 'camera' is not valid JSON ({e})") from None
+            return Camera.from_dict(d, dtype=torch.float64)
+        missing = [k for k in ("K", "R", "t", "width", "height") if k not in arrays]
+        if missing:
+            raise InputError(
+                f"no key 'camera' and missing camera keys {missing} (pass camera= to load_npz)"
+            )
+        size = {}
+        for key in ("width", "height"):
+            a = arrays[key]
+            if a.dtype.kind not in "iu" or a.size != 1:
+                raise InputError(f"key {key!r} must be one integer, got dtype {a.dtype} shape {a.shape}")
+            size[key] = int(a.reshape(()))
+        mats = {}
+        for key in ("K", "R", "t"):
+            if arrays[key].dtype.kind not in "fiu":
+                raise InputError(f"key {key!r} must be numeric, got dtype {arrays[key].dtype}")
+            mats[key] = torch.from_numpy(arrays[key].astype(np.float64))
+        return Camera(**mats, **size)
+    except InputError as e:
+        raise InputError(f"{path}: {e}") from None
+
+
+@dataclass(frozen=True)
+class ChannelConfig:
+    """Parameters of the lossy channel (noise, projection, deletion, outliers). Rates are per
+    (frame, keypoint) entry unless stated; burst and frame counts are in observation frames."""
+
+    noise_px: float = 2.0  # std of Gaussian pixel noise
+    missing: float = 0.0  # fraction of keypoints deleted at random, independently, in [0, 1)
+    occlusion_bursts: float = 0.0  # expected contiguous occlusion bursts per keypoint per second
+    burst_frames: tuple[int, int] = (5, 20)  # burst length range (inclusive), observation frames
+    dropped_frames: float = 0.0  # fraction of whole frames dropped, in [0, 1)
+    outliers: float = 0.0  # fraction of kept keypoints replaced by gross outliers, in [0, 1]
+    outlier_px: float = 50.0  # displacement scale: magnitude ~ U(0.5, 1.5) * outlier_px
+    swap_fraction: float = 0.5  # share of outliers that take their left/right partner's position
+
+    def __post_init__(self) -> None:
+        def number(name: str, lo: float, hi: float, hi_open: bool = False) -> None:
+            v = getattr(self, name)
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            ok = ok and lo <= v and (v < hi if hi_open else v <= hi)
+            if not ok:
+                bracket = ")" if hi_open else "]"
+                raise InputError(
+                    f"ChannelConfig.{name} must be a number in [{lo}, {hi}{bracket}, got {v!r}"
+                )
+
+        number("noise_px", 0.0, math.inf, hi_open=True)
+        number("missing", 0.0, 1.0, hi_open=True)
+        number("occlusion_bursts", 0.0, math.inf, hi_open=True)
+        number("dropped_frames", 0.0, 1.0, hi_open=True)
+        number("outliers", 0.0, 1.0)
+        number("outlier_px", 0.0, math.inf, hi_open=True)
+        number("swap_fraction", 0.0, 1.0)
+        b = self.burst_frames
+        if (
+            isinstance(b, str)
+            or not isinstance(b, Sequence)
+            or len(b) != 2
+            or not all(isinstance(x, int) and not isinstance(x, bool) for x in b)
+            or not 1 <= b[0] <= b[1]
+        ):
+            raise InputError(f"ChannelConfig.burst_frames must be two integers 1 <= lo <= hi, got {b!r}")
+        object.__setattr__(self, "burst_frames", (int(b[0]), int(b[1])))
+
+
+class SimulationInfo(NamedTuple):
+    """What the channel did, for tests and metrics (not carried by estimators).
+
+    projected: (T, K, 2) exact projections (no noise).   visible: (T, K) in front and in the image.
+    deleted: (T, K) random deletions.   occluded: (T, K) occlusion bursts.   dropped: (T,) frames.
+    outlier_mask: (T, K) kept keypoints replaced by outliers.   swapped: (T, K) the subset of
+    outlier_mask that took the left/right partner's position.
+    """
+
+    projected: Tensor
+    visible: Tensor
+    deleted: Tensor
+    occluded: Tensor
+    dropped: Tensor
+    outlier_mask: Tensor
+    swapped: Tensor
+
+
+def _rand(
+    shape: tuple[int, ...], generator: torch.Generator, like: Tensor, normal: bool = False
+) -> Tensor:
+    """Uniform [0, 1) or standard normal draws on the generator's device, moved to ``like``."""
+    draw = torch.randn if normal else torch.rand
+    x = draw(shape, generator=generator, device=generator.device, dtype=like.dtype)
+    return x.to(like.device)
+
+
+def _partners(swap_pairs: Sequence[tuple[int, int]], K: int) -> list[int]:
+    partner = [-1] * K
+    for pair in swap_pairs:
+        if len(pair) != 2 or not all(isinstance(i, (int, np.integer)) for i in pair):
+            raise InputError(f"swap_pairs: each pair must be two keypoint indices, got {pair!r}")
+        a, b = int(pair[0]), int(pair[1])
+        if not (0 <= a < K and 0 <= b < K) or a == b:
+            raise InputError(f"swap_pairs: pair {pair!r} must be two distinct indices in [0, {K})")
+        if partner[a] >= 0 or partner[b] >= 0:
+            raise InputError(f"swap_pairs: pair {pair!r} reuses a keypoint that is already paired")
+        partner[a], partner[b] = b, a
+    return partner
+
+
+def _bursts(
+    T: int, K: int, rate: float, frames: tuple[int, int], generator: torch.Generator, like: Tensor
+) -> Tensor:
+    """(T, K) bool: a Poisson(rate) number of bursts per keypoint, uniform starts and lengths."""
+    if rate <= 0.0:
+        return torch.zeros(T, K, dtype=torch.bool, device=like.device)
+    rates = torch.full((K,), rate, dtype=torch.float64, device=generator.device)
+    counts = torch.poisson(rates, generator=generator).to(like.device)
+    M = int(counts.max())
+    if M == 0:
+        return torch.zeros(T, K, dtype=torch.bool, device=like.device)
+    lo, hi = frames
+    starts = (_rand((K, M), generator, like.double()) * T).floor()
+    lengths = lo + (_rand((K, M), generator, like.double()) * (hi - lo + 1)).floor()
+    used = torch.arange(M, device=like.device) < counts[:, None]  # (K, M)
+    f = torch.arange(T, device=like.device, dtype=torch.float64)[:, None, None]  # (T, 1, 1)
+    inside = (f >= starts) & (f < starts + lengths) & used
+    return inside.any(dim=-1)
+
+
+def simulate_observations(
+    joints: Tensor,
+    keypoint_index: Tensor | Sequence[int],
+    camera: Camera,
+    times: Tensor,
+    channel: ChannelConfig,
+    generator: torch.Generator,
+    keypoint_names: Sequence[str],
+    swap_pairs: Sequence[tuple[int, int]] = (),
+    masks: Tensor | None = None,
+) -> tuple[Observations, SimulationInfo]:
+    """Pass world joints through the lossy channel: project, add noise, delete, add outliers.
+
+    joints: (T, J, 3) world, metres.  keypoint_index: (K,) indices into J.  times: (T,) seconds.
+    keypoint_names: (K,).  swap_pairs: pairs of indices into K (e.g. left/right knee) whose
+    members swap positions for swap outliers.  masks: optional (T, H, W) bool, passed through.
+
+    Keypoints behind the camera or outside the image, deleted at random, in an occlusion burst or
+    in a dropped frame get confidence 0 and NaN pixels; the rest get confidence 1 and the noisy
+    projection (or an outlier). Every draw comes from ``generator`` (on any device), in a fixed
+    order, so the same seed gives the same observations and changing one rate leaves the other
+    draws unchanged. Returns (Observations in joints' dtype/device, SimulationInfo).
+    Raises `InputError` for bad shapes/indices and when the camera sees none of the keypoints.
+    """
+    joints = _float_tensor(joints, "simulate_observations: joints")
+    if joints.ndim != 3 or joints.shape[-1] != 3 or joints.shape[0] == 0:
+        raise InputError(
+            f"simulate_observations: joints must have shape (T, J, 3), got {tuple(joints.shape)}"
+        )
+    T, J, _ = joints.shape
+    index = torch.as_tensor(keypoint_index, device=joints.device)
+    if index.ndim != 1 or index.numel() == 0 or index.is_floating_point() or index.dtype == torch.bool:
+        raise InputError(
+            "simulate_observations: keypoint_index must be (K,) integers, "
+            f"got {index.dtype} {tuple(index.shape)}"
+        )
+    if bool(((index < 0) | (index >= J)).any()):
+        raise InputError(
+            f"simulate_observations: keypoint_index has values outside [0, {J}): {index.tolist()}"
+        )
+    K = index.shape[0]
+    times = _float_tensor(times, "simulate_observations: times", like=joints)
+    if tuple(times.shape) != (T,):
+        raise InputError(
+            f"simulate_observations: times must have shape (T,) = {(T,)}, got {tuple(times.shape)}"
+        )
+    if len(keypoint_names) != K:
+        raise InputError(
+            f"simulate_observations: keypoint_names must have K = {K} names, got {len(keypoint_names)}"
+        )
+    partner = torch.tensor(_partners(swap_pairs, K), device=joints.device)
+    cam = camera.to(joints.device, joints.dtype)
+
+    proj = cam.project(joints[:, index])
+    clean = proj.pixels  # (T, K, 2)
+    visible = proj.in_front & cam.in_image(clean)
+    if not bool(visible.any()):
+        raise InputError(
+            f"simulate_observations: the camera sees none of the keypoints (all {T}x{K} are behind "
+            f"the camera or outside its {cam.width}x{cam.height} image)"
+        )
+
+    noise = _rand((T, K, 2), generator, joints, normal=True) * channel.noise_px
+    deleted = _rand((T, K), generator, joints) < channel.missing
+    dropped = _rand((T,), generator, joints) < channel.dropped_frames
+    u_outlier = _rand((T, K), generator, joints)
+    u_swap = _rand((T, K), generator, joints)
+    angle = _rand((T, K), generator, joints) * (2 * math.pi)
+    magnitude = (0.5 + _rand((T, K), generator, joints)) * channel.outlier_px
+    span = float(times[-1] - times[0]) * T / (T - 1) if T > 1 else 0.0
+    occluded = _bursts(T, K, channel.occlusion_bursts * span, channel.burst_frames, generator, joints)
+
+    kept = visible & ~deleted & ~occluded & ~dropped[:, None]
+    noisy = clean + noise
+    outlier = kept & (u_outlier < channel.outliers)
+    has_partner = partner >= 0
+    safe_partner = partner.clamp_min(0)
+    partner_visible = visible[:, safe_partner] & has_partner
+    swapped = outlier & (u_swap < channel.swap_fraction) & partner_visible
+    displaced = noisy + magnitude[..., None] * torch.stack([angle.cos(), angle.sin()], dim=-1)
+    observed = torch.where(outlier[..., None], displaced, noisy)
+    observed = torch.where(swapped[..., None], noisy[:, safe_partner], observed)
+    keypoints = torch.where(kept[..., None], observed, torch.full_like(observed, math.nan))
+
+    obs = Observations(
+        keypoints=keypoints,
+        confidence=kept.to(joints.dtype),
+        times=times,
+        camera=cam,
+        keypoint_names=tuple(keypoint_names),
+        masks=masks,
+    )
+    info = SimulationInfo(clean, visible, deleted, occluded, dropped, outlier, swapped)
+    return obs, info
