@@ -1,0 +1,74 @@
+"""Command line: `ptrack run CONFIG [key=value ...]`, `ptrack evaluate CONFIG --clips LIST`,
+`ptrack replay RUN_DIR`.
+
+The only module that reads argv. User errors (`InputError`, missing files, bad YAML) print one
+line `ptrack: error: ...` and exit 2; anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from ptrack.errors import InputError
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="ptrack", description="3D human motion from a single camera.")
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="run a config: writes config.yaml, metrics.json, result.npz, run.rrd")
+    r.add_argument("config", help="YAML run config, e.g. configs/demo.yaml")
+    r.add_argument("overrides", nargs="*", help="dotted.key=value overrides, e.g. seed=3 data.stride=2")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    e = sub.add_parser("evaluate", help="run a config over several clips and write a markdown table")
+    e.add_argument("config")
+    e.add_argument("overrides", nargs="*", help="dotted.key=value overrides applied to every clip")
+    e.add_argument("--clips", required=True,
+                   help="AMC files: a comma-separated list, or a text file with one path per line "
+                        "(relative to that file); each clip's ASF is the .asf in the AMC's folder")
+    e.add_argument("--out", default=None, help="output folder (default logs/eval-<config>-<time>)")
+    e.add_argument("--quiet", action="store_true")
+    v = sub.add_parser("replay", help="open a run's recording in the rerun viewer")
+    v.add_argument("run_dir")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="ptrack: %(levelname)s: %(message)s")
+    try:
+        if args.command == "run":
+            from ptrack.config import load_config
+            from ptrack.run import execute
+
+            cfg = load_config(args.config, args.overrides)
+            out = execute(cfg, progress=False if args.quiet else None)
+            print(f"ptrack: wrote {out}")
+            print((out / "metrics.json").read_text(), end="")
+        elif args.command == "evaluate":
+            from ptrack.evaluate import evaluate
+
+            table = evaluate(args.config, args.clips, args.overrides, out=args.out, progress=not args.quiet)
+            print(f"ptrack: wrote {table}")
+            print(table.read_text(), end="")
+        elif args.command == "replay":
+            from ptrack.viz import open_viewer
+
+            path = Path(args.run_dir)
+            rrd = path / "run.rrd" if path.is_dir() else path
+            if not rrd.exists():
+                raise FileNotFoundError(f"no recording at {rrd} (give a run folder holding run.rrd)")
+            open_viewer(rrd)
+    except (InputError, FileNotFoundError, IsADirectoryError, NotADirectoryError) as e:
+        print(f"ptrack: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("ptrack: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

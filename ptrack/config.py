@@ -1,0 +1,297 @@
+"""Run configuration: frozen dataclasses hold every default; YAML files and `dotted.key=value`
+overrides replace them. Unknown keys and wrong types are `InputError`s naming the dotted key.
+
+Paths in a YAML file are relative to that file's folder; paths given as command-line overrides are
+relative to the working directory. Both are stored resolved (absolute) in the run's config.yaml.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Union
+
+import yaml
+
+from ptrack.errors import InputError
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    asf: str = ""  # ASF skeleton file
+    amc: str = ""  # AMC motion file (120 fps)
+    start: int = 0  # first AMC frame index (0-based) to reconstruct
+    stop: int | None = None  # one past the last frame index; null = to the end
+    stride: int = 4  # keep every stride-th frame (4: 120 -> 30 fps)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    distance_m: float = 5.0  # from the centre of the motion's bounding box
+    azimuth_deg: float = 30.0  # about world up, from +Z towards +X
+    elevation_deg: float = 10.0  # above the horizontal; positive looks down
+    focal_px: float = 1000.0
+    width: int = 640
+    height: int = 480
+
+
+@dataclass(frozen=True)
+class ObservationsConfig:
+    file: str | None = None  # npz of real 2D keypoints (Observations.save_npz layout); null = simulate
+    noise_px: float = 2.0  # Gaussian pixel noise std
+    missing: float = 0.0  # fraction of keypoints deleted at random
+    outliers: float = 0.0  # fraction of visible keypoints replaced by gross outliers
+    outlier_px: float = 50.0
+    swap_fraction: float = 0.5  # share of outliers that are left/right swaps
+    occlusion_bursts: float = 0.0  # expected bursts per keypoint per second
+    dropped_frames: float = 0.0  # fraction of whole frames dropped
+    silhouettes: bool = False  # render capsule-model silhouettes
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    # dofs held at zero (shell patterns on joint or dof names); the rest are estimated
+    freeze: tuple[str, ...] = ("*fingers", "*thumb", "*hand", "*toes")
+    # keypoint name -> skeleton joint; null = the H36M-17 set on CMU joints
+    keypoints: dict[str, str] | None = None
+
+
+@dataclass(frozen=True)
+class CostsConfig:
+    sigma_px: float = 2.0  # reprojection noise scale
+    loss: str = "cauchy"  # robust kernel: l2, huber, cauchy, geman_mcclure
+    robust_scale: float = 3.0  # kernel scale, in sigmas
+    limits_weight: float = 1.0
+    limits_sigma: float = 0.02  # radians
+    smooth_weight: float = 1.0
+    smooth_sigma: float = 0.15  # radians (or metres) per frame of allowed change
+
+
+@dataclass(frozen=True)
+class FrameMethodConfig:
+    init: str = "keyframe"  # "keyframe": first frame's 3D pose given (as a user keyframe); "rest": rest pose
+    iterations: int = 40  # L-BFGS iterations per frame
+    first_iterations: int = 200  # L-BFGS iterations on the first frame
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    method: str = "frame"
+    seed: int = 0
+    out_dir: str | None = None  # null = logs/<config-name>-<time>/
+    device: str = "cpu"
+    dtype: str = "float32"
+    progress: bool = True
+    data: DataConfig = field(default_factory=DataConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    observations: ObservationsConfig = field(default_factory=ObservationsConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    costs: CostsConfig = field(default_factory=CostsConfig)
+    frame: FrameMethodConfig = field(default_factory=FrameMethodConfig)
+    name: str = "run"  # config name, used for the default out_dir
+
+
+METHODS = ("frame",)
+_PATH_KEYS = {"data.asf", "data.amc", "observations.file", "out_dir"}
+
+
+def _check_type(key: str, value: Any, tp: Any) -> Any:
+    """Check (and lightly coerce: int -> float, list -> tuple) `value` against annotation `tp`."""
+    origin = typing.get_origin(tp)
+    if origin in (Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None:
+            if type(None) in args:
+                return None
+            raise InputError(f"config key {key!r} must not be null")
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _check_type(key, value, a)
+            except InputError as e:
+                errors.append(str(e))
+        raise errors[0] if len(errors) == 1 else InputError(f"config key {key!r} has the wrong type: got {value!r}")
+    if value is None:
+        raise InputError(f"config key {key!r} must not be null")
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise InputError(f"config key {key!r} must be true or false, got {value!r}")
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise InputError(f"config key {key!r} must be an integer, got {value!r}")
+    if tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise InputError(f"config key {key!r} must be a number, got {value!r}")
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        raise InputError(f"config key {key!r} must be a string, got {value!r}")
+    if origin is tuple:
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, (list, tuple)):
+            raise InputError(f"config key {key!r} must be a list, got {value!r}")
+        (inner, _) = typing.get_args(tp)
+        return tuple(_check_type(f"{key}[{i}]", v, inner) for i, v in enumerate(value))
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise InputError(f"config key {key!r} must be a mapping, got {value!r}")
+        kt, vt = typing.get_args(tp)
+        return {_check_type(f"{key} key", k, kt): _check_type(f"{key}.{k}", v, vt) for k, v in value.items()}
+    raise TypeError(f"unsupported config annotation {tp!r} for {key}")
+
+
+def _build(cls, raw: dict, prefix: str = ""):
+    if not isinstance(raw, dict):
+        raise InputError(f"config section {prefix.rstrip('.') or '(top level)'!r} must be a mapping, got {raw!r}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(raw) - names)
+    if unknown:
+        key = prefix + str(unknown[0])
+        raise InputError(f"unknown config key {key!r} (known keys here: {', '.join(sorted(names))})")
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in raw:
+            continue
+        key = prefix + f.name
+        tp = hints[f.name]
+        if dataclasses.is_dataclass(tp):
+            kwargs[f.name] = _build(tp, raw[f.name] if raw[f.name] is not None else {}, key + ".")
+        else:
+            kwargs[f.name] = _check_type(key, raw[f.name], tp)
+    return cls(**kwargs)
+
+
+def _set_dotted(raw: dict, key: str, value: Any) -> None:
+    parts = key.split(".")
+    node = raw
+    for p in parts[:-1]:
+        nxt = node.get(p)
+        if nxt is None:
+            nxt = node[p] = {}
+        if not isinstance(nxt, dict):
+            raise InputError(f"override {key!r}: {p!r} is not a section")
+        node = nxt
+    node[parts[-1]] = value
+
+
+def _get_dotted(raw: dict, key: str) -> Any:
+    node: Any = raw
+    for p in key.split("."):
+        if not isinstance(node, dict) or p not in node:
+            return None
+        node = node[p]
+    return node
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """`dotted.key=value` -> (key, YAML-parsed value)."""
+    if "=" not in text:
+        raise InputError(f"override {text!r} must look like dotted.key=value")
+    key, _, value = text.partition("=")
+    key = key.strip()
+    if not key or any(not p for p in key.split(".")):
+        raise InputError(f"override {text!r} has an empty key")
+    try:
+        return key, yaml.safe_load(value) if value.strip() else None
+    except yaml.YAMLError as e:
+        raise InputError(f"override {text!r}: value is not valid YAML ({e})") from None
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
+                cwd: str | Path | None = None) -> RunConfig:
+    """Read a YAML run config (or only defaults when `path` is None) and apply overrides."""
+    raw: dict = {}
+    base = Path(cwd or Path.cwd())
+    name = "run"
+    if path is not None:
+        p = Path(path)
+        if not p.exists():
+            raise FileNotFoundError(f"config file not found: {p}")
+        try:
+            loaded = yaml.safe_load(p.read_text(encoding="utf-8"))
+        except (yaml.YAMLError, UnicodeDecodeError) as e:
+            raise InputError(f"config file {p} is not valid YAML: {e}") from None
+        if loaded is None:
+            loaded = {}
+        if not isinstance(loaded, dict):
+            raise InputError(f"config file {p} must hold a mapping of keys, got {type(loaded).__name__}")
+        raw = loaded
+        name = p.stem
+        for key in _PATH_KEYS:
+            v = _get_dotted(raw, key)
+            if isinstance(v, str) and v:
+                _set_dotted(raw, key, str((p.resolve().parent / v).resolve()))
+    raw.setdefault("name", name)
+    for text in overrides:
+        key, value = parse_override(text)
+        if key in _PATH_KEYS and isinstance(value, str) and value:
+            value = str((base / value).resolve())
+        _set_dotted(raw, key, value)
+    cfg = _build(RunConfig, raw)
+    validate(cfg)
+    return cfg
+
+
+def validate(cfg: RunConfig) -> None:
+    """Value checks beyond types (InputError naming the key)."""
+    if cfg.method not in METHODS:
+        raise InputError(f"config key 'method' must be one of {', '.join(METHODS)}, got {cfg.method!r}")
+    for key in ("data.asf", "data.amc"):
+        if not _get_dotted(to_dict(cfg), key) and not (key == "data.amc" and cfg.observations.file):
+            raise InputError(f"config key {key!r} is required (path to the {key[-3:].upper()} file)")
+    d = cfg.data
+    if d.start < 0:
+        raise InputError(f"config key 'data.start' must be >= 0, got {d.start}")
+    if d.stop is not None and d.stop <= d.start:
+        raise InputError(f"config key 'data.stop' must be greater than data.start ({d.start}), got {d.stop}")
+    if d.stride < 1:
+        raise InputError(f"config key 'data.stride' must be >= 1, got {d.stride}")
+    c = cfg.camera
+    for k in ("distance_m", "focal_px"):
+        if getattr(c, k) <= 0:
+            raise InputError(f"config key 'camera.{k}' must be positive, got {getattr(c, k)}")
+    for k in ("width", "height"):
+        if getattr(c, k) <= 0:
+            raise InputError(f"config key 'camera.{k}' must be positive, got {getattr(c, k)}")
+    o = cfg.observations
+    if o.noise_px < 0:
+        raise InputError(f"config key 'observations.noise_px' must be >= 0, got {o.noise_px}")
+    for k in ("missing", "outliers", "swap_fraction", "dropped_frames"):
+        v = getattr(o, k)
+        if not 0.0 <= v <= 1.0:
+            raise InputError(f"config key 'observations.{k}' must be in [0, 1], got {v}")
+    if cfg.dtype not in ("float32", "float64"):
+        raise InputError(f"config key 'dtype' must be float32 or float64, got {cfg.dtype!r}")
+    if cfg.frame.init not in ("keyframe", "rest"):
+        raise InputError(f"config key 'frame.init' must be 'keyframe' or 'rest', got {cfg.frame.init!r}")
+    if cfg.frame.iterations < 1 or cfg.frame.first_iterations < 1:
+        raise InputError("config keys 'frame.iterations' and 'frame.first_iterations' must be >= 1")
+    if cfg.costs.sigma_px <= 0:
+        raise InputError(f"config key 'costs.sigma_px' must be positive, got {cfg.costs.sigma_px}")
+
+
+def to_dict(cfg) -> dict:
+    """Plain nested dict (lists for tuples) of a config, for YAML/JSON output."""
+    def conv(v):
+        if dataclasses.is_dataclass(v):
+            return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, tuple):
+            return [conv(x) for x in v]
+        if isinstance(v, dict):
+            return {k: conv(x) for k, x in v.items()}
+        return v
+    return conv(cfg)
+
+
+def dump_yaml(cfg: RunConfig) -> str:
+    return yaml.safe_dump(to_dict(cfg), sort_keys=False)

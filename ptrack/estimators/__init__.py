@@ -1,0 +1,13 @@
+"""Estimators: each turns a `Problem` into an `Estimate`.
+
+`ESTIMATORS` maps a config's `method` name to a function
+`(problem, cfg, generator, progress) -> Estimate`, where `cfg` is the whole `RunConfig` (each
+method reads its own section), `generator` a seeded `torch.Generator` and `progress` wraps an
+iterable to show progress (identity when quiet).
+"""
+
+from ptrack.estimators.frame import estimate_frames
+
+ESTIMATORS = {"frame": estimate_frames}
+
+__all__ = ["ESTIMATORS", "estimate_frames"]

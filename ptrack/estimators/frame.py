@@ -1,0 +1,110 @@
+"""`method: frame` — independent per-frame fits, each started from the previous frame's solution.
+
+Per frame t, L-BFGS minimises a robust reprojection term on the observed keypoints, the joint-limit
+barrier, and a temporal prior pulling q_t towards q_{t-1} (a velocity term on the pair). It is the
+simplest estimator that exercises the whole pipeline; the trackers and the batch solver of later
+issues replace it. The first frame starts from a user 3D keyframe (config `frame.init: keyframe`)
+or from the rest pose placed in front of the camera (`rest`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Iterable
+
+import torch
+from torch import Tensor
+
+from ptrack.costs import JointLimits, PoseEval, Reprojection, Smoothness
+from ptrack.errors import InputError
+from ptrack.problem import Estimate, Problem, evaluate_pose
+
+
+def rest_pose_in_view(problem: Problem, dtype: torch.dtype) -> Tensor:
+    """A rest pose (all angles 0) whose root sits on the camera ray of the first observed pelvis-like
+    keypoint, at the depth that makes the observed 2D body size match the model's. -> (D,)"""
+    sk, obs, kps = problem.skeleton, problem.observations, problem.keypoints
+    q = torch.zeros(sk.num_dofs, dtype=dtype)
+    conf = obs.confidence
+    frame = int(torch.nonzero(conf.sum(-1) > 0)[0, 0])
+    valid = conf[frame] > 0
+    pix = obs.keypoints[frame][valid].to(dtype)
+    rest = sk.forward_kinematics(q)
+    kp3 = rest.index_select(0, kps.index())[valid]
+    size3 = (kp3 - kp3.mean(0)).norm(dim=-1).mean()
+    size2 = (pix - pix.mean(0)).norm(dim=-1).mean().clamp(min=1.0)
+    focal = obs.camera.K[0, 0].to(dtype)
+    depth = focal * size3 / size2
+    origin, direction = obs.camera.to(dtype=dtype).rays(pix.mean(0))
+    target = origin + direction * (depth / (direction @ obs.camera.R[2].to(dtype)))
+    centre = kp3.mean(0)
+    trans = torch.as_tensor(sk.translation_dof)
+    for k in range(3):
+        if trans[k] >= 0:
+            q[trans[k]] = target[k] - centre[k]
+    return q
+
+
+def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
+                    progress: Callable[[Iterable], Iterable] = lambda x: x) -> Estimate:
+    """Per-frame L-BFGS fits (see module docstring). Deterministic: uses no randomness."""
+    fc, cc = cfg.frame, cfg.costs
+    obs = problem.observations
+    sk = problem.skeleton
+    dtype = obs.keypoints.dtype
+    camera = obs.camera
+    lower, upper = sk.limits(dtype=dtype)
+    limits = JointLimits(lower, upper, sigma=cc.limits_sigma)
+    smooth = Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma)
+
+    if fc.init == "keyframe":
+        kf = problem.keyframes
+        if kf is None or not bool((kf.frames == 0).any()):
+            raise InputError("frame.init is 'keyframe' but no 3D keyframe is given for frame 0")
+        q0 = kf.q[(kf.frames == 0).nonzero()[0, 0]].to(dtype)
+    else:
+        q0 = rest_pose_in_view(problem, dtype)
+    # keep the start inside the limits so the barrier starts at zero
+    q_prev = torch.maximum(torch.minimum(q0, upper), lower)
+
+    qs, costs = [], []
+    terms: dict[str, list[Tensor]] = {"reprojection": [], "limits": [], "smooth": []}
+    for t in progress(range(obs.num_frames)):
+        reproj = Reprojection(obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss,
+                              scale=cc.robust_scale)
+        anchor = q_prev.detach()
+        q = anchor.clone().requires_grad_(True)
+
+        def energies(q: Tensor) -> dict[str, Tensor]:
+            ev = evaluate_pose(sk, camera, problem.keypoints, q)
+            pair = PoseEval(q=torch.stack([anchor, q]), joints=ev.joints, pixels=ev.pixels, depth=ev.depth)
+            e = {"reprojection": reproj.energy(ev), "limits": cc.limits_weight * limits.energy(ev)}
+            e["smooth"] = cc.smooth_weight * smooth.energy(pair) if t > 0 or fc.init == "keyframe" \
+                else torch.zeros((), dtype=dtype)
+            return e
+
+        opt = torch.optim.LBFGS([q], lr=1.0, max_iter=fc.first_iterations if t == 0 else fc.iterations,
+                                line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12,
+                                history_size=20)
+
+        def closure() -> Tensor:
+            opt.zero_grad()
+            total = sum(energies(q).values())
+            total.backward()
+            return total
+
+        opt.step(closure)
+        with torch.no_grad():
+            if not bool(torch.isfinite(q).all()):
+                q.copy_(anchor)
+            e = energies(q)
+        q_prev = q.detach()
+        qs.append(q_prev)
+        costs.append(sum(e.values()).detach())
+        for k, v in e.items():
+            terms[k].append(v.detach())
+    q_all = torch.stack(qs)
+    with torch.no_grad():
+        joints = sk.forward_kinematics(q_all)
+    return Estimate(q=q_all, joints=joints, cost=torch.stack(costs),
+                    terms={k: torch.stack(v) for k, v in terms.items()})

@@ -1,0 +1,83 @@
+"""What an estimator is given and what it returns.
+
+`Problem` bundles the model, the keypoint set, the observations and any user 3D keyframes;
+`Estimate` is the result record every method returns. `evaluate_pose` runs forward kinematics and
+projection once for a batch of poses, giving the `PoseEval` record that cost terms consume.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from ptrack.camera import Camera
+from ptrack.costs import PoseEval
+from ptrack.errors import InputError
+from ptrack.keypoints import KeypointSet
+from ptrack.observations import Observations
+from ptrack.skeleton import Skeleton
+
+
+@dataclass(frozen=True)
+class Keyframes:
+    """User-given 3D poses. frames: (F,) indices into the reconstruction frames; q: (F, D);
+    mask: (F, D) bool, True where a dof is given (partial keyframes), None = all given."""
+
+    frames: Tensor
+    q: Tensor
+    mask: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.frames.ndim != 1 or self.q.ndim != 2 or self.q.shape[0] != self.frames.shape[0]:
+            raise InputError(f"keyframes: frames (F,) and q (F, D) expected, got {tuple(self.frames.shape)} "
+                             f"and {tuple(self.q.shape)}")
+        if self.mask is not None and self.mask.shape != self.q.shape:
+            raise InputError(f"keyframes: mask shape {tuple(self.mask.shape)} must equal q's {tuple(self.q.shape)}")
+
+
+@dataclass(frozen=True)
+class Problem:
+    """skeleton: the model to estimate (possibly reduced); observations: T frames of K keypoints."""
+
+    skeleton: Skeleton
+    keypoints: KeypointSet
+    observations: Observations
+    keyframes: Keyframes | None = None
+
+    def __post_init__(self) -> None:
+        if self.observations.num_keypoints != self.keypoints.num_keypoints:
+            raise InputError(f"observations have {self.observations.num_keypoints} keypoints, the keypoint set "
+                             f"has {self.keypoints.num_keypoints} ({', '.join(self.keypoints.names)})")
+        if self.keyframes is not None and self.keyframes.q.shape[-1] != self.skeleton.num_dofs:
+            raise InputError(f"keyframes have {self.keyframes.q.shape[-1]} dofs, the model has "
+                             f"{self.skeleton.num_dofs}")
+
+
+class Estimate(NamedTuple):
+    """An estimator's result for T frames (J joints, D dofs, N hypotheses).
+
+    q: (T, D); joints: (T, J, 3) world metres; cost: (T,) final objective per frame; terms:
+    per-term breakdown {name: (T,)}; hypotheses: (T, N, J, 3) or None, with weights (T, N) and
+    costs (T, N).
+    """
+
+    q: Tensor
+    joints: Tensor
+    cost: Tensor
+    terms: dict[str, Tensor]
+    hypotheses: Tensor | None = None
+    hypothesis_weights: Tensor | None = None
+    hypothesis_costs: Tensor | None = None
+
+
+def evaluate_pose(skeleton: Skeleton, camera: Camera, keypoints: KeypointSet, q: Tensor,
+                  joint_pixels: bool = False) -> PoseEval:
+    """FK + projection. q: (..., D) -> PoseEval with joints (..., J, 3), pixels (..., K, 2)."""
+    joints = skeleton.forward_kinematics(q)
+    kp = joints.index_select(-2, keypoints.index(q.device))
+    proj = camera.project(kp)
+    jp = camera.project(joints).pixels if joint_pixels else None
+    return PoseEval(q=q, joints=joints, pixels=proj.pixels, depth=proj.depth, joint_pixels=jp)

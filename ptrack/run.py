@@ -1,0 +1,275 @@
+"""One config-driven run: data -> observations -> estimator -> metrics -> outputs.
+
+`prepare(cfg)` loads the skeleton, the clip and the camera and makes (or reads) the observations;
+`execute(cfg)` runs the configured estimator, computes metrics and writes the run folder:
+
+    config.yaml   resolved config
+    metrics.json  every applicable metric, plus seconds and frames
+    result.npz    frames, q, joints, joint_names, ... (see `write_result`)
+    run.rrd       rerun recording (ptrack.viz)
+
+The folder is assembled in a hidden sibling and renamed into place at the end, so a failed run
+leaves nothing half-written at `out_dir`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+import torch
+
+from ptrack import metrics as M
+from ptrack.camera import Camera, camera_for_motion
+from ptrack.config import RunConfig, dump_yaml
+from ptrack.errors import InputError
+from ptrack.estimators import ESTIMATORS
+from ptrack.keypoints import KeypointSet, make_keypoints
+from ptrack.observations import ChannelConfig, Observations, simulate_observations
+from ptrack.problem import Estimate, Keyframes, Problem
+from ptrack.silhouette import capsule_radii, render_silhouettes
+from ptrack.skeleton import Motion, Skeleton, load_amc
+
+log = logging.getLogger(__name__)
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """Everything a run needs before estimation. T frames; `full` is the ASF model, `problem.skeleton`
+    the (possibly reduced) model being estimated."""
+
+    full: Skeleton
+    motion: Motion | None  # the clip slice (None when observations come from a file without AMC)
+    gt_q: torch.Tensor | None  # (T, D) reduced-model ground truth
+    gt_joints: torch.Tensor | None  # (T, J, 3) ground truth from the full model
+    problem: Problem
+    frames: np.ndarray  # (T,) AMC frame numbers (or observation indices)
+
+
+def _device(cfg: RunConfig) -> torch.device:
+    dev = torch.device(cfg.device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError(f"config key 'device' is {cfg.device!r} but CUDA is not available here")
+    return dev
+
+
+def prepare(cfg: RunConfig) -> Prepared:
+    """Load data and make the observations for `cfg` (see module docstring)."""
+    dtype, device = DTYPES[cfg.dtype], _device(cfg)
+    full = Skeleton.from_asf(cfg.data.asf)
+    model = full.freeze(list(cfg.model.freeze)) if cfg.model.freeze else full
+    kps = make_keypoints(model, cfg.model.keypoints)
+    gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
+
+    motion = gt_q = gt_joints = None
+    if cfg.data.amc:
+        motion = load_amc(cfg.data.amc, full)
+        n = motion.q.shape[0]
+        if cfg.data.start >= n:
+            raise InputError(f"config key 'data.start' is {cfg.data.start} but {cfg.data.amc} has only {n} frames")
+        stop = None if cfg.data.stop is None else min(cfg.data.stop, n)
+        motion = motion.slice(cfg.data.start, stop, cfg.data.stride)
+        if motion.q.shape[0] < 3:
+            raise InputError(f"the selected frames of {cfg.data.amc} (start {cfg.data.start}, stop {cfg.data.stop}, "
+                             f"stride {cfg.data.stride}) give {motion.q.shape[0]} frames; at least 3 are needed")
+        q_full = motion.q.to(dtype)
+        gt_joints = full.forward_kinematics(q_full)
+        gt_q = model.reduce(q_full, full)
+
+    if cfg.observations.file:
+        obs = Observations.load_npz(cfg.observations.file)
+        if motion is not None and obs.num_frames != motion.q.shape[0]:
+            raise InputError(f"{cfg.observations.file} has {obs.num_frames} frames but the selected AMC frames are "
+                             f"{motion.q.shape[0]} (check data.start/stop/stride)")
+        frames = motion.frames if motion is not None else np.arange(obs.num_frames)
+    else:
+        c = cfg.camera
+        camera = camera_for_motion(gt_joints, c.distance_m, c.azimuth_deg, c.elevation_deg, c.focal_px,
+                                   c.width, c.height)
+        o = cfg.observations
+        channel = ChannelConfig(noise_px=o.noise_px, missing=o.missing, occlusion_bursts=o.occlusion_bursts,
+                                dropped_frames=o.dropped_frames, outliers=o.outliers, outlier_px=o.outlier_px,
+                                swap_fraction=o.swap_fraction)
+        masks = None
+        if o.silhouettes:
+            bones = torch.as_tensor(full.bones(), dtype=torch.long)
+            names = [full.joint_names[b] for _, b in full.bones()]
+            radii = capsule_radii(names, torch.as_tensor(full.lengths[bones[:, 1]], dtype=dtype))
+            masks = render_silhouettes(gt_joints, bones, radii, camera)
+        times = torch.as_tensor(motion.times, dtype=dtype)
+        obs, _ = simulate_observations(gt_joints, kps.index(), camera, times, channel, gen, kps.names,
+                                       swap_pairs=kps.swap_pairs, masks=masks)
+        frames = motion.frames
+    if tuple(obs.keypoint_names) != kps.names:
+        raise InputError(f"observation keypoints {list(obs.keypoint_names)} differ from the model's keypoint set "
+                         f"{list(kps.names)} (config model.keypoints)")
+    obs = obs.to(device=device, dtype=dtype)
+    keyframes = None
+    if gt_q is not None:  # the clip's first pose plays the user's 3D keyframe
+        keyframes = Keyframes(frames=torch.zeros(1, dtype=torch.long), q=gt_q[:1].clone())
+    problem = Problem(skeleton=model, keypoints=kps, observations=obs, keyframes=keyframes)
+    return Prepared(full=full, motion=motion, gt_q=gt_q, gt_joints=gt_joints, problem=problem,
+                    frames=np.asarray(frames))
+
+
+def compute_metrics(prep: Prepared, est: Estimate) -> tuple[dict, dict[str, np.ndarray]]:
+    """Summary metrics (JSON-able) and per-frame series {name: (T,)} for logging."""
+    prob = prep.problem
+    obs, kps, sk = prob.observations, prob.keypoints, prob.skeleton
+    cam = obs.camera
+    idx = kps.index(est.joints.device)
+    est_kp = est.joints.detach().index_select(-2, idx)
+    reproj = cam.project(est_kp).pixels
+    series: dict[str, np.ndarray] = {}
+    summary: dict = {}
+
+    def put(name: str, per_frame: torch.Tensor) -> None:
+        v = per_frame.detach().double().cpu().numpy()
+        series[name] = v
+        summary[name] = float(np.nanmean(v)) if np.isfinite(v).any() else None
+
+    put("reprojection_error_px", M.reprojection_error_px(reproj, obs.keypoints, obs.confidence))
+    lower, upper = sk.limits(dtype=est.q.dtype, device=est.q.device)
+    report = M.joint_limit_violations(est.q.detach(), lower, upper)
+    summary["joint_limit_violation_fraction"] = float(report.fraction)
+    summary["joint_limit_max_violation_deg"] = float(report.max_deg)
+    if prep.gt_joints is not None:
+        gt = prep.gt_joints.to(est.joints)
+        gt_kp = gt.index_select(-2, idx)
+        root = kps.joints.index(0) if 0 in kps.joints else 0
+        put("mpjpe_mm", M.mpjpe(est_kp, gt_kp, root=root))
+        put("pa_mpjpe_mm", M.pa_mpjpe(est_kp, gt_kp))
+        put("mpjpe_abs_mm", M.mpjpe_absolute(est_kp, gt_kp, cam.R.to(gt), cam.t.to(gt)))
+        summary["mpjpe_all_joints_mm"] = float(M.mpjpe(est.joints.detach(), gt).mean())
+        acc = M.accel_error(est_kp, gt_kp)
+        summary["accel_error_mm_per_frame2"] = float(acc.mean())
+        series["accel_error_mm_per_frame2"] = np.concatenate([[np.nan], acc.double().cpu().numpy(), [np.nan]])
+        if kps.limbs:
+            flips = M.limb_flip_errors(est_kp, gt_kp, kps.limbs, cam.R.to(gt), cam.t.to(gt))
+            per_limb = M.flip_error_rate(flips)
+            summary["flip_error_rate"] = _nan_to_none(float(flips.nanmean()))
+            summary["flip_error_rate_per_limb"] = {
+                f"{kps.names[a]}-{kps.names[b]}": _nan_to_none(float(r)) for (a, b), r in zip(kps.limbs, per_limb)}
+            series["flip_error_rate"] = flips.nanmean(-1).double().cpu().numpy()
+        if est.hypotheses is not None:
+            put("best_of_k_mpjpe_mm", M.best_of_k_mpjpe(est.hypotheses.index_select(-2, idx), gt_kp, root=root))
+    series["cost"] = est.cost.detach().double().cpu().numpy()
+    for k, v in est.terms.items():
+        series[f"cost_{k}"] = v.detach().double().cpu().numpy()
+    return summary, series
+
+
+def _nan_to_none(x: float) -> float | None:
+    return None if math.isnan(x) else x
+
+
+def default_out_dir(cfg: RunConfig, root: str | Path = "logs") -> Path:
+    return Path(root) / f"{cfg.name}-{datetime.now().strftime('%Y%m%d-%H%M%S-%f')}"
+
+
+def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
+    """Run `cfg` end to end and write its folder; returns the folder's path."""
+    out = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"out_dir {out} already exists and is not empty; choose another out_dir")
+    t0 = time.perf_counter()
+    prep = prepare(cfg)
+    gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
+    show = cfg.progress if progress is None else progress
+    est = ESTIMATORS[cfg.method](prep.problem, cfg, gen, _progress(show, cfg.method))
+    seconds = time.perf_counter() - t0
+    summary, series = compute_metrics(prep, est)
+    summary = {"method": cfg.method, "frames": int(est.q.shape[0]), "seconds": seconds,
+               "fps": float(est.q.shape[0] / seconds), **summary}
+    _write_outputs(out, cfg, prep, est, summary, series)
+    return out
+
+
+def _progress(show: bool, desc: str) -> Callable[[Iterable], Iterable]:
+    if not show:
+        return lambda it: it
+    from tqdm.auto import tqdm
+
+    return lambda it: tqdm(it, desc=desc, unit="frame", leave=False)
+
+
+def write_result(path: Path, prep: Prepared, est: Estimate) -> None:
+    """result.npz: frames (T,) AMC frame numbers; times (T,) s; q (T, D); dof_names (D,); joints (T, J, 3)
+    metres in the mocap world frame (Y up); joint_names (J,) (ASF bone names, "root" first); parents (J,);
+    gt_joints (T, J, 3) when there is ground truth; keypoints_observed (T, K, 2), confidence (T, K),
+    keypoint_names (K,), keypoints_reprojected (T, K, 2); camera_K/R/t, image_size; cost (T,);
+    hypotheses (T, N, J, 3), hypothesis_weights (T, N), hypothesis_costs (T, N) where the method has them."""
+    prob = prep.problem
+    obs, sk = prob.observations, prob.skeleton
+    cam = obs.camera
+    joints = est.joints.detach()
+    arrays = {
+        "frames": prep.frames.astype(np.int64),
+        "times": obs.times.detach().cpu().numpy(),
+        "q": est.q.detach().cpu().numpy(),
+        "dof_names": np.asarray(sk.dof_names),
+        "joints": joints.cpu().numpy(),
+        "joint_names": np.asarray(sk.joint_names),
+        "parents": np.asarray(sk.parents, dtype=np.int64),
+        "keypoints_observed": obs.keypoints.detach().cpu().numpy(),
+        "confidence": obs.confidence.detach().cpu().numpy(),
+        "keypoint_names": np.asarray(prob.keypoints.names),
+        "keypoints_reprojected": cam.project(joints.index_select(-2, prob.keypoints.index(joints.device)))
+        .pixels.cpu().numpy(),
+        "camera_K": cam.K.detach().cpu().numpy(),
+        "camera_R": cam.R.detach().cpu().numpy(),
+        "camera_t": cam.t.detach().cpu().numpy(),
+        "image_size": np.asarray([cam.width, cam.height], dtype=np.int64),
+        "cost": est.cost.detach().cpu().numpy(),
+    }
+    if prep.gt_joints is not None:
+        arrays["gt_joints"] = prep.gt_joints.detach().cpu().numpy()
+    for name in ("hypotheses", "hypothesis_weights", "hypothesis_costs"):
+        v = getattr(est, name)
+        if v is not None:
+            arrays[name] = v.detach().cpu().numpy()
+    np.savez_compressed(path, **arrays)
+
+
+def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, summary: dict,
+                   series: dict[str, np.ndarray]) -> None:
+    from ptrack.viz import RunLog, write_recording
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    try:
+        (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
+        (tmp / "metrics.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        write_result(tmp / "result.npz", prep, est)
+        prob = prep.problem
+        obs = prob.observations
+        res = np.load(tmp / "result.npz")
+        rlog = RunLog(
+            joint_names=prob.skeleton.joint_names, parents=prob.skeleton.parents, frames=prep.frames,
+            times=res["times"], estimate=res["joints"],
+            ground_truth=res["gt_joints"] if "gt_joints" in res else None,
+            camera=obs.camera.to(device="cpu"), observed=res["keypoints_observed"], confidence=res["confidence"],
+            reprojected=res["keypoints_reprojected"], keypoint_names=prob.keypoints.names,
+            hypotheses=res["hypotheses"] if "hypotheses" in res else None,
+            hypothesis_weights=res["hypothesis_weights"] if "hypothesis_weights" in res else None,
+            hypothesis_costs=res["hypothesis_costs"] if "hypothesis_costs" in res else None,
+            scalars=series, masks=obs.masks.cpu().numpy() if obs.masks is not None else None)
+        write_recording(tmp / "run.rrd", rlog)
+        if out.exists():
+            out.rmdir()  # empty (checked before the run)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
