@@ -106,6 +106,150 @@ def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> _Plan:
     return plan
 
 
+@dataclass(frozen=True)
+class _FramePlan:
+    """Constants of the closed-form path, all in level order (joints of depth 0, 1, 2, ...).
+
+    Every joint's three axes are the (z, y, x) columns of a fixed frame C_i, so its local rotation
+    is C_i Rz Ry Rx C_i^T E_i. The tree is composed on H_i = G_i C_i:
+    H_i = H_parent D_i M_i F_i with D_i = C_parent^T C_i and F_i = C_i^T E_i C_i, which needs no
+    per-joint conjugation; positions use offsets pre-rotated into the C frames.
+    """
+
+    dof_index: Tensor  # (J*3,) clamped q index per slot (level order)
+    dof_mask: Tensor  # (J, 3)
+    frozen: Tensor  # (J, 3)
+    d: Tensor  # (J, 3, 3)
+    f: Tensor | None  # (J, 3, 3)
+    c_t: Tensor  # (J, 3, 3) C^T, to recover world rotations G = H C^T
+    u: Tensor | None  # (J, 3) C_parent^T u
+    w: Tensor | None  # (J, 3) C^T w
+    lengths_lv: Tensor  # (J,)
+    level_index: Tensor  # (J,) joint index of each level-order slot
+    bounds: tuple[tuple[int, int], ...]  # (offset, count) per level
+    parent_slot: tuple[Tensor, ...]  # per level > 0: parent position within the previous level
+    identity_parent: tuple[bool, ...]  # parent_slot is 0..n-1 (no gather needed)
+
+
+def _frames_of(sk: Skeleton):
+    """C (J, 3, 3) with columns (x, y, z) = (axes[2], axes[1], axes[0]), or None if some joint's
+    axes are not a right-handed orthonormal frame."""
+    import numpy as np
+
+    c = np.stack([sk.axes[:, 2], sk.axes[:, 1], sk.axes[:, 0]], axis=-1)
+    ok = np.allclose(np.einsum("jab,jac->jbc", c, c), np.eye(3), atol=1e-9) and np.allclose(
+        np.linalg.det(c), 1.0, atol=1e-9)
+    return c if ok else None
+
+
+def _frame_plan(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> _FramePlan | None:
+    key = ("frame_plan", dtype, str(device))
+    if key in sk._cache:
+        return sk._cache[key]
+    import numpy as np
+
+    c = _frames_of(sk)
+    if c is None:
+        sk._cache[key] = None
+        return None
+    base = _plan(sk, dtype, device)
+    lv = [i for level in base.levels for i in level.nodes_list]
+    par = [sk.parents[i] for i in lv]
+    c_par = np.stack([c[p] if p >= 0 else np.eye(3) for p in par])
+    c_lv = c[lv]
+    d = np.einsum("jba,jbc->jac", c_par, c_lv)
+    e = sk.rest_rotation[lv]
+    f = np.einsum("jba,jbc,jcd->jad", c_lv, e, c_lv)
+    u = np.einsum("jba,jb->ja", c_par, sk.offset_parent[lv])
+    w = np.einsum("jba,jb->ja", c_lv, sk.offset_local[lv])
+
+    def t(x):
+        return torch.as_tensor(np.ascontiguousarray(x), dtype=dtype, device=device)
+
+    bounds, off = [], 0
+    for level in base.levels:
+        bounds.append((off, len(level.nodes_list)))
+        off += len(level.nodes_list)
+    driven = sk.axis_dof[lv] >= 0
+    plan = _FramePlan(
+        dof_index=torch.as_tensor(np.clip(sk.axis_dof[lv], 0, None).reshape(-1), device=device),
+        dof_mask=t(driven.astype(np.float64)),
+        frozen=t(np.where(driven, 0.0, sk.frozen_axes[lv])),
+        d=t(d),
+        f=None if np.allclose(f, np.eye(3)) else t(f),
+        c_t=t(np.swapaxes(c_lv, -1, -2)),
+        u=t(u) if np.any(u) else None,
+        w=t(w) if np.any(w) else None,
+        lengths_lv=t(sk.lengths[lv]),
+        level_index=torch.as_tensor(lv, device=device),
+        bounds=tuple(bounds),
+        parent_slot=tuple(level.parent_slot for level in base.levels),
+        identity_parent=tuple(level.parent_slot.tolist() == list(range(len(level.nodes_list)))
+                              for level in base.levels),
+    )
+    sk._cache[key] = plan
+    return plan
+
+
+def _euler_zyx(theta: Tensor) -> Tensor:
+    """Rz(a) Ry(b) Rx(c) for theta (..., 3) = (a, b, c) -> (..., 3, 3), closed form."""
+    s, c = torch.sin(theta), torch.cos(theta)
+    sz, sy, sx = s.unbind(-1)
+    cz, cy, cx = c.unbind(-1)
+    czsy, szsy = cz * sy, sz * sy
+    m = torch.stack([
+        cz * cy, czsy * sx - sz * cx, czsy * cx + sz * sx,
+        sz * cy, szsy * sx + cz * cx, szsy * cx - cz * sx,
+        -sy, cy * sx, cy * cx,
+    ], dim=-1)
+    return m.unflatten(-1, (3, 3))
+
+
+def _fk_frames(fp: _FramePlan, p: "_Plan", q: Tensor, lens: Tensor, rotations: bool):
+    """Closed-form path (see `_FramePlan`). Returns joints (..., J, 3) and optionally G (..., J, 3, 3)."""
+    batch = q.shape[:-1]
+    j = fp.dof_mask.shape[0]
+    theta = q.index_select(-1, fp.dof_index).unflatten(-1, (j, 3)) * fp.dof_mask + fp.frozen
+    local = _mm(fp.d, _euler_zyx(theta))  # (..., J, 3, 3) = D M
+    if fp.f is not None:
+        local = _mm(local, fp.f)
+    lens = lens.index_select(-1, fp.level_index)
+    root_t = q.index_select(-1, p.trans_index) * p.trans_mask + p.root_position  # (..., 3)
+    hs: list[Tensor] = []
+    ps: list[Tensor] = []
+    for lvl, (off, n) in enumerate(fp.bounds):
+        loc = local.narrow(-3, off, n)
+        ln = lens.narrow(-1, off, n)[..., None]
+        if lvl == 0:
+            h = loc
+            pos = root_t[..., None, :].expand(*batch, n, 3)
+            if fp.w is not None:
+                pos = pos + ln * _mv(h, fp.w[off:off + n])
+        else:
+            hp, pp = hs[-1], ps[-1]
+            if not fp.identity_parent[lvl]:
+                hp = hp.index_select(-3, fp.parent_slot[lvl])
+                pp = pp.index_select(-2, fp.parent_slot[lvl])
+            h = _mm(hp, loc)
+            off_v = 0
+            if fp.u is not None:
+                off_v = _mv(hp, fp.u[off:off + n])
+            if fp.w is not None:
+                off_v = off_v + _mv(h, fp.w[off:off + n])
+            pos = pp + ln * off_v
+        hs.append(h)
+        ps.append(pos)
+    joints = torch.cat(ps, dim=-2)
+    if not p.identity_order:
+        joints = joints.index_select(-2, p.order)
+    if not rotations:
+        return joints
+    g = _mm(torch.cat(hs, dim=-3), fp.c_t)
+    if not p.identity_order:
+        g = g.index_select(-3, p.order)
+    return joints, g
+
+
 def local_rotations(sk: Skeleton, q: Tensor) -> Tensor:
     """Per-joint rotation relative to the parent. q: (..., D) -> (..., J, 3, 3)."""
     p = _plan(sk, q.dtype, q.device)
@@ -132,7 +276,8 @@ def _mv(a: Tensor, v: Tensor) -> Tensor:
     return (a * v[..., None, :]).sum(-1)
 
 
-def forward_kinematics(sk: Skeleton, q: Tensor, lengths: Tensor | None = None, rotations: bool = False):
+def forward_kinematics(sk: Skeleton, q: Tensor, lengths: Tensor | None = None, rotations: bool = False,
+                       generic: bool = False):
     """Forward kinematics.
 
     Args:
@@ -141,6 +286,8 @@ def forward_kinematics(sk: Skeleton, q: Tensor, lengths: Tensor | None = None, r
         lengths: optional (..., J) or (J,) bone lengths in metres replacing `sk.lengths`
             (differentiable, e.g. to fit a subject's proportions).
         rotations: also return world rotations.
+        generic: force the Rodrigues path (used to cross-check the closed-form path, which is
+            taken whenever every joint's axes form a right-handed frame, as in all ASF files).
 
     Returns:
         joints (..., J, 3) world positions in metres (for ASF models: the root, then each bone's
@@ -152,15 +299,18 @@ def forward_kinematics(sk: Skeleton, q: Tensor, lengths: Tensor | None = None, r
                          f"skeleton {sk.name!r} has {sk.num_dofs}")
     p = _plan(sk, q.dtype, q.device)
     batch = q.shape[:-1]
-    local = local_rotations(sk, q)
     if lengths is None:
         lens = p.lengths
     else:
         if lengths.shape[-1] != sk.num_joints:
             raise InputError(f"lengths must have {sk.num_joints} entries in the last dim, got {tuple(lengths.shape)}")
         lens = lengths.to(q.dtype)
+    fp = None if generic else _frame_plan(sk, q.dtype, q.device)
+    if fp is not None:
+        return _fk_frames(fp, p, q, lens, rotations)
     root_t = q.index_select(-1, p.trans_index) * p.trans_mask + p.root_position  # (..., 3)
 
+    local = local_rotations(sk, q)
     rots: list[Tensor] = []
     poss: list[Tensor] = []
     for d, lv in enumerate(p.levels):

@@ -264,6 +264,27 @@ class AmcLayout:
     scale: tuple[float, ...]
 
 
+def _place_rotations(axes: np.ndarray, axis_dof: np.ndarray, c: np.ndarray, rots: list[tuple[str, int]]) -> None:
+    """Fill one joint's three axis slots from Acclaim rotations `rots` [(axis letter, dof), ...] in
+    file order (applied first to last, so M = R(last) ... R(first)) in the frame `c` (3, 3).
+
+    When the letters come in X, Y, Z order (every CMU file), slots are (z, y, x) whatever subset is
+    driven, so the joint's axes are the frame c's columns (z, y, x): forward kinematics then uses
+    closed-form Euler matrices. Other orders keep the product order slot by slot.
+    """
+    letters = "".join(a for a, _ in rots)
+    if letters == "".join(a for a in "XYZ" if a in letters):
+        for a in "ZYX":
+            axes["ZYX".index(a)] = c[:, "XYZ".index(a)]
+        for a, d in rots:
+            axis_dof["ZYX".index(a)] = d
+    else:
+        axes[:] = np.eye(3)[0]
+        for k, (a, d) in enumerate(reversed(rots)):
+            axes[k] = c[:, "XYZ".index(a)]
+            axis_dof[k] = d
+
+
 def _from_asf(asf: AsfFile) -> Skeleton:
     m = asf.metres_per_unit
     ang = math.pi / 180.0 if asf.angle_unit == "deg" else 1.0
@@ -318,10 +339,7 @@ def _from_asf(asf: AsfFile) -> Skeleton:
     scale.extend(root_scale)
     if len(rot_order) > 3:
         raise InputError(f"{asf.path}: root order has more than three rotations")
-    # M = R(last) ... R(first): axes left to right are the rotations in reverse order
-    for k, (ax, d) in enumerate(reversed(rot_order)):
-        axes[0, k] = c_root[:, "XYZ".index(ax)]
-        axis_dof[0, k] = d
+    _place_rotations(axes[0], axis_dof[0], c_root, rot_order)
 
     for name in order[1:]:
         b = by_name[name]
@@ -343,12 +361,7 @@ def _from_asf(asf: AsfFile) -> Skeleton:
         if b.dof:
             dof_counts[name] = len(b.dof)
             scale.extend([ang] * len(b.dof))
-        for k, (ax, d) in enumerate(reversed(rots)):
-            axes[i, k] = c[:, "XYZ".index(ax)]
-            axis_dof[i, k] = d
-    # unused axis slots: any unit axis (angle is always 0 there)
-    unused = axis_dof < 0
-    axes[unused] = np.array([1.0, 0.0, 0.0])
+        _place_rotations(axes[i], axis_dof[i], c, rots)
 
     sk = Skeleton(
         name=asf.name,

@@ -92,6 +92,15 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
     return "\n".join(out)
 
 
+def _frame_with_z(z: np.ndarray) -> np.ndarray:
+    """Axis slots (z, y, x) of a right-handed orthonormal frame whose z column is the unit vector z."""
+    helper = np.eye(3)[0] if abs(z[0]) < 0.9 else np.eye(3)[1]
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.stack([z, y, x])
+
+
 def skeleton_from_urdf(path: str | Path, floating_base: bool = True) -> Skeleton:
     """Build a Skeleton from a URDF file (see `Skeleton.from_urdf`)."""
     import pytorch_kinematics as pk
@@ -117,7 +126,7 @@ def skeleton_from_urdf(path: str | Path, floating_base: bool = True) -> Skeleton
     rest.append(np.eye(3))
     off_dir.append(np.zeros(3))
     lengths.append(0.0)
-    root_axes = np.tile(np.eye(3)[0], (3, 1))
+    root_axes = np.eye(3)[::-1].copy()  # slots (z, y, x)
     root_dof = -np.ones(3, dtype=np.int64)
     trans = -np.ones(3, dtype=np.int64)
     if floating_base:
@@ -126,8 +135,7 @@ def skeleton_from_urdf(path: str | Path, floating_base: bool = True) -> Skeleton
             dof_names.append(f"root.t{a}")
             lower.append(-math.inf)
             upper.append(math.inf)
-        for k, a in enumerate("zyx"):  # G_root = Rz Ry Rx
-            root_axes[k] = np.eye(3)["xyz".index(a)]
+        for k in range(3):  # G_root = Rz Ry Rx
             root_dof[k] = len(dof_names) + 2 - k
         for a in "xyz":
             dof_names.append(f"root.r{a}")
@@ -155,7 +163,7 @@ def skeleton_from_urdf(path: str | Path, floating_base: bool = True) -> Skeleton
         off_dir.append(t0 / n if n > 0 else np.zeros(3))
         lengths.append(n)
         world_rot[idx] = world_rot[parent] @ r0
-        a = np.tile(np.eye(3)[0], (3, 1))
+        a = np.eye(3)[::-1].copy()  # slots (z, y, x) of the identity frame
         d = -np.ones(3, dtype=np.int64)
         if j.joint_type in ("fixed", "prismatic") and parent in base_chain:
             base_chain.add(idx)
@@ -172,7 +180,7 @@ def skeleton_from_urdf(path: str | Path, floating_base: bool = True) -> Skeleton
             upper.append(math.inf)
         elif j.joint_type == "revolute":
             ax = np.asarray(j.axis.double().numpy(), dtype=np.float64)
-            a[0] = r0 @ (ax / np.linalg.norm(ax))  # R0 Rot(ax) = Rot(R0 ax) R0
+            a[:] = _frame_with_z(r0 @ (ax / np.linalg.norm(ax)))  # R0 Rot(ax) = Rot(R0 ax) R0
             d[0] = len(dof_names)
             dof_names.append(j.name)
             lim = getattr(j, "limits", None)
