@@ -3,195 +3,148 @@
     forward_kinematics(skeleton, q (..., D)) -> joints (..., J, 3) [, rotations (..., J, 3, 3)]
 
 One pure function, differentiable w.r.t. q and bone lengths, any leading batch dims, float32 or
-float64, CPU or CUDA. Speed comes from two things: all per-joint local rotations are built at once
-(closed-form Rodrigues for every axis of every joint), and the tree is composed level by level
-(joints at the same depth in one batched 3x3 product), so a CMU skeleton takes ~10 sequential
-steps whatever the batch size. Rotations are 3x3 and positions 3-vectors, never 4x4 homogeneous
-matrices.
+float64, CPU or CUDA. Speed comes from three things:
+
+- all local rotations are built at once, in closed form: when every joint's three axes are the
+  (z, y, x) columns of a fixed frame C_i (true of every ASF file and of ptrack's URDF import),
+  the local rotation is C_i Rz Ry Rx C_i^T E_i, and the tree is composed on H_i = G_i C_i:
+  H_i = H_parent D_i M_i F_i with constants D_i = C_parent^T C_i and F_i = C_i^T E_i C_i, so no
+  per-joint conjugation is needed (other axis layouts use Rodrigues' formula per axis);
+- the tree is composed level by level (joints of equal depth in one batched 3x3 product, stored
+  contiguously so each level is a slice), ~10 sequential steps for a CMU skeleton at any batch;
+- rotations are 3x3 and positions 3-vectors, never 4x4 homogeneous matrices.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
+from ptrack.rotations import skew
 from ptrack.skeleton import Skeleton
 
 
 @dataclass(frozen=True)
-class _Level:
-    nodes: Tensor  # (n,) joint indices at this depth
-    parent_slot: Tensor  # (n,) position of each node's parent in the previous level
-    nodes_list: tuple[int, ...]
-
-
-@dataclass(frozen=True)
 class _Plan:
-    """Skeleton constants as tensors of one dtype/device, plus the level schedule."""
+    """Skeleton constants for one dtype/device, per joint in level order (depth 0, 1, 2, ...).
 
+    Composition runs on frames H_i = G_i C_i (C = I on the Rodrigues path): u, w are the offsets
+    rotated into those frames and c_t = C^T recovers the world rotations G = H C^T.
+    """
+
+    closed_form: bool
     dof_index: Tensor  # (J*3,) long, clamped q index per axis slot
     dof_mask: Tensor  # (J, 3) 1 where the slot is driven by q
-    frozen: Tensor  # (J, 3) constant angle for undriven slots
-    k1: Tensor  # (J, 3, 3, 3) skew(axis) per slot
-    k2: Tensor  # (J, 3, 3, 3) skew(axis)^2 per slot
-    rest: Tensor | None  # (J, 3, 3) or None if all identity
-    offset_parent: Tensor | None  # (J, 3) or None if all zero
-    offset_local: Tensor | None  # (J, 3) or None if all zero
+    frozen: Tensor  # (J, 3) constant angle of undriven slots
+    d: Tensor | None  # (J, 3, 3) closed form: C_parent^T C
+    f: Tensor | None  # (J, 3, 3) closed form: C^T E C, None if identity
+    k1: Tensor | None  # (J, 3, 3, 3) Rodrigues path: skew(axis) per slot
+    k2: Tensor | None  # (J, 3, 3, 3) Rodrigues path: skew(axis)^2 per slot
+    rest: Tensor | None  # (J, 3, 3) Rodrigues path: E, None if identity
+    c_t: Tensor | None  # (J, 3, 3) C^T, None if identity
+    u: Tensor | None  # (J, 3) offset fixed in the parent frame, None if all zero
+    w: Tensor | None  # (J, 3) offset turning with the joint, None if all zero
     lengths: Tensor  # (J,)
+    level_index: Tensor  # (J,) joint index of each level-order position
+    order: Tensor  # (J,) level-order position of each joint
+    identity_order: bool
+    bounds: tuple[tuple[int, int], ...]  # (offset, count) per level
+    parent_slot: tuple[Tensor | None, ...]  # per level: parent position in the previous level, None = 0..n-1
     root_position: Tensor  # (3,)
     trans_index: Tensor  # (3,) long clamped
     trans_mask: Tensor  # (3,)
-    levels: tuple[_Level, ...]
-    order: Tensor  # (J,) position of each joint in the level-concatenated output
-    identity_order: bool
 
 
-def _skew_np(a):
-    import numpy as np
-
-    x, y, z = a[..., 0], a[..., 1], a[..., 2]
-    o = np.zeros_like(x)
-    return np.stack([o, -z, y, z, o, -x, -y, x, o], axis=-1).reshape(*a.shape[:-1], 3, 3)
-
-
-def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> _Plan:
-    key = ("plan", dtype, str(device))
-    plan = sk._cache.get(key)
-    if plan is not None:
-        return plan
-    import numpy as np
-
-    def t(x):
-        return torch.as_tensor(np.ascontiguousarray(x), dtype=dtype, device=device)
-
-    k1 = _skew_np(sk.axes)
-    k2 = k1 @ k1
-    driven = sk.axis_dof >= 0
-    depth = [0] * sk.num_joints
-    for i, p in enumerate(sk.parents):
-        if p >= 0:
-            depth[i] = depth[p] + 1
-    levels: list[_Level] = []
-    prev: list[int] = []
-    for d in range(max(depth) + 1):
-        nodes = [i for i in range(sk.num_joints) if depth[i] == d]
-        slots = [prev.index(sk.parents[i]) for i in nodes] if d > 0 else [0] * len(nodes)
-        levels.append(_Level(torch.as_tensor(nodes, device=device), torch.as_tensor(slots, device=device),
-                             tuple(nodes)))
-        prev = nodes
-    concat = [i for lv in levels for i in lv.nodes_list]
-    order = [concat.index(i) for i in range(sk.num_joints)]
-    rest_is_eye = np.allclose(sk.rest_rotation, np.eye(3))
-    plan = _Plan(
-        dof_index=torch.as_tensor(np.clip(sk.axis_dof, 0, None).reshape(-1), device=device),
-        dof_mask=t(driven.astype(np.float64)),
-        frozen=t(np.where(driven, 0.0, sk.frozen_axes)),
-        k1=t(k1),
-        k2=t(k2),
-        rest=None if rest_is_eye else t(sk.rest_rotation),
-        offset_parent=t(sk.offset_parent) if np.any(sk.offset_parent) else None,
-        offset_local=t(sk.offset_local) if np.any(sk.offset_local) else None,
-        lengths=t(sk.lengths),
-        root_position=t(sk.root_position),
-        trans_index=torch.as_tensor(np.clip(sk.translation_dof, 0, None), device=device),
-        trans_mask=t((sk.translation_dof >= 0).astype(np.float64)),
-        levels=tuple(levels),
-        order=torch.as_tensor(order, device=device),
-        identity_order=order == list(range(sk.num_joints)),
-    )
-    sk._cache[key] = plan
-    return plan
-
-
-@dataclass(frozen=True)
-class _FramePlan:
-    """Constants of the closed-form path, all in level order (joints of depth 0, 1, 2, ...).
-
-    Every joint's three axes are the (z, y, x) columns of a fixed frame C_i, so its local rotation
-    is C_i Rz Ry Rx C_i^T E_i. The tree is composed on H_i = G_i C_i:
-    H_i = H_parent D_i M_i F_i with D_i = C_parent^T C_i and F_i = C_i^T E_i C_i, which needs no
-    per-joint conjugation; positions use offsets pre-rotated into the C frames.
-    """
-
-    dof_index: Tensor  # (J*3,) clamped q index per slot (level order)
-    dof_mask: Tensor  # (J, 3)
-    frozen: Tensor  # (J, 3)
-    d: Tensor  # (J, 3, 3)
-    f: Tensor | None  # (J, 3, 3)
-    c_t: Tensor  # (J, 3, 3) C^T, to recover world rotations G = H C^T
-    u: Tensor | None  # (J, 3) C_parent^T u
-    w: Tensor | None  # (J, 3) C^T w
-    lengths_lv: Tensor  # (J,)
-    level_index: Tensor  # (J,) joint index of each level-order slot
-    bounds: tuple[tuple[int, int], ...]  # (offset, count) per level
-    parent_slot: tuple[Tensor, ...]  # per level > 0: parent position within the previous level
-    identity_parent: tuple[bool, ...]  # parent_slot is 0..n-1 (no gather needed)
-
-
-def _frames_of(sk: Skeleton):
+def _frames_of(sk: Skeleton) -> np.ndarray | None:
     """C (J, 3, 3) with columns (x, y, z) = (axes[2], axes[1], axes[0]), or None if some joint's
     axes are not a right-handed orthonormal frame."""
-    import numpy as np
-
     c = np.stack([sk.axes[:, 2], sk.axes[:, 1], sk.axes[:, 0]], axis=-1)
     ok = np.allclose(np.einsum("jab,jac->jbc", c, c), np.eye(3), atol=1e-9) and np.allclose(
         np.linalg.det(c), 1.0, atol=1e-9)
     return c if ok else None
 
 
-def _frame_plan(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> _FramePlan | None:
-    key = ("frame_plan", dtype, str(device))
-    if key in sk._cache:
-        return sk._cache[key]
-    import numpy as np
-
-    c = _frames_of(sk)
-    if c is None:
-        sk._cache[key] = None
-        return None
-    base = _plan(sk, dtype, device)
-    lv = [i for level in base.levels for i in level.nodes_list]
-    par = [sk.parents[i] for i in lv]
-    c_par = np.stack([c[p] if p >= 0 else np.eye(3) for p in par])
-    c_lv = c[lv]
-    d = np.einsum("jba,jbc->jac", c_par, c_lv)
-    e = sk.rest_rotation[lv]
-    f = np.einsum("jba,jbc,jcd->jad", c_lv, e, c_lv)
-    u = np.einsum("jba,jb->ja", c_par, sk.offset_parent[lv])
-    w = np.einsum("jba,jb->ja", c_lv, sk.offset_local[lv])
+def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool = False) -> _Plan:
+    key = ("plan", dtype, str(device), generic)
+    plan = sk._cache.get(key)
+    if plan is not None:
+        return plan
 
     def t(x):
         return torch.as_tensor(np.ascontiguousarray(x), dtype=dtype, device=device)
 
-    bounds, off = [], 0
-    for level in base.levels:
-        bounds.append((off, len(level.nodes_list)))
-        off += len(level.nodes_list)
+    def t_or_none(x, none_if):
+        return None if none_if else t(x)
+
+    depth = [0] * sk.num_joints
+    for i, p in enumerate(sk.parents):
+        if p >= 0:
+            depth[i] = depth[p] + 1
+    levels = [[i for i in range(sk.num_joints) if depth[i] == d] for d in range(max(depth) + 1)]
+    lv = [i for level in levels for i in level]
+    bounds, parent_slot, off = [], [], 0
+    for d, nodes in enumerate(levels):
+        bounds.append((off, len(nodes)))
+        slots = [levels[d - 1].index(sk.parents[i]) for i in nodes] if d > 0 else []
+        parent_slot.append(None if slots == list(range(len(nodes))) or d == 0
+                           else torch.as_tensor(slots, device=device))
+        off += len(nodes)
+    order = [lv.index(i) for i in range(sk.num_joints)]
+
+    c = None if generic else _frames_of(sk)
+    eye = np.eye(3)
+    c_lv = c[lv] if c is not None else np.broadcast_to(eye, (len(lv), 3, 3))
+    c_par = np.stack([c[p] if (c is not None and p >= 0) else eye for p in (sk.parents[i] for i in lv)])
+    u = np.einsum("jba,jb->ja", c_par, sk.offset_parent[lv])
+    w = np.einsum("jba,jb->ja", c_lv, sk.offset_local[lv])
+    e = sk.rest_rotation[lv]
     driven = sk.axis_dof[lv] >= 0
-    plan = _FramePlan(
+    if c is not None:
+        f = np.einsum("jba,jbc,jcd->jad", c_lv, e, c_lv)
+        d_, f_, k1, k2, rest = t(np.einsum("jba,jbc->jac", c_par, c_lv)), t_or_none(f, np.allclose(f, eye)), \
+            None, None, None
+    else:
+        k1_np = skew(torch.as_tensor(sk.axes[lv], dtype=torch.float64)).numpy()
+        d_, f_, k1, k2 = None, None, t(k1_np), t(k1_np @ k1_np)
+        rest = t_or_none(e, np.allclose(e, eye))
+    plan = _Plan(
+        closed_form=c is not None,
         dof_index=torch.as_tensor(np.clip(sk.axis_dof[lv], 0, None).reshape(-1), device=device),
         dof_mask=t(driven.astype(np.float64)),
         frozen=t(np.where(driven, 0.0, sk.frozen_axes[lv])),
-        d=t(d),
-        f=None if np.allclose(f, np.eye(3)) else t(f),
-        c_t=t(np.swapaxes(c_lv, -1, -2)),
-        u=t(u) if np.any(u) else None,
-        w=t(w) if np.any(w) else None,
-        lengths_lv=t(sk.lengths[lv]),
+        d=d_, f=f_, k1=k1, k2=k2, rest=rest,
+        c_t=t_or_none(np.swapaxes(c_lv, -1, -2), c is None),
+        u=t_or_none(u, not np.any(u)),
+        w=t_or_none(w, not np.any(w)),
+        lengths=t(sk.lengths[lv]),
         level_index=torch.as_tensor(lv, device=device),
+        order=torch.as_tensor(order, device=device),
+        identity_order=order == list(range(sk.num_joints)),
         bounds=tuple(bounds),
-        parent_slot=tuple(level.parent_slot for level in base.levels),
-        identity_parent=tuple(level.parent_slot.tolist() == list(range(len(level.nodes_list)))
-                              for level in base.levels),
+        parent_slot=tuple(parent_slot),
+        root_position=t(sk.root_position),
+        trans_index=torch.as_tensor(np.clip(sk.translation_dof, 0, None), device=device),
+        trans_mask=t((sk.translation_dof >= 0).astype(np.float64)),
     )
     sk._cache[key] = plan
     return plan
 
 
-def _euler_zyx(theta: Tensor) -> Tensor:
+def _mm(a: Tensor, b: Tensor) -> Tensor:
+    """Batched 3x3 product. On CPU einsum's flattened GEMM beats `@` on tiny matrices ~5x."""
+    return torch.einsum("...ij,...jk->...ik", a, b)
+
+
+def _mv(a: Tensor, v: Tensor) -> Tensor:
+    """Batched matrix-vector product: (..., 3, 3), (..., 3) -> (..., 3)."""
+    return (a * v[..., None, :]).sum(-1)
+
+
+def euler_zyx(theta: Tensor) -> Tensor:
     """Rz(a) Ry(b) Rx(c) for theta (..., 3) = (a, b, c) -> (..., 3, 3), closed form."""
     s, c = torch.sin(theta), torch.cos(theta)
     sz, sy, sx = s.unbind(-1)
@@ -205,75 +158,19 @@ def _euler_zyx(theta: Tensor) -> Tensor:
     return m.unflatten(-1, (3, 3))
 
 
-def _fk_frames(fp: _FramePlan, p: "_Plan", q: Tensor, lens: Tensor, rotations: bool):
-    """Closed-form path (see `_FramePlan`). Returns joints (..., J, 3) and optionally G (..., J, 3, 3)."""
-    batch = q.shape[:-1]
-    j = fp.dof_mask.shape[0]
-    theta = q.index_select(-1, fp.dof_index).unflatten(-1, (j, 3)) * fp.dof_mask + fp.frozen
-    local = _mm(fp.d, _euler_zyx(theta))  # (..., J, 3, 3) = D M
-    if fp.f is not None:
-        local = _mm(local, fp.f)
-    lens = lens.index_select(-1, fp.level_index)
-    root_t = q.index_select(-1, p.trans_index) * p.trans_mask + p.root_position  # (..., 3)
-    hs: list[Tensor] = []
-    ps: list[Tensor] = []
-    for lvl, (off, n) in enumerate(fp.bounds):
-        loc = local.narrow(-3, off, n)
-        ln = lens.narrow(-1, off, n)[..., None]
-        if lvl == 0:
-            h = loc
-            pos = root_t[..., None, :].expand(*batch, n, 3)
-            if fp.w is not None:
-                pos = pos + ln * _mv(h, fp.w[off:off + n])
-        else:
-            hp, pp = hs[-1], ps[-1]
-            if not fp.identity_parent[lvl]:
-                hp = hp.index_select(-3, fp.parent_slot[lvl])
-                pp = pp.index_select(-2, fp.parent_slot[lvl])
-            h = _mm(hp, loc)
-            off_v = 0
-            if fp.u is not None:
-                off_v = _mv(hp, fp.u[off:off + n])
-            if fp.w is not None:
-                off_v = off_v + _mv(h, fp.w[off:off + n])
-            pos = pp + ln * off_v
-        hs.append(h)
-        ps.append(pos)
-    joints = torch.cat(ps, dim=-2)
-    if not p.identity_order:
-        joints = joints.index_select(-2, p.order)
-    if not rotations:
-        return joints
-    g = _mm(torch.cat(hs, dim=-3), fp.c_t)
-    if not p.identity_order:
-        g = g.index_select(-3, p.order)
-    return joints, g
-
-
-def local_rotations(sk: Skeleton, q: Tensor) -> Tensor:
-    """Per-joint rotation relative to the parent. q: (..., D) -> (..., J, 3, 3)."""
-    p = _plan(sk, q.dtype, q.device)
-    j = sk.num_joints
-    theta = q.index_select(-1, p.dof_index).reshape(*q.shape[:-1], j, 3) * p.dof_mask + p.frozen
+def _local(p: _Plan, q: Tensor) -> Tensor:
+    """Per-joint rotation in the composition frames, level order: q (..., D) -> (..., J, 3, 3)."""
+    j = p.dof_mask.shape[0]
+    theta = q.index_select(-1, p.dof_index).unflatten(-1, (j, 3)) * p.dof_mask + p.frozen
+    if p.closed_form:
+        local = _mm(p.d, euler_zyx(theta))
+        return local if p.f is None else _mm(local, p.f)
     s = torch.sin(theta)[..., None, None]
     c = torch.cos(theta)[..., None, None]
-    r = p.k1 * s + p.k2 * (1 - c)  # (..., J, 3, 3, 3) without the identity
+    r = p.k1 * s + p.k2 * (1 - c)  # (..., J, 3, 3, 3): Rodrigues without the identity
     eye = torch.eye(3, dtype=q.dtype, device=q.device)
-    r0, r1, r2 = (r[..., k, :, :] + eye for k in range(3))
-    local = _mm(_mm(r0, r1), r2)
-    if p.rest is not None:
-        local = _mm(local, p.rest)
-    return local
-
-
-def _mm(a: Tensor, b: Tensor) -> Tensor:
-    """Batched 3x3 product. On CPU einsum's flattened GEMM beats `@` on tiny matrices ~5x."""
-    return torch.einsum("...ij,...jk->...ik", a, b)
-
-
-def _mv(a: Tensor, v: Tensor) -> Tensor:
-    """Batched matrix-vector product: (..., 3, 3), (..., 3) -> (..., 3)."""
-    return (a * v[..., None, :]).sum(-1)
+    local = _mm(_mm(r[..., 0, :, :] + eye, r[..., 1, :, :] + eye), r[..., 2, :, :] + eye)
+    return local if p.rest is None else _mm(local, p.rest)
 
 
 def forward_kinematics(sk: Skeleton, q: Tensor, lengths: Tensor | None = None, rotations: bool = False,
@@ -286,59 +183,65 @@ def forward_kinematics(sk: Skeleton, q: Tensor, lengths: Tensor | None = None, r
         lengths: optional (..., J) or (J,) bone lengths in metres replacing `sk.lengths`
             (differentiable, e.g. to fit a subject's proportions).
         rotations: also return world rotations.
-        generic: force the Rodrigues path (used to cross-check the closed-form path, which is
-            taken whenever every joint's axes form a right-handed frame, as in all ASF files).
+        generic: force the per-axis Rodrigues path (used to cross-check the closed-form path).
 
     Returns:
         joints (..., J, 3) world positions in metres (for ASF models: the root, then each bone's
         end point, in `sk.joint_names` order); with `rotations`, also (..., J, 3, 3) world
         rotations of each joint frame.
     """
+    if not isinstance(q, Tensor) or not q.is_floating_point() or q.ndim == 0:
+        raise InputError(f"pose q must be a floating tensor of shape (..., {sk.num_dofs}), got "
+                         f"{type(q).__name__} {tuple(getattr(q, 'shape', ()))} {getattr(q, 'dtype', '')}")
     if q.shape[-1] != sk.num_dofs:
         raise InputError(f"pose q has {q.shape[-1]} dofs in its last dim (shape {tuple(q.shape)}); "
                          f"skeleton {sk.name!r} has {sk.num_dofs}")
-    p = _plan(sk, q.dtype, q.device)
-    batch = q.shape[:-1]
+    p = _plan(sk, q.dtype, q.device, generic)
     if lengths is None:
         lens = p.lengths
     else:
         if lengths.shape[-1] != sk.num_joints:
             raise InputError(f"lengths must have {sk.num_joints} entries in the last dim, got {tuple(lengths.shape)}")
-        lens = lengths.to(q.dtype)
-    fp = None if generic else _frame_plan(sk, q.dtype, q.device)
-    if fp is not None:
-        return _fk_frames(fp, p, q, lens, rotations)
+        lens = lengths.to(q.dtype).index_select(-1, p.level_index)
+    batch = q.shape[:-1]
+    local = _local(p, q)
     root_t = q.index_select(-1, p.trans_index) * p.trans_mask + p.root_position  # (..., 3)
 
-    local = local_rotations(sk, q)
-    rots: list[Tensor] = []
-    poss: list[Tensor] = []
-    for d, lv in enumerate(p.levels):
-        loc = local.index_select(-3, lv.nodes)  # (..., n, 3, 3)
-        ln = lens.index_select(-1, lv.nodes)[..., None]  # (..., n, 1) or (n, 1)
-        if d == 0:
-            g = loc
-            pos = root_t[..., None, :].expand(*batch, len(lv.nodes_list), 3)
-            if p.offset_local is not None:
-                pos = pos + ln * _mv(g, p.offset_local[lv.nodes])
+    hs: list[Tensor] = []
+    ps: list[Tensor] = []
+    for lvl, (off, n) in enumerate(p.bounds):
+        loc = local.narrow(-3, off, n)
+        ln = lens.narrow(-1, off, n)[..., None]
+        if lvl == 0:
+            h, off_v = loc, 0
+            pos = root_t[..., None, :].expand(*batch, n, 3)
         else:
-            gp = rots[-1].index_select(-3, lv.parent_slot)
-            pp = poss[-1].index_select(-2, lv.parent_slot)
-            g = _mm(gp, loc)
-            off = 0
-            if p.offset_parent is not None:
-                off = _mv(gp, p.offset_parent[lv.nodes])
-            if p.offset_local is not None:
-                off = off + _mv(g, p.offset_local[lv.nodes])
-            pos = pp + ln * off
-        rots.append(g)
-        poss.append(pos)
-    joints = torch.cat(poss, dim=-2)
+            hp, pp = hs[-1], ps[-1]
+            if p.parent_slot[lvl] is not None:
+                hp = hp.index_select(-3, p.parent_slot[lvl])
+                pp = pp.index_select(-2, p.parent_slot[lvl])
+            h, pos, off_v = _mm(hp, loc), pp, 0
+            if p.u is not None:
+                off_v = _mv(hp, p.u[off:off + n])
+        if p.w is not None:
+            off_v = off_v + _mv(h, p.w[off:off + n])
+        hs.append(h)
+        ps.append(pos + ln * off_v if isinstance(off_v, Tensor) else pos)
+    joints = torch.cat(ps, dim=-2)
     if not p.identity_order:
         joints = joints.index_select(-2, p.order)
     if not rotations:
         return joints
-    world = torch.cat(rots, dim=-3)
+    g = torch.cat(hs, dim=-3)
+    if p.c_t is not None:
+        g = _mm(g, p.c_t)
     if not p.identity_order:
-        world = world.index_select(-3, p.order)
-    return joints, world
+        g = g.index_select(-3, p.order)
+    return joints, g
+
+
+def local_rotations(sk: Skeleton, q: Tensor) -> Tensor:
+    """Each joint's rotation relative to its parent, G_parent^T G_i: q (..., D) -> (..., J, 3, 3)."""
+    p = _plan(sk, q.dtype, q.device, generic=True)
+    local = _local(p, q)
+    return local if p.identity_order else local.index_select(-3, p.order)

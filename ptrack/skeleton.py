@@ -74,6 +74,7 @@ class Skeleton:
     lower: np.ndarray
     upper: np.ndarray
     frozen_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (J, 3) angle of frozen axes
+    frozen: tuple[tuple[str, float], ...] = ()  # (dof name, value) removed by `freeze`
     amc_layout: "AmcLayout | None" = None
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
@@ -165,6 +166,7 @@ class Skeleton:
         root_position[(self.translation_dof >= 0) & (trans < 0)] += value
         return replace(
             self,
+            frozen=self.frozen + tuple((self.dof_names[i], float(value)) for i in sorted(drop)),
             axis_dof=axis_dof,
             translation_dof=trans,
             root_position=root_position,
@@ -181,6 +183,9 @@ class Skeleton:
         """
         idx = [full.dof_names.index(n) for n in self.dof_names]
         out = q_reduced.new_zeros(*q_reduced.shape[:-1], full.num_dofs)
+        for name, value in self.frozen:
+            if name in full.dof_names:
+                out[..., full.dof_names.index(name)] = value
         out[..., idx] = q_reduced
         return out
 
@@ -206,20 +211,22 @@ class Skeleton:
 
 @dataclass(frozen=True)
 class Motion:
-    """A motion capture clip: poses of one skeleton at a fixed rate.
+    """A motion capture clip: poses of one skeleton.
 
-    q: (T, D) float64, root translation in metres, angles in radians; frames: (T,) AMC frame numbers.
+    q: (T, D) float64, root translation in metres, angles in radians; frames: (T,) AMC frame numbers
+    (consecutive, or every stride-th after `slice`) counting at `frame_rate` per second.
     """
 
     q: Tensor
     frames: np.ndarray
-    fps: float
+    fps: float  # poses per second of this clip (120 / stride for CMU)
     path: str
+    frame_rate: float = CMU_FPS  # rate at which the frame numbers count
 
     @property
     def times(self) -> np.ndarray:
         """(T,) seconds from the first frame."""
-        return (self.frames - self.frames[0]) / self.fps
+        return (self.frames - self.frames[0]) / self.frame_rate
 
     def slice(self, start: int = 0, stop: int | None = None, stride: int = 1) -> "Motion":
         """Frames [start, stop) of the clip (indices, not AMC frame numbers) every `stride`."""
@@ -231,7 +238,8 @@ class Motion:
         if stop is not None and not (start < stop <= t):
             raise InputError(f"stop frame {stop} must be in ({start}, {t}] for {self.path}")
         sl = slice(start, stop, stride)
-        return Motion(q=self.q[sl], frames=self.frames[sl], fps=self.fps / stride, path=self.path)
+        return Motion(q=self.q[sl], frames=self.frames[sl], fps=self.fps / stride, path=self.path,
+                      frame_rate=self.frame_rate)
 
 
 def load_amc(path: str | Path, skeleton: Skeleton) -> Motion:

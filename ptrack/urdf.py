@@ -92,8 +92,18 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
     return "\n".join(out)
 
 
+def _nearest_rotation(m: np.ndarray) -> np.ndarray:
+    """The rotation closest to m (3, 3) in Frobenius norm."""
+    u, _, vt = np.linalg.svd(m)
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        r = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+    return r
+
+
 def _frame_with_z(z: np.ndarray) -> np.ndarray:
     """Axis slots (z, y, x) of a right-handed orthonormal frame whose z column is the unit vector z."""
+    z = z / np.linalg.norm(z)
     helper = np.eye(3)[0] if abs(z[0]) < 0.9 else np.eye(3)[1]
     x = np.cross(helper, z)
     x /= np.linalg.norm(x)
@@ -151,7 +161,7 @@ def skeleton_from_urdf(path: str | Path, floating_base: bool = True) -> Skeleton
         frame, parent = stack.pop()
         j = frame.joint
         m = j.offset.get_matrix()[0].double().numpy() if j.offset is not None else np.eye(4)
-        r0, t0 = m[:3, :3], m[:3, 3]
+        r0, t0 = _nearest_rotation(m[:3, :3]), m[:3, 3]  # pytorch-kinematics parses in float32
         lo = frame.link.offset
         if lo is not None and not np.allclose(lo.get_matrix()[0].double().numpy(), np.eye(4)):
             raise InputError(f"{p}: link {frame.link.name!r} has a non-identity link offset, which ptrack does not support")
