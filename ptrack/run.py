@@ -30,11 +30,11 @@ import numpy as np
 import torch
 
 from ptrack import metrics as M
-from ptrack.camera import Camera, camera_for_motion
+from ptrack.camera import camera_for_motion
 from ptrack.config import RunConfig, dump_yaml
 from ptrack.errors import InputError
 from ptrack.estimators import ESTIMATORS
-from ptrack.keypoints import KeypointSet, make_keypoints
+from ptrack.keypoints import make_keypoints
 from ptrack.observations import ChannelConfig, Observations, simulate_observations
 from ptrack.problem import Estimate, Keyframes, Problem
 from ptrack.silhouette import capsule_radii, render_silhouettes

@@ -9,7 +9,6 @@ or from the rest pose placed in front of the camera (`rest`).
 
 from __future__ import annotations
 
-import math
 from typing import Callable, Iterable
 
 import torch

@@ -1,0 +1,192 @@
+"""Cost-term plumbing: the `PoseEval` record terms read, robust losses, construction-time checks,
+and the least-squares / robust mixins."""
+
+from __future__ import annotations
+
+import logging
+from typing import Callable, ClassVar, NamedTuple, Protocol
+
+import torch
+from torch import Tensor
+
+from ptrack.errors import InputError
+
+log = logging.getLogger(__name__)
+
+Loss = Callable[[Tensor, float], Tensor]
+
+class PoseEval(NamedTuple):
+    """What the cost terms read about a batch of poses (one frame, or a trajectory with T last).
+
+    q (..., D) pose parameters (root translation metres, angles radians); joints (..., J, 3) world
+    joint positions, metres; pixels (..., K, 2) projected observed keypoints; depth (..., K)
+    camera-frame depth of those keypoints; joint_pixels (..., J, 2) projected skeleton joints,
+    only needed by `Silhouette`.
+    """
+
+    q: Tensor
+    joints: Tensor
+    pixels: Tensor
+    depth: Tensor
+    joint_pixels: Tensor | None = None
+
+
+# ---------------------------------------------------------------------------------------------
+# Robust losses: rho(s; c) of the squared whitened residual s, with rho(s) ~ s near 0.
+
+
+def l2(s: Tensor, scale: float = 1.0) -> Tensor:
+    """Plain least squares, rho(s) = s. s: (...) -> (...)."""
+    return s
+
+
+def huber(s: Tensor, scale: float = 1.0) -> Tensor:
+    """Huber: s for s <= c^2, else 2 c sqrt(s) - c^2 (linear in |r|). s: (...) -> (...)."""
+    c2 = scale * scale
+    return torch.where(s <= c2, s, 2.0 * scale * torch.sqrt(s.clamp(min=c2)) - c2)
+
+
+def cauchy(s: Tensor, scale: float = 1.0) -> Tensor:
+    """Cauchy: c^2 log1p(s / c^2) (logarithmic in |r|). s: (...) -> (...)."""
+    c2 = scale * scale
+    return c2 * torch.log1p(s / c2)
+
+
+def geman_mcclure(s: Tensor, scale: float = 1.0) -> Tensor:
+    """Geman-McClure: s c^2 / (s + c^2), bounded by c^2. s: (...) -> (...)."""
+    c2 = scale * scale
+    return s * c2 / (s + c2)
+
+
+def _l2_d(s: Tensor, scale: float = 1.0) -> Tensor:
+    return torch.ones_like(s)
+
+
+def _huber_d(s: Tensor, scale: float = 1.0) -> Tensor:
+    c2 = scale * scale
+    return torch.where(s <= c2, torch.ones_like(s), scale / torch.sqrt(s.clamp(min=c2)))
+
+
+def _cauchy_d(s: Tensor, scale: float = 1.0) -> Tensor:
+    c2 = scale * scale
+    return c2 / (s + c2)
+
+
+def _geman_mcclure_d(s: Tensor, scale: float = 1.0) -> Tensor:
+    c2 = scale * scale
+    return (c2 / (s + c2)).square()
+
+
+_LOSSES: dict[str, tuple[Loss, Loss]] = {
+    "l2": (l2, _l2_d),
+    "huber": (huber, _huber_d),
+    "cauchy": (cauchy, _cauchy_d),
+    "geman_mcclure": (geman_mcclure, _geman_mcclure_d),
+}
+
+
+def robust_loss(name: str) -> Loss:
+    """The robust loss `rho(s, scale)` called `name` (l2, huber, cauchy, geman_mcclure)."""
+    if name not in _LOSSES:
+        raise InputError(f"unknown robust loss {name!r}; choose one of {sorted(_LOSSES)}")
+    return _LOSSES[name][0]
+
+
+def robust_loss_derivative(name: str) -> Loss:
+    """d rho / d s of the loss called `name`: the IRLS weight of a residual group, in (0, 1]."""
+    robust_loss(name)
+    return _LOSSES[name][1]
+
+
+# ---------------------------------------------------------------------------------------------
+# Validation helpers (construction time only: they may sync).
+
+
+def _float(name: str, x) -> Tensor:
+    t = torch.as_tensor(x)
+    return t if t.is_floating_point() else t.to(torch.get_default_dtype())
+
+
+def _positive(name: str, value) -> None:
+    t = torch.as_tensor(value, dtype=torch.float64)
+    if not (torch.isfinite(t).all() and (t > 0).all()):
+        raise InputError(f"{name} must be finite and > 0, got {value!r}")
+
+
+def _shape(x: Tensor) -> tuple[int, ...]:
+    return tuple(x.shape)
+
+
+def _times(name: str, times) -> Tensor:
+    t = torch.as_tensor(times)
+    if t.ndim != 1 or t.is_floating_point() or t.dtype == torch.bool:
+        raise InputError(f"{name}.times must be a 1-D integer tensor (F,), got {t.dtype} "
+                         f"{_shape(t)}")
+    if (t < 0).any():
+        raise InputError(f"{name}.times must be >= 0, got {t.tolist()}")
+    return t.long()
+
+
+def _mask(name: str, mask, shape: tuple[int, ...]) -> Tensor:
+    if mask is None:
+        return torch.ones(shape, dtype=torch.bool)
+    m = torch.as_tensor(mask)
+    if m.dtype != torch.bool or _shape(m) != shape:
+        raise InputError(f"{name} must be a bool tensor of shape {shape}, got {m.dtype} "
+                         f"{_shape(m)}")
+    return m
+
+
+def _frame_count(name: str, x: Tensor, times_max: int, time_dim: int) -> None:
+    if x.ndim < -time_dim or x.shape[time_dim] <= times_max:
+        raise InputError(f"{name}: keyframe time {times_max} is outside a trajectory of shape "
+                         f"{_shape(x)} (time axis {time_dim})")
+
+
+# ---------------------------------------------------------------------------------------------
+# Term plumbing.
+
+
+class CostTerm(Protocol):
+    """What an `Objective` needs from a term; every term below satisfies it."""
+
+    def residual(self, ev: PoseEval) -> Tensor: ...
+
+    def energy(self, ev: PoseEval) -> Tensor: ...
+
+    def robust_weights(self, ev: PoseEval) -> Tensor: ...
+
+
+class _LeastSquares:
+    """Mixin: energy = 0.5 |r|^2 and IRLS weights all one."""
+
+    def energy(self, ev: PoseEval) -> Tensor:
+        """ev -> (...,) = 0.5 * sum of squared residual entries."""
+        return 0.5 * self.residual(ev).square().sum(-1)
+
+    def robust_weights(self, ev: PoseEval) -> Tensor:
+        """ev -> (..., M) of ones (no robust loss)."""
+        return torch.ones_like(self.residual(ev))
+
+
+class _Robust:
+    """Mixin: residual entries come in consecutive groups of `_group`; rho sees |r_group|^2."""
+
+    _group: ClassVar[int]
+    loss: str
+    scale: float
+
+    def _squared(self, ev: PoseEval) -> tuple[Tensor, Tensor]:
+        r = self.residual(ev)
+        return r, r.unflatten(-1, (-1, self._group)).square().sum(-1)
+
+    def energy(self, ev: PoseEval) -> Tensor:
+        """ev -> (...,) = 0.5 * sum over groups of rho(|r_group|^2, scale)."""
+        _, s = self._squared(ev)
+        return 0.5 * robust_loss(self.loss)(s, self.scale).sum(-1)
+
+    def robust_weights(self, ev: PoseEval) -> Tensor:
+        """ev -> (..., M): rho'(|r_group|^2) repeated over each group's entries (IRLS weights)."""
+        r, s = self._squared(ev)
+        w = robust_loss_derivative(self.loss)(s, self.scale)
+        return w.unsqueeze(-1).expand(*w.shape, self._group).reshape(r.shape)

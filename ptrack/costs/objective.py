@@ -1,0 +1,86 @@
+"""The objective: weighted sum of cost terms with a per-term breakdown."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Mapping, NamedTuple
+
+import torch
+from torch import Tensor
+
+from ptrack.errors import InputError
+from ptrack.costs.base import CostTerm, PoseEval
+
+# ---------------------------------------------------------------------------------------------
+# Objective.
+
+
+class ObjectiveValue(NamedTuple):
+    """total (...,) weighted energy; terms: name -> weighted energy (...,), summing to total."""
+
+    total: Tensor
+    terms: dict[str, Tensor]
+
+
+def _same_batch(what: str, shapes: Mapping[str, torch.Size]) -> None:
+    if len(set(shapes.values())) > 1:
+        got = {name: tuple(s) for name, s in shapes.items()}
+        raise InputError(f"Objective terms disagree on the batch shape of their {what}: {got} "
+                         f"(trajectory terms need JointLimits(time_axis=True))")
+
+
+@dataclass(frozen=True, eq=False)
+class Objective:
+    """Weighted sum of named cost terms: E = sum_i w_i E_i (weights default to 1).
+
+    Every term must give the same energy batch shape (...,) for the PoseEval it is called on.
+    """
+
+    terms: Mapping[str, CostTerm]
+    weights: Mapping[str, float] | None = None
+
+    def __post_init__(self) -> None:
+        if not self.terms:
+            raise InputError("Objective needs at least one term")
+        for name, term in self.terms.items():
+            if not all(callable(getattr(term, m, None))
+                       for m in ("residual", "energy", "robust_weights")):
+                raise InputError(f"Objective term {name!r} is not a cost term: "
+                                 f"{type(term).__name__}")
+        weights = dict(self.weights or {})
+        unknown = sorted(set(weights) - set(self.terms))
+        if unknown:
+            raise InputError(f"Objective weights name unknown terms {unknown}; terms are "
+                             f"{sorted(self.terms)}")
+        for name, value in weights.items():
+            if not (math.isfinite(float(value)) and float(value) >= 0):
+                raise InputError(f"Objective weight {name!r} must be finite and >= 0, "
+                                 f"got {value!r}")
+        object.__setattr__(self, "terms", MappingProxyType(dict(self.terms)))
+        object.__setattr__(self, "weights",
+                           MappingProxyType({n: float(weights.get(n, 1.0)) for n in self.terms}))
+
+    def __call__(self, ev: PoseEval) -> ObjectiveValue:
+        """ev -> ObjectiveValue(total (...,), terms {name: w * energy (...,)})."""
+        parts = {name: self.weights[name] * term.energy(ev) for name, term in self.terms.items()}
+        _same_batch("energy", {name: e.shape for name, e in parts.items()})
+        return ObjectiveValue(torch.stack(list(parts.values())).sum(0), parts)
+
+    def residuals(self, ev: PoseEval) -> Tensor:
+        """ev -> (..., M_total): each term's whitened residual times sqrt(weight), concatenated.
+
+        For least-squares terms 0.5 |r|^2 is their share of the total. Robust terms return the plain
+        whitened residual: a Gauss-Newton / IRLS step uses diag(robust_weights(ev)) as the per-row
+        weight (J^T W J dq = -J^T W r), which matches the gradient of the robust total.
+        """
+        parts = {n: math.sqrt(self.weights[n]) * t.residual(ev) for n, t in self.terms.items()}
+        _same_batch("residuals", {name: r.shape[:-1] for name, r in parts.items()})
+        return torch.cat(list(parts.values()), dim=-1)
+
+    def robust_weights(self, ev: PoseEval) -> Tensor:
+        """ev -> (..., M_total) IRLS weights rho'(s) aligned with `residuals` (1 for l2 terms)."""
+        parts = {name: term.robust_weights(ev) for name, term in self.terms.items()}
+        _same_batch("robust weights", {name: w.shape[:-1] for name, w in parts.items()})
+        return torch.cat(list(parts.values()), dim=-1)

@@ -1,0 +1,114 @@
+"""Silhouette term: projected bones pulled inside a foreground mask through its distance transform."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ptrack.errors import InputError
+from ptrack.costs.base import PoseEval, _positive, _Robust, _shape, log, robust_loss
+
+
+def distance_transform(mask: Tensor) -> Tensor:
+    """Exact Euclidean distance in pixels from each pixel to the nearest True pixel.
+
+    mask: (..., H, W) bool -> (..., H, W) float64; 0 on the mask, inf in an image with no True
+    pixel. Separable: a 1-D pass down columns, then a lower envelope of parabolas along rows
+    (brute force, chunked to bound memory). Construction-time helper, not differentiable.
+    """
+    mask = torch.as_tensor(mask, dtype=torch.bool)
+    h, w = mask.shape[-2:]
+    rows = torch.arange(h, dtype=torch.float64, device=mask.device)[:, None].expand(h, w)
+    inf = torch.tensor(math.inf, dtype=torch.float64, device=mask.device)
+    above = torch.where(mask, rows, -inf).cummax(-2).values
+    below = torch.where(mask, rows, inf).flip(-2).cummin(-2).values.flip(-2)
+    g = torch.minimum(rows - above, below - rows).square().reshape(-1, w)
+    cols = torch.arange(w, dtype=torch.float64, device=mask.device)
+    d2 = (cols[:, None] - cols[None, :]).square()
+    chunk = max(1, 2**22 // (w * w))
+    out = torch.cat([(c[:, None, :] + d2).amin(-1) for c in g.split(chunk)]) if g.numel() else g
+    return out.sqrt().reshape(mask.shape)
+
+
+@dataclass(frozen=True, eq=False)
+class Silhouette(_Robust):
+    """Keeps projected bones inside a foreground mask, on ev.joint_pixels (..., *O, J, 2).
+
+    masks (*O, H, W) bool, *O = () or (T,); bones ((parent, child), ...) skeleton joint indices.
+    Each bone is sampled at samples_per_bone points from parent to child (ends included); a
+    sample's residual is DT(point) / sigma_px with DT the distance (pixels) to the nearest mask
+    pixel, read by bilinear `grid_sample` (align_corners=True: pixel centres at integers). Points
+    outside the image read DT at the nearest border point plus their distance to it. Frames with
+    an empty mask count as missing (zero residual). residual (..., |O|*B*S), rho per sample.
+    """
+
+    masks: Tensor
+    bones: tuple[tuple[int, int], ...]
+    sigma_px: float = 1.0
+    samples_per_bone: int = 8
+    loss: str = "l2"
+    scale: float = 1.0
+    _group: ClassVar[int] = 1
+    _dt: Tensor = field(init=False, repr=False)
+    _present: Tensor = field(init=False, repr=False)
+    _bones: Tensor = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        masks = torch.as_tensor(self.masks)
+        if masks.dtype != torch.bool or masks.ndim < 2 or min(masks.shape[-2:]) < 2:
+            raise InputError(f"Silhouette.masks must be a bool tensor (*O, H, W) with H, W >= 2, "
+                             f"got {masks.dtype} {_shape(masks)}")
+        bones = torch.as_tensor(self.bones)
+        if bones.ndim != 2 or bones.shape[1] != 2 or bones.shape[0] == 0 \
+                or bones.is_floating_point() or (bones < 0).any():
+            raise InputError(f"Silhouette.bones must be non-empty (parent, child) pairs of joint "
+                             f"indices >= 0, got {self.bones!r}")
+        if int(self.samples_per_bone) != self.samples_per_bone or self.samples_per_bone < 2:
+            raise InputError(f"Silhouette.samples_per_bone must be an integer >= 2, got "
+                             f"{self.samples_per_bone!r}")
+        _positive("Silhouette.sigma_px", self.sigma_px)
+        _positive("Silhouette.scale", self.scale)
+        robust_loss(self.loss)
+        dt = distance_transform(masks)
+        present = masks.flatten(-2).any(-1)
+        if not present.all():
+            log.warning("Silhouette: %d of %d masks are empty and count as missing",
+                        int((~present).sum()), present.numel())
+        object.__setattr__(self, "masks", masks)
+        object.__setattr__(self, "_dt", torch.where(present[..., None, None], dt, 0.0))
+        object.__setattr__(self, "_present", present)
+        object.__setattr__(self, "_bones", bones.long())
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """ev.joint_pixels (..., *O, J, 2) -> (..., |O|*B*S): distance outside mask / sigma_px."""
+        jp = ev.joint_pixels
+        if jp is None:
+            raise InputError("Silhouette needs PoseEval.joint_pixels (..., J, 2), the projected "
+                             "pixels of all skeleton joints, but it is None")
+        frames, (h, w) = self.masks.shape[:-2], self.masks.shape[-2:]
+        n_o = len(frames)
+        if jp.ndim < n_o + 2 or jp.shape[-1] != 2 or jp.shape[jp.ndim - n_o - 2:-2] != frames \
+                or jp.shape[-2] <= int(self._bones.max()):
+            raise InputError(f"Silhouette: ev.joint_pixels {_shape(jp)} must be (..., "
+                             f"{', '.join(map(str, frames)) + ', ' if n_o else ''}J, 2) with J > "
+                             f"{int(self._bones.max())}")
+        bones = self._bones.to(jp.device)
+        parent, child = jp.index_select(-2, bones[:, 0]), jp.index_select(-2, bones[:, 1])
+        t = torch.linspace(0.0, 1.0, self.samples_per_bone, dtype=jp.dtype, device=jp.device)
+        pts = parent[..., None, :] + t[:, None] * (child - parent)[..., None, :]
+        batch, n_frames = jp.shape[:jp.ndim - n_o - 2], math.prod(frames)
+        pts = pts.reshape(-1, n_frames, pts.shape[-3] * pts.shape[-2], 2).transpose(0, 1)
+        u, v = pts.unbind(-1)
+        uc, vc = u.clamp(0.0, w - 1.0), v.clamp(0.0, h - 1.0)
+        off2 = (u - uc).square() + (v - vc).square()
+        outside = torch.where(off2 > 0, torch.where(off2 > 0, off2, 1.0).sqrt(), 0.0)
+        grid = torch.stack([2.0 * uc / (w - 1) - 1.0, 2.0 * vc / (h - 1) - 1.0], dim=-1)
+        dt = self._dt.to(jp).reshape(n_frames, 1, h, w)
+        d = F.grid_sample(dt, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        d = (d[:, 0] + outside) * self._present.to(jp).reshape(n_frames, 1, 1)
+        return d.transpose(0, 1).reshape(*batch, -1) / self.sigma_px

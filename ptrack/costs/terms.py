@@ -1,0 +1,291 @@
+"""Least-squares and robust cost terms on poses and trajectories: reprojection, joint limits,
+smoothness, keyframes."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import torch
+from torch import Tensor
+
+from ptrack.errors import InputError
+from ptrack.costs.base import (PoseEval, _float, _frame_count, _LeastSquares, _mask, _positive, _Robust,
+                               _shape, _times, robust_loss)
+
+# ---------------------------------------------------------------------------------------------
+# Terms.
+
+
+@dataclass(frozen=True, eq=False)
+class Reprojection(_Robust):
+    """2D keypoint reprojection error, robust per keypoint.
+
+    observed (*O, K, 2) pixels, confidence (*O, K) >= 0 (0 = missing; NaN observations allowed
+    there); *O is () for one frame or (T,) for a trajectory. Reads ev.pixels (..., *O, K, 2).
+    residual (..., |O|*K*2): r_k = sqrt(confidence_k) (pixels_k - observed_k) / sigma_px, the x, y
+    of keypoint k adjacent; rho(s, scale) is applied to s_k = |r_k|^2 (both coordinates together),
+    so `scale` is in units of sigma_px.
+    """
+
+    observed: Tensor
+    confidence: Tensor
+    sigma_px: float = 1.0
+    loss: str = "cauchy"
+    scale: float = 1.0
+    _group: ClassVar[int] = 2
+    _target: Tensor = field(init=False, repr=False)
+    _sqrt_conf: Tensor = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        obs, conf = _float("observed", self.observed), _float("confidence", self.confidence)
+        if obs.ndim < 2 or obs.shape[-1] != 2 or obs.shape[-2] == 0:
+            raise InputError(f"Reprojection.observed must have shape (*O, K, 2) with K >= 1, "
+                             f"got {_shape(obs)}")
+        if conf.shape != obs.shape[:-1]:
+            raise InputError(f"Reprojection.confidence must have shape {_shape(obs)[:-1]} to "
+                             f"match observed {_shape(obs)}, got {_shape(conf)}")
+        if not (torch.isfinite(conf).all() and (conf >= 0).all()):
+            raise InputError("Reprojection.confidence must be finite and >= 0")
+        valid = conf > 0
+        bad = valid & ~torch.isfinite(obs).all(-1)
+        if bad.any():
+            raise InputError(f"Reprojection.observed has NaN/inf at keypoints with confidence > 0, "
+                             f"indices {bad.nonzero().tolist()[:5]}")
+        _positive("Reprojection.sigma_px", self.sigma_px)
+        _positive("Reprojection.scale", self.scale)
+        robust_loss(self.loss)
+        object.__setattr__(self, "observed", obs)
+        object.__setattr__(self, "confidence", conf)
+        object.__setattr__(self, "_target", torch.where(valid[..., None], obs, 0.0))
+        object.__setattr__(self, "_sqrt_conf", conf.sqrt() / self.sigma_px)
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """ev.pixels (..., *O, K, 2) -> (..., |O|*K*2) whitened pixel residuals."""
+        p, n = ev.pixels, self.observed.ndim
+        if p.ndim < n or p.shape[-n:] != self.observed.shape:
+            raise InputError(f"Reprojection: ev.pixels {_shape(p)} must end in observed's shape "
+                             f"{_shape(self.observed)}")
+        r = (p - self._target.to(p)) * self._sqrt_conf.to(p)[..., None]
+        return r.flatten(-n)
+
+
+@dataclass(frozen=True, eq=False)
+class JointLimits(_LeastSquares):
+    """Two-sided joint-limit barrier (DiFranco et al. eq. 2, both sides), on ev.q.
+
+    lower, upper (D,) (+-inf = no bound); sigma: float or (D,), the violation (radians/metres)
+    costing energy 0.5. residual = [min(0, q - lower) + max(0, q - upper)] / sigma.
+    time_axis=False: q (..., D) -> residual (..., D), energy (...,).
+    time_axis=True: q (..., T, D) -> residual (..., T*D), energy (...,).
+    """
+
+    lower: Tensor
+    upper: Tensor
+    sigma: float | Tensor = 0.05
+    time_axis: bool = False
+
+    def __post_init__(self) -> None:
+        lo, hi = _float("lower", self.lower), _float("upper", self.upper)
+        if lo.ndim != 1 or lo.shape != hi.shape:
+            raise InputError(f"JointLimits.lower and .upper must both have shape (D,), got "
+                             f"{_shape(lo)} and {_shape(hi)}")
+        if lo.isnan().any() or hi.isnan().any() or (lo > hi).any() or (lo == math.inf).any() \
+                or (hi == -math.inf).any():
+            raise InputError("JointLimits bounds must be non-NaN with lower <= upper, lower < inf "
+                             "and upper > -inf")
+        sigma = _float("sigma", self.sigma)
+        if sigma.ndim > 1 or (sigma.ndim == 1 and sigma.shape != lo.shape):
+            raise InputError(f"JointLimits.sigma must be a float or shape {_shape(lo)}, got "
+                             f"{_shape(sigma)}")
+        _positive("JointLimits.sigma", sigma)
+        object.__setattr__(self, "lower", lo)
+        object.__setattr__(self, "upper", hi)
+        object.__setattr__(self, "sigma", sigma)
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """ev.q (..., D) or (..., T, D) with time_axis -> (..., D) or (..., T*D)."""
+        q = ev.q
+        if q.ndim < 1 + self.time_axis or q.shape[-1] != self.lower.shape[0]:
+            raise InputError(f"JointLimits: ev.q {_shape(q)} must be (..., {'T, ' * self.time_axis}"
+                             f"{self.lower.shape[0]})")
+        below = torch.clamp(q - self.lower.to(q), max=0.0)
+        above = torch.clamp(q - self.upper.to(q), min=0.0)
+        r = (below + above) / self.sigma.to(q)
+        return r.flatten(-2) if self.time_axis else r
+
+
+@dataclass(frozen=True, eq=False)
+class Smoothness(_LeastSquares):
+    """Finite-difference velocity and acceleration prior on a trajectory.
+
+    on="q": x = ev.q (..., T, D), dof_scale (D,); on="joints": x = ev.joints (..., T, J, 3),
+    dof_scale (J,). residual = concat of (x[t+1] - x[t]) / (dt sigma_velocity) over t < T-1 and
+    (x[t+1] - 2x[t] + x[t-1]) / (dt^2 sigma_acceleration), each times dof_scale and flattened:
+    (..., (T-1)*E + (T-2)*E) for E entries per frame. A None sigma drops that part.
+    """
+
+    dt: float
+    sigma_velocity: float | None = None
+    sigma_acceleration: float | None = None
+    on: str = "q"
+    dof_scale: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        _positive("Smoothness.dt", self.dt)
+        for name in ("sigma_velocity", "sigma_acceleration"):
+            if getattr(self, name) is not None:
+                _positive(f"Smoothness.{name}", getattr(self, name))
+        if self.on not in ("q", "joints"):
+            raise InputError(f"Smoothness.on must be 'q' or 'joints', got {self.on!r}")
+        if self.dof_scale is not None:
+            scale = _float("dof_scale", self.dof_scale)
+            if scale.ndim != 1 or not (torch.isfinite(scale).all() and (scale >= 0).all()):
+                raise InputError(f"Smoothness.dof_scale must be a finite, >= 0 vector, got "
+                                 f"shape {_shape(scale)}")
+            object.__setattr__(self, "dof_scale", scale)
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """ev.q (..., T, D) or ev.joints (..., T, J, 3) -> (..., M)."""
+        x, n = (ev.q, 2) if self.on == "q" else (ev.joints, 3)
+        if x.ndim < n or (n == 3 and x.shape[-1] != 3):
+            raise InputError(f"Smoothness(on={self.on!r}) needs a trajectory (..., T, "
+                             f"{'D' if n == 2 else 'J, 3'}), got {_shape(x)}")
+        if self.dof_scale is not None:
+            if self.dof_scale.shape[0] != x.shape[-n + 1]:
+                raise InputError(f"Smoothness.dof_scale {_shape(self.dof_scale)} does not match "
+                                 f"{self.on} of shape {_shape(x)}")
+            x = x * (self.dof_scale.to(x) if n == 2 else self.dof_scale.to(x)[:, None])
+        parts = []
+        if self.sigma_velocity is not None:
+            parts.append(torch.diff(x, n=1, dim=-n) / (self.dt * self.sigma_velocity))
+        if self.sigma_acceleration is not None:
+            parts.append(torch.diff(x, n=2, dim=-n) / (self.dt**2 * self.sigma_acceleration))
+        if not parts:
+            return x.new_zeros(x.shape[:-n] + (0,))
+        return torch.cat([p.flatten(-n) for p in parts], dim=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class Keyframe(_LeastSquares):
+    """3D keyframe prior (DiFranco et al. eq. 4) on a trajectory ev.q (..., T, D).
+
+    times (F,) frame indices; target (F, D); covariance (D, D) or (F, D, D) full, or (D,) / (F, D)
+    variances (a 2-D covariance is ambiguous when F == D: then say `diagonal=`); mask (F, D) bool,
+    True = dof set by the keyframe (None: all). Masked-out dofs have infinite variance: the residual
+    whitens the kept entries with the Cholesky factor of their sub-covariance,
+    r_j = L_S^{-1}(q[t_j] - f_j)_S, and is 0 for the masked ones, so |r_j|^2 is the Mahalanobis
+    distance of the kept dofs. Diagonal variances may be inf (= masked); target may be NaN where
+    masked. residual (..., F*D), energy (...,).
+    """
+
+    times: Tensor
+    target: Tensor
+    covariance: Tensor
+    mask: Tensor | None = None
+    diagonal: bool | None = None
+    _whiten: Tensor = field(init=False, repr=False)
+    _target: Tensor = field(init=False, repr=False)
+    _last: int = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        times, target = _times("Keyframe", self.times), _float("target", self.target)
+        if target.ndim != 2 or target.shape[0] != times.shape[0]:
+            raise InputError(f"Keyframe.target must have shape (F={times.shape[0]}, D), got "
+                             f"{_shape(target)}")
+        n_f, d = target.shape
+        mask = _mask("Keyframe.mask", self.mask, (n_f, d))
+        if not torch.isfinite(target[mask]).all():
+            raise InputError("Keyframe.target has NaN/inf at dofs the mask keeps")
+        cov = _float("covariance", self.covariance).double()
+        diagonal = self.diagonal
+        if diagonal is None:
+            if cov.ndim == 2 and n_f == d:
+                raise InputError(f"Keyframe.covariance {_shape(cov)} is ambiguous with F == D == "
+                                 f"{d}: pass diagonal=True (per-keyframe variances) or False")
+            diagonal = cov.ndim == 1 or (cov.ndim == 2 and cov.shape == (n_f, d) and n_f != d)
+        m = mask.double()
+        if diagonal:
+            if _shape(cov) not in ((d,), (n_f, d)):
+                raise InputError(f"Keyframe.covariance (diagonal) must be (D,) or (F, D) = "
+                                 f"({n_f}, {d}), got {_shape(cov)}")
+            if cov.isnan().any() or (cov <= 0).any():
+                raise InputError("Keyframe.covariance variances must be > 0 (inf = unset)")
+            whiten = torch.diag_embed(m * cov.expand(n_f, d).rsqrt())
+        else:
+            if _shape(cov) not in ((d, d), (n_f, d, d)):
+                raise InputError(f"Keyframe.covariance must be (D, D) or (F, D, D) with D={d}, "
+                                 f"F={n_f}, got {_shape(cov)}")
+            cov = cov.expand(n_f, d, d)
+            if not torch.isfinite(cov).all() or not torch.allclose(cov, cov.mT, atol=1e-9):
+                raise InputError("Keyframe.covariance must be finite and symmetric")
+            keep = mask[:, :, None] & mask[:, None, :]
+            eye = torch.eye(d, dtype=cov.dtype).expand_as(cov)
+            chol, info = torch.linalg.cholesky_ex(torch.where(keep, cov, eye))
+            if (info != 0).any():
+                raise InputError(f"Keyframe.covariance of the kept dofs is not positive definite "
+                                 f"for keyframes {(info != 0).nonzero().flatten().tolist()}")
+            # Kept and masked dofs are uncoupled in the patched matrix, so its inverse factor is
+            # L_S^{-1} on the kept block; zeroing the masked rows leaves exactly that.
+            inv = torch.linalg.solve_triangular(chol, eye, upper=False)
+            whiten = inv * m[:, :, None]
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "target", target)
+        object.__setattr__(self, "mask", mask)
+        object.__setattr__(self, "_whiten", whiten)
+        object.__setattr__(self, "_target", torch.where(mask, target, 0.0))
+        object.__setattr__(self, "_last", int(times.max()) if n_f else -1)
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """ev.q (..., T, D) -> (..., F*D) whitened keyframe residuals."""
+        q = ev.q
+        if q.ndim < 2 or q.shape[-1] != self.target.shape[1]:
+            raise InputError(f"Keyframe: ev.q {_shape(q)} must be (..., T, {self.target.shape[1]})")
+        _frame_count("Keyframe", q, self._last, -2)
+        e = q.index_select(-2, self.times.to(q.device)) - self._target.to(q)
+        return torch.einsum("fij,...fj->...fi", self._whiten.to(q), e).flatten(-2)
+
+
+@dataclass(frozen=True, eq=False)
+class JointKeyframe(_LeastSquares):
+    """User-given 3D joint positions at some frames, on ev.joints (..., T, J, 3).
+
+    times (F,), target_joints (F, J, 3) metres (NaN allowed where masked), mask (F, J) bool or
+    None (all), sigma_m metres. residual = mask (joints[t_f] - target) / sigma_m, (..., F*J*3).
+    """
+
+    times: Tensor
+    target_joints: Tensor
+    mask: Tensor | None = None
+    sigma_m: float = 0.05
+    _target: Tensor = field(init=False, repr=False)
+    _weight: Tensor = field(init=False, repr=False)
+    _last: int = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        times = _times("JointKeyframe", self.times)
+        target = _float("target_joints", self.target_joints)
+        if target.ndim != 3 or target.shape[0] != times.shape[0] or target.shape[2] != 3:
+            raise InputError(f"JointKeyframe.target_joints must have shape (F={times.shape[0]}, J, "
+                             f"3), got {_shape(target)}")
+        mask = _mask("JointKeyframe.mask", self.mask, _shape(target)[:2])
+        if not torch.isfinite(target[mask]).all():
+            raise InputError("JointKeyframe.target_joints has NaN/inf at joints the mask keeps")
+        _positive("JointKeyframe.sigma_m", self.sigma_m)
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "target_joints", target)
+        object.__setattr__(self, "mask", mask)
+        object.__setattr__(self, "_target", torch.where(mask[..., None], target, 0.0))
+        object.__setattr__(self, "_weight", mask[..., None].to(target.dtype) / self.sigma_m)
+        object.__setattr__(self, "_last", int(times.max()) if times.numel() else -1)
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """ev.joints (..., T, J, 3) -> (..., F*J*3)."""
+        x = ev.joints
+        if x.ndim < 3 or x.shape[-2:] != self.target_joints.shape[1:]:
+            raise InputError(f"JointKeyframe: ev.joints {_shape(x)} must be (..., T, "
+                             f"{self.target_joints.shape[1]}, 3)")
+        _frame_count("JointKeyframe", x, self._last, -3)
+        e = x.index_select(-3, self.times.to(x.device)) - self._target.to(x)
+        return (e * self._weight.to(x)).flatten(-3)
