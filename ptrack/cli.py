@@ -50,7 +50,8 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "evaluate":
             from ptrack.evaluate import evaluate
 
-            table = evaluate(args.config, args.clips, args.overrides, out=args.out, progress=not args.quiet)
+            table = evaluate(args.config, args.clips, args.overrides, out=args.out,
+                             progress=False if args.quiet else None)
             print(f"ptrack: wrote {table}")
             print(table.read_text(), end="")
         elif args.command == "replay":

@@ -114,7 +114,7 @@ def _check_type(key: str, value: Any, tp: Any) -> Any:
             try:
                 return _check_type(key, value, a)
             except InputError as e:
-                errors.append(str(e))
+                errors.append(e)
         raise errors[0] if len(errors) == 1 else InputError(f"config key {key!r} has the wrong type: got {value!r}")
     if value is None:
         raise InputError(f"config key {key!r} must not be null")
@@ -201,10 +201,21 @@ def parse_override(text: str) -> tuple[str, Any]:
     key = key.strip()
     if not key or any(not p for p in key.split(".")):
         raise InputError(f"override {text!r} has an empty key")
+    if value.strip().startswith(("*", "&")):  # a shell pattern such as *toes, not a YAML alias
+        return key, value.strip()
     try:
         return key, yaml.safe_load(value) if value.strip() else None
     except yaml.YAMLError as e:
-        raise InputError(f"override {text!r}: value is not valid YAML ({e})") from None
+        raise InputError(f"override {text!r}: value is not valid YAML ({_one_line(e)})") from None
+
+
+def _one_line(e: Exception) -> str:
+    """A YAML/Unicode error as one line: its problem and where, without PyYAML's source excerpt."""
+    problem = getattr(e, "problem", None)
+    mark = getattr(e, "problem_mark", None)
+    if problem and mark is not None:
+        return f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
+    return " ".join(str(e).split())
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
@@ -220,7 +231,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         try:
             loaded = yaml.safe_load(p.read_text(encoding="utf-8"))
         except (yaml.YAMLError, UnicodeDecodeError) as e:
-            raise InputError(f"config file {p} is not valid YAML: {e}") from None
+            raise InputError(f"config file {p} is not valid YAML: {_one_line(e)}") from None
         if loaded is None:
             loaded = {}
         if not isinstance(loaded, dict):

@@ -39,7 +39,7 @@ def parse_clips(spec: str, cwd: Path | None = None) -> list[Path]:
     relative to the file's folder)."""
     cwd = Path(cwd or Path.cwd())
     p = cwd / spec
-    if p.is_file() and p.suffix.lower() != ".amc":
+    if p.is_file() and p.suffix.lower() not in (".amc", ".asf"):
         base = p.resolve().parent
         items = [ln.split("#", 1)[0].strip() for ln in p.read_text(encoding="utf-8").splitlines()]
         paths = [(base / it).resolve() for it in items if it]
@@ -68,8 +68,10 @@ def asf_for(amc: Path) -> Path:
 
 
 def evaluate(config: str | Path, clips: str, overrides: list[str] | tuple[str, ...] = (),
-             out: str | Path | None = None, progress: bool = False) -> Path:
-    """Run `config` on every clip; returns the path of the markdown table."""
+             out: str | Path | None = None, progress: bool | None = False) -> Path:
+    """Run `config` on every clip; returns the path of the markdown table.
+
+    progress: show progress bars (None: as the config's `progress` says)."""
     paths = parse_clips(clips)
     base = load_config(config, overrides)  # validates the config once, before any run
     out_dir = Path(out) if out else Path("logs") / f"eval-{base.name}-{datetime.now().strftime('%Y%m%d-%H%M%S')}"

@@ -249,6 +249,9 @@ def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, sum
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    tmp.chmod(0o777 & ~umask)  # mkdtemp makes 0700; the run folder gets a new folder's usual mode
     try:
         (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
         (tmp / "metrics.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")

@@ -1,0 +1,262 @@
+"""Tests for ptrack.cli: `ptrack run` / `ptrack replay` in-process through `main(argv)`, and once as the
+installed `ptrack` command. User errors exit 2 with one `ptrack: error:` line and write nothing."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import ptrack.viz
+from ptrack.cli import main
+from ptrack.config import load_config
+from ptrack.run import prepare
+
+REPO = Path(__file__).resolve().parents[1]
+DEMO = REPO / "configs" / "demo.yaml"
+ASF = REPO / "ptrack" / "data" / "10.asf"
+AMC = REPO / "ptrack" / "data" / "10_02.amc"
+FAST = ["data.stop=48", "data.stride=4", "frame.iterations=15", "frame.first_iterations=60", "progress=false"]
+
+
+def _fail(capsys, out: Path, argv: list[str], *fragments: str) -> str:
+    """Run argv; assert exit 2, one `ptrack: error:` line naming every fragment, no traceback, no out."""
+    rc = main(argv)
+    captured = capsys.readouterr()
+    err = captured.err
+    assert rc == 2, f"exit {rc}, stderr: {err}"
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ptrack: error: "), err
+    assert "Traceback" not in err
+    for f in fragments:
+        assert f in lines[0], f"{f!r} not in {lines[0]!r}"
+    assert captured.out == ""
+    assert not out.exists(), f"{out} was written"
+    if out.parent.exists():
+        assert not any(".partial" in p.name for p in out.parent.iterdir())
+    return lines[0]
+
+
+def _run_argv(out: Path, *extra: str, config: Path = DEMO) -> list[str]:
+    return ["run", str(config), *FAST, *extra, f"out_dir={out}"]
+
+
+@pytest.fixture(scope="module")
+def obs_arrays(tmp_path_factory) -> dict[str, np.ndarray]:
+    """The arrays of an observation file (Observations.save_npz) matching FAST's 12 frames."""
+    cfg = load_config(DEMO, [*FAST, "observations.missing=0"])
+    path = tmp_path_factory.mktemp("obs") / "obs.npz"
+    prepare(cfg).problem.observations.save_npz(path)
+    with np.load(path) as f:
+        return {k: f[k] for k in f.files}
+
+
+def _save(path: Path, arrays: dict[str, np.ndarray], **changes: np.ndarray) -> Path:
+    np.savez(path, **{**arrays, **changes})
+    return path
+
+
+# ---------------------------------------------------------------- success
+
+
+def test_run_success(tmp_path, capsys):
+    out = tmp_path / "ok"
+    assert main([*_run_argv(out), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    first, _, rest = captured.out.partition("\n")
+    assert first == f"ptrack: wrote {out}"
+    metrics = json.loads(rest)
+    assert metrics == json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 12 and metrics["mpjpe_mm"] > 0
+    assert "Traceback" not in captured.err and "error" not in captured.err
+    assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "metrics.json", "result.npz", "run.rrd"]
+
+
+def test_run_from_observation_file(tmp_path, capsys, obs_arrays):
+    path = _save(tmp_path / "obs.npz", obs_arrays)
+    out = tmp_path / "from_file"
+    assert main(_run_argv(out, f"observations.file={path}", "frame.iterations=3", "frame.first_iterations=5")) == 0
+    assert capsys.readouterr().out.startswith(f"ptrack: wrote {out}\n")
+
+
+# ---------------------------------------------------------------- user errors: exit 2, one line
+
+
+def test_missing_config(tmp_path, capsys):
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", config=tmp_path / "nope.yaml"), "nope.yaml")
+
+
+def test_invalid_yaml_config(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("data: {asf: [1, 2\n")
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", config=bad), "bad.yaml")
+
+
+def test_invalid_yaml_override_value(tmp_path, capsys):
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "camera.width=[1, 2"), "camera.width")
+
+
+def test_missing_asf(tmp_path, capsys):
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.asf={tmp_path / 'gone.asf'}"), "gone.asf")
+
+
+def test_missing_amc(tmp_path, capsys):
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.amc={tmp_path / 'gone.amc'}"), "gone.amc")
+
+
+@pytest.mark.parametrize("text", [
+    "hello world\n:bonedata\n begin\n name x\n",  # not ASF at all
+    None,  # a real ASF cut off in the middle of :bonedata
+])
+def test_malformed_asf(tmp_path, capsys, text):
+    bad = tmp_path / "broken.asf"
+    full = ASF.read_text()
+    bad.write_text(text if text is not None else full[: len(full) // 3])
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.asf={bad}"), "broken.asf")
+
+
+@pytest.mark.parametrize("edit", ["number", "empty", "unknown_bone"])
+def test_malformed_amc(tmp_path, capsys, edit):
+    bad = tmp_path / "broken.amc"
+    text = AMC.read_text()
+    if edit == "number":
+        text = text.replace("lfemur -12.5863", "lfemur abc", 1)
+    elif edit == "empty":
+        text = ""
+    else:
+        text = text.replace("\nlfemur ", "\nlthigh ", 1)
+    bad.write_text(text)
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.amc={bad}"), "broken.amc")
+
+
+def test_amc_of_another_skeleton(tmp_path, capsys):
+    other = tmp_path / "other.asf"  # the same skeleton with the bone lthumb renamed
+    other.write_text(re.sub(r"\blthumb\b", "lpinky", ASF.read_text()))
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.asf={other}"), "10_02.amc", "lthumb")
+
+
+def test_unknown_key(tmp_path, capsys):
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "camera.fov=60"), "camera.fov")
+
+
+@pytest.mark.parametrize("override, key", [
+    ("camera.focal_px=abc", "camera.focal_px"),
+    ("data.stride=1.5", "data.stride"),
+    ("data.stride=true", "data.stride"),
+    ("seed=null", "seed"),
+    ("data.stop=abc", "data.stop"),  # an int-or-null key given a string
+])
+def test_wrong_type(tmp_path, capsys, override, key):
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", override), key)
+
+
+def test_bad_value(tmp_path, capsys):
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "data.stride=0"), "data.stride")
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "data.start=5000", "data.stop=null"), "data.start")
+
+
+def test_bad_override_syntax(tmp_path, capsys):
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "seed"), "seed")
+
+
+def test_keypoints_npz_of_wrong_shape(tmp_path, capsys, obs_arrays):
+    kp = obs_arrays["keypoints"]
+    path = _save(tmp_path / "flat.npz", obs_arrays, keypoints=kp[..., :1])
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "flat.npz", "keypoints")
+    path = _save(tmp_path / "k16.npz", obs_arrays, keypoints=kp[:, :16], confidence=obs_arrays["confidence"][:, :16],
+                 keypoint_names=obs_arrays["keypoint_names"][:16])
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "keypoint")
+    path = _save(tmp_path / "short.npz", {k: v[:5] if k in ("keypoints", "confidence", "times") else v
+                                          for k, v in obs_arrays.items()})
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "short.npz", "5 frames")
+
+
+def test_nan_keypoints_with_confidence(tmp_path, capsys, obs_arrays):
+    kp = obs_arrays["keypoints"].copy()
+    kp[3, 5] = np.nan
+    assert obs_arrays["confidence"][3, 5] > 0
+    path = _save(tmp_path / "nan.npz", obs_arrays, keypoints=kp)
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "nan.npz", "NaN",
+          "frame 3")
+    # NaN where confidence is 0 is allowed
+    conf = obs_arrays["confidence"].copy()
+    conf[3, 5] = 0
+    path = _save(tmp_path / "nan_ok.npz", obs_arrays, keypoints=kp, confidence=conf)
+    out = tmp_path / "ok"
+    assert main(_run_argv(out, f"observations.file={path}", "frame.iterations=3", "frame.first_iterations=5")) == 0
+    assert out.is_dir()
+
+
+def test_camera_that_sees_nothing(tmp_path, capsys):
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "camera.focal_px=10000000"), "sees none")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+def test_cuda_unavailable(tmp_path, capsys):
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "device=cuda"), "device", "CUDA")
+
+
+def test_non_empty_out_dir(tmp_path, capsys):
+    out = tmp_path / "taken"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep")
+    assert main(_run_argv(out)) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ptrack: error: out_dir") and str(out) in err
+    assert [p.name for p in out.iterdir()] == ["mine.txt"]
+
+
+def test_no_command_is_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as info:
+        main([])
+    assert info.value.code == 2
+    assert "usage: ptrack" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- replay
+
+
+def test_replay_missing_folder(tmp_path, capsys, monkeypatch):
+    calls = []
+    monkeypatch.setattr(ptrack.viz, "open_viewer", calls.append)
+    assert main(["replay", str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ptrack: error:") and "nothing" in err and "Traceback" not in err
+    (tmp_path / "empty").mkdir()
+    assert main(["replay", str(tmp_path / "empty")]) == 2
+    assert "run.rrd" in capsys.readouterr().err
+    assert calls == []
+
+
+def test_replay_opens_the_recording(tmp_path, capsys, monkeypatch):
+    run_dir = tmp_path / "a_run"
+    run_dir.mkdir()
+    (run_dir / "run.rrd").write_bytes(b"")  # replay only hands the path to the viewer
+    calls = []
+    monkeypatch.setattr(ptrack.viz, "open_viewer", calls.append)
+    assert main(["replay", str(run_dir)]) == 0
+    assert main(["replay", str(run_dir / "run.rrd")]) == 0
+    assert [Path(c) for c in calls] == [run_dir / "run.rrd"] * 2
+    assert capsys.readouterr().err == ""
+
+
+# ---------------------------------------------------------------- the installed command
+
+
+def test_console_script_exit_code(tmp_path):
+    exe = shutil.which("ptrack")
+    if exe is None:
+        pytest.skip("the ptrack console script is not installed")
+    out = tmp_path / "o"
+    proc = subprocess.run([exe, *_run_argv(out, f"data.amc={tmp_path / 'gone.amc'}")], capture_output=True,
+                          text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines() == [f"ptrack: error: AMC file not found: {tmp_path / 'gone.amc'}"]
+    assert proc.stdout == "" and not out.exists()

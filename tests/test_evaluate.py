@@ -1,0 +1,205 @@
+"""Tests for ptrack.evaluate: one config over several clips -> per-clip run folders, results.md (a
+markdown table with a mean row) and results.json; clip lists; failures reported per clip."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from ptrack.cli import main
+from ptrack.errors import InputError
+from ptrack.evaluate import COLUMNS, asf_for, evaluate, markdown_table, parse_clips
+
+REPO = Path(__file__).resolve().parents[1]
+EVAL = REPO / "configs" / "eval_frame.yaml"
+ASF = REPO / "ptrack" / "data" / "10.asf"
+AMC = REPO / "ptrack" / "data" / "10_02.amc"
+FAST = ["data.stop=24", "data.stride=4", "frame.iterations=15", "frame.first_iterations=60", "progress=false"]
+QUICK = [*FAST, "frame.iterations=3", "frame.first_iterations=5"]
+OUTPUTS = ["config.yaml", "metrics.json", "result.npz", "run.rrd"]
+
+
+def _cells(line: str) -> list[str]:
+    assert line.startswith("|") and line.endswith("|"), line
+    return [c.strip() for c in line[1:-1].split("|")]
+
+
+def _table(md: str) -> list[list[str]]:
+    return [_cells(ln) for ln in md.splitlines() if ln.startswith("|")]
+
+
+def _clip_copy(folder: Path, frames: int | None = None, stem: str = "10_02") -> Path:
+    """Copy the bundled clip (first `frames` frames) and its ASF into `folder`; -> the AMC path."""
+    folder.mkdir(parents=True, exist_ok=True)
+    shutil.copy(ASF, folder / "10.asf")
+    lines = AMC.read_text().splitlines(keepends=True)
+    if frames is not None:
+        lines = lines[: lines.index(f"{frames + 1}\n")]
+    amc = folder / f"{stem}.amc"
+    amc.write_text("".join(lines))
+    return amc
+
+
+# ---------------------------------------------------------------- end to end
+
+
+def test_two_clips(tmp_path, cmu_file):
+    golf = cmu_file("64_01.amc")
+    out = tmp_path / "eval"
+    table = evaluate(EVAL, f"{AMC},{golf}", FAST, out=out)
+    assert table == out / "results.md"
+    md = table.read_text()
+    assert md.startswith("Config `eval_frame`, method `frame`.")
+    rows = _table(md)
+    header, rule, body = rows[0], rows[1], rows[2:]
+    assert header[0] == "clip" and "MPJPE mm" in header and "reproj px" in header and "seconds" in header
+    assert "best-of-K mm" not in header  # no method here gives hypotheses
+    assert all(set(c) <= {"-"} for c in rule) and len(rule) == len(header)
+    assert [r[0] for r in body] == ["10_02", "64_01", "**mean (2 clips)**"]
+    assert all(len(r) == len(header) for r in body)
+    results = json.loads((out / "results.json").read_text())
+    assert list(results) == ["10_02", "64_01"]
+    col = header.index("MPJPE mm")
+    for r in body[:2]:
+        m = results[r[0]]
+        assert m["frames"] == 6 and r[header.index("frames")] == "6"
+        assert r[col] == f"{m['mpjpe_mm']:.1f}"
+        assert m == json.loads((out / r[0] / "metrics.json").read_text())
+        assert sorted(p.name for p in (out / r[0]).iterdir()) == OUTPUTS
+    mean = (results["10_02"]["mpjpe_mm"] + results["64_01"]["mpjpe_mm"]) / 2
+    assert body[2][col] == f"{mean:.1f}"
+    assert sorted(p.name for p in out.iterdir()) == ["10_02", "64_01", "results.json", "results.md"]
+
+
+def test_clip_list_file_with_relative_paths(tmp_path, capsys):
+    _clip_copy(tmp_path / "mocap" / "10")
+    _clip_copy(tmp_path / "mocap" / "10", stem="10_77")
+    lists = tmp_path / "lists"
+    lists.mkdir()
+    clips = lists / "mine.txt"
+    clips.write_text("# my clips, relative to this file\n\n../mocap/10/10_02.amc   # kick\n"
+                     "   ../mocap/10/10_77.amc\n")
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(EVAL), *QUICK, "--clips", str(clips), "--out", str(out), "--quiet"]) == 0
+    stdout = capsys.readouterr().out
+    assert stdout.startswith(f"ptrack: wrote {out / 'results.md'}\n")
+    assert (out / "results.md").read_text() in stdout
+    assert list(json.loads((out / "results.json").read_text())) == ["10_02", "10_77"]
+    for stem in ("10_02", "10_77"):
+        assert sorted(p.name for p in (out / stem).iterdir()) == OUTPUTS
+        assert (out / stem / "config.yaml").read_text().count(str(tmp_path / "mocap" / "10" / "10.asf")) == 1
+
+
+def test_clip_too_short_is_reported_and_others_run(tmp_path):
+    short = _clip_copy(tmp_path / "short", frames=20, stem="10_99")
+    out = tmp_path / "eval"
+    table = evaluate(EVAL, f"{short},{AMC}", [*QUICK, "data.start=100", "data.stop=124"], out=out)
+    rows = _table(table.read_text())
+    header, body = rows[0], rows[2:]
+    assert [r[0] for r in body] == ["10_99", "10_02", "**mean (1 clips)**"]
+    failed = body[0]
+    assert failed[1].startswith("failed:") and "data.start" in failed[1] and "20 frames" in failed[1]
+    assert len(failed) == len(header)
+    results = json.loads((out / "results.json").read_text())
+    assert isinstance(results["10_99"], str) and "data.start" in results["10_99"]
+    assert results["10_02"]["frames"] == 6
+    assert sorted(p.name for p in out.iterdir()) == ["10_02", "results.json", "results.md"]  # no folder, no .partial
+
+
+def test_progress_false_in_config_is_respected(tmp_path, capsys):
+    # `ptrack run` lets the config's `progress` decide unless --quiet is given; `ptrack evaluate` should too
+    # (it passes progress=not --quiet to execute(), which overrides progress=false from the config).
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(EVAL), *QUICK, "--clips", str(AMC), "--out", str(out)]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_missing_clip(tmp_path, capsys):
+    out = tmp_path / "eval"
+    with pytest.raises(FileNotFoundError, match="nope.amc"):
+        evaluate(EVAL, f"{AMC},{tmp_path / 'nope.amc'}", QUICK, out=out)
+    assert not out.exists()
+    rc = main(["evaluate", str(EVAL), *QUICK, "--clips", str(tmp_path / "nope.amc"), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("ptrack: error:") and "nope.amc" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_bad_config_fails_before_any_run(tmp_path, capsys):
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(EVAL), "camera.fov=3", "--clips", str(AMC), "--out", str(out)]) == 2
+    assert "camera.fov" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_non_empty_out_is_refused(tmp_path):
+    out = tmp_path / "eval"
+    out.mkdir()
+    (out / "old.md").write_text("x")
+    with pytest.raises(InputError, match="not empty"):
+        evaluate(EVAL, str(AMC), QUICK, out=out)
+    assert [p.name for p in out.iterdir()] == ["old.md"]
+
+
+# ---------------------------------------------------------------- parts
+
+
+def test_parse_clips(tmp_path):
+    a = _clip_copy(tmp_path / "m")
+    b = _clip_copy(tmp_path / "m", stem="10_03")
+    assert parse_clips("m/10_02.amc, m/10_03.amc", cwd=tmp_path) == [a, b]
+    assert parse_clips(str(a)) == [a]
+    listing = tmp_path / "m" / "list.txt"
+    listing.write_text("10_03.amc\n# 10_02.amc\n")
+    assert parse_clips("m/list.txt", cwd=tmp_path) == [b]
+    listing.write_text("# nothing\n")
+    with pytest.raises(InputError, match="no clip"):
+        parse_clips(str(listing))
+    with pytest.raises(InputError, match="not an .amc"):
+        parse_clips("m/10_02.amc,m/10.asf", cwd=tmp_path)
+    with pytest.raises(FileNotFoundError, match="gone.amc"):
+        parse_clips("gone.amc", cwd=tmp_path)
+
+
+def test_shipped_clip_lists(cmu_dir):
+    for name, n in (("dev.txt", 8), ("golf.txt", 7)):
+        paths = parse_clips(str(REPO / "configs" / "clips" / name))
+        assert len(paths) == n and all(p.suffix == ".amc" and p.is_file() for p in paths)
+        assert all(asf_for(p).is_file() for p in paths)
+
+
+def test_asf_for(tmp_path):
+    amc = _clip_copy(tmp_path / "a")
+    assert asf_for(amc) == tmp_path / "a" / "10.asf"
+    other = tmp_path / "b"
+    other.mkdir()
+    shutil.copy(AMC, other / "10_02.amc")
+    shutil.copy(ASF, other / "skeleton.asf")
+    assert asf_for(other / "10_02.amc") == other / "skeleton.asf"  # the only .asf there
+    shutil.copy(ASF, other / "another.asf")
+    with pytest.raises(InputError, match="10.asf"):
+        asf_for(other / "10_02.amc")
+
+
+def test_markdown_table():
+    rows = [("a", {"frames": 10, "mpjpe_mm": 20.0, "reprojection_error_px": 1.0, "seconds": 2.0}),
+            ("b", "too short"),
+            ("c", {"frames": 20, "mpjpe_mm": 40.0, "reprojection_error_px": None, "seconds": 4.0})]
+    md = markdown_table("cfg", "frame", rows)
+    assert md.startswith("Config `cfg`, method `frame`.\n\n")
+    table = _table(md)
+    assert table[0] == ["clip", "frames", "MPJPE mm", "reproj px", "seconds"]  # only columns with values
+    assert table[2] == ["a", "10", "20.0", "1.00", "2.0"]
+    assert table[3][:2] == ["b", "failed: too short"] and len(table[3]) == 5
+    assert table[4] == ["c", "20", "40.0", "–", "4.0"]
+    assert table[5] == ["**mean (2 clips)**", "15.0", "30.0", "1.00", "3.0"]
+    assert [c[0] for c in COLUMNS][:2] == ["frames", "mpjpe_mm"]
+
+
+def test_markdown_table_all_failed():
+    table = _table(markdown_table("cfg", "frame", [("a", "bad"), ("b", "worse")]))
+    assert [r[0] for r in table[2:]] == ["a", "b"]  # no mean row when nothing ran
