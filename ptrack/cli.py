@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
             rrd = path / "run.rrd" if path.is_dir() else path
             if not rrd.exists():
                 raise FileNotFoundError(f"no recording at {rrd} (give a run folder holding run.rrd)")
-            open_viewer(rrd)
+            return open_viewer(rrd) or 0
     except (InputError, FileNotFoundError, IsADirectoryError, NotADirectoryError) as e:
         print(f"ptrack: error: {e}", file=sys.stderr)
         return 2

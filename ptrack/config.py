@@ -67,7 +67,8 @@ class CostsConfig:
     limits_weight: float = 1.0
     limits_sigma: float = 0.02  # radians
     smooth_weight: float = 1.0
-    smooth_sigma: float = 0.15  # radians (or metres) per frame of allowed change
+    smooth_sigma: float = 0.15  # radians (or metres) per frame: velocity scale of the temporal prior
+    accel_sigma: float = 0.1  # radians (or metres) per frame^2: acceleration scale of the temporal prior
 
 
 @dataclass(frozen=True)

@@ -194,12 +194,16 @@ def write_recording(path: str | Path, log: RunLog) -> None:
         rec.disconnect()
 
 
-def open_viewer(path: str | Path) -> None:
-    """Launch the rerun viewer on the saved recording `path` in a new process (non-blocking)."""
+def open_viewer(path: str | Path, wait: bool = True) -> int | None:
+    """Launch the rerun viewer (`python -m rerun PATH`) on the saved recording `path`.
+
+    wait: block until the viewer closes and return its exit status; False: return at once (None).
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"rerun recording {path} does not exist")
-    subprocess.Popen([sys.executable, "-m", "rerun", str(path)])
+    proc = subprocess.Popen([sys.executable, "-m", "rerun", str(path)])
+    return proc.wait() if wait else None
 
 
 def _as_numpy(x: Any) -> np.ndarray:

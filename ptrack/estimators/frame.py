@@ -1,7 +1,8 @@
 """`method: frame` — independent per-frame fits, each started from the previous frame's solution.
 
 Per frame t, L-BFGS minimises a robust reprojection term on the observed keypoints, the joint-limit
-barrier, and a temporal prior pulling q_t towards q_{t-1} (a velocity term on the pair). It is the
+barrier, and a temporal prior on (q_{t-2}, q_{t-1}, q_t): velocity and acceleration residuals, so the
+prior favours constant velocity (the fit also starts from the constant-velocity prediction). It is the
 simplest estimator that exercises the whole pipeline; the trackers and the batch solver of later
 issues replace it. The first frame starts from a user 3D keyframe (config `frame.init: keyframe`)
 or from the rest pose placed in front of the camera (`rest`).
@@ -54,7 +55,8 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
     camera = obs.camera
     lower, upper = sk.limits(dtype=dtype)
     limits = JointLimits(lower, upper, sigma=cc.limits_sigma)
-    smooth = Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma)
+    smooth = Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma, sigma_acceleration=cc.accel_sigma)
+    smooth_pair = Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma)
 
     if fc.init == "keyframe":
         kf = problem.keyframes
@@ -65,21 +67,28 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
         q0 = rest_pose_in_view(problem, dtype)
     # keep the start inside the limits so the barrier starts at zero
     q_prev = torch.maximum(torch.minimum(q0, upper), lower)
+    history = [q_prev] if fc.init == "keyframe" else []  # previous solutions the temporal prior sees
 
     qs, costs = [], []
     terms: dict[str, list[Tensor]] = {"reprojection": [], "limits": [], "smooth": []}
     for t in progress(range(obs.num_frames)):
         reproj = Reprojection(obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss,
                               scale=cc.robust_scale)
+        past = history[-2:]
         anchor = q_prev.detach()
-        q = anchor.clone().requires_grad_(True)
+        # start from a constant-velocity prediction when two past frames are known
+        start = 2 * past[1] - past[0] if len(past) == 2 else anchor
+        q = torch.maximum(torch.minimum(start, upper), lower).clone().requires_grad_(True)
+        prior = smooth if len(past) == 2 else smooth_pair
 
         def energies(q: Tensor) -> dict[str, Tensor]:
             ev = evaluate_pose(sk, camera, problem.keypoints, q)
-            pair = PoseEval(q=torch.stack([anchor, q]), joints=ev.joints, pixels=ev.pixels, depth=ev.depth)
             e = {"reprojection": reproj.energy(ev), "limits": cc.limits_weight * limits.energy(ev)}
-            e["smooth"] = cc.smooth_weight * smooth.energy(pair) if t > 0 or fc.init == "keyframe" \
-                else torch.zeros((), dtype=dtype)
+            if past:
+                traj = PoseEval(q=torch.stack([*past, q]), joints=ev.joints, pixels=ev.pixels, depth=ev.depth)
+                e["smooth"] = cc.smooth_weight * prior.energy(traj)
+            else:
+                e["smooth"] = torch.zeros((), dtype=dtype)
             return e
 
         opt = torch.optim.LBFGS([q], lr=1.0, max_iter=fc.first_iterations if t == 0 else fc.iterations,
@@ -98,6 +107,7 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
                 q.copy_(anchor)
             e = energies(q)
         q_prev = q.detach()
+        history.append(q_prev)
         qs.append(q_prev)
         costs.append(sum(e.values()).detach())
         for k, v in e.items():
