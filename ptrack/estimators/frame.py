@@ -67,14 +67,15 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
         q0 = rest_pose_in_view(problem, dtype)
     # keep the start inside the limits so the barrier starts at zero
     q_prev = torch.maximum(torch.minimum(q0, upper), lower)
-    history = [q_prev] if fc.init == "keyframe" else []  # previous solutions the temporal prior sees
+    history: list[Tensor] = []  # previous solutions, which the temporal prior sees
 
     qs, costs = [], []
     terms: dict[str, list[Tensor]] = {"reprojection": [], "limits": [], "smooth": []}
     for t in progress(range(obs.num_frames)):
         reproj = Reprojection(obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss,
                               scale=cc.robust_scale)
-        past = history[-2:]
+        # frame 0 with a keyframe: the velocity term on (keyframe, q) acts as the keyframe prior
+        past = history[-2:] if t > 0 or fc.init != "keyframe" else [q_prev]
         anchor = q_prev.detach()
         # start from a constant-velocity prediction when two past frames are known
         start = 2 * past[1] - past[0] if len(past) == 2 else anchor
