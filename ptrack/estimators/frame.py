@@ -24,24 +24,24 @@ def rest_pose_in_view(problem: Problem, dtype: torch.dtype) -> Tensor:
     """A rest pose (all angles 0) whose root sits on the camera ray of the first observed pelvis-like
     keypoint, at the depth that makes the observed 2D body size match the model's. -> (D,)"""
     sk, obs, kps = problem.skeleton, problem.observations, problem.keypoints
-    q = torch.zeros(sk.num_dofs, dtype=dtype)
+    device = obs.keypoints.device
+    q = torch.zeros(sk.num_dofs, dtype=dtype, device=device)
     conf = obs.confidence
     frame = int(torch.nonzero(conf.sum(-1) > 0)[0, 0])
     valid = conf[frame] > 0
     pix = obs.keypoints[frame][valid].to(dtype)
     rest = sk.forward_kinematics(q)
-    kp3 = rest.index_select(0, kps.index())[valid]
+    kp3 = rest.index_select(0, kps.index(device))[valid]
     size3 = (kp3 - kp3.mean(0)).norm(dim=-1).mean()
     size2 = (pix - pix.mean(0)).norm(dim=-1).mean().clamp(min=1.0)
-    focal = obs.camera.K[0, 0].to(dtype)
-    depth = focal * size3 / size2
-    origin, direction = obs.camera.to(dtype=dtype).rays(pix.mean(0))
-    target = origin + direction * (depth / (direction @ obs.camera.R[2].to(dtype)))
+    cam = obs.camera.to(device=device, dtype=dtype)
+    depth = cam.K[0, 0] * size3 / size2
+    origin, direction = cam.rays(pix.mean(0))
+    target = origin + direction * (depth / (direction @ cam.R[2]))
     centre = kp3.mean(0)
-    trans = torch.as_tensor(sk.translation_dof)
-    for k in range(3):
-        if trans[k] >= 0:
-            q[trans[k]] = target[k] - centre[k]
+    for k, d in enumerate(sk.translation_dof.tolist()):
+        if d >= 0:
+            q[d] = target[k] - centre[k]
     return q
 
 
@@ -51,9 +51,9 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
     fc, cc = cfg.frame, cfg.costs
     obs = problem.observations
     sk = problem.skeleton
-    dtype = obs.keypoints.dtype
+    dtype, device = obs.keypoints.dtype, obs.keypoints.device
     camera = obs.camera
-    lower, upper = sk.limits(dtype=dtype)
+    lower, upper = sk.limits(dtype=dtype, device=device)
     limits = JointLimits(lower, upper, sigma=cc.limits_sigma)
     smooth = Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma, sigma_acceleration=cc.accel_sigma)
     smooth_pair = Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma)
@@ -62,7 +62,7 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
         kf = problem.keyframes
         if kf is None or not bool((kf.frames == 0).any()):
             raise InputError("frame.init is 'keyframe' but no 3D keyframe is given for frame 0")
-        q0 = kf.q[(kf.frames == 0).nonzero()[0, 0]].to(dtype)
+        q0 = kf.q[(kf.frames == 0).nonzero()[0, 0]].to(device=device, dtype=dtype)
     else:
         q0 = rest_pose_in_view(problem, dtype)
     # keep the start inside the limits so the barrier starts at zero
@@ -89,7 +89,7 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
                 traj = PoseEval(q=torch.stack([*past, q]), joints=ev.joints, pixels=ev.pixels, depth=ev.depth)
                 e["smooth"] = cc.smooth_weight * prior.energy(traj)
             else:
-                e["smooth"] = torch.zeros((), dtype=dtype)
+                e["smooth"] = torch.zeros((), dtype=dtype, device=device)
             return e
 
         opt = torch.optim.LBFGS([q], lr=1.0, max_iter=fc.first_iterations if t == 0 else fc.iterations,
