@@ -68,7 +68,9 @@ class CostsConfig:
     limits_sigma: float = 0.02  # radians
     smooth_weight: float = 1.0
     smooth_sigma: float = 0.15  # radians (or metres) per frame: velocity scale of the temporal prior
-    accel_sigma: float = 0.1  # radians (or metres) per frame^2: acceleration scale of the temporal prior
+    # radians (or metres) per frame^2: acceleration scale of the temporal prior; null = velocity only.
+    # On the dev clips 0.3 lowers acceleration error ~6% at equal MPJPE, 0.1 ~40% at +19% MPJPE.
+    accel_sigma: float | None = None
 
 
 @dataclass(frozen=True)

@@ -178,3 +178,17 @@ def test_cmu_walk_clip(cmu_file):
     mpjpe, reproj = _keypoint_errors(prep, est)
     assert float(mpjpe.mean()) < MPJPE_MAX_MM_WALK, f"keypoint MPJPE {float(mpjpe.mean()):.1f} mm"
     assert float(reproj.mean()) < REPROJ_MAX_PX
+
+
+def test_constant_velocity_prior_smooths():
+    """With costs.accel_sigma set, the fit adds an acceleration prior: the reconstruction's frame-to-frame
+    acceleration drops while it stays accurate (measured on 12 frames of 10_02: MPJPE 19.4 -> 21.0 mm,
+    mean joint acceleration 65 -> 31 mm/frame^2)."""
+    prep, cfg = _prep()
+    plain = _run(prep, cfg)
+    prep_cv, cfg_cv = _prep("costs.accel_sigma=0.05")
+    cv = _run(prep_cv, cfg_cv)
+    mpjpe, _ = _keypoint_errors(prep_cv, cv)
+    assert float(mpjpe.mean()) < MPJPE_MAX_MM
+    acc = lambda e: e.joints.diff(n=2, dim=0).norm(dim=-1).mean()  # noqa: E731
+    assert float(acc(cv)) < float(acc(plain))

@@ -1,8 +1,9 @@
 """`method: frame` — independent per-frame fits, each started from the previous frame's solution.
 
 Per frame t, L-BFGS minimises a robust reprojection term on the observed keypoints, the joint-limit
-barrier, and a temporal prior on (q_{t-2}, q_{t-1}, q_t): velocity and acceleration residuals, so the
-prior favours constant velocity (the fit also starts from the constant-velocity prediction). It is the
+barrier, and a temporal prior: a velocity term on (q_{t-1}, q_t), plus, with `costs.accel_sigma` set,
+an acceleration term on (q_{t-2}, q_{t-1}, q_t) that favours constant velocity (the fit then starts
+from the constant-velocity prediction instead of q_{t-1}). It is the
 simplest estimator that exercises the whole pipeline; the trackers and the batch solver of later
 issues replace it. The first frame starts from a user 3D keyframe (config `frame.init: keyframe`)
 or from the rest pose placed in front of the camera (`rest`).
@@ -55,8 +56,9 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
     camera = obs.camera
     lower, upper = sk.limits(dtype=dtype, device=device)
     limits = JointLimits(lower, upper, sigma=cc.limits_sigma)
-    smooth = Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma, sigma_acceleration=cc.accel_sigma)
     smooth_pair = Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma)
+    smooth = smooth_pair if cc.accel_sigma is None else \
+        Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma, sigma_acceleration=cc.accel_sigma)
 
     if fc.init == "keyframe":
         kf = problem.keyframes
@@ -76,6 +78,8 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
                               scale=cc.robust_scale)
         # frame 0 with a keyframe: the velocity term on (keyframe, q) acts as the keyframe prior
         past = history[-2:] if t > 0 or fc.init != "keyframe" else [q_prev]
+        if cc.accel_sigma is None:
+            past = past[-1:]
         anchor = q_prev.detach()
         # start from a constant-velocity prediction when two past frames are known
         start = 2 * past[1] - past[0] if len(past) == 2 else anchor
