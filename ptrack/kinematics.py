@@ -203,41 +203,103 @@ def forward_kinematics(sk: Skeleton, q: Tensor, lengths: Tensor | None = None, r
         if lengths.shape[-1] != sk.num_joints:
             raise InputError(f"lengths must have {sk.num_joints} entries in the last dim, got {tuple(lengths.shape)}")
         lens = lengths.to(q.dtype).index_select(-1, p.level_index)
+    if p.closed_form and not rotations and q.requires_grad and torch.is_grad_enabled() \
+            and not (isinstance(lens, Tensor) and lens.requires_grad):
+        return _AnalyticFK.apply(q, lens, p)
+    h, pos, _ = _compose(p, q, lens)
+    joints = pos if p.identity_order else pos.index_select(-2, p.order)
+    if not rotations:
+        return joints
+    if p.c_t is not None:
+        h = _mm(h, p.c_t)
+    if not p.identity_order:
+        h = h.index_select(-3, p.order)
+    return joints, h
+
+
+def _compose(p: _Plan, q: Tensor, lens: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Compose the tree level by level. q (..., D), lens (..., J) level order ->
+    H (..., J, 3, 3), positions (..., J, 3) and pivots (..., J, 3) (the point each joint's rotation
+    turns about), all in level order."""
     batch = q.shape[:-1]
     local = _local(p, q)
     root_t = q.index_select(-1, p.trans_index) * p.trans_mask + p.root_position  # (..., 3)
-
     hs: list[Tensor] = []
     ps: list[Tensor] = []
+    os_: list[Tensor] = []
     for lvl, (off, n) in enumerate(p.bounds):
         loc = local.narrow(-3, off, n)
         ln = lens.narrow(-1, off, n)[..., None]
         if lvl == 0:
-            h, off_v = loc, 0
-            pos = root_t[..., None, :].expand(*batch, n, 3)
+            h = loc
+            pivot = root_t[..., None, :].expand(*batch, n, 3)
         else:
             hp, pp = hs[-1], ps[-1]
             if p.parent_slot[lvl] is not None:
                 hp = hp.index_select(-3, p.parent_slot[lvl])
                 pp = pp.index_select(-2, p.parent_slot[lvl])
-            h, pos, off_v = _mm(hp, loc), pp, 0
-            if p.u is not None:
-                off_v = _mv(hp, p.u[off:off + n])
-        if p.w is not None:
-            off_v = off_v + _mv(h, p.w[off:off + n])
+            h = _mm(hp, loc)
+            pivot = pp if p.u is None else pp + ln * _mv(hp, p.u[off:off + n])
+        pos = pivot if p.w is None else pivot + ln * _mv(h, p.w[off:off + n])
         hs.append(h)
-        ps.append(pos + ln * off_v if isinstance(off_v, Tensor) else pos)
-    joints = torch.cat(ps, dim=-2)
-    if not p.identity_order:
-        joints = joints.index_select(-2, p.order)
-    if not rotations:
-        return joints
-    g = torch.cat(hs, dim=-3)
-    if p.c_t is not None:
-        g = _mm(g, p.c_t)
-    if not p.identity_order:
-        g = g.index_select(-3, p.order)
-    return joints, g
+        ps.append(pos)
+        os_.append(pivot)
+    return torch.cat(hs, dim=-3), torch.cat(ps, dim=-2), torch.cat(os_, dim=-2)
+
+
+class _AnalyticFK(torch.autograd.Function):
+    """Joint positions with an analytical backward (closed-form plans, gradient w.r.t. q only).
+
+    A rotation slot of joint i turns its whole subtree about the joint's pivot o_i around the world
+    axis a, so dL/dtheta = a . sum_{j in subtree(i)} (p_j - o_i) x g_j = a . (S_i - o_i x G_i), with
+    subtree sums S_i = sum p_j x g_j and G_i = sum g_j accumulated from the leaves level by level.
+    The slot axes are the columns of A_i = H_parent D_i turned by the preceding Euler factors:
+    z: e_z; y: Rz e_y; x: Rz Ry e_x. This replaces autograd through ~60 small ops with ~20.
+    """
+
+    @staticmethod
+    def forward(ctx, q: Tensor, lens: Tensor, p: _Plan) -> Tensor:
+        h, pos, pivot = _compose(p, q, lens)
+        ctx.save_for_backward(q, h, pos, pivot)
+        ctx.plan = p
+        return pos if p.identity_order else pos.index_select(-2, p.order)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        q, h, pos, pivot = ctx.saved_tensors
+        p: _Plan = ctx.plan
+        g = grad.index_select(-2, p.level_index)
+        gs = g.clone()
+        s = torch.linalg.cross(pos, g, dim=-1)
+        for lvl in range(len(p.bounds) - 1, 0, -1):
+            off, n = p.bounds[lvl]
+            poff, pn = p.bounds[lvl - 1]
+            slot = p.parent_slot[lvl]
+            if slot is None:
+                gs[..., poff:poff + n, :] += gs[..., off:off + n, :]
+                s[..., poff:poff + n, :] += s[..., off:off + n, :]
+            else:
+                gs[..., poff:poff + pn, :].index_add_(-2, slot, gs[..., off:off + n, :])
+                s[..., poff:poff + pn, :].index_add_(-2, slot, s[..., off:off + n, :])
+        t = s - torch.linalg.cross(pivot, gs, dim=-1)  # (..., J, 3)
+        # A = H_parent D in level order; the root's parent frame is the identity
+        parents = [torch.eye(3, dtype=h.dtype, device=h.device).expand(*h.shape[:-3], 1, 3, 3)]
+        for lvl in range(1, len(p.bounds)):
+            poff, pn = p.bounds[lvl - 1]
+            hp = h.narrow(-3, poff, pn)
+            parents.append(hp if p.parent_slot[lvl] is None else hp.index_select(-3, p.parent_slot[lvl]))
+        a = _mm(torch.cat(parents, dim=-3), p.d)
+        w = (a * t[..., :, None]).sum(-2)  # A^T t: (..., J, 3)
+        j = p.dof_mask.shape[0]
+        theta = q.index_select(-1, p.dof_index).unflatten(-1, (j, 3)) * p.dof_mask + p.frozen
+        sz, sy = torch.sin(theta[..., 0]), torch.sin(theta[..., 1])
+        cz, cy = torch.cos(theta[..., 0]), torch.cos(theta[..., 1])
+        w0, w1, w2 = w.unbind(-1)
+        contrib = torch.stack([w2, cz * w1 - sz * w0, cy * (cz * w0 + sz * w1) - sy * w2], dim=-1) * p.dof_mask
+        grad_q = torch.zeros_like(q).index_add_(-1, p.dof_index, contrib.flatten(-2))
+        grad_q.index_add_(-1, p.trans_index, gs[..., 0, :] * p.trans_mask)
+        return grad_q, None, None
 
 
 def local_rotations(sk: Skeleton, q: Tensor) -> Tensor:

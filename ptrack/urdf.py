@@ -181,6 +181,9 @@ def skeleton_from_urdf(path: str | Path, floating_base: bool = True) -> Skeleton
             # only as a root translation: at the base, along a world axis
             ax = world_rot[parent] @ r0 @ np.asarray(j.axis.double().numpy(), dtype=np.float64)
             k = int(np.argmax(np.abs(ax)))
+            if floating_base:
+                raise InputError(f"{p}: prismatic joint {j.name!r} moves the base, which floating_base=True "
+                                 "already does; use floating_base=False for this model")
             if parent not in base_chain or not np.allclose(ax, np.eye(3)[k], atol=1e-9) or trans[k] >= 0:
                 raise InputError(f"{p}: prismatic joint {j.name!r} is not a base translation along +x, +y or +z; "
                                  "ptrack supports prismatic joints only as the root's translation")
