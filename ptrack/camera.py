@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ptrack.checks import as_float_tensor
 from ptrack.errors import InputError
 
 #: largest allowed |R R^T - I| entry and |det R - 1| for a rotation matrix.
@@ -39,15 +40,6 @@ class Projection(NamedTuple):
     depth: Tensor  # (...,) z in the camera frame, metres (negative behind the camera)
     in_front: Tensor  # (...,) bool, depth > min_depth
 
-
-def _as_float_tensor(name: str, value: Any) -> Tensor:
-    try:
-        x = torch.as_tensor(value)
-    except (TypeError, ValueError, RuntimeError) as e:
-        raise InputError(f"Camera.{name} is not numeric: {e}") from e
-    if not x.is_floating_point():
-        x = x.to(torch.get_default_dtype())
-    return x
 
 
 def _check_size(name: str, value: Any) -> int:
@@ -83,9 +75,9 @@ class Camera:
     height: int
 
     def __post_init__(self) -> None:
-        K = _as_float_tensor("K", self.K)
-        R = _as_float_tensor("R", self.R)
-        t = _as_float_tensor("t", self.t)
+        K = as_float_tensor(self.K, "Camera.K")
+        R = as_float_tensor(self.R, "Camera.R")
+        t = as_float_tensor(self.t, "Camera.t")
         for name, x, shape in (("K", K, (3, 3)), ("R", R, (3, 3)), ("t", t, (3,))):
             if tuple(x.shape) != shape:
                 raise InputError(f"Camera.{name} must have shape {shape}, got {tuple(x.shape)}")

@@ -19,6 +19,7 @@ from typing import NamedTuple, Sequence
 import torch
 from torch import Tensor
 
+from ptrack.checks import as_float_tensor
 from ptrack.errors import InputError
 
 M_TO_MM = 1000.0
@@ -38,16 +39,6 @@ class JointLimitReport(NamedTuple):
     max_deg: Tensor
 
 
-def _float(x, name: str) -> Tensor:
-    """Convert `x` to a floating tensor (integers go to the default float dtype)."""
-    try:
-        out = torch.as_tensor(x)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise InputError(f"{name}: cannot convert to a tensor ({exc})") from exc
-    if not out.is_floating_point():
-        out = out.to(torch.get_default_dtype())
-    return out
-
 
 def _check_same(a: Tensor, b: Tensor, name_a: str, name_b: str) -> None:
     if a.shape != b.shape:
@@ -58,7 +49,7 @@ def _check_same(a: Tensor, b: Tensor, name_a: str, name_b: str) -> None:
 
 def _joint_pair(pred, gt, min_dim: int = 2) -> tuple[Tensor, Tensor]:
     """Convert pred and gt, check both are (..., J, 3) (ndim >= min_dim) and alike, promote dtypes."""
-    pred, gt = _float(pred, "pred"), _float(gt, "gt")
+    pred, gt = as_float_tensor(pred, "pred"), as_float_tensor(gt, "gt")
     if pred.ndim < min_dim or pred.shape[-1] != 3:
         expected = "(..., J, 3)" if min_dim == 2 else "(..., T, J, 3)"
         raise InputError(f"pred must have shape {expected}, got {tuple(pred.shape)}")
@@ -73,8 +64,8 @@ def _check_root(root: int, num_joints: int) -> None:
 
 
 def _camera(R, t, like: Tensor) -> tuple[Tensor, Tensor]:
-    R = _float(R, "R").to(dtype=like.dtype, device=like.device)
-    t = _float(t, "t").to(dtype=like.dtype, device=like.device)
+    R = as_float_tensor(R, "R").to(dtype=like.dtype, device=like.device)
+    t = as_float_tensor(t, "t").to(dtype=like.dtype, device=like.device)
     if R.shape != (3, 3):
         raise InputError(f"R must have shape (3, 3), got {tuple(R.shape)}")
     if t.shape != (3,):
@@ -221,7 +212,7 @@ def flip_error_rate(flips) -> Tensor:
     The overall rate over all defined (frame, limb) entries is `flips.nanmean()`; the mean of
     per-limb rates (each limb weighted equally) is `flip_error_rate(flips).nanmean()`.
     """
-    flips = _float(flips, "flips")
+    flips = as_float_tensor(flips, "flips")
     if flips.ndim < 2:
         raise InputError(f"flips must have shape (..., T, L), got {tuple(flips.shape)}")
     defined = ~torch.isnan(flips)
@@ -238,8 +229,8 @@ def reprojection_error_px(pixels, observed, confidence) -> Tensor:
     pixels, observed: (..., T, K, 2) pixels; confidence: (..., T, K) -> (..., T) pixels;
     NaN for frames with no keypoint of positive confidence.
     """
-    pixels, observed = _float(pixels, "pixels"), _float(observed, "observed")
-    confidence = _float(confidence, "confidence")
+    pixels, observed = as_float_tensor(pixels, "pixels"), as_float_tensor(observed, "observed")
+    confidence = as_float_tensor(confidence, "confidence")
     if pixels.ndim < 2 or pixels.shape[-1] != 2:
         raise InputError(f"pixels must have shape (..., K, 2), got {tuple(pixels.shape)}")
     _check_same(pixels, observed, "pixels", "observed")
@@ -263,12 +254,12 @@ def joint_limit_violations(q, lower, upper, tol: float = 1e-3) -> JointLimitRepo
     q: (..., T, D) radians (any leading dims; at least one entry); lower, upper: (D,) radians.
     Returns JointLimitReport(per_frame (..., T) int64, fraction (), max_deg () degrees).
     """
-    q = _float(q, "q")
+    q = as_float_tensor(q, "q")
     if q.ndim < 1 or q.numel() == 0:
         raise InputError(f"q must have shape (..., D) with at least one entry, got {tuple(q.shape)}")
     num_dofs = q.shape[-1]
-    lower = _float(lower, "lower").to(dtype=q.dtype, device=q.device)
-    upper = _float(upper, "upper").to(dtype=q.dtype, device=q.device)
+    lower = as_float_tensor(lower, "lower").to(dtype=q.dtype, device=q.device)
+    upper = as_float_tensor(upper, "upper").to(dtype=q.dtype, device=q.device)
     for name, bound in (("lower", lower), ("upper", upper)):
         if bound.shape != (num_dofs,):
             raise InputError(f"{name} must have shape ({num_dofs},) to match q, got {tuple(bound.shape)}")
@@ -291,7 +282,7 @@ def best_of_k_mpjpe(hypotheses, gt, root: int = 0) -> Tensor:
 
     hypotheses: (..., N, J, 3) metres; gt: (..., J, 3) metres -> (...,) mm.
     """
-    hypotheses, gt = _float(hypotheses, "hypotheses"), _float(gt, "gt")
+    hypotheses, gt = as_float_tensor(hypotheses, "hypotheses"), as_float_tensor(gt, "gt")
     if gt.ndim < 2 or gt.shape[-1] != 3:
         raise InputError(f"gt must have shape (..., J, 3), got {tuple(gt.shape)}")
     if hypotheses.ndim != gt.ndim + 1 or hypotheses.shape[:-3] + hypotheses.shape[-2:] != gt.shape:

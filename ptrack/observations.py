@@ -27,26 +27,16 @@ import math
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple, Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from ptrack.camera import Camera
+from ptrack.checks import as_float_tensor
 from ptrack.errors import InputError
 
-
-def _float_tensor(value: Any, name: str, like: Tensor | None = None) -> Tensor:
-    try:
-        x = torch.as_tensor(value)
-    except (TypeError, ValueError, RuntimeError) as e:
-        raise InputError(f"{name} is not numeric: {e}") from e
-    if x.dtype == torch.bool or x.is_complex():
-        raise InputError(f"{name} must be real numbers, got dtype {x.dtype}")
-    if like is not None:
-        return x.to(dtype=like.dtype, device=like.device)
-    return x if x.is_floating_point() else x.to(torch.get_default_dtype())
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,19 +62,19 @@ class Observations:
     masks: Tensor | None = None
 
     def __post_init__(self) -> None:
-        kp = _float_tensor(self.keypoints, "Observations.keypoints")
+        kp = as_float_tensor(self.keypoints, "Observations.keypoints")
         if kp.ndim != 3 or kp.shape[-1] != 2:
             raise InputError(f"Observations.keypoints must have shape (T, K, 2), got {tuple(kp.shape)}")
         T, K = kp.shape[:2]
         if T == 0 or K == 0:
             raise InputError(f"Observations.keypoints is empty, shape {tuple(kp.shape)}")
-        conf = _float_tensor(self.confidence, "Observations.confidence", like=kp)
+        conf = as_float_tensor(self.confidence, "Observations.confidence", like=kp)
         if tuple(conf.shape) != (T, K):
             raise InputError(
                 f"Observations.confidence must have shape (T, K) = {(T, K)} to match keypoints "
                 f"{tuple(kp.shape)}, got {tuple(conf.shape)}"
             )
-        times = _float_tensor(self.times, "Observations.times", like=kp)
+        times = as_float_tensor(self.times, "Observations.times", like=kp)
         if tuple(times.shape) != (T,):
             raise InputError(
                 f"Observations.times must have shape (T,) = {(T,)}, got {tuple(times.shape)}"
@@ -398,7 +388,7 @@ def simulate_observations(
     draws unchanged. Returns (Observations in joints' dtype/device, SimulationInfo).
     Raises `InputError` for bad shapes/indices and when the camera sees none of the keypoints.
     """
-    joints = _float_tensor(joints, "simulate_observations: joints")
+    joints = as_float_tensor(joints, "simulate_observations: joints")
     if joints.ndim != 3 or joints.shape[-1] != 3 or joints.shape[0] == 0:
         raise InputError(
             f"simulate_observations: joints must have shape (T, J, 3), got {tuple(joints.shape)}"
@@ -415,7 +405,7 @@ def simulate_observations(
             f"simulate_observations: keypoint_index has values outside [0, {J}): {index.tolist()}"
         )
     K = index.shape[0]
-    times = _float_tensor(times, "simulate_observations: times", like=joints)
+    times = as_float_tensor(times, "simulate_observations: times", like=joints)
     if tuple(times.shape) != (T,):
         raise InputError(
             f"simulate_observations: times must have shape (T,) = {(T,)}, got {tuple(times.shape)}"

@@ -102,10 +102,6 @@ def robust_loss_derivative(name: str) -> Loss:
 # Validation helpers (construction time only: they may sync).
 
 
-def _float(name: str, x) -> Tensor:
-    t = torch.as_tensor(x)
-    return t if t.is_floating_point() else t.to(torch.get_default_dtype())
-
 
 def _positive(name: str, value) -> None:
     t = torch.as_tensor(value, dtype=torch.float64)

@@ -11,7 +11,8 @@ import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
-from ptrack.costs.base import (PoseEval, _float, _frame_count, _LeastSquares, _mask, _positive, _Robust,
+from ptrack.checks import as_float_tensor
+from ptrack.costs.base import (PoseEval, _frame_count, _LeastSquares, _mask, _positive, _Robust,
                                _shape, _times, robust_loss)
 
 # ---------------------------------------------------------------------------------------------
@@ -39,7 +40,7 @@ class Reprojection(_Robust):
     _sqrt_conf: Tensor = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        obs, conf = _float("observed", self.observed), _float("confidence", self.confidence)
+        obs, conf = as_float_tensor(self.observed, "observed"), as_float_tensor(self.confidence, "confidence")
         if obs.ndim < 2 or obs.shape[-1] != 2 or obs.shape[-2] == 0:
             raise InputError(f"Reprojection.observed must have shape (*O, K, 2) with K >= 1, "
                              f"got {_shape(obs)}")
@@ -87,7 +88,7 @@ class JointLimits(_LeastSquares):
     time_axis: bool = False
 
     def __post_init__(self) -> None:
-        lo, hi = _float("lower", self.lower), _float("upper", self.upper)
+        lo, hi = as_float_tensor(self.lower, "lower"), as_float_tensor(self.upper, "upper")
         if lo.ndim != 1 or lo.shape != hi.shape:
             raise InputError(f"JointLimits.lower and .upper must both have shape (D,), got "
                              f"{_shape(lo)} and {_shape(hi)}")
@@ -95,7 +96,7 @@ class JointLimits(_LeastSquares):
                 or (hi == -math.inf).any():
             raise InputError("JointLimits bounds must be non-NaN with lower <= upper, lower < inf "
                              "and upper > -inf")
-        sigma = _float("sigma", self.sigma)
+        sigma = as_float_tensor(self.sigma, "sigma")
         if sigma.ndim > 1 or (sigma.ndim == 1 and sigma.shape != lo.shape):
             raise InputError(f"JointLimits.sigma must be a float or shape {_shape(lo)}, got "
                              f"{_shape(sigma)}")
@@ -140,7 +141,7 @@ class Smoothness(_LeastSquares):
         if self.on not in ("q", "joints"):
             raise InputError(f"Smoothness.on must be 'q' or 'joints', got {self.on!r}")
         if self.dof_scale is not None:
-            scale = _float("dof_scale", self.dof_scale)
+            scale = as_float_tensor(self.dof_scale, "dof_scale")
             if scale.ndim != 1 or not (torch.isfinite(scale).all() and (scale >= 0).all()):
                 raise InputError(f"Smoothness.dof_scale must be a finite, >= 0 vector, got "
                                  f"shape {_shape(scale)}")
@@ -190,7 +191,7 @@ class Keyframe(_LeastSquares):
     _last: int = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        times, target = _times("Keyframe", self.times), _float("target", self.target)
+        times, target = _times("Keyframe", self.times), as_float_tensor(self.target, "target")
         if target.ndim != 2 or target.shape[0] != times.shape[0]:
             raise InputError(f"Keyframe.target must have shape (F={times.shape[0]}, D), got "
                              f"{_shape(target)}")
@@ -198,7 +199,7 @@ class Keyframe(_LeastSquares):
         mask = _mask("Keyframe.mask", self.mask, (n_f, d))
         if not torch.isfinite(target[mask]).all():
             raise InputError("Keyframe.target has NaN/inf at dofs the mask keeps")
-        cov = _float("covariance", self.covariance).double()
+        cov = as_float_tensor(self.covariance, "covariance").double()
         diagonal = self.diagonal
         if diagonal is None:
             if cov.ndim == 2 and n_f == d:
@@ -265,7 +266,7 @@ class JointKeyframe(_LeastSquares):
 
     def __post_init__(self) -> None:
         times = _times("JointKeyframe", self.times)
-        target = _float("target_joints", self.target_joints)
+        target = as_float_tensor(self.target_joints, "target_joints")
         if target.ndim != 3 or target.shape[0] != times.shape[0] or target.shape[2] != 3:
             raise InputError(f"JointKeyframe.target_joints must have shape (F={times.shape[0]}, J, "
                              f"3), got {_shape(target)}")
