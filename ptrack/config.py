@@ -101,6 +101,15 @@ METHODS = ("frame",)
 _PATH_KEYS = {"data.asf", "data.amc", "observations.file", "out_dir"}
 
 
+#: scalar annotation -> (what the error says it must be, accepted Python types); bools are never numbers
+_SCALARS = {
+    bool: ("true or false", lambda v: isinstance(v, bool)),
+    int: ("an integer", lambda v: isinstance(v, int)),
+    float: ("a number", lambda v: isinstance(v, (int, float))),
+    str: ("a string", lambda v: isinstance(v, str)),
+}
+
+
 def _check_type(key: str, value: Any, tp: Any) -> Any:
     """Check (and lightly coerce: int -> float, list -> tuple) `value` against annotation `tp`."""
     origin = typing.get_origin(tp)
@@ -121,22 +130,11 @@ def _check_type(key: str, value: Any, tp: Any) -> Any:
         raise errors[0] if len(errors) == 1 else InputError(f"config key {key!r} has the wrong type: got {value!r}")
     if value is None:
         raise InputError(f"config key {key!r} must not be null")
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        raise InputError(f"config key {key!r} must be true or false, got {value!r}")
-    if tp is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        raise InputError(f"config key {key!r} must be an integer, got {value!r}")
-    if tp is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-        raise InputError(f"config key {key!r} must be a number, got {value!r}")
-    if tp is str:
-        if isinstance(value, str):
-            return value
-        raise InputError(f"config key {key!r} must be a string, got {value!r}")
+    if tp in _SCALARS:
+        what, accepts = _SCALARS[tp]
+        if accepts(value) and not (isinstance(value, bool) and tp is not bool):
+            return tp(value)
+        raise InputError(f"config key {key!r} must be {what}, got {value!r}")
     if origin is tuple:
         if isinstance(value, str):
             value = [value]
