@@ -78,6 +78,11 @@ def evaluate(config: str | Path, clips: str, overrides: list[str] | tuple[str, .
     if out_dir.exists() and any(out_dir.iterdir()):
         raise InputError(f"evaluation folder {out_dir} already exists and is not empty")
     rows: list[tuple[str, dict | str]] = []
+    show = base.progress if progress is None else progress
+    if show:
+        from tqdm.auto import tqdm
+
+        paths = tqdm(paths, desc="clips", unit="clip")
     for amc in paths:
         clip_over = [*overrides, f"data.amc={amc}", f"data.asf={asf_for(amc)}",
                      f"out_dir={(out_dir / amc.stem).resolve()}"]
