@@ -6,6 +6,7 @@
     config.yaml   resolved config
     metrics.json  every applicable metric, plus seconds and frames
     result.npz    frames, q, joints, joint_names, ... (see `write_result`)
+    result.bvh    the estimated motion for animation tools (ptrack.export)
     run.rrd       rerun recording (ptrack.viz)
 
 The folder is assembled in a hidden sibling and renamed into place at the end, so a failed run
@@ -34,6 +35,7 @@ from ptrack.camera import camera_for_motion
 from ptrack.config import RunConfig, dump_yaml
 from ptrack.errors import InputError
 from ptrack.estimators import ESTIMATORS
+from ptrack.export import write_bvh
 from ptrack.keypoints import make_keypoints
 from ptrack.observations import ChannelConfig, Observations, simulate_observations
 from ptrack.problem import Estimate, Keyframes, Problem
@@ -256,6 +258,9 @@ def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, sum
         (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
         (tmp / "metrics.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
         write_result(tmp / "result.npz", prep, est)
+        times = prep.problem.observations.times.detach().double().cpu()
+        fps = float(1.0 / times.diff().median()) if times.numel() > 1 else 30.0
+        write_bvh(tmp / "result.bvh", prep.problem.skeleton, est.q, fps)
         prob = prep.problem
         obs = prob.observations
         res = np.load(tmp / "result.npz")

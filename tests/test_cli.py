@@ -75,7 +75,7 @@ def test_run_success(tmp_path, capsys):
     assert metrics == json.loads((out / "metrics.json").read_text())
     assert metrics["frames"] == 12 and metrics["mpjpe_mm"] > 0
     assert "Traceback" not in captured.err and "error" not in captured.err
-    assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "metrics.json", "result.npz", "run.rrd"]
+    assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "metrics.json", "result.bvh", "result.npz", "run.rrd"]
 
 
 def test_run_from_observation_file(tmp_path, capsys, obs_arrays):

@@ -1,5 +1,5 @@
 """Tests for ptrack.run: `execute(cfg)` on the bundled CMU clip writes exactly config.yaml, metrics.json,
-result.npz and run.rrd, atomically; `prepare` makes silhouettes or reads an observation file."""
+result.npz, result.bvh and run.rrd, atomically; `prepare` makes silhouettes or reads an observation file."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ FAST = ["data.stop=48", "data.stride=4", "frame.iterations=15", "frame.first_ite
 QUICK = [*FAST, "frame.iterations=3", "frame.first_iterations=5"]  # for runs whose accuracy is not checked
 T = 12
 FREEZE = ["*fingers", "*thumb", "*hand", "*toes"]
-OUTPUTS = ["config.yaml", "metrics.json", "result.npz", "run.rrd"]
+OUTPUTS = ["config.yaml", "metrics.json", "result.bvh", "result.npz", "run.rrd"]
 METRIC_KEYS = ("seconds", "frames", "mpjpe_mm", "pa_mpjpe_mm", "mpjpe_abs_mm", "accel_error_mm_per_frame2",
                "flip_error_rate", "reprojection_error_px", "joint_limit_violation_fraction")
 
@@ -275,3 +275,14 @@ def test_default_out_dir(tmp_path, monkeypatch):
     assert re.fullmatch(r"demo-\d{8}-\d{6}(-\d+)?", out.name), out.name
     assert [p.name for p in (tmp_path / "logs").iterdir()] == [out.name]
     assert sorted(os.listdir(tmp_path / out)) == OUTPUTS
+
+
+def test_bvh_output_matches_result(run_dir):
+    """result.bvh holds the estimated motion: its frame count and root positions match result.npz."""
+    from test_export import read_bvh
+
+    res = np.load(run_dir / "result.npz")
+    names, _, _, channels, frame_time, values = read_bvh((run_dir / "result.bvh").read_text())
+    assert names[0] == "root" and values.shape[0] == res["q"].shape[0]
+    assert frame_time == pytest.approx(4 / 120, abs=1e-6)  # stride 4 of the 120 fps clip
+    np.testing.assert_allclose(values[:, :3], res["joints"][:, 0], atol=2e-5)
