@@ -18,7 +18,7 @@ from ptrack.errors import InputError
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ptrack", description="3D human motion from a single camera.")
     sub = p.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("run", help="run a config: writes config.yaml, metrics.json, result.npz, run.rrd")
+    r = sub.add_parser("run", help="run a config: writes config.yaml, metrics.json, result.npz, result.bvh, run.rrd")
     r.add_argument("config", help="YAML run config, e.g. configs/demo.yaml")
     r.add_argument("overrides", nargs="*", help="dotted.key=value overrides, e.g. seed=3 data.stride=2")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
