@@ -5,7 +5,7 @@
 
     config.yaml   resolved config
     metrics.json  every applicable metric, plus seconds and frames
-    result.npz    frames, q, joints, joint_names, ... (see `write_result`)
+    result.npz    frames, q, joints, joint_names, ... (see `result_arrays`)
     result.bvh    the estimated motion for animation tools (ptrack.export)
     run.rrd       rerun recording (ptrack.viz)
 
@@ -207,8 +207,8 @@ def _progress(show: bool, desc: str) -> Callable[[Iterable], Iterable]:
     return lambda it: tqdm(it, desc=desc, unit="frame", leave=False)
 
 
-def write_result(path: Path, prep: Prepared, est: Estimate) -> None:
-    """result.npz: frames (T,) AMC frame numbers; times (T,) s; q (T, D); dof_names (D,); joints (T, J, 3)
+def result_arrays(prep: Prepared, est: Estimate) -> dict[str, np.ndarray]:
+    """The arrays of result.npz: frames (T,) AMC frame numbers; times (T,) s; q (T, D); dof_names (D,); joints (T, J, 3)
     metres in the mocap world frame (Y up); joint_names (J,) (ASF bone names, "root" first); parents (J,);
     gt_joints (T, J, 3) when there is ground truth; keypoints_observed (T, K, 2), confidence (T, K),
     keypoint_names (K,), keypoints_reprojected (T, K, 2); camera_K/R/t, image_size; cost (T,);
@@ -242,7 +242,7 @@ def write_result(path: Path, prep: Prepared, est: Estimate) -> None:
         v = getattr(est, name)
         if v is not None:
             arrays[name] = v.detach().cpu().numpy()
-    np.savez_compressed(path, **arrays)
+    return arrays
 
 
 def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, summary: dict,
@@ -257,22 +257,20 @@ def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, sum
     try:
         (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
         (tmp / "metrics.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-        write_result(tmp / "result.npz", prep, est)
-        times = prep.problem.observations.times.detach().double().cpu()
-        fps = float(1.0 / times.diff().median()) if times.numel() > 1 else 30.0
+        res = result_arrays(prep, est)
+        np.savez_compressed(tmp / "result.npz", **res)
+        times = res["times"].astype(np.float64)
+        fps = float(1.0 / np.median(np.diff(times))) if len(times) > 1 else 30.0
         write_bvh(tmp / "result.bvh", prep.problem.skeleton, est.q, fps)
         prob = prep.problem
         obs = prob.observations
-        res = np.load(tmp / "result.npz")
         rlog = RunLog(
             joint_names=prob.skeleton.joint_names, parents=prob.skeleton.parents, frames=prep.frames,
-            times=res["times"], estimate=res["joints"],
-            ground_truth=res["gt_joints"] if "gt_joints" in res else None,
+            times=res["times"], estimate=res["joints"], ground_truth=res.get("gt_joints"),
             camera=obs.camera.to(device="cpu"), observed=res["keypoints_observed"], confidence=res["confidence"],
             reprojected=res["keypoints_reprojected"], keypoint_names=prob.keypoints.names,
-            hypotheses=res["hypotheses"] if "hypotheses" in res else None,
-            hypothesis_weights=res["hypothesis_weights"] if "hypothesis_weights" in res else None,
-            hypothesis_costs=res["hypothesis_costs"] if "hypothesis_costs" in res else None,
+            hypotheses=res.get("hypotheses"), hypothesis_weights=res.get("hypothesis_weights"),
+            hypothesis_costs=res.get("hypothesis_costs"),
             scalars=series, masks=obs.masks.cpu().numpy() if obs.masks is not None else None)
         write_recording(tmp / "run.rrd", rlog)
         if out.exists():
