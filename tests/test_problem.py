@@ -1,0 +1,59 @@
+"""ptrack.problem: records, validation, and FK + projection for the cost terms."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from ptrack.camera import camera_for_motion
+from ptrack.errors import InputError
+from ptrack.keypoints import make_keypoints
+from ptrack.observations import ChannelConfig, simulate_observations
+from ptrack.problem import Keyframes, Problem, evaluate_pose
+from ptrack.skeleton import Skeleton, load_amc
+
+DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
+
+
+@pytest.fixture(scope="module")
+def setup():
+    sk = Skeleton.from_asf(DATA / "10.asf")
+    q = load_amc(DATA / "10_02.amc", sk).q[:40:10]
+    joints = sk.forward_kinematics(q)
+    cam = camera_for_motion(joints, 6.0, 30.0, 10.0, 1000.0, 640, 480).to(dtype=torch.float64)
+    kps = make_keypoints(sk)
+    obs, _ = simulate_observations(joints, kps.index(), cam, torch.arange(4, dtype=torch.float64) / 30,
+                                   ChannelConfig(noise_px=0.0), torch.Generator().manual_seed(0), kps.names)
+    return sk, q, cam, kps, obs
+
+
+def test_evaluate_pose_shapes_and_values(setup):
+    sk, q, cam, kps, obs = setup
+    ev = evaluate_pose(sk, cam, kps, q.reshape(2, 2, -1), joint_pixels=True)
+    assert ev.joints.shape == (2, 2, 31, 3) and ev.pixels.shape == (2, 2, 17, 2) and ev.depth.shape == (2, 2, 17)
+    assert ev.joint_pixels.shape == (2, 2, 31, 2)
+    torch.testing.assert_close(ev.pixels.reshape(4, 17, 2), obs.keypoints)  # noise-free observations
+    assert evaluate_pose(sk, cam, kps, q).joint_pixels is None
+
+
+def test_evaluate_pose_gradcheck(setup):
+    sk, q, cam, kps, _ = setup
+    x = q[:1].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda v: evaluate_pose(sk, cam, kps, v).pixels, (x,))
+
+
+def test_problem_and_keyframe_validation(setup):
+    sk, q, _, kps, obs = setup
+    kf = Keyframes(frames=torch.tensor([0]), q=q[:1])
+    assert Problem(sk, kps, obs, kf).keyframes is kf
+    with pytest.raises(InputError, match="keyframes"):
+        Keyframes(frames=torch.tensor([0, 1]), q=q[:1])
+    with pytest.raises(InputError, match="mask"):
+        Keyframes(frames=torch.tensor([0]), q=q[:1], mask=torch.ones(1, 3, dtype=torch.bool))
+    with pytest.raises(InputError, match="dofs"):
+        Problem(sk, kps, obs, Keyframes(frames=torch.tensor([0]), q=q[:1, :10]))
+    other = make_keypoints(sk, {"pelvis": "root", "head": "head"})
+    with pytest.raises(InputError, match="keypoints"):
+        Problem(sk, other, obs)
