@@ -16,7 +16,7 @@ import numpy as np
 from torch import Tensor
 
 from ptrack.errors import InputError
-from ptrack.kinematics import local_rotations
+from ptrack.kinematics import local_rotations, root_positions
 from ptrack.rotations import matrix_to_euler_np
 from ptrack.skeleton import Skeleton
 
@@ -57,11 +57,7 @@ def bvh_text(skeleton: Skeleton, q: Tensor, fps: float) -> str:
     emit(0, 0)
     local = local_rotations(sk, q.detach().double().cpu()).numpy()  # (T, J, 3, 3)
     euler = np.degrees(matrix_to_euler_np(local))[..., ::-1]  # (T, J, 3) as z, y, x
-    qn = q.detach().double().cpu().numpy()
-    root = np.tile(sk.root_position, (q.shape[0], 1))  # (T, 3) the root's pivot: rest position + translation
-    for k, d in enumerate(sk.translation_dof.tolist()):
-        if d >= 0:
-            root[:, k] += qn[:, d]
+    root = root_positions(sk, q.detach().double().cpu()).numpy()  # (T, 3)
     lines += ["MOTION", f"Frames: {q.shape[0]}", f"Frame Time: {1.0 / fps:.8f}"]
     for t in range(q.shape[0]):
         lines.append(" ".join(f"{v:.6f}" for v in (*root[t], *euler[t].reshape(-1))))

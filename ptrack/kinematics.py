@@ -54,6 +54,7 @@ class _Plan:
     identity_order: bool
     bounds: tuple[tuple[int, int], ...]  # (offset, count) per level
     parent_slot: tuple[Tensor | None, ...]  # per level: parent position in the previous level, None = 0..n-1
+    parent_lv: Tensor  # (J,) 1 + level-order position of each joint's parent, 0 for the root
     root_position: Tensor  # (3,)
     trans_index: Tensor  # (3,) long clamped
     trans_mask: Tensor  # (3,)
@@ -103,14 +104,13 @@ def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool 
     w = np.einsum("jba,jb->ja", c_lv, sk.offset_local[lv])
     e = sk.rest_rotation[lv]
     driven = sk.axis_dof[lv] >= 0
+    d_ = f_ = k1 = k2 = rest = None
     if c is not None:
         f = np.einsum("jba,jbc,jcd->jad", c_lv, e, c_lv)
-        d_, f_, k1, k2, rest = t(np.einsum("jba,jbc->jac", c_par, c_lv)), t_or_none(f, np.allclose(f, eye)), \
-            None, None, None
+        d_, f_ = t(np.einsum("jba,jbc->jac", c_par, c_lv)), t_or_none(f, np.allclose(f, eye))
     else:
         k1_np = skew(torch.as_tensor(sk.axes[lv], dtype=torch.float64)).numpy()
-        d_, f_, k1, k2 = None, None, t(k1_np), t(k1_np @ k1_np)
-        rest = t_or_none(e, np.allclose(e, eye))
+        k1, k2, rest = t(k1_np), t(k1_np @ k1_np), t_or_none(e, np.allclose(e, eye))
     plan = _Plan(
         closed_form=c is not None,
         dof_index=torch.as_tensor(np.clip(sk.axis_dof[lv], 0, None).reshape(-1), device=device),
@@ -126,6 +126,8 @@ def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool 
         identity_order=order == list(range(sk.num_joints)),
         bounds=tuple(bounds),
         parent_slot=tuple(parent_slot),
+        parent_lv=torch.as_tensor([lv.index(sk.parents[i]) + 1 if sk.parents[i] >= 0 else 0 for i in lv],
+                                  device=device),
         root_position=t(sk.root_position),
         trans_index=torch.as_tensor(np.clip(sk.translation_dof, 0, None), device=device),
         trans_mask=t((sk.translation_dof >= 0).astype(np.float64)),
@@ -158,10 +160,25 @@ def euler_zyx(theta: Tensor) -> Tensor:
     return m.unflatten(-1, (3, 3))
 
 
+def _angles(p: _Plan, q: Tensor) -> Tensor:
+    """Angle of every axis slot, level order: q (..., D) -> (..., J, 3) (frozen slots at their value)."""
+    j = p.dof_mask.shape[0]
+    return q.index_select(-1, p.dof_index).unflatten(-1, (j, 3)) * p.dof_mask + p.frozen
+
+
+def _root_translation(p: _Plan, q: Tensor) -> Tensor:
+    """Root position: rest position plus the translation dofs. q (..., D) -> (..., 3)."""
+    return q.index_select(-1, p.trans_index) * p.trans_mask + p.root_position
+
+
+def root_positions(sk: Skeleton, q: Tensor) -> Tensor:
+    """Where the root's rotation turns (its rest position moved by the translation dofs): (..., D) -> (..., 3)."""
+    return _root_translation(_plan(sk, q.dtype, q.device), q)
+
+
 def _local(p: _Plan, q: Tensor) -> Tensor:
     """Per-joint rotation in the composition frames, level order: q (..., D) -> (..., J, 3, 3)."""
-    j = p.dof_mask.shape[0]
-    theta = q.index_select(-1, p.dof_index).unflatten(-1, (j, 3)) * p.dof_mask + p.frozen
+    theta = _angles(p, q)
     if p.closed_form:
         local = _mm(p.d, euler_zyx(theta))
         return local if p.f is None else _mm(local, p.f)
@@ -223,7 +240,7 @@ def _compose(p: _Plan, q: Tensor, lens: Tensor) -> tuple[Tensor, Tensor, Tensor]
     turns about), all in level order."""
     batch = q.shape[:-1]
     local = _local(p, q)
-    root_t = q.index_select(-1, p.trans_index) * p.trans_mask + p.root_position  # (..., 3)
+    root_t = _root_translation(p, q)  # (..., 3)
     hs: list[Tensor] = []
     ps: list[Tensor] = []
     os_: list[Tensor] = []
@@ -284,15 +301,10 @@ class _AnalyticFK(torch.autograd.Function):
                 s[..., poff:poff + pn, :].index_add_(-2, slot, s[..., off:off + n, :])
         t = s - torch.linalg.cross(pivot, gs, dim=-1)  # (..., J, 3)
         # A = H_parent D in level order; the root's parent frame is the identity
-        parents = [torch.eye(3, dtype=h.dtype, device=h.device).expand(*h.shape[:-3], 1, 3, 3)]
-        for lvl in range(1, len(p.bounds)):
-            poff, pn = p.bounds[lvl - 1]
-            hp = h.narrow(-3, poff, pn)
-            parents.append(hp if p.parent_slot[lvl] is None else hp.index_select(-3, p.parent_slot[lvl]))
-        a = _mm(torch.cat(parents, dim=-3), p.d)
+        eye = torch.eye(3, dtype=h.dtype, device=h.device).expand(*h.shape[:-3], 1, 3, 3)
+        a = _mm(torch.cat([eye, h], dim=-3).index_select(-3, p.parent_lv), p.d)
         w = (a * t[..., :, None]).sum(-2)  # A^T t: (..., J, 3)
-        j = p.dof_mask.shape[0]
-        theta = q.index_select(-1, p.dof_index).unflatten(-1, (j, 3)) * p.dof_mask + p.frozen
+        theta = _angles(p, q)
         sz, sy = torch.sin(theta[..., 0]), torch.sin(theta[..., 1])
         cz, cy = torch.cos(theta[..., 0]), torch.cos(theta[..., 1])
         w0, w1, w2 = w.unbind(-1)
