@@ -13,20 +13,16 @@ from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
+import torch
 
 from ptrack.errors import InputError
-from ptrack.rotations import matrix_to_euler_np
+from ptrack.rotations import axis_angle_matrix, matrix_to_euler_np
 from ptrack.skeleton import Skeleton
 
 
 def _fmt(v) -> str:
     return " ".join(f"{float(x):.17g}" for x in v)
 
-
-def _axis_rotation_np(axis: np.ndarray, angle: float) -> np.ndarray:
-    x, y, z = axis
-    k = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
-    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
 
 
 def skeleton_to_urdf(sk: Skeleton) -> str:
@@ -81,7 +77,8 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
                 prev = nxt
             elif sk.frozen_axes[i, k] != 0.0:
                 nxt = tmp(name)
-                r = _axis_rotation_np(ax, float(sk.frozen_axes[i, k]))
+                r = axis_angle_matrix(torch.as_tensor(ax), torch.tensor(float(sk.frozen_axes[i, k]),
+                                                                         dtype=torch.float64)).numpy()
                 joint(f"{name}__frozen{k}", "fixed", prev, nxt, rpy=matrix_to_euler_np(r))
                 prev = nxt
         e = sk.rest_rotation[i]
@@ -207,7 +204,7 @@ def skeleton_from_urdf(path: str | Path, floating_base: bool = True) -> Skeleton
         stack.extend((c, idx) for c in reversed(frame.children))
 
     return Skeleton(
-        name=chain._root.link.name if not p.stem else p.stem,
+        name=p.stem,
         joint_names=tuple(names),
         parents=tuple(parents),
         axes=np.asarray(axes),
