@@ -258,9 +258,10 @@ def validate(cfg: RunConfig) -> None:
     """Value checks beyond types (InputError naming the key)."""
     if cfg.method not in METHODS:
         raise InputError(f"config key 'method' must be one of {', '.join(METHODS)}, got {cfg.method!r}")
-    for key in ("data.asf", "data.amc"):
-        if not _get_dotted(to_dict(cfg), key) and not (key == "data.amc" and cfg.observations.file):
-            raise InputError(f"config key {key!r} is required (path to the {key[-3:].upper()} file)")
+    if not cfg.data.asf:
+        raise InputError("config key 'data.asf' is required (path to the ASF file)")
+    if not cfg.data.amc and not cfg.observations.file:
+        raise InputError("config key 'data.amc' is required (path to the AMC file)")
     d = cfg.data
     if d.start < 0:
         raise InputError(f"config key 'data.start' must be >= 0, got {d.start}")

@@ -68,7 +68,7 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
     else:
         q0 = rest_pose_in_view(problem, dtype)
     # keep the start inside the limits so the barrier starts at zero
-    q_prev = torch.maximum(torch.minimum(q0, upper), lower)
+    q_prev = torch.clamp(q0, lower, upper)
     history: list[Tensor] = []  # previous solutions, which the temporal prior sees
 
     qs, costs = [], []
@@ -83,7 +83,7 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
         anchor = q_prev.detach()
         # start from a constant-velocity prediction when two past frames are known
         start = 2 * past[1] - past[0] if len(past) == 2 else anchor
-        q = torch.maximum(torch.minimum(start, upper), lower).clone().requires_grad_(True)
+        q = torch.clamp(start, lower, upper).requires_grad_(True)
         prior = smooth if len(past) == 2 else smooth_pair
 
         def energies(q: Tensor) -> dict[str, Tensor]:
