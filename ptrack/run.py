@@ -126,14 +126,21 @@ def prepare(cfg: RunConfig) -> Prepared:
                     frames=np.asarray(frames))
 
 
-def compute_metrics(prep: Prepared, est: Estimate) -> tuple[dict, dict[str, np.ndarray]]:
-    """Summary metrics (JSON-able) and per-frame series {name: (T,)} for logging."""
+def reprojected_keypoints(prep: Prepared, est: Estimate) -> torch.Tensor:
+    """The estimate's keypoints in the image: (T, K, 2) pixels."""
+    prob = prep.problem
+    kp = est.joints.detach().index_select(-2, prob.keypoints.index(est.joints.device))
+    return prob.observations.camera.project(kp).pixels
+
+
+def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tuple[dict, dict[str, np.ndarray]]:
+    """Summary metrics (JSON-able) and per-frame series {name: (T,)} for logging.
+    reproj: (T, K, 2) from `reprojected_keypoints`."""
     prob = prep.problem
     obs, kps, sk = prob.observations, prob.keypoints, prob.skeleton
     cam = obs.camera
     idx = kps.index(est.joints.device)
     est_kp = est.joints.detach().index_select(-2, idx)
-    reproj = cam.project(est_kp).pixels
     series: dict[str, np.ndarray] = {}
     summary: dict = {}
 
@@ -192,10 +199,11 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
     show = cfg.progress if progress is None else progress
     est = ESTIMATORS[cfg.method](prep.problem, cfg, gen, _progress(show, cfg.method))
     seconds = time.perf_counter() - t0
-    summary, series = compute_metrics(prep, est)
+    reproj = reprojected_keypoints(prep, est)
+    summary, series = compute_metrics(prep, est, reproj)
     summary = {"method": cfg.method, "frames": int(est.q.shape[0]), "seconds": seconds,
                "fps": float(est.q.shape[0] / seconds), **summary}
-    _write_outputs(out, cfg, prep, est, summary, series)
+    _write_outputs(out, cfg, prep, est, result_arrays(prep, est, reproj), summary, series)
     return out
 
 
@@ -207,7 +215,7 @@ def _progress(show: bool, desc: str) -> Callable[[Iterable], Iterable]:
     return lambda it: tqdm(it, desc=desc, unit="frame", leave=False)
 
 
-def result_arrays(prep: Prepared, est: Estimate) -> dict[str, np.ndarray]:
+def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[str, np.ndarray]:
     """The arrays of result.npz: frames (T,) AMC frame numbers; times (T,) s; q (T, D); dof_names (D,); joints (T, J, 3)
     metres in the mocap world frame (Y up); joint_names (J,) (ASF bone names, "root" first); parents (J,);
     gt_joints (T, J, 3) when there is ground truth; keypoints_observed (T, K, 2), confidence (T, K),
@@ -228,8 +236,7 @@ def result_arrays(prep: Prepared, est: Estimate) -> dict[str, np.ndarray]:
         "keypoints_observed": obs.keypoints.detach().cpu().numpy(),
         "confidence": obs.confidence.detach().cpu().numpy(),
         "keypoint_names": np.asarray(prob.keypoints.names),
-        "keypoints_reprojected": cam.project(joints.index_select(-2, prob.keypoints.index(joints.device)))
-        .pixels.cpu().numpy(),
+        "keypoints_reprojected": reproj.cpu().numpy(),
         "camera_K": cam.K.detach().cpu().numpy(),
         "camera_R": cam.R.detach().cpu().numpy(),
         "camera_t": cam.t.detach().cpu().numpy(),
@@ -245,7 +252,7 @@ def result_arrays(prep: Prepared, est: Estimate) -> dict[str, np.ndarray]:
     return arrays
 
 
-def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, summary: dict,
+def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, res: dict[str, np.ndarray], summary: dict,
                    series: dict[str, np.ndarray]) -> None:
     from ptrack.viz import RunLog, write_recording
 
@@ -257,7 +264,6 @@ def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, sum
     try:
         (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
         (tmp / "metrics.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-        res = result_arrays(prep, est)
         np.savez_compressed(tmp / "result.npz", **res)
         times = res["times"].astype(np.float64)
         fps = float(1.0 / np.median(np.diff(times))) if len(times) > 1 else 30.0
