@@ -450,8 +450,9 @@ def test_silhouette_outside_positive_and_pulls_inward():
     assert energy > 0
     assert (g[:, 0] > 0).all()  # descent (-g) moves both joints left, towards the box
     assert g[:, 1].abs().max() < 1e-9
-    # a sample at the parent joint (17, 8) is 4 px right of the box edge at column 13
-    torch.testing.assert_close(term.residual(ev(joint_pixels=jp))[0], torch.tensor(2.0, dtype=D64))
+    # a sample at the parent joint (17, 8) is 3.5 px right of the centre of the box's last
+    # column 13 (13.5): residual 3.5 / sigma_px
+    torch.testing.assert_close(term.residual(ev(joint_pixels=jp))[0], torch.tensor(1.75, dtype=D64))
 
 
 def test_silhouette_outside_image_still_pulls_inward():
@@ -461,7 +462,54 @@ def test_silhouette_outside_image_still_pulls_inward():
     (g,) = torch.autograd.grad(energy, jp)
     assert torch.isfinite(energy) and energy > 0
     assert (g[:, 0] < 0).all()
-    torch.testing.assert_close(term.residual(ev(joint_pixels=jp))[0], torch.tensor(16.0, dtype=D64))
+    # (-10, 10) is 16.5 px left of the centre of the box's first column 6 (6.5)
+    torch.testing.assert_close(term.residual(ev(joint_pixels=jp))[0], torch.tensor(16.5, dtype=D64))
+
+
+def one_pixel_mask(u, v, h=24, w=32):
+    m = torch.zeros(h, w, dtype=torch.bool)
+    m[v, u] = True
+    return m
+
+
+def read(term, points):
+    """The term's residual (sigma_px = 1: the distance read) at points (N, 2), as (N,)."""
+    return term.residual(ev(joint_pixels=torch.stack([points, points], dim=-2)))[..., 0]
+
+
+def test_silhouette_pixel_centres_follow_the_camera():
+    # pixel (u, v) covers [u, u+1) x [v, v+1), centre (u + 0.5, v + 0.5), as in Camera and
+    # render_silhouettes: a one-pixel mask reads 0 at its centre, 1 one pixel to the right, ...
+    term = Silhouette(one_pixel_mask(20, 10), bones=((0, 1),), samples_per_bone=2)
+    pts = torch.tensor([[20.5, 10.5], [21.5, 10.5], [19.5, 10.5], [20.5, 11.5], [20.5, 12.5],
+                        [23.5, 14.5], [17.5, 6.5], [21.5, 11.5]], dtype=D64)
+    expected = torch.tensor([0.0, 1.0, 1.0, 1.0, 2.0, 5.0, 5.0, math.sqrt(2.0)], dtype=D64)
+    torch.testing.assert_close(read(term, pts), expected, rtol=0.0, atol=1e-9)
+    # at every pixel centre of a random mask the term reads its distance transform exactly
+    masks = torch.rand(13, 17, generator=gen(29)) > 0.9
+    term = Silhouette(masks, bones=((0, 1),), samples_per_bone=2)
+    v, u = torch.meshgrid(torch.arange(13, dtype=D64), torch.arange(17, dtype=D64), indexing="ij")
+    centres = torch.stack([u, v], dim=-1).reshape(-1, 2) + 0.5
+    torch.testing.assert_close(read(term, centres), distance_transform(masks).flatten(),
+                               rtol=0.0, atol=1e-9)
+
+
+def test_silhouette_outside_image_reads_border_plus_distance():
+    # outside the pixel centres' hull [0.5, W - 0.5] x [0.5, H - 0.5] a point reads DT at the
+    # nearest hull point plus its distance to it (the exact distance when that hull point is
+    # a mask pixel's centre)
+    corner = Silhouette(one_pixel_mask(0, 0), bones=((0, 1),), samples_per_bone=2)
+    edge = Silhouette(one_pixel_mask(31, 5), bones=((0, 1),), samples_per_bone=2)
+    pts = torch.tensor([[-2.5, -3.5], [0.2, 0.5], [0.5, -0.5]], dtype=D64)
+    torch.testing.assert_close(read(corner, pts), torch.tensor([5.0, 0.3, 1.0], dtype=D64),
+                               rtol=0.0, atol=1e-9)
+    pts = torch.tensor([[35.5, 5.5], [34.5, 9.5], [32.0, 5.5]], dtype=D64)
+    torch.testing.assert_close(read(edge, pts), torch.tensor([4.0, 4.0 + 3.0, 0.5], dtype=D64),
+                               rtol=0.0, atol=1e-9)
+    box = Silhouette(box_mask(), bones=((0, 1),), samples_per_bone=2)  # columns 6..13, rows 5..14
+    pts = torch.tensor([[-10.0, 10.5], [30.0, 10.0], [10.0, -4.5]], dtype=D64)
+    torch.testing.assert_close(read(box, pts), torch.tensor([16.5, 16.5, 10.0], dtype=D64),
+                               rtol=0.0, atol=1e-9)
 
 
 def test_silhouette_trajectory_batch_and_empty_frame():

@@ -3,6 +3,7 @@ import torch
 
 import ptrack.silhouette as silhouette
 from ptrack.camera import camera_for_motion, look_at
+from ptrack.costs import PoseEval, Silhouette
 from ptrack.errors import InputError
 from ptrack.silhouette import capsule_radii, render_silhouettes
 
@@ -98,6 +99,21 @@ def test_vertical_capsule_frontal_is_rounded_rectangle(dtype):
     cap_row = 120 - int(half_len_px) - 10
     assert abs(widths[cap_row].item() - 15) <= 2
     assert bool((widths[rows[0] : rows[0] + 3] < widths[120]).all())
+
+
+def test_silhouette_cost_is_zero_on_rendered_pixels():
+    # renderer, camera and silhouette cost share one pixel convention: the camera projection of a
+    # point on the ray through a foreground pixel's centre reads distance 0, background >= 1
+    cam = _frontal_camera()
+    joints = torch.tensor([[[0.0, 0.6, 0.0], [0.3, 1.4, 0.1]]], dtype=torch.float64)
+    mask = render_silhouettes(joints, torch.tensor([[0, 1]]), torch.tensor([0.02]), cam)[0]
+    v, u = torch.meshgrid(torch.arange(240.0), torch.arange(320.0), indexing="ij")
+    origins, dirs = cam.rays(torch.stack([u, v], dim=-1).double() + 0.5)
+    pixels = cam.project(origins + 4.0 * dirs).pixels.reshape(-1, 1, 2).expand(-1, 2, 2)
+    z = torch.zeros(1, dtype=torch.float64)
+    ev = PoseEval(q=z, joints=z, pixels=z, depth=z, joint_pixels=pixels)
+    d = Silhouette(mask, bones=((0, 1),), samples_per_bone=2).residual(ev)[:, 0].reshape(240, 320)
+    assert mask.sum() > 100 and d[mask].abs().max() < 1e-6 and d[~mask].min() > 1 - 1e-6
 
 
 def test_cmu_rest_pose_joints_fall_inside_mask(rest_pose):

@@ -42,9 +42,12 @@ class Silhouette(_Robust):
     masks (*O, H, W) bool, *O = () or (T,); bones ((parent, child), ...) skeleton joint indices.
     Each bone is sampled at samples_per_bone points from parent to child (ends included); a
     sample's residual is DT(point) / sigma_px with DT the distance (pixels) to the nearest mask
-    pixel, read by bilinear `grid_sample` (align_corners=True: pixel centres at integers). Points
-    outside the image read DT at the nearest border point plus their distance to it. Frames with
-    an empty mask count as missing (zero residual). residual (..., |O|*B*S), rho per sample.
+    pixel, read by bilinear `grid_sample`. Pixels follow `Camera` and `render_silhouettes`: pixel
+    (u, v) covers [u, u+1) x [v, v+1) and DT holds its value at the centre (u + 0.5, v + 0.5).
+    Points outside the hull of the centres, [0.5, W - 0.5] x [0.5, H - 0.5] (outside the image,
+    or within half a pixel of its edge), read DT at the nearest hull point plus their distance
+    to it. Frames with an empty mask count as missing (zero residual).
+    residual (..., |O|*B*S), rho per sample.
     """
 
     masks: Tensor
@@ -104,11 +107,12 @@ class Silhouette(_Robust):
         batch, n_frames = jp.shape[:jp.ndim - n_o - 2], math.prod(frames)
         pts = pts.reshape(-1, n_frames, pts.shape[-3] * pts.shape[-2], 2).transpose(0, 1)
         u, v = pts.unbind(-1)
-        uc, vc = u.clamp(0.0, w - 1.0), v.clamp(0.0, h - 1.0)
+        uc, vc = u.clamp(0.5, w - 0.5), v.clamp(0.5, h - 0.5)  # the hull of pixel centres
         off2 = (u - uc).square() + (v - vc).square()
         outside = torch.where(off2 > 0, torch.where(off2 > 0, off2, 1.0).sqrt(), 0.0)
-        grid = torch.stack([2.0 * uc / (w - 1) - 1.0, 2.0 * vc / (h - 1) - 1.0], dim=-1)
+        # align_corners=False: -1 and 1 are the image edges 0 and W (H), centres at i + 0.5
+        grid = torch.stack([2.0 * uc / w - 1.0, 2.0 * vc / h - 1.0], dim=-1)
         dt = self._dt.to(jp).reshape(n_frames, 1, h, w)
-        d = F.grid_sample(dt, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        d = F.grid_sample(dt, grid, mode="bilinear", padding_mode="border", align_corners=False)
         d = (d[:, 0] + outside) * self._present.to(jp).reshape(n_frames, 1, 1)
         return d.transpose(0, 1).reshape(*batch, -1) / self.sigma_px
