@@ -43,7 +43,7 @@ class ObservationsConfig:
     file: str | None = None  # npz of real 2D keypoints (Observations.save_npz layout); null = simulate
     noise_px: float = 2.0  # Gaussian pixel noise std
     missing: float = 0.0  # fraction of keypoints deleted at random
-    outliers: float = 0.0  # fraction of visible keypoints replaced by gross outliers
+    outliers: float = 0.0  # fraction of kept keypoints (confidence 1) that are gross outliers
     outlier_px: float = 50.0
     swap_fraction: float = 0.5  # share of outliers that are left/right swaps
     occlusion_bursts: float = 0.0  # expected bursts per keypoint per second

@@ -3,8 +3,8 @@
 The channel follows DiFranco, Cham & Rehg (2001), section 2: the true 3D states go through noise,
 perspective projection and deletion. `simulate_observations` projects world joints with a `Camera`,
 adds Gaussian pixel noise, then deletes keypoints at random, in contiguous occlusion bursts and in
-whole dropped frames, and finally replaces some of the kept keypoints with gross outliers (random
-displacements or left/right swaps) that still carry confidence 1, as a real detector's would.
+whole dropped frames, and finally replaces a fraction of the kept keypoints with gross outliers
+(left/right swaps or random displacements) that still carry confidence 1, as a real detector's would.
 
 `Observations` is the record every estimator consumes; users bring their own 2D detections as a
 plain ``.npz`` archive (numpy arrays, no pickles) with these keys:
@@ -269,9 +269,11 @@ class ChannelConfig:
     occlusion_bursts: float = 0.0  # expected contiguous occlusion bursts per keypoint per second
     burst_frames: tuple[int, int] = (5, 20)  # burst length range (inclusive), observation frames
     dropped_frames: float = 0.0  # fraction of whole frames dropped, in [0, 1)
-    outliers: float = 0.0  # fraction of kept keypoints replaced by gross outliers, in [0, 1]
+    # fraction of the kept keypoints (those with confidence 1) that are gross outliers, in [0, 1]
+    outliers: float = 0.0
     outlier_px: float = 50.0  # displacement scale: magnitude ~ U(0.5, 1.5) * outlier_px
-    swap_fraction: float = 0.5  # share of outliers that take their left/right partner's position
+    # share of the outliers that take their left/right partner's position (the rest are displaced)
+    swap_fraction: float = 0.5
 
     def __post_init__(self) -> None:
         def number(name: str, lo: float, hi: float, hi_open: bool = False) -> None:
@@ -308,8 +310,8 @@ class SimulationInfo(NamedTuple):
 
     projected: (T, K, 2) exact projections (no noise).   visible: (T, K) in front and in the image.
     deleted: (T, K) random deletions.   occluded: (T, K) occlusion bursts.   dropped: (T,) frames.
-    outlier_mask: (T, K) kept keypoints replaced by outliers.   swapped: (T, K) the subset of
-    outlier_mask that took the left/right partner's position.
+    outlier_mask: (T, K) kept keypoints replaced by outliers (swapped or displaced).
+    swapped: (T, K) the subset of outlier_mask that took the left/right partner's position.
     """
 
     projected: Tensor
@@ -342,6 +344,28 @@ def _partners(swap_pairs: Sequence[tuple[int, int]], K: int) -> list[int]:
             raise InputError(f"swap_pairs: pair {pair!r} reuses a keypoint that is already paired")
         partner[a], partner[b] = b, a
     return partner
+
+
+def _outlier_rates(
+    kept: int, swappable: int, outliers: float, swap_fraction: float
+) -> tuple[float, float, float]:
+    """Per-entry probabilities (outlier if swappable, outlier if not, swap given a swappable outlier).
+
+    Chosen so that, in expectation over the clip, ``outliers * kept`` entries are outliers and a
+    share ``swap_fraction`` of them are swaps, with outliers spread evenly over the keypoints when
+    ``swap_fraction <= swappable / kept`` and shifted onto swappable keypoints otherwise; if even all
+    swappable keypoints are too few, all of them are swapped and the outlier rate is kept.
+    """
+    if kept == 0 or outliers == 0.0:
+        return 0.0, 0.0, 0.0
+    if swappable == 0:
+        return 0.0, outliers, 0.0
+    swaps = min(outliers * swap_fraction * kept, float(swappable))
+    rate_paired = max(outliers, swaps / swappable)
+    swap_rate = swaps / (rate_paired * swappable)
+    unpaired = kept - swappable
+    rate_unpaired = 0.0 if unpaired == 0 else (outliers * kept - rate_paired * swappable) / unpaired
+    return rate_paired, min(max(rate_unpaired, 0.0), 1.0), swap_rate
 
 
 def _bursts(
@@ -383,7 +407,24 @@ def simulate_observations(
 
     Keypoints behind the camera or outside the image, deleted at random, in an occlusion burst or
     in a dropped frame get confidence 0 and NaN pixels; the rest get confidence 1 and the noisy
-    projection (or an outlier). Every draw comes from ``generator`` (on any device), in a fixed
+    projection (or an outlier).
+
+    Outliers: a fraction ``outliers`` of the kept keypoints, over the clip, become gross outliers.
+    The base is the kept keypoints, not the visible ones, so that the setting is the rate of wrong
+    detections an estimator receives, whatever the deletion rates. A share ``swap_fraction`` of the
+    outliers are left/right swaps, which take the noisy position of their partner and are drawn
+    only among keypoints whose partner is visible ("swappable"); the rest are displaced by
+    ``U(0.5, 1.5) * outlier_px`` in a uniform direction. Each kept keypoint is an outlier
+    independently, so both shares hold in expectation (up to sampling error). While
+    ``swap_fraction`` is at most the swappable share of the kept keypoints, every kept keypoint is
+    an outlier with probability ``outliers``; above it (e.g. swap_fraction 1), the outliers are
+    drawn preferentially on swappable keypoints so that the swap share stays right. Only when
+    ``outliers * swap_fraction`` exceeds the swappable share are there too few partners: then every
+    swappable keypoint is swapped, the outlier rate stays ``outliers`` and the realised swap share
+    is (swappable share) / ``outliers``; without swap_pairs all outliers are displacements.
+    ``SimulationInfo.outlier_mask`` and ``.swapped`` record what was drawn.
+
+    Every draw comes from ``generator`` (on any device), in a fixed
     order, so the same seed gives the same observations and changing one rate leaves the other
     draws unchanged. Returns (Observations in joints' dtype/device, SimulationInfo).
     Raises `InputError` for bad shapes/indices and when the camera sees none of the keypoints.
@@ -438,11 +479,13 @@ def simulate_observations(
 
     kept = visible & ~deleted & ~occluded & ~dropped[:, None]
     noisy = clean + noise
-    outlier = kept & (u_outlier < channel.outliers)
-    has_partner = partner >= 0
     safe_partner = partner.clamp_min(0)
-    partner_visible = visible[:, safe_partner] & has_partner
-    swapped = outlier & (u_swap < channel.swap_fraction) & partner_visible
+    swappable = kept & visible[:, safe_partner] & (partner >= 0)
+    rate_paired, rate_unpaired, swap_rate = _outlier_rates(
+        int(kept.sum()), int(swappable.sum()), channel.outliers, channel.swap_fraction
+    )
+    outlier = kept & torch.where(swappable, u_outlier < rate_paired, u_outlier < rate_unpaired)
+    swapped = outlier & swappable & (u_swap < swap_rate)
     displaced = noisy + magnitude[..., None] * torch.stack([angle.cos(), angle.sin()], dim=-1)
     observed = torch.where(outlier[..., None], displaced, noisy)
     observed = torch.where(swapped[..., None], noisy[:, safe_partner], observed)

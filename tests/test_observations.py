@@ -5,9 +5,15 @@ import numpy as np
 import pytest
 import torch
 
-from ptrack.camera import Camera, look_at
+from pathlib import Path
+
+from ptrack.camera import Camera, camera_for_motion, look_at
 from ptrack.errors import InputError
+from ptrack.keypoints import make_keypoints
 from ptrack.observations import ChannelConfig, Observations, SimulationInfo, simulate_observations
+from ptrack.skeleton import Skeleton, load_amc
+
+DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 
 NAMES = ("pelvis", "lknee", "rknee", "lwrist", "rwrist", "head")
 PAIRS = ((1, 2), (3, 4))
@@ -51,6 +57,25 @@ def _runs(column: torch.Tensor) -> list[tuple[int, int]]:
 
 def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
     return bool(((a == b) | (a.isnan() & b.isnan())).all())
+
+
+@pytest.fixture(scope="module")
+def kick():
+    """The bundled CMU clip 10_02 (590 frames at 120 fps): world joints in float64, keypoints, camera."""
+    skeleton = Skeleton.from_asf(DATA / "10.asf")
+    q = load_amc(DATA / "10_02.amc", skeleton).q.double()
+    joints = skeleton.forward_kinematics(q)
+    camera = camera_for_motion(joints, 6.0, 30.0, 10.0, 1000.0, 640, 480)
+    return {"joints": joints, "kps": make_keypoints(skeleton), "camera": camera}
+
+
+def _simulate_kick(kick, channel, dtype=torch.float64, seed=0):
+    joints = kick["joints"].to(dtype)
+    times = torch.arange(joints.shape[0], dtype=dtype) / 120.0
+    kps = kick["kps"]
+    g = torch.Generator().manual_seed(seed)
+    return simulate_observations(joints, kps.index(), kick["camera"], times, channel, g, kps.names,
+                                 kps.swap_pairs)
 
 
 # -- simulate_observations ------------------------------------------------------------------------
@@ -172,12 +197,61 @@ def test_swaps_exchange_left_right_partners():
 
 
 def test_swap_share_of_outliers():
+    # swap_fraction is the share of *all* outliers that are swaps, though only 4 of 6 keypoints
+    # have a partner; the outliers stay spread evenly over the keypoints (0.5 <= 4/6)
     ch = ChannelConfig(noise_px=0.0, outliers=0.5, swap_fraction=0.5)
-    _, info = _simulate(T=400, channel=ch)
-    paired = info.outlier_mask[:, [1, 2, 3, 4]]
-    share = info.swapped.sum().item() / paired.sum().item()
+    _, info = _simulate(T=400, channel=ch)  # 2400 entries, ~1200 outliers: share std ~0.015
+    share = info.swapped.sum().item() / info.outlier_mask.sum().item()
     assert abs(share - 0.5) < 0.06
     assert not (info.swapped & ~info.outlier_mask).any()
+    assert not info.swapped[:, [0, 5]].any()
+    per_keypoint = info.outlier_mask.double().mean(0)
+    assert bool(((per_keypoint - 0.5).abs() < 0.1).all()), per_keypoint
+
+
+def test_all_outliers_are_swaps_when_partners_suffice():
+    # swap_fraction 1 with 4 of 6 keypoints paired: the outliers are drawn on paired keypoints only
+    ch = ChannelConfig(noise_px=0.0, outliers=0.5, swap_fraction=1.0)
+    _, info = _simulate(T=400, channel=ch)
+    assert torch.equal(info.swapped, info.outlier_mask)
+    assert abs(info.outlier_mask.double().mean().item() - 0.5) < 0.05
+
+
+def test_without_partners_outliers_keep_their_rate_as_displacements():
+    ch = ChannelConfig(noise_px=0.0, outliers=0.3, swap_fraction=0.5)
+    _, info = _simulate(T=400, channel=ch, pairs=())
+    assert not info.swapped.any()
+    assert abs(info.outlier_mask.double().mean().item() - 0.3) < 0.04
+
+
+@pytest.mark.parametrize(
+    "outliers, swap_fraction", [(0.2, 0.0), (0.3, 0.2), (0.3, 0.5), (0.3, 1.0), (0.6, 0.8)]
+)
+def test_realised_swap_share_and_outlier_rate_on_real_clip(kick, outliers, swap_fraction):
+    """The CMU kick, 17 keypoints (6 left/right pairs, 5 unpaired), 30% missing: 590 frames give
+    ~7000 kept keypoints, so the share of swaps among outliers has std < 0.015."""
+    ch = ChannelConfig(noise_px=2.0, missing=0.3, outliers=outliers, swap_fraction=swap_fraction)
+    obs, info = _simulate_kick(kick, ch)
+    kept = obs.confidence > 0
+    n_out = info.outlier_mask.sum().item()
+    assert abs(n_out / kept.sum().item() - outliers) < 0.025
+    share = info.swapped.sum().item() / n_out
+    assert abs(share - swap_fraction) < 0.04, f"swap share {share:.3f}, set {swap_fraction}"
+    paired = torch.zeros(len(kick["kps"].names), dtype=torch.bool)
+    paired[[i for pair in kick["kps"].swap_pairs for i in pair]] = True
+    assert not info.swapped[:, ~paired].any()
+    assert not (info.outlier_mask & ~kept).any()
+
+
+@pytest.mark.parametrize("missing", [0.0, 0.5])
+def test_outlier_rate_is_a_fraction_of_kept_keypoints(kick, missing):
+    """`outliers` is the share of delivered detections (kept keypoints) that are wrong, whatever the
+    deletion rate: 30% of the kept keypoints, not 30% of the visible ones."""
+    ch = ChannelConfig(noise_px=2.0, missing=missing, dropped_frames=0.1, outliers=0.3, swap_fraction=0.5)
+    obs, info = _simulate_kick(kick, ch)
+    kept = obs.confidence > 0
+    assert abs(info.outlier_mask.sum().item() / kept.sum().item() - 0.3) < 0.025
+    assert bool(info.outlier_mask.any()) and not (info.outlier_mask & ~kept).any()
 
 
 def test_points_behind_camera_or_outside_image_get_confidence_zero():
