@@ -323,12 +323,20 @@ class SimulationInfo(NamedTuple):
     swapped: Tensor
 
 
-def _rand(
-    shape: tuple[int, ...], generator: torch.Generator, like: Tensor, normal: bool = False
-) -> Tensor:
-    """Uniform [0, 1) or standard normal draws on the generator's device, moved to ``like``."""
+def _rand(shape: tuple[int, ...], generator: torch.Generator, normal: bool = False) -> Tensor:
+    """Uniform [0, 1) or standard normal float64 draws on the generator's device.
+
+    Always float64, whatever the inputs' dtype, so that a seed gives the same channel in float32
+    and float64; callers threshold in float64 and cast only the pixel offsets.
+    """
     draw = torch.randn if normal else torch.rand
-    x = draw(shape, generator=generator, device=generator.device, dtype=like.dtype)
+    return draw(shape, generator=generator, device=generator.device, dtype=torch.float64)
+
+
+def _like(x: Tensor, like: Tensor) -> Tensor:
+    """``x`` in ``like``'s dtype (floats only) and on its device."""
+    if x.is_floating_point():
+        x = x.to(like.dtype)
     return x.to(like.device)
 
 
@@ -368,22 +376,22 @@ def _outlier_rates(
     return rate_paired, min(max(rate_unpaired, 0.0), 1.0), swap_rate
 
 
-def _bursts(
-    T: int, K: int, rate: float, frames: tuple[int, int], generator: torch.Generator, like: Tensor
-) -> Tensor:
-    """(T, K) bool: a Poisson(rate) number of bursts per keypoint, uniform starts and lengths."""
+def _bursts(T: int, K: int, rate: float, frames: tuple[int, int], generator: torch.Generator) -> Tensor:
+    """(T, K) bool on the generator's device: a Poisson(rate) number of bursts per keypoint, uniform
+    starts and lengths (all drawn in float64)."""
+    device = generator.device
     if rate <= 0.0:
-        return torch.zeros(T, K, dtype=torch.bool, device=like.device)
-    rates = torch.full((K,), rate, dtype=torch.float64, device=generator.device)
-    counts = torch.poisson(rates, generator=generator).to(like.device)
+        return torch.zeros(T, K, dtype=torch.bool, device=device)
+    rates = torch.full((K,), rate, dtype=torch.float64, device=device)
+    counts = torch.poisson(rates, generator=generator)
     M = int(counts.max())
     if M == 0:
-        return torch.zeros(T, K, dtype=torch.bool, device=like.device)
+        return torch.zeros(T, K, dtype=torch.bool, device=device)
     lo, hi = frames
-    starts = (_rand((K, M), generator, like.double()) * T).floor()
-    lengths = lo + (_rand((K, M), generator, like.double()) * (hi - lo + 1)).floor()
-    used = torch.arange(M, device=like.device) < counts[:, None]  # (K, M)
-    f = torch.arange(T, device=like.device, dtype=torch.float64)[:, None, None]  # (T, 1, 1)
+    starts = (_rand((K, M), generator) * T).floor()
+    lengths = lo + (_rand((K, M), generator) * (hi - lo + 1)).floor()
+    used = torch.arange(M, device=device) < counts[:, None]  # (K, M)
+    f = torch.arange(T, device=device, dtype=torch.float64)[:, None, None]  # (T, 1, 1)
     inside = (f >= starts) & (f < starts + lengths) & used
     return inside.any(dim=-1)
 
@@ -424,9 +432,10 @@ def simulate_observations(
     is (swappable share) / ``outliers``; without swap_pairs all outliers are displacements.
     ``SimulationInfo.outlier_mask`` and ``.swapped`` record what was drawn.
 
-    Every draw comes from ``generator`` (on any device), in a fixed
-    order, so the same seed gives the same observations and changing one rate leaves the other
-    draws unchanged. Returns (Observations in joints' dtype/device, SimulationInfo).
+    Every draw comes from ``generator`` (on any device), in float64 and in a fixed order, so the
+    same seed gives the same observations in float32 and float64 (same flags, pixels equal to the
+    inputs' precision) and changing one rate leaves the other draws unchanged. Returns
+    (Observations in joints' dtype/device, SimulationInfo on joints' device).
     Raises `InputError` for bad shapes/indices and when the camera sees none of the keypoints.
     """
     joints = as_float_tensor(joints, "simulate_observations: joints")
@@ -467,26 +476,30 @@ def simulate_observations(
             f"the camera or outside its {cam.width}x{cam.height} image)"
         )
 
-    noise = _rand((T, K, 2), generator, joints, normal=True) * channel.noise_px
-    deleted = _rand((T, K), generator, joints) < channel.missing
-    dropped = _rand((T,), generator, joints) < channel.dropped_frames
-    u_outlier = _rand((T, K), generator, joints)
-    u_swap = _rand((T, K), generator, joints)
-    angle = _rand((T, K), generator, joints) * (2 * math.pi)
-    magnitude = (0.5 + _rand((T, K), generator, joints)) * channel.outlier_px
-    span = float(times[-1] - times[0]) * T / (T - 1) if T > 1 else 0.0
-    occluded = _bursts(T, K, channel.occlusion_bursts * span, channel.burst_frames, generator, joints)
+    # float64 draws on the generator's device; thresholds in float64, then to joints' dtype/device
+    noise = _rand((T, K, 2), generator, normal=True) * channel.noise_px
+    deleted = _rand((T, K), generator) < channel.missing
+    dropped = _rand((T,), generator) < channel.dropped_frames
+    u_outlier = _rand((T, K), generator)
+    u_swap = _rand((T, K), generator)
+    angle = _rand((T, K), generator) * (2 * math.pi)
+    magnitude = (0.5 + _rand((T, K), generator)) * channel.outlier_px
+    span = float(times[-1].double() - times[0].double()) * T / (T - 1) if T > 1 else 0.0
+    occluded = _bursts(T, K, channel.occlusion_bursts * span, channel.burst_frames, generator)
+    offset = magnitude[..., None] * torch.stack([angle.cos(), angle.sin()], dim=-1)  # (T, K, 2)
+    deleted, dropped, occluded = (_like(x, joints) for x in (deleted, dropped, occluded))
 
     kept = visible & ~deleted & ~occluded & ~dropped[:, None]
-    noisy = clean + noise
+    noisy = clean + _like(noise, joints)
     safe_partner = partner.clamp_min(0)
     swappable = kept & visible[:, safe_partner] & (partner >= 0)
     rate_paired, rate_unpaired, swap_rate = _outlier_rates(
         int(kept.sum()), int(swappable.sum()), channel.outliers, channel.swap_fraction
     )
-    outlier = kept & torch.where(swappable, u_outlier < rate_paired, u_outlier < rate_unpaired)
-    swapped = outlier & swappable & (u_swap < swap_rate)
-    displaced = noisy + magnitude[..., None] * torch.stack([angle.cos(), angle.sin()], dim=-1)
+    below_paired, below_unpaired = (_like(u_outlier < r, joints) for r in (rate_paired, rate_unpaired))
+    outlier = kept & torch.where(swappable, below_paired, below_unpaired)
+    swapped = outlier & swappable & _like(u_swap < swap_rate, joints)
+    displaced = noisy + _like(offset, joints)
     observed = torch.where(outlier[..., None], displaced, noisy)
     observed = torch.where(swapped[..., None], noisy[:, safe_partner], observed)
     keypoints = torch.where(kept[..., None], observed, torch.full_like(observed, math.nan))

@@ -254,6 +254,33 @@ def test_outlier_rate_is_a_fraction_of_kept_keypoints(kick, missing):
     assert bool(info.outlier_mask.any()) and not (info.outlier_mask & ~kept).any()
 
 
+def test_float32_and_float64_give_the_same_observations(kick):
+    ch = ChannelConfig(noise_px=2.0, missing=0.3, occlusion_bursts=0.5, dropped_frames=0.1, outliers=0.2)
+    a, ia = _simulate_kick(kick, ch, dtype=torch.float32, seed=5)
+    b, ib = _simulate_kick(kick, ch, dtype=torch.float64, seed=5)
+    assert a.keypoints.dtype == torch.float32 and b.keypoints.dtype == torch.float64
+    for name in ("visible", "deleted", "occluded", "dropped", "outlier_mask", "swapped"):
+        assert torch.equal(getattr(ia, name), getattr(ib, name)), name
+    assert torch.equal(a.confidence.double(), b.confidence)
+    kept = b.confidence > 0
+    assert (a.keypoints.double() - b.keypoints)[kept].abs().max().item() < 1e-3
+    assert bool(a.keypoints[~kept].isnan().all()) and bool(b.keypoints[~kept].isnan().all())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_inputs_with_cpu_generator_match_cpu():
+    ch = ChannelConfig(noise_px=2.0, missing=0.2, occlusion_bursts=0.5, outliers=0.2)
+    a, ia = _simulate(channel=ch, seed=2)
+    joints = _figure(60).cuda()
+    g = torch.Generator().manual_seed(2)
+    times = torch.arange(60.0).cuda() / FPS
+    b, ib = simulate_observations(joints, torch.arange(6), _camera(), times, ch, g, NAMES, PAIRS)
+    for x in (b.keypoints, b.confidence, b.times, *ib):
+        assert x.device == joints.device
+    assert torch.equal(ia.outlier_mask, ib.outlier_mask.cpu()) and torch.equal(a.confidence, b.confidence.cpu())
+    assert (a.keypoints - b.keypoints.cpu())[a.confidence > 0].abs().max().item() < 1e-3
+
+
 def test_points_behind_camera_or_outside_image_get_confidence_zero():
     joints = _figure(10)
     cam = _camera()
