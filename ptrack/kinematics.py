@@ -255,6 +255,8 @@ def _compose(p: _Plan, q: Tensor, lens: Tensor) -> tuple[Tensor, Tensor, Tensor]
             if p.parent_slot[lvl] is not None:
                 hp = hp.index_select(-3, p.parent_slot[lvl])
                 pp = pp.index_select(-2, p.parent_slot[lvl])
+            elif hp.shape[-3] != n:  # parents are the first n joints of a longer previous level
+                hp, pp = hp.narrow(-3, 0, n), pp.narrow(-2, 0, n)
             h = _mm(hp, loc)
             pivot = pp if p.u is None else pp + ln * _mv(hp, p.u[off:off + n])
         pos = pivot if p.w is None else pivot + ln * _mv(h, p.w[off:off + n])
