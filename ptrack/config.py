@@ -57,6 +57,9 @@ class ModelConfig:
     freeze: tuple[str, ...] = ("*fingers", "*thumb", "*hand", "*toes")
     # keypoint name -> skeleton joint; null = the H36M-17 set on CMU joints
     keypoints: dict[str, str] | None = None
+    # joint limits: "data" (measured on real CMU motion, ptrack/data/cmu_limits.json), "asf" (the
+    # skeleton file's own), "none". The CMU ASF limits are broken by the ground truth itself.
+    limits: str = "data"
 
 
 @dataclass(frozen=True)
@@ -283,6 +286,11 @@ def validate(cfg: RunConfig) -> None:
         v = getattr(o, k)
         if not 0.0 <= v <= 1.0:
             raise InputError(f"config key 'observations.{k}' must be in [0, 1], got {v}")
+    from ptrack.limits import SOURCES as LIMIT_SOURCES
+
+    if cfg.model.limits not in LIMIT_SOURCES:
+        raise InputError(f"config key 'model.limits' must be one of {', '.join(LIMIT_SOURCES)}, "
+                         f"got {cfg.model.limits!r}")
     if cfg.dtype not in ("float32", "float64"):
         raise InputError(f"config key 'dtype' must be float32 or float64, got {cfg.dtype!r}")
     if cfg.frame.init not in ("keyframe", "rest"):

@@ -21,6 +21,7 @@ from torch import Tensor
 
 from ptrack.checks import as_float_tensor
 from ptrack.errors import InputError
+from ptrack.limits import limited_dofs, outside_limits
 
 M_TO_MM = 1000.0
 
@@ -29,7 +30,7 @@ class JointLimitReport(NamedTuple):
     """Joint limit violations of a pose trajectory `q: (..., D)`.
 
     per_frame: (...,) int64 count of dofs outside [lower - tol, upper + tol] in each frame.
-    fraction: () violating (frame, dof) entries / number of entries, in q's dtype.
+    fraction: () violating (frame, dof) entries / number of (frame, limited dof) entries, in q's dtype.
     max_deg: () largest amount (degrees) by which a violating entry lies outside
         [lower, upper]; 0 if nothing violates, NaN if q contains NaN.
     """
@@ -151,17 +152,23 @@ def mpjpe_absolute(pred, gt, R=None, t=None) -> Tensor:
     return _mean_joint_distance_mm(pred, gt)
 
 
-def accel_error(pred, gt) -> Tensor:
-    """Acceleration error as in HMR/VIBE, in millimetres per frame^2.
+def accel_error(pred, gt, root: int | None = None) -> Tensor:
+    """Acceleration error, in millimetres per frame^2.
 
     For each interior frame, the mean over joints of |a_pred - a_gt| where a = x[t-1] - 2 x[t] +
-    x[t+1] is the second difference.
+    x[t+1] is the second difference. With `root` (HMR/VIBE's definition, which centres both
+    skeletons on the pelvis first) joint `root` is subtracted from every joint of each frame; with
+    `root=None` the absolute positions are used, so root (global) jitter counts too.
 
     pred, gt: (..., T, J, 3) metres with T >= 3 -> (..., T - 2) mm / frame^2.
     """
     pred, gt = _joint_pair(pred, gt, min_dim=3)
     if pred.shape[-3] < 3:
         raise InputError(f"accel_error needs at least 3 frames, pred has shape {tuple(pred.shape)}")
+    if root is not None:
+        _check_root(root, pred.shape[-2])
+        pred = pred - pred[..., root, :].unsqueeze(-2)
+        gt = gt - gt[..., root, :].unsqueeze(-2)
 
     def second_diff(x: Tensor) -> Tensor:
         return x[..., :-2, :, :] - 2 * x[..., 1:-1, :, :] + x[..., 2:, :, :]
@@ -244,15 +251,18 @@ def reprojection_error_px(pixels, observed, confidence) -> Tensor:
     return dist.sum(dim=-1) / used.sum(dim=-1).to(dist.dtype)  # 0 / 0 = NaN for empty frames
 
 
-def joint_limit_violations(q, lower, upper, tol: float = 1e-3) -> JointLimitReport:
+def joint_limit_violations(q, lower, upper, tol: float = 1e-3, angular=None) -> JointLimitReport:
     """Count pose dofs outside their limits.
 
     An entry violates when it lies outside [lower - tol, upper + tol]; infinite bounds (unlimited
-    dofs such as root translation) never violate. NaN entries are not counted, but make max_deg
-    NaN.
+    dofs such as root translation) never violate. With `angular` (D,) bool, those dofs are angles
+    measured on the circle: an entry is inside when some 2 pi shift of it is (`ptrack.limits`).
+    The fraction counts only limited dofs (a finite bound on at least one side). NaN entries are not
+    counted, but make max_deg NaN.
 
     q: (..., T, D) radians (any leading dims; at least one entry); lower, upper: (D,) radians.
-    Returns JointLimitReport(per_frame (..., T) int64, fraction (), max_deg () degrees).
+    Returns JointLimitReport(per_frame (..., T) int64, fraction (), max_deg () degrees);
+    fraction is 0 when no dof is limited.
     """
     q = as_float_tensor(q, "q")
     if q.ndim < 1 or q.numel() == 0:
@@ -265,11 +275,16 @@ def joint_limit_violations(q, lower, upper, tol: float = 1e-3) -> JointLimitRepo
             raise InputError(f"{name} must have shape ({num_dofs},) to match q, got {tuple(bound.shape)}")
     if bool((lower > upper).any()):
         raise InputError("lower must not exceed upper for any dof")
-    # Amount outside [lower, upper]; -inf for infinite bounds, so clamp at 0 (NaN stays NaN).
-    outside = torch.maximum(lower - q, q - upper).clamp_min(0.0)
+    if angular is not None:
+        angular = torch.as_tensor(angular, dtype=torch.bool, device=q.device)
+        if angular.shape != (num_dofs,):
+            raise InputError(f"angular must have shape ({num_dofs},) to match q, got {tuple(angular.shape)}")
+    outside = outside_limits(q, lower, upper, angular)
     violating = outside > tol
     per_frame = violating.sum(dim=-1)
-    fraction = violating.sum().to(q.dtype) / q.numel()
+    limited = limited_dofs(lower, upper)
+    entries = limited.sum() * (q.numel() // num_dofs)
+    fraction = violating.sum().to(q.dtype) / entries.clamp_min(1).to(q.dtype)
     kept = torch.where(violating | torch.isnan(outside), outside, torch.zeros_like(outside))
     max_deg = kept.max() * (180.0 / math.pi)
     return JointLimitReport(per_frame=per_frame, fraction=fraction, max_deg=max_deg)

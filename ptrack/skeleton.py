@@ -113,6 +113,19 @@ class Skeleton:
         return (torch.as_tensor(self.lower, dtype=dtype, device=device),
                 torch.as_tensor(self.upper, dtype=dtype, device=device))
 
+    def with_limits(self, source: str, path: str | Path | None = None) -> "Skeleton":
+        """This model with the joint limits of `source`: "data" (measured on real CMU motion, the
+        default of runs), "asf" (the model file's own) or "none". See `ptrack.limits`."""
+        from ptrack.limits import with_limits
+
+        return with_limits(self, source, path)
+
+    def angular_dofs(self) -> np.ndarray:
+        """(D,) bool: True for dofs that drive a rotation (periodic angles), False for translations."""
+        mask = np.zeros(self.num_dofs, dtype=bool)
+        mask[self.axis_dof[self.axis_dof >= 0]] = True
+        return mask
+
     def length_tensor(self, dtype=torch.float32, device=None) -> Tensor:
         """Bone lengths (J,) in metres, e.g. as a starting point for differentiable lengths."""
         return torch.as_tensor(self.lengths, dtype=dtype, device=device)

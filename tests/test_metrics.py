@@ -193,6 +193,21 @@ def test_accel_error_exact_bump():
     torch.testing.assert_close(accel_error(pred, gt), torch.tensor([5.0, 10.0, 5.0]))
 
 
+def test_accel_error_root_centred_ignores_root_jitter():
+    """VIBE's definition subtracts the pelvis: a jittering root with a rigid body scores 0 with
+    root=0 and the jitter itself without."""
+    gen = torch.Generator().manual_seed(3)
+    T, J = 6, 4
+    body = torch.randn(1, J, 3, generator=gen, dtype=torch.float64).expand(T, J, 3)
+    jitter = torch.zeros(T, 1, 3, dtype=torch.float64)
+    jitter[2, 0, 0] = 0.01  # 10 mm sideways at frame 2
+    pred = body + jitter
+    torch.testing.assert_close(accel_error(pred, body, root=0), torch.zeros(T - 2, dtype=torch.float64))
+    torch.testing.assert_close(accel_error(pred, body), torch.tensor([10.0, 20.0, 10.0, 0.0], dtype=torch.float64))
+    with pytest.raises(InputError, match="root=7"):
+        accel_error(pred, body, root=7)
+
+
 def test_accel_error_batched_shapes_and_gradcheck():
     gt, pred = _skeleton(2, 6, 4, seed=24), _skeleton(2, 6, 4, seed=25)
     out = accel_error(pred, gt)
@@ -331,11 +346,37 @@ def test_joint_limit_counts_and_infinite_bounds():
     report = joint_limit_violations(q, lower, upper)
     assert isinstance(report, JointLimitReport)
     assert report.per_frame.tolist() == [0, 1, 3]
-    torch.testing.assert_close(report.fraction, torch.tensor(4 / 12))
+    # 4 violations among 3 frames x 3 limited dofs (dof 1 has no bound and does not count)
+    torch.testing.assert_close(report.fraction, torch.tensor(4 / 9))
     torch.testing.assert_close(report.max_deg, torch.tensor(math.degrees(0.5)))
     # A looser tolerance swallows the small violations.
     loose = joint_limit_violations(q, lower, upper, tol=0.15)
     assert loose.per_frame.tolist() == [0, 0, 2]
+
+
+def test_joint_limit_fraction_counts_limited_dofs_only():
+    """Unlimited dofs (root translation and rotation) must not dilute the violation fraction."""
+    inf = math.inf
+    lower = torch.tensor([-inf, -inf, -1.0])
+    upper = torch.tensor([inf, inf, 1.0])
+    q = torch.tensor([[5.0, 5.0, 2.0], [5.0, 5.0, 0.0]])
+    assert joint_limit_violations(q, lower, upper).fraction == 0.5
+    assert joint_limit_violations(q, torch.full((3,), -inf), torch.full((3,), inf)).fraction == 0
+
+
+def test_joint_limit_angles_are_periodic():
+    """An angle 2 pi away from one inside its arc is the same pose: inside with `angular`."""
+    lower = torch.tensor([0.0, 0.0, -4.0], dtype=torch.float64)
+    upper = torch.tensor([1.0, 1.0, 4.0], dtype=torch.float64)  # dof 2's arc spans > 2 pi: no limit
+    q = torch.tensor([[0.5 + 2 * math.pi, 1.2 - 4 * math.pi, 100.0]], dtype=torch.float64)
+    angular = torch.tensor([True, True, True])
+    report = joint_limit_violations(q, lower, upper, angular=angular)
+    assert report.per_frame.tolist() == [1]  # dof 1 is 0.2 rad above its arc after unwrapping
+    torch.testing.assert_close(report.max_deg, torch.tensor(math.degrees(0.2), dtype=torch.float64))
+    linear = joint_limit_violations(q, lower, upper)
+    assert linear.per_frame.tolist() == [3]
+    translation = joint_limit_violations(q, lower, upper, angular=torch.tensor([False, True, True]))
+    assert translation.per_frame.tolist() == [2]
 
 
 def test_joint_limit_no_violation_batched_and_nan():
