@@ -7,17 +7,23 @@ projection once for a batch of poses, giving the `PoseEval` record that cost ter
 
 from __future__ import annotations
 
+import logging
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import torch
 from torch import Tensor
 
 from ptrack.camera import Camera
 from ptrack.costs import PoseEval
 from ptrack.errors import InputError
 from ptrack.keypoints import KeypointSet
+from ptrack.limits import outside_limits
 from ptrack.observations import Observations
 from ptrack.skeleton import Skeleton
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -53,6 +59,33 @@ class Problem:
         if self.keyframes is not None and self.keyframes.q.shape[-1] != self.skeleton.num_dofs:
             raise InputError(f"keyframes have {self.keyframes.q.shape[-1]} dofs, the model has "
                              f"{self.skeleton.num_dofs}")
+        if self.keyframes is not None:
+            warn_keyframes_outside_limits(self.skeleton, self.keyframes)
+
+
+def warn_keyframes_outside_limits(skeleton: Skeleton, keyframes: Keyframes, tol: float = 1e-3) -> int:
+    """Log a warning for each keyframe whose given dofs lie outside the model's joint limits.
+
+    Keyframes are the user's word and are never moved into the limits; estimators keep them as given.
+    Returns the number of keyframes that break the limits."""
+    q = keyframes.q.detach()
+    lower, upper = skeleton.limits(dtype=q.dtype, device=q.device)
+    angular = torch.as_tensor(skeleton.angular_dofs(), device=q.device)
+    out = outside_limits(q, lower, upper, angular)
+    if keyframes.mask is not None:
+        out = torch.where(keyframes.mask, out, torch.zeros_like(out))
+    broken = 0
+    for f, row in zip(keyframes.frames.tolist(), out):
+        bad = torch.nonzero(row > tol)[:, 0].tolist()
+        if not bad:
+            continue
+        broken += 1
+        worst = sorted(bad, key=lambda d: -float(row[d]))[:3]
+        names = ", ".join(f"{skeleton.dof_names[d]} by {math.degrees(float(row[d])):.1f} deg" for d in worst)
+        more = f" and {len(bad) - len(worst)} more" if len(bad) > len(worst) else ""
+        log.warning("the 3D keyframe at frame %d lies outside the joint limits (%s%s); it is kept as given",
+                    f, names, more)
+    return broken
 
 
 class Estimate(NamedTuple):

@@ -220,3 +220,31 @@ def test_urdf_model_is_trackable(tmp_path):
     idx = kps.index()
     mpjpe = M.mpjpe(est.joints.index_select(-2, idx), joints.index_select(-2, idx), root=0)
     assert float(mpjpe.mean()) < MPJPE_MAX_MM, f"URDF model MPJPE {float(mpjpe.mean()):.1f} mm"
+
+
+def _golf(cmu_file, *extra: str) -> tuple[Prepared, object]:
+    amc = cmu_file("64_01.amc")
+    return _prep(f"data.asf={amc.parent / '64.asf'}", f"data.amc={amc}", "data.stop=12", *extra)
+
+
+def test_keyframe_is_kept_as_given_not_clamped(cmu_file):
+    """Under the CMU ASF limits the truth's first pose of 64_01 lies outside them. The keyframe must
+    stay as given: with no limit term and no pixel noise, frame 0 comes back on the truth (before the
+    fix the start was clamped into the limits, 24.5 mm away on the keypoints, and the prior held it there)."""
+    prep, cfg = _golf(cmu_file, "model.limits=asf", "costs.limits_weight=0", "observations.noise_px=0",
+                      "dtype=float64")
+    lower, upper = prep.problem.skeleton.limits(dtype=torch.float64)
+    assert M.joint_limit_violations(prep.gt_q[:1], lower, upper).per_frame[0] > 0  # the premise
+    est = _run(prep, cfg)
+    mpjpe, _ = _keypoint_errors(prep, est)
+    assert float(mpjpe[0]) < 1.0, f"frame 0 is {float(mpjpe[0]):.1f} mm off the keyframe"
+
+
+def test_keyframe_outside_limits_warns(cmu_file, caplog):
+    with caplog.at_level("WARNING", logger="ptrack.problem"):
+        _golf(cmu_file, "model.limits=asf")
+    assert "keyframe at frame 0 lies outside the joint limits" in caplog.text and "kept as given" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="ptrack.problem"):
+        _golf(cmu_file)  # the default data-derived limits hold the truth
+    assert "outside the joint limits" not in caplog.text

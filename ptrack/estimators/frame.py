@@ -18,6 +18,7 @@ from torch import Tensor
 
 from ptrack.costs import JointLimits, PoseEval, Reprojection, Smoothness
 from ptrack.errors import InputError
+from ptrack.limits import wrap_to_limits
 from ptrack.problem import Estimate, Problem, evaluate_pose
 
 
@@ -65,10 +66,12 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
         if kf is None or not bool((kf.frames == 0).any()):
             raise InputError("frame.init is 'keyframe' but no 3D keyframe is given for frame 0")
         q0 = kf.q[(kf.frames == 0).nonzero()[0, 0]].to(device=device, dtype=dtype)
+        # the same pose, its angles written in the limits' 2 pi window; never clamped (a user keyframe is kept
+        # as given, and Problem warns when it breaks the limits)
+        q0 = wrap_to_limits(q0, lower, upper, torch.as_tensor(sk.angular_dofs(), device=device))
     else:
-        q0 = rest_pose_in_view(problem, dtype)
-    # keep the start inside the limits so the barrier starts at zero
-    q_prev = torch.clamp(q0, lower, upper)
+        q0 = torch.clamp(rest_pose_in_view(problem, dtype), lower, upper)
+    q_prev = q0
     history: list[Tensor] = []  # previous solutions, which the temporal prior sees
 
     qs, costs = [], []
@@ -81,9 +84,9 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
         if cc.accel_sigma is None:
             past = past[-1:]
         anchor = q_prev.detach()
-        # start from a constant-velocity prediction when two past frames are known
-        start = 2 * past[1] - past[0] if len(past) == 2 else anchor
-        q = torch.clamp(start, lower, upper).requires_grad_(True)
+        # start from a constant-velocity prediction (kept inside the limits) when two past frames are known
+        start = torch.clamp(2 * past[1] - past[0], lower, upper) if len(past) == 2 else anchor
+        q = start.clone().requires_grad_(True)
         prior = smooth if len(past) == 2 else smooth_pair
 
         def energies(q: Tensor) -> dict[str, Tensor]:
