@@ -2,7 +2,8 @@
 `ptrack replay RUN_DIR`.
 
 The only module that reads argv. User errors (`InputError`, missing files, bad YAML) print one
-line `ptrack: error: ...` and exit 2; anything else is a bug and keeps its traceback.
+line `ptrack: error: ...` and exit 2; an estimator failure (`EstimationError`, e.g. non-finite
+poses) prints one such line and exits 1; anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import logging
 import sys
 from pathlib import Path
 
-from ptrack.errors import InputError
+from ptrack.errors import EstimationError, InputError
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -65,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, FileNotFoundError, IsADirectoryError, NotADirectoryError) as e:
         print(f"ptrack: error: {e}", file=sys.stderr)
         return 2
+    except EstimationError as e:
+        print(f"ptrack: error: {e}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("ptrack: interrupted", file=sys.stderr)
         return 130

@@ -14,8 +14,8 @@ from datetime import datetime
 from pathlib import Path
 
 from ptrack.config import load_config
-from ptrack.errors import InputError
-from ptrack.run import execute
+from ptrack.errors import EstimationError, InputError
+from ptrack.run import execute, json_safe
 
 log = logging.getLogger(__name__)
 
@@ -26,9 +26,11 @@ COLUMNS = (
     ("pa_mpjpe_mm", "PA-MPJPE mm", "{:.1f}"),
     ("mpjpe_abs_mm", "abs MPJPE mm", "{:.1f}"),
     ("accel_error_mm_per_frame2", "accel mm/f²", "{:.1f}"),
+    ("accel_error_abs_mm_per_frame2", "abs accel mm/f²", "{:.1f}"),
     ("flip_error_rate", "flip rate", "{:.3f}"),
     ("reprojection_error_px", "reproj px", "{:.2f}"),
     ("joint_limit_violation_fraction", "limit viol.", "{:.3f}"),
+    ("gt_joint_limit_violation_fraction", "GT limit viol.", "{:.3f}"),
     ("best_of_k_mpjpe_mm", "best-of-K mm", "{:.1f}"),
     ("seconds", "seconds", "{:.1f}"),
 )
@@ -90,13 +92,15 @@ def evaluate(config: str | Path, clips: str, overrides: list[str] | tuple[str, .
             cfg = load_config(config, clip_over)
             run_dir = execute(cfg, progress=progress)
             rows.append((amc.stem, json.loads((run_dir / "metrics.json").read_text())))
-        except InputError as e:  # a clip that does not fit the config (too short, ...) is reported, not fatal
+        except (InputError, EstimationError) as e:  # a clip that does not fit the config (too short, ...)
+            # or that the estimator failed on is reported, not fatal
             log.warning("clip %s failed: %s", amc.stem, e)
             rows.append((amc.stem, str(e)))
     out_dir.mkdir(parents=True, exist_ok=True)
     table = out_dir / "results.md"
     table.write_text(markdown_table(base.name, base.method, rows), encoding="utf-8")
-    (out_dir / "results.json").write_text(json.dumps(dict(rows), indent=2) + "\n", encoding="utf-8")
+    (out_dir / "results.json").write_text(json.dumps(json_safe(dict(rows)), indent=2, allow_nan=False) + "\n",
+                                          encoding="utf-8")
     return table
 
 

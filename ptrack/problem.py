@@ -81,7 +81,8 @@ def warn_keyframes_outside_limits(skeleton: Skeleton, keyframes: Keyframes, tol:
             continue
         broken += 1
         worst = sorted(bad, key=lambda d: -float(row[d]))[:3]
-        names = ", ".join(f"{skeleton.dof_names[d]} by {math.degrees(float(row[d])):.1f} deg" for d in worst)
+        names = ", ".join(f"{skeleton.dof_names[d]} by " + (f"{math.degrees(float(row[d])):.1f} deg" if angular[d]
+                                                            else f"{float(row[d]):.3f} m") for d in worst)
         more = f" and {len(bad) - len(worst)} more" if len(bad) > len(worst) else ""
         log.warning("the 3D keyframe at frame %d lies outside the joint limits (%s%s); it is kept as given",
                     f, names, more)

@@ -33,7 +33,7 @@ import torch
 from ptrack import metrics as M
 from ptrack.camera import camera_for_motion
 from ptrack.config import RunConfig, dump_yaml
-from ptrack.errors import InputError
+from ptrack.errors import EstimationError, InputError
 from ptrack.estimators import ESTIMATORS
 from ptrack.export import write_bvh
 from ptrack.keypoints import make_keypoints
@@ -70,7 +70,7 @@ def _device(cfg: RunConfig) -> torch.device:
 def prepare(cfg: RunConfig) -> Prepared:
     """Load data and make the observations for `cfg` (see module docstring)."""
     dtype, device = DTYPES[cfg.dtype], _device(cfg)
-    full = Skeleton.from_asf(cfg.data.asf)
+    full = Skeleton.from_asf(cfg.data.asf).with_limits(cfg.model.limits)
     model = full.freeze(list(cfg.model.freeze)) if cfg.model.freeze else full
     kps = make_keypoints(model, cfg.model.keypoints)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
@@ -151,9 +151,14 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
 
     put("reprojection_error_px", M.reprojection_error_px(reproj, obs.keypoints, obs.confidence))
     lower, upper = sk.limits(dtype=est.q.dtype, device=est.q.device)
-    report = M.joint_limit_violations(est.q.detach(), lower, upper)
+    angular = torch.as_tensor(sk.angular_dofs(), device=est.q.device)
+    report = M.joint_limit_violations(est.q.detach(), lower, upper, angular=angular)
     summary["joint_limit_violation_fraction"] = float(report.fraction)
     summary["joint_limit_max_violation_deg"] = float(report.max_deg)
+    if prep.gt_q is not None:  # how far the truth itself lies outside the limits in use
+        gt_report = M.joint_limit_violations(prep.gt_q.to(est.q), lower, upper, angular=angular)
+        summary["gt_joint_limit_violation_fraction"] = float(gt_report.fraction)
+        summary["gt_joint_limit_max_violation_deg"] = float(gt_report.max_deg)
     if prep.gt_joints is not None:
         gt = prep.gt_joints.to(est.joints)
         gt_kp = gt.index_select(-2, idx)
@@ -162,9 +167,10 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
         put("pa_mpjpe_mm", M.pa_mpjpe(est_kp, gt_kp))
         put("mpjpe_abs_mm", M.mpjpe_absolute(est_kp, gt_kp, cam.R.to(gt), cam.t.to(gt)))
         summary["mpjpe_all_joints_mm"] = float(M.mpjpe(est.joints.detach(), gt).mean())
-        acc = M.accel_error(est_kp, gt_kp)
-        summary["accel_error_mm_per_frame2"] = float(acc.mean())
-        series["accel_error_mm_per_frame2"] = np.concatenate([[np.nan], acc.double().cpu().numpy(), [np.nan]])
+        for name, acc_root in (("accel_error_mm_per_frame2", root), ("accel_error_abs_mm_per_frame2", None)):
+            acc = M.accel_error(est_kp, gt_kp, root=acc_root)
+            summary[name] = float(acc.mean())
+            series[name] = np.concatenate([[np.nan], acc.double().cpu().numpy(), [np.nan]])
         if kps.limbs:
             flips = M.limb_flip_errors(est_kp, gt_kp, kps.limbs, cam.R.to(gt), cam.t.to(gt))
             per_limb = M.flip_error_rate(flips)
@@ -184,6 +190,30 @@ def _nan_to_none(x: float) -> float | None:
     return None if math.isnan(x) else x
 
 
+def json_safe(obj):
+    """`obj` with every non-finite float replaced by None (JSON null; JSON has no NaN)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj
+
+
+def check_finite(est: Estimate, method: str) -> None:
+    """Raise EstimationError when any frame of the estimate (q or joints) is not finite.
+
+    Such frames are not scored as missing: a mean over the remaining frames would rank an estimate
+    that lost half its frames beside a complete one."""
+    bad = ~(torch.isfinite(est.q).all(-1) & torch.isfinite(est.joints).flatten(-2).all(-1))
+    n = int(bad.sum())
+    if n:
+        first = torch.nonzero(bad)[:5, 0].tolist()
+        raise EstimationError(f"method {method!r} returned non-finite poses in {n} of {bad.shape[0]} frames "
+                              f"(nonfinite_frames={n}; first at frame indices {first}); no results were written")
+
+
 def default_out_dir(cfg: RunConfig, root: str | Path = "logs") -> Path:
     return Path(root) / f"{cfg.name}-{datetime.now().strftime('%Y%m%d-%H%M%S-%f')}"
 
@@ -199,6 +229,7 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
     show = cfg.progress if progress is None else progress
     est = ESTIMATORS[cfg.method](prep.problem, cfg, gen, _progress(show, cfg.method))
     seconds = time.perf_counter() - t0
+    check_finite(est, cfg.method)
     reproj = reprojected_keypoints(prep, est)
     summary, series = compute_metrics(prep, est, reproj)
     summary = {"method": cfg.method, "frames": int(est.q.shape[0]), "seconds": seconds,
@@ -263,7 +294,8 @@ def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, res
     tmp.chmod(0o777 & ~umask)  # mkdtemp makes 0700; the run folder gets a new folder's usual mode
     try:
         (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
-        (tmp / "metrics.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        (tmp / "metrics.json").write_text(json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n",
+                                          encoding="utf-8")
         np.savez_compressed(tmp / "result.npz", **res)
         times = res["times"].astype(np.float64)
         fps = float(1.0 / np.median(np.diff(times))) if len(times) > 1 else 30.0

@@ -260,3 +260,20 @@ def test_console_script_exit_code(tmp_path):
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines() == [f"ptrack: error: AMC file not found: {tmp_path / 'gone.amc'}"]
     assert proc.stdout == "" and not out.exists()
+
+
+def test_estimator_failure_is_one_line_and_exit_1(tmp_path, capsys, monkeypatch):
+    from ptrack.estimators import ESTIMATORS
+    from ptrack.problem import Estimate
+
+    def nan_estimator(problem, cfg, gen, progress):
+        q = torch.full((problem.observations.num_frames, problem.skeleton.num_dofs), float("nan"))
+        nan = torch.full((q.shape[0],), float("nan"))
+        return Estimate(q=q, joints=problem.skeleton.forward_kinematics(q), cost=nan, terms={})
+
+    monkeypatch.setitem(ESTIMATORS, "frame", nan_estimator)
+    out = tmp_path / "nan"
+    assert main(_run_argv(out)) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("ptrack: error: method 'frame' returned non-finite poses in 12 of 12")
+    assert not out.exists()

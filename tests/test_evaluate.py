@@ -203,3 +203,27 @@ def test_markdown_table():
 def test_markdown_table_all_failed():
     table = _table(markdown_table("cfg", "frame", [("a", "bad"), ("b", "worse")]))
     assert [r[0] for r in table[2:]] == ["a", "b"]  # no mean row when nothing ran
+
+
+def test_estimator_failure_is_reported_per_clip(tmp_path, monkeypatch):
+    """A clip on which the estimator returns non-finite poses is a failed row; the others still run."""
+    import torch
+
+    from ptrack.estimators import ESTIMATORS, estimate_frames
+    from ptrack.problem import Estimate
+
+    def nan_on_second_clip(problem, cfg, gen, progress):
+        est = estimate_frames(problem, cfg, gen, progress)
+        if "10_77" in cfg.data.amc:
+            q = est.q.clone()
+            q[2] = float("nan")
+            return Estimate(q=q, joints=problem.skeleton.forward_kinematics(q), cost=est.cost, terms=est.terms)
+        return est
+
+    monkeypatch.setitem(ESTIMATORS, "frame", nan_on_second_clip)
+    other = _clip_copy(tmp_path / "mocap" / "10", stem="10_77")
+    out = tmp_path / "eval"
+    rows = _table(evaluate(EVAL, f"{AMC},{other}", QUICK, out=out).read_text())[2:]
+    assert [r[0] for r in rows] == ["10_02", "10_77", "**mean (1 clips)**"]
+    assert rows[1][1].startswith("failed:") and "nonfinite_frames=1" in rows[1][1]
+    assert sorted(p.name for p in out.iterdir()) == ["10_02", "results.json", "results.md"]

@@ -17,8 +17,11 @@ import torch
 
 import ptrack.viz
 from ptrack.config import load_config, to_dict
-from ptrack.errors import InputError
-from ptrack.run import execute, prepare
+from ptrack import metrics as M
+from ptrack.errors import EstimationError, InputError
+from ptrack.estimators import ESTIMATORS, estimate_frames
+from ptrack.problem import Estimate
+from ptrack.run import execute, json_safe, prepare
 from ptrack.skeleton import Skeleton, load_amc
 
 REPO = Path(__file__).resolve().parents[1]
@@ -31,7 +34,8 @@ T = 12
 FREEZE = ["*fingers", "*thumb", "*hand", "*toes"]
 OUTPUTS = ["config.yaml", "metrics.json", "result.bvh", "result.npz", "run.rrd"]
 METRIC_KEYS = ("seconds", "frames", "mpjpe_mm", "pa_mpjpe_mm", "mpjpe_abs_mm", "accel_error_mm_per_frame2",
-               "flip_error_rate", "reprojection_error_px", "joint_limit_violation_fraction")
+               "accel_error_abs_mm_per_frame2", "flip_error_rate", "reprojection_error_px",
+               "joint_limit_violation_fraction", "gt_joint_limit_violation_fraction")
 
 
 def _cfg(out: Path, *extra: str, fast=FAST):
@@ -286,3 +290,77 @@ def test_bvh_output_matches_result(run_dir):
     assert names[0] == "root" and values.shape[0] == res["q"].shape[0]
     assert frame_time == pytest.approx(4 / 120, abs=1e-6)  # stride 4 of the 120 fps clip
     np.testing.assert_allclose(values[:, :3], res["joints"][:, 0], atol=2e-5)
+
+
+def test_metrics_use_the_configured_limits_and_report_the_truths_own(run_dir):
+    """The default limits are the data-derived ones, which the truth obeys; the CMU ASF limits are not."""
+    m = json.loads((run_dir / "metrics.json").read_text())
+    assert m["gt_joint_limit_violation_fraction"] == 0.0
+    assert yaml_limits(run_dir) == "data"
+    asf = execute(_cfg(run_dir.parent / "asf", "model.limits=asf", "data.stop=null", fast=QUICK))
+    m_asf = json.loads((asf / "metrics.json").read_text())
+    # the whole 10_02 clip breaks the ASF limits in 1.8% of the limited dof-frames (measured 0.0178)
+    assert m_asf["gt_joint_limit_violation_fraction"] > 0.01
+    none = execute(_cfg(run_dir.parent / "none", "model.limits=none", fast=QUICK))
+    m_none = json.loads((none / "metrics.json").read_text())
+    assert m_none["gt_joint_limit_violation_fraction"] == 0 and m_none["joint_limit_violation_fraction"] == 0
+
+
+def yaml_limits(run_dir: Path) -> str:
+    import yaml
+
+    return yaml.safe_load((run_dir / "config.yaml").read_text())["model"]["limits"]
+
+
+def test_accel_error_is_pelvis_centred_and_absolute_is_reported_too(run_dir, result):
+    """accel_error_mm_per_frame2 is VIBE's (pelvis subtracted); the absolute one has its own key."""
+    m = json.loads((run_dir / "metrics.json").read_text())
+    names = list(result["keypoint_names"])
+    idx = [list(result["joint_names"]).index(j) for j in _keypoint_joints(result)]
+    est, gt = torch.as_tensor(result["joints"][:, idx]), torch.as_tensor(result["gt_joints"][:, idx])
+    pelvis = names.index("pelvis")
+    assert m["accel_error_mm_per_frame2"] == pytest.approx(float(M.accel_error(est, gt, root=pelvis).mean()), rel=1e-5)
+    assert m["accel_error_abs_mm_per_frame2"] == pytest.approx(float(M.accel_error(est, gt).mean()), rel=1e-5)
+    assert m["accel_error_mm_per_frame2"] != m["accel_error_abs_mm_per_frame2"]
+
+
+def _keypoint_joints(result) -> list[str]:
+    from ptrack.keypoints import make_keypoints
+
+    sk = Skeleton.from_asf(ASF).freeze(FREEZE)
+    kps = make_keypoints(sk)
+    assert list(kps.names) == list(result["keypoint_names"])
+    return [sk.joint_names[j] for j in kps.joints]
+
+
+def _nan_every_other_frame(problem, cfg, gen, progress):
+    est = estimate_frames(problem, cfg, gen, progress)
+    q = est.q.clone()
+    q[1::2] = float("nan")
+    joints = problem.skeleton.forward_kinematics(q)
+    return Estimate(q=q, joints=joints, cost=est.cost, terms=est.terms)
+
+
+def test_non_finite_estimate_fails_the_run_and_writes_nothing(tmp_path, monkeypatch):
+    """An estimate with every odd frame NaN must not score like a complete one (nanmean did that)."""
+    monkeypatch.setitem(ESTIMATORS, "frame", _nan_every_other_frame)
+    out = tmp_path / "nan"
+    with pytest.raises(EstimationError, match=r"non-finite poses in 6 of 12 frames \(nonfinite_frames=6; first at "
+                                              r"frame indices \[1, 3, 5, 7, 9\]\)"):
+        execute(_cfg(out, fast=QUICK))
+    assert not out.exists() and _leftovers(tmp_path) == []
+
+
+def test_json_never_holds_nan():
+    assert json_safe({"a": float("nan"), "b": [1.0, float("inf"), {"c": -float("inf")}], "d": 2, "e": "x"}) == \
+        {"a": None, "b": [1.0, None, {"c": None}], "d": 2, "e": "x"}
+
+
+def test_metrics_json_writes_null_for_undefined_metrics(tmp_path, monkeypatch):
+    """A metric that comes out NaN is written as null: metrics.json is strict JSON (it had bare NaN)."""
+    monkeypatch.setattr(M, "accel_error", lambda pred, gt, root=None: torch.full((pred.shape[0] - 2,), float("nan")))
+    out = execute(_cfg(tmp_path / "r", fast=QUICK))
+    text = (out / "metrics.json").read_text()
+    m = json.loads(text, parse_constant=lambda c: pytest.fail(f"metrics.json holds {c}"))
+    assert m["accel_error_mm_per_frame2"] is None and m["accel_error_abs_mm_per_frame2"] is None
+    assert isinstance(m["mpjpe_mm"], float)
