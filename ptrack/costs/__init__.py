@@ -10,7 +10,8 @@ use rho(s) = s. Gauss-Newton solvers read `Objective.residuals` plus the IRLS we
 Terms never run kinematics: they read a `PoseEval` made elsewhere (forward kinematics + camera).
 For a trajectory the time axis is the last batch dim: q (..., T, D), joints (..., T, J, 3).
 The batch shape of `energy` is the input's leading dims before the term's own event dims.
-Pixel coordinates follow OpenCV: pixel (u, v) = (column, row), integer values at pixel centres.
+Pixel coordinates follow OpenCV: u = column, v = row; pixel (u, v) covers [u, u+1) x [v, v+1), its
+centre at (u + 0.5, v + 0.5), as in `Camera` and `render_silhouettes`.
 """
 
 from ptrack.costs.base import (CostTerm, PoseEval, cauchy, geman_mcclure, huber, l2, robust_loss,
