@@ -2,8 +2,9 @@
 
     forward_kinematics(skeleton, q (..., D)) -> joints (..., J, 3) [, rotations (..., J, 3, 3)]
 
-One pure function, differentiable w.r.t. q and bone lengths, any leading batch dims, float32 or
-float64, CPU or CUDA. Speed comes from three things:
+One pure function, differentiable w.r.t. q and bone lengths (twice too: Hessians and double backward
+work on every path), any leading batch dims, float32 or float64, CPU or CUDA. Speed comes from three
+things:
 
 - all local rotations are built at once, in closed form: when every joint's three axes are the
   (z, y, x) columns of a fixed frame C_i (true of every ASF file and of ptrack's URDF import),
@@ -269,51 +270,68 @@ def _compose(p: _Plan, q: Tensor, lens: Tensor) -> tuple[Tensor, Tensor, Tensor]
 class _AnalyticFK(torch.autograd.Function):
     """Joint positions with an analytical backward (closed-form plans, gradient w.r.t. q only).
 
+    The backward is itself differentiable: when a graph is being built for higher derivatives
+    (`create_graph=True`, e.g. `torch.autograd.functional.hessian`), the frames are recomputed from q
+    with autograd on, and the analytical gradient (`_pose_gradient`) is differentiated by autograd.
+    Without `create_graph` it runs on the frames saved by the forward, as before.
+    """
+
+    @staticmethod
+    def forward(ctx, q: Tensor, lens: Tensor, p: _Plan) -> Tensor:
+        h, pos, pivot = _compose(p, q, lens)
+        ctx.save_for_backward(q, lens, h, pos, pivot)
+        ctx.plan = p
+        return pos if p.identity_order else pos.index_select(-2, p.order)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        q, lens, h, pos, pivot = ctx.saved_tensors
+        p: _Plan = ctx.plan
+        if torch.is_grad_enabled():  # create_graph: the saved frames carry no graph back to q
+            h, pos, pivot = _compose(p, q, lens)
+        return _pose_gradient(p, q, h, pos, pivot, grad), None, None
+
+
+def _pose_gradient(p: _Plan, q: Tensor, h: Tensor, pos: Tensor, pivot: Tensor, grad: Tensor) -> Tensor:
+    """dL/dq (..., D) from dL/d joints `grad` (..., J, 3) (joint order) and the composed frames H,
+    positions and pivots of `_compose` (level order).
+
     A rotation slot of joint i turns its whole subtree about the joint's pivot o_i around the world
     axis a, so dL/dtheta = a . sum_{j in subtree(i)} (p_j - o_i) x g_j = a . (S_i - o_i x G_i), with
     subtree sums S_i = sum p_j x g_j and G_i = sum g_j accumulated from the leaves level by level.
     The slot axes are the columns of A_i = H_parent D_i turned by the preceding Euler factors:
     z: e_z; y: Rz e_y; x: Rz Ry e_x. This replaces autograd through ~60 small ops with ~20.
     """
-
-    @staticmethod
-    def forward(ctx, q: Tensor, lens: Tensor, p: _Plan) -> Tensor:
-        h, pos, pivot = _compose(p, q, lens)
-        ctx.save_for_backward(q, h, pos, pivot)
-        ctx.plan = p
-        return pos if p.identity_order else pos.index_select(-2, p.order)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad: Tensor):
-        q, h, pos, pivot = ctx.saved_tensors
-        p: _Plan = ctx.plan
-        g = grad.index_select(-2, p.level_index)
-        gs = g.clone()
-        s = torch.linalg.cross(pos, g, dim=-1)
-        for lvl in range(len(p.bounds) - 1, 0, -1):
-            off, n = p.bounds[lvl]
-            poff, pn = p.bounds[lvl - 1]
-            slot = p.parent_slot[lvl]
-            if slot is None:
-                gs[..., poff:poff + n, :] += gs[..., off:off + n, :]
-                s[..., poff:poff + n, :] += s[..., off:off + n, :]
-            else:
-                gs[..., poff:poff + pn, :].index_add_(-2, slot, gs[..., off:off + n, :])
-                s[..., poff:poff + pn, :].index_add_(-2, slot, s[..., off:off + n, :])
-        t = s - torch.linalg.cross(pivot, gs, dim=-1)  # (..., J, 3)
-        # A = H_parent D in level order; the root's parent frame is the identity
-        eye = torch.eye(3, dtype=h.dtype, device=h.device).expand(*h.shape[:-3], 1, 3, 3)
-        a = _mm(torch.cat([eye, h], dim=-3).index_select(-3, p.parent_lv), p.d)
-        w = (a * t[..., :, None]).sum(-2)  # A^T t: (..., J, 3)
-        theta = _angles(p, q)
-        sz, sy = torch.sin(theta[..., 0]), torch.sin(theta[..., 1])
-        cz, cy = torch.cos(theta[..., 0]), torch.cos(theta[..., 1])
-        w0, w1, w2 = w.unbind(-1)
-        contrib = torch.stack([w2, cz * w1 - sz * w0, cy * (cz * w0 + sz * w1) - sy * w2], dim=-1) * p.dof_mask
-        grad_q = torch.zeros_like(q).index_add_(-1, p.dof_index, contrib.flatten(-2))
-        grad_q.index_add_(-1, p.trans_index, gs[..., 0, :] * p.trans_mask)
-        return grad_q, None, None
+    g = grad.index_select(-2, p.level_index)
+    gs = g.clone()
+    s = torch.linalg.cross(pos, g, dim=-1)
+    graph = torch.is_grad_enabled()  # building a graph: index_add_ keeps its source, which must not change
+    for lvl in range(len(p.bounds) - 1, 0, -1):
+        off, n = p.bounds[lvl]
+        poff, pn = p.bounds[lvl - 1]
+        slot = p.parent_slot[lvl]
+        if slot is None:  # the parents are the first n joints of the previous level
+            gs[..., poff:poff + n, :] += gs[..., off:off + n, :]
+            s[..., poff:poff + n, :] += s[..., off:off + n, :]
+        else:
+            g_src, s_src = gs[..., off:off + n, :], s[..., off:off + n, :]
+            if graph:
+                g_src, s_src = g_src.clone(), s_src.clone()
+            gs[..., poff:poff + pn, :].index_add_(-2, slot, g_src)
+            s[..., poff:poff + pn, :].index_add_(-2, slot, s_src)
+    t = s - torch.linalg.cross(pivot, gs, dim=-1)  # (..., J, 3)
+    # A = H_parent D in level order; the root's parent frame is the identity
+    eye = torch.eye(3, dtype=h.dtype, device=h.device).expand(*h.shape[:-3], 1, 3, 3)
+    a = _mm(torch.cat([eye, h], dim=-3).index_select(-3, p.parent_lv), p.d)
+    w = (a * t[..., :, None]).sum(-2)  # A^T t: (..., J, 3)
+    theta = _angles(p, q)
+    sz, sy = torch.sin(theta[..., 0]), torch.sin(theta[..., 1])
+    cz, cy = torch.cos(theta[..., 0]), torch.cos(theta[..., 1])
+    w0, w1, w2 = w.unbind(-1)
+    contrib = torch.stack([w2, cz * w1 - sz * w0, cy * (cz * w0 + sz * w1) - sy * w2], dim=-1) * p.dof_mask
+    grad_q = torch.zeros_like(q).index_add_(-1, p.dof_index, contrib.flatten(-2))
+    grad_q.index_add_(-1, p.trans_index, gs[..., 0, :] * p.trans_mask)
+    return grad_q
 
 
 def local_rotations(sk: Skeleton, q: Tensor) -> Tensor:

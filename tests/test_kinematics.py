@@ -403,3 +403,54 @@ def test_analytical_backward_used_only_for_positions(sk, q_clip):
     _, rot = forward_kinematics(sk, q, rotations=True)
     (gr,) = torch.autograd.grad(rot.sum(), q)
     assert torch.isfinite(gr).all()
+
+
+# -- second derivatives ------------------------------------------------------------------------
+
+
+def test_hessian_through_fk_matches_autograd_path_and_finite_differences(sk):
+    """Hessian of sum(FK(q)^2) w.r.t. q (float64): the default path (analytical first derivative)
+    equals pure autograd through the Rodrigues path and central differences of the gradient."""
+    q0 = _random_q(sk, (), seed=30)
+
+    def energy(generic):
+        return lambda x: forward_kinematics(sk, x, generic=generic).square().sum()
+
+    hess = torch.autograd.functional.hessian(energy(False), q0)
+    expected = torch.autograd.functional.hessian(energy(True), q0)
+    assert expected.abs().max() > 1.0  # far from zero: a silently zero Hessian cannot pass
+    torch.testing.assert_close(hess, expected, rtol=0, atol=1e-9)
+    torch.testing.assert_close(hess, hess.T, rtol=0, atol=1e-9)
+
+    def grad(x):
+        x = x.clone().requires_grad_(True)
+        (g,) = torch.autograd.grad(energy(False)(x), x)
+        return g
+
+    eps = 1e-6
+    steps = torch.eye(sk.num_dofs, dtype=torch.float64) * eps
+    fd = torch.stack([(grad(q0 + s) - grad(q0 - s)) / (2 * eps) for s in steps])
+    torch.testing.assert_close(hess, fd, rtol=0, atol=1e-6)
+
+
+def test_hessian_vector_product_batched_with_create_graph(sk):
+    """Double backward with a batch, an upstream weight and a reduced model (frozen dofs)."""
+    model = sk.freeze(["*fingers", "*thumb", "*toes"], value=0.1)
+    q = _random_q(model, (2, 3), seed=31)
+    weights = torch.randn(2, 3, model.num_joints, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    v = torch.randn(q.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    hvps = []
+    for generic in (False, True):
+        x = q.clone().requires_grad_(True)
+        (g,) = torch.autograd.grad((forward_kinematics(model, x, generic=generic).square() * weights).sum(), x,
+                                   create_graph=True)
+        (hv,) = torch.autograd.grad((g * v).sum(), x)
+        hvps.append(hv)
+    assert hvps[1].abs().max() > 1e-3
+    torch.testing.assert_close(hvps[0], hvps[1], rtol=0, atol=1e-10)
+
+
+def test_gradgradcheck_reduced_model(sk):
+    small = sk.freeze([n for n in sk.joint_names if n not in ("root", "lhipjoint", "lfemur", "ltibia")])
+    q = _random_q(small, (1,), seed=32).requires_grad_(True)
+    assert torch.autograd.gradgradcheck(lambda x: forward_kinematics(small, x), (q,))

@@ -206,12 +206,13 @@ def test_fk_gradients_of_random_trees_match_autograd_through_reference(frames):
 
 @pytest.mark.parametrize("frames", [True, False], ids=["frames", "free_axes"])
 @pytest.mark.parametrize("shape", ["review_asf", "first_two_of_three", "first_of_each_level"])
-def test_gradcheck_on_small_trees(shape, frames):
+def test_gradcheck_and_gradgradcheck_on_small_trees(shape, frames):
     parents = SHAPES[shape]
     sk = random_skeleton(3, len(parents), "", frames, parents=parents)
     q = torch.randn(2, sk.num_dofs, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     q.requires_grad_(True)
     assert torch.autograd.gradcheck(lambda x: forward_kinematics(sk, x), (q,))
+    assert torch.autograd.gradgradcheck(lambda x: forward_kinematics(sk, x), (q,))
 
 
 # -- the review's ASF --------------------------------------------------------------------------
