@@ -52,11 +52,32 @@ def euler_matrix_np(angles_rad: tuple[float, float, float], order: str = "XYZ") 
 
 
 def matrix_to_euler_np(r: np.ndarray, order: str = "XYZ") -> np.ndarray:
-    """Inverse of `euler_matrix_np` for order "XYZ" (R = Rz Ry Rx): (..., 3, 3) -> (..., 3) x, y, z angles."""
-    if order != "XYZ":
-        raise ValueError("only XYZ order is implemented")
-    sy = np.clip(-r[..., 2, 0], -1.0, 1.0)
-    y = np.arcsin(sy)
-    x = np.arctan2(r[..., 2, 1], r[..., 2, 2])
-    z = np.arctan2(r[..., 1, 0], r[..., 0, 0])
-    return np.stack([x, y, z], axis=-1)
+    """Inverse of `euler_matrix_np`: (..., 3, 3) -> (..., 3) float64 angles about x, y, z.
+
+    `order` is any of the six orders of three distinct axes ("XYZ": R = Rz Ry Rx, "ZYX": Rx Ry Rz,
+    ...). The first and last angles are in [-pi, pi], the middle one in [-pi/2, pi/2]. At the
+    gimbal lock (middle angle +-pi/2, where only a combination of the other two is defined) the
+    first angle is 0 and the last carries the whole turn; near it the last angle is solved from
+    the first one actually chosen, so the matrix comes back to rounding error everywhere. No
+    element needs to be within [-1, 1] (no arcsin): rounding past +-1 is harmless.
+    """
+    if sorted(order) != ["X", "Y", "Z"]:
+        raise ValueError(f"Euler order must be three distinct axes of X, Y, Z (e.g. 'XYZ'), got {order!r}")
+    r = np.asarray(r, dtype=np.float64)
+    if r.shape[-2:] != (3, 3):
+        raise ValueError(f"rotation matrices must have shape (..., 3, 3), got {r.shape}")
+    # R = R_k(c) R_j(b) R_i(a) for order (i, j, k); s = +1 if (i, j, k) is a cyclic shift of (x, y, z).
+    # Then R[k, i] = -s sin b, (R[k, j], R[k, k]) = cos b (s sin a, cos a), and with a known,
+    # R R_i(a)^T = R_k(c) R_j(b) gives c from its (i, j) and (j, j) entries (Day's stable extraction).
+    i, j, k = ("XYZ".index(a) for a in order)
+    s = 1.0 if (j - i) % 3 == 1 else -1.0
+    sa_cb, ca_cb = s * r[..., k, j], r[..., k, k]
+    cb = np.hypot(sa_cb, ca_cb)
+    lock = cb <= 64 * np.finfo(np.float64).eps  # first angle undefined: take 0
+    a = np.where(lock, 0.0, np.arctan2(sa_cb, ca_cb))
+    sa, ca = np.sin(a), np.cos(a)
+    b = np.arctan2(-s * r[..., k, i], sa * sa_cb + ca * ca_cb)
+    c = np.arctan2(sa * r[..., i, k] - s * ca * r[..., i, j], ca * r[..., j, j] - s * sa * r[..., j, k])
+    out = np.empty(r.shape[:-2] + (3,))
+    out[..., i], out[..., j], out[..., k] = a, b, c
+    return out
