@@ -5,7 +5,8 @@ rotation turns about (for ASF skeletons: the bone's start, i.e. the parent bone'
 channels `Zrotation Yrotation Xrotation` (R = Rz Ry Rx, degrees) holding the joint's rotation
 relative to its parent, and the root's `Xposition Yposition Zposition` in metres (Y up, as the
 mocap). Bones that end a chain get an `End Site` at their end point, so the BVH reproduces every
-joint position of `Skeleton.forward_kinematics`.
+joint position of `Skeleton.forward_kinematics` (to ~1e-8 m: offsets and root positions in metres
+with 9 decimals, angles with 6; rotations at the gimbal lock, Y = +-90 degrees, are exported exactly).
 """
 
 from __future__ import annotations
@@ -60,12 +61,12 @@ def bvh_text(skeleton: Skeleton, q: Tensor, fps: float) -> str:
     root = root_positions(sk, q.detach().double().cpu()).numpy()  # (T, 3)
     lines += ["MOTION", f"Frames: {q.shape[0]}", f"Frame Time: {1.0 / fps:.8f}"]
     for t in range(q.shape[0]):
-        lines.append(" ".join(f"{v:.6f}" for v in (*root[t], *euler[t].reshape(-1))))
+        lines.append(" ".join([*(f"{v:.9f}" for v in root[t]), *(f"{v:.6f}" for v in euler[t].reshape(-1))]))
     return "\n".join(lines) + "\n"
 
 
 def _vec(v) -> str:
-    return " ".join(f"{float(x):.6f}" for x in v)
+    return " ".join(f"{float(x):.9f}" for x in v)
 
 
 def write_bvh(path: str | Path, skeleton: Skeleton, q: Tensor, fps: float) -> None:

@@ -107,7 +107,7 @@ def test_bvh_reproduces_fk(clip):
     sk, q = clip
     assert not np.any(sk.offset_parent)  # ASF: every bone starts at its parent's end
     text = bvh_text(sk, q, fps=30.0)
-    assert _check_against_fk(sk, q, text) < 1e-5
+    assert _check_against_fk(sk, q, text) < 1e-6
     names, _, _, channels, frame_time, values = read_bvh(text)
     assert names[0] == "root" and channels[0] == 6 and values.shape == (q.shape[0], 6 + 3 * (sk.num_joints - 1))
     assert frame_time == pytest.approx(1 / 30, abs=1e-8)
@@ -117,7 +117,7 @@ def test_bvh_of_reduced_model_with_frozen_values(clip):
     sk, q = clip
     reduced = sk.freeze(["*fingers", "*thumb", "lfemur.rz"], value=0.3)
     qr = reduced.reduce(q, sk)
-    assert _check_against_fk(reduced, qr, bvh_text(reduced, qr, fps=120.0)) < 1e-5
+    assert _check_against_fk(reduced, qr, bvh_text(reduced, qr, fps=120.0)) < 1e-6
 
 
 def test_bvh_of_urdf_model(tmp_path, clip):
@@ -125,7 +125,7 @@ def test_bvh_of_urdf_model(tmp_path, clip):
     (tmp_path / "m.urdf").write_text(sk.to_urdf())
     model = Skeleton.from_urdf(tmp_path / "m.urdf", floating_base=False)
     qm = q[:, [sk.dof_names.index(n) for n in model.dof_names]]
-    assert _check_against_fk(model, qm, bvh_text(model, qm, fps=30.0)) < 1e-5
+    assert _check_against_fk(model, qm, bvh_text(model, qm, fps=30.0)) < 1e-6
 
 
 def test_write_bvh_and_bad_input(tmp_path, clip):
@@ -136,3 +136,45 @@ def test_write_bvh_and_bad_input(tmp_path, clip):
         bvh_text(sk, q[:, :10], fps=30.0)
     with pytest.raises(InputError, match="frame rate"):
         bvh_text(sk, q, fps=0.0)
+
+
+def _pose_with_local_rotation(sk: Skeleton, q: torch.Tensor, joint: str, local: np.ndarray) -> torch.Tensor:
+    """q with `joint`'s three ASF dofs set so that its rotation relative to its parent is `local`
+    (the joint's parent rotation E is the identity and its axes the (z, y, x) columns of a frame C:
+    local = C Rz Ry Rx C^T, solved for the angles with scipy)."""
+    from scipy.spatial.transform import Rotation
+
+    i = sk.joint_index(joint)
+    c = np.stack([sk.axes[i, 2], sk.axes[i, 1], sk.axes[i, 0]], axis=-1)
+    x, y, z = Rotation.from_matrix(c.T @ local @ c).as_euler("xyz")  # extrinsic xyz: Rz Ry Rx
+    q = q.clone()
+    for slot, angle in zip(range(3), (z, y, x)):
+        q[int(sk.axis_dof[i, slot])] = angle
+    return q
+
+
+def test_bvh_at_gimbal_lock_reproduces_fk(clip):
+    """Joints whose rotation relative to the parent has a middle (Y) Euler angle of exactly +-90
+    degrees, or within 1e-7 rad of it, export to BVH channels that reproduce FK to 1e-6 m."""
+    sk, q_clip = clip
+    rng = np.random.default_rng(0)
+    frames = []
+    for middle in (np.pi / 2, -np.pi / 2, np.pi / 2 - 1e-7, -np.pi / 2 + 1e-9):
+        q = q_clip[len(frames)].clone()
+        q[sk.dof_names.index("root.ry")] = middle  # the root's axes are x, y, z: local = Rz Ry Rx
+        for joint in ("lfemur", "rhumerus"):
+            a, c = rng.uniform(-np.pi, np.pi, size=2)
+            q = _pose_with_local_rotation(sk, q, joint, euler_matrix_np((c, middle, a), "XYZ"))
+        frames.append(q)
+    q = torch.stack(frames)
+    text = bvh_text(sk, q, fps=30.0)
+    names, _, _, channels, _, values = read_bvh(text)
+    # the export really is at the lock: the Y channel of those joints is +-90 degrees
+    col, start = {}, 0
+    for k, name in enumerate(names):
+        if name is not None:
+            col[name] = start + channels[k] - 3  # the rotation channels come last
+            start += channels[k]
+    for joint in ("root", "lfemur", "rhumerus"):
+        np.testing.assert_allclose(np.abs(values[:, col[joint] + 1]), 90.0, rtol=0, atol=1e-5, err_msg=joint)
+    assert _check_against_fk(sk, q, text) < 1e-6
