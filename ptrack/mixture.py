@@ -1,0 +1,93 @@
+"""Mixture bookkeeping for the sampling trackers: distinct minima, weights, pruning to K modes, and the
+best trajectory through the per-frame hypothesis lattice.
+
+A frame's posterior is a mixture of K modes: poses q (K, D), weights (K,) summing to 1, costs (K,)
+(negative log posterior up to a constant) and scale factors (K, D, D) (Cholesky factors of the
+sampling covariance). Everything here is pure and batched over candidates; no randomness.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from ptrack.errors import InputError
+
+
+class Modes(NamedTuple):
+    """K weighted modes of one frame: q (K, D), weight (K,) summing to 1, cost (K,), chol (K, D, D)."""
+
+    q: Tensor
+    weight: Tensor
+    cost: Tensor
+    chol: Tensor
+
+
+def distinct_minima(q: Tensor, cost: Tensor, min_distance: float, limit: int | None = None) -> Tensor:
+    """Indices of the distinct minima among N optimised candidates, best (lowest cost) first.
+
+    Greedy non-maximum suppression: candidates are visited by increasing cost and kept unless a kept one
+    lies within `min_distance` (max-norm over the dofs, i.e. no dof differs by more) of it. Non-finite
+    costs are never kept. q: (N, D); cost: (N,) -> (M,) int64 with M <= limit.
+    """
+    if q.ndim != 2 or cost.shape != q.shape[:1]:
+        raise InputError(f"distinct_minima: q (N, D) and cost (N,) expected, got {tuple(q.shape)} and "
+                         f"{tuple(cost.shape)}")
+    order = torch.argsort(torch.where(torch.isfinite(cost), cost, torch.full_like(cost, float("inf"))))
+    order = order[torch.isfinite(cost[order])]
+    if order.numel() == 0:
+        return order
+    qs = q[order]
+    close = (qs[:, None, :] - qs[None, :, :]).abs().amax(-1) < min_distance  # (n, n)
+    keep = torch.zeros(order.numel(), dtype=torch.bool, device=q.device)
+    suppressed = torch.zeros_like(keep)
+    # a loop over candidates in cost order; each step is O(n) on the precomputed (n, n) table
+    for i in range(order.numel()):
+        if suppressed[i]:
+            continue
+        keep[i] = True
+        suppressed |= close[i]
+        if limit is not None and int(keep.sum()) >= limit:
+            break
+    return order[keep]
+
+
+def posterior_weights(cost: Tensor, prior_weight: Tensor, temperature: float = 1.0) -> Tensor:
+    """Normalised weights w_i ∝ prior_weight_i * exp(-cost_i / temperature). (M,), (M,) -> (M,)."""
+    logw = torch.log(prior_weight.clamp_min(torch.finfo(cost.dtype).tiny)) - cost / temperature
+    return torch.softmax(logw, dim=0)
+
+
+def nearest(q: Tensor, centres: Tensor) -> Tensor:
+    """Index of the nearest centre (Euclidean in q) for each row of q. (M, D), (K, D) -> (M,) int64."""
+    return torch.cdist(q, centres).argmin(-1)
+
+
+def viterbi(unary: Tensor, q: Tensor, sigma: float) -> Tensor:
+    """The best path through a (T, K) lattice of hypotheses.
+
+    Minimises sum_t unary[t, k_t] + 0.5 * sum_t |q[t, k_t] - q[t-1, k_{t-1}]|^2 / sigma^2: the per-frame
+    costs plus a temporal smoothness (velocity) prior between consecutive chosen hypotheses. Non-finite
+    unary entries are never chosen (unless a frame has nothing else).
+    unary: (T, K); q: (T, K, D) -> (T,) int64 hypothesis index per frame.
+    """
+    if unary.ndim != 2 or q.shape[:2] != unary.shape:
+        raise InputError(f"viterbi: unary (T, K) and q (T, K, D) expected, got {tuple(unary.shape)} and "
+                         f"{tuple(q.shape)}")
+    big = torch.finfo(unary.dtype).max / 4
+    u = torch.where(torch.isfinite(unary), unary, torch.full_like(unary, big))
+    T = u.shape[0]
+    score = u[0]
+    back = []
+    for t in range(1, T):
+        pair = 0.5 * torch.cdist(q[t - 1], q[t]).square() / sigma ** 2  # (K_prev, K)
+        total = score[:, None] + pair
+        best, arg = total.min(0)
+        back.append(arg)
+        score = best + u[t]
+    path = [int(score.argmin())]
+    for arg in reversed(back):
+        path.append(int(arg[path[-1]]))
+    return torch.as_tensor(path[::-1], dtype=torch.long, device=unary.device)

@@ -1,0 +1,70 @@
+"""Tests for ptrack.mixture: distinct minima, weights, nearest modes, Viterbi over a hypothesis lattice."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+import torch
+
+from ptrack.errors import InputError
+from ptrack.mixture import distinct_minima, nearest, posterior_weights, viterbi
+
+
+def test_distinct_minima_suppresses_duplicates_and_orders_by_cost():
+    q = torch.tensor([[0.0, 0.0], [0.01, 0.0], [1.0, 1.0], [1.0, 1.02], [3.0, 0.0]])
+    cost = torch.tensor([5.0, 1.0, 2.0, 0.5, 9.0])
+    keep = distinct_minima(q, cost, min_distance=0.05)
+    assert keep.tolist() == [3, 1, 4]  # 0 duplicates 1 (cheaper), 2 duplicates 3
+    assert distinct_minima(q, cost, 0.05, limit=2).tolist() == [3, 1]
+    assert distinct_minima(q, cost, 1e-6).tolist() == [3, 1, 2, 0, 4]
+
+
+def test_distinct_minima_skips_non_finite():
+    q = torch.tensor([[0.0], [1.0], [2.0]])
+    cost = torch.tensor([float("nan"), 1.0, float("inf")])
+    assert distinct_minima(q, cost, 0.1).tolist() == [1]
+    assert distinct_minima(q, torch.full((3,), float("nan")), 0.1).numel() == 0
+    with pytest.raises(InputError):
+        distinct_minima(q[:, 0], cost, 0.1)
+
+
+def test_posterior_weights():
+    w = posterior_weights(torch.tensor([0.0, 1.0, 1.0]), torch.tensor([1.0, 1.0, 0.0]))
+    assert torch.isclose(w.sum(), torch.tensor(1.0))
+    assert torch.isclose(w[0] / w[1], torch.exp(torch.tensor(1.0)))
+    assert w[2] < 1e-20
+
+
+def test_nearest():
+    centres = torch.tensor([[0.0, 0.0], [10.0, 0.0]])
+    assert nearest(torch.tensor([[1.0, 1.0], [9.0, 0.0], [4.0, 0.0]]), centres).tolist() == [0, 1, 0]
+
+
+def test_viterbi_matches_brute_force():
+    gen = torch.Generator().manual_seed(0)
+    T, K, D = 4, 3, 2
+    unary = torch.rand(T, K, generator=gen, dtype=torch.float64) * 3
+    q = torch.randn(T, K, D, generator=gen, dtype=torch.float64)
+    sigma = 0.7
+
+    def total(path):
+        c = sum(float(unary[t, k]) for t, k in enumerate(path))
+        return c + sum(0.5 * float((q[t, path[t]] - q[t - 1, path[t - 1]]).square().sum()) / sigma ** 2
+                       for t in range(1, T))
+
+    best = min(itertools.product(range(K), repeat=T), key=total)
+    assert viterbi(unary, q, sigma).tolist() == list(best)
+
+
+def test_viterbi_avoids_non_finite_and_prefers_smooth_paths():
+    q = torch.tensor([[[0.0], [5.0]], [[0.1], [5.0]], [[0.2], [5.1]]])
+    unary = torch.tensor([[0.0, 0.1], [0.5, 0.0], [float("nan"), 0.0]])
+    path = viterbi(unary, q, sigma=0.5)
+    assert path[2] == 1  # the NaN hypothesis is never taken
+    unary = torch.tensor([[0.0, 0.1], [0.5, 0.0], [0.0, 0.05]])
+    assert unary.argmin(-1).tolist() == [0, 1, 0]  # frame by frame it would jump back and forth
+    assert viterbi(unary, q, sigma=0.5).tolist() == [1, 1, 1]  # a 5-unit jump costs 50: stay on one track
+    assert viterbi(unary, q, sigma=100.0).tolist() == [0, 1, 0]  # with a loose prior the unaries decide
+    with pytest.raises(InputError):
+        viterbi(unary[0], q, 1.0)
