@@ -1,0 +1,175 @@
+"""Jacobians w.r.t. the pose q: of the joint positions (geometric, one FK pass) and of an
+objective's stacked residuals (chain rule through the joints, FK still once).
+
+    joint_jacobian(sk, q (..., D)) -> joints (..., J, 3), jac (..., J, 3, D)
+    residual_jacobian(sk, residual_fn, q (..., D)) -> r (..., M), jac (..., M, D)
+    objective_linearization(sk, objective, camera, keypoints) -> q (N, D) -> Linearization
+
+The geometric Jacobian. In the model of `ptrack.skeleton`,
+
+    G_i = G_parent R(a_i1, th_i1) R(a_i2, th_i2) R(a_i3, th_i3) E_i
+    p_i = o_i + length_i G_i w_i,   o_i = p_parent + length_i G_parent u_i,
+
+slot k of joint i turns G_i, and with it p_i and the whole subtree below i, rigidly about the
+world axis  a = G_parent R(a_i1, th_i1) ... R(a_i(k-1), th_i(k-1)) a_ik  through the pivot o_i
+(the joint's origin: for ASF bones the parent bone's end point, for the root its translated rest
+position). The part of the offset fixed in the parent's frame (u_i) puts o_i, not p_i, on the axis.
+So for every joint y in the subtree of i (i included), d p_y / d th_ik = a x (p_y - o_i), and a
+root translation dof moves every joint by its unit vector. Everything comes from one FK pass with
+world rotations: the pivots are o_i = p_i - length_i G_i w_i.
+
+Residual Jacobians. A one-frame objective is r(q) = f(q, X(q)) with X the joints; its Jacobian is
+df/dq + df/dX . dX/dq. `residual_jacobian` pushes the D columns (e_d, dX/dq_d) through f in one
+`torch.func.vmap` of `torch.func.jvp` (forward mode over f only: projection and cost terms, no FK).
+
+Timings: see scripts/bench_solver.py.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from ptrack.camera import Camera
+from ptrack.costs import Objective, PoseEval
+from ptrack.errors import InputError
+from ptrack.keypoints import KeypointSet
+from ptrack.skeleton import Skeleton
+from ptrack.solvers import Linearization
+
+ResidualFn = Callable[[Tensor, Tensor], Tensor]
+
+
+def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
+    """Per-skeleton constants, cached like the FK plan: slot axes, which slots are driven, the
+    ancestor-or-self mask per slot and the dof each slot drives."""
+    key = ("jacobian", dtype, str(device))
+    c = sk._cache.get(key)
+    if c is not None:
+        return c
+    j = sk.num_joints
+    anc = torch.zeros(j, j, dtype=torch.bool)  # anc[y, i]: i is y or an ancestor of y
+    for y in range(j):
+        i = y
+        while i >= 0:
+            anc[y, i] = True
+            i = sk.parents[i]
+    slot_dof = torch.as_tensor(sk.axis_dof, dtype=torch.long)  # (J, 3)
+    driven = slot_dof >= 0
+    joint_of = torch.arange(j)[:, None].expand(j, 3)[driven]  # (S,) joint of each driven slot
+    trans = torch.as_tensor(sk.translation_dof, dtype=torch.long)
+    c = {
+        "axes": torch.as_tensor(sk.axes, dtype=dtype, device=device),  # (J, 3, 3)
+        "slot_index": torch.as_tensor(sk.axis_dof.clip(0), dtype=torch.long, device=device),  # (J, 3)
+        "driven": driven.to(device),
+        "frozen": torch.as_tensor(sk.frozen_axes, dtype=dtype, device=device),
+        "parents": torch.as_tensor([max(p, 0) for p in sk.parents], dtype=torch.long, device=device),
+        "is_root": torch.as_tensor([p < 0 for p in sk.parents], device=device),
+        "w": torch.as_tensor(sk.offset_local * sk.lengths[:, None], dtype=dtype, device=device),
+        "slot_flat": (torch.arange(j)[:, None] * 3 + torch.arange(3))[driven].to(device),  # (S,)
+        "slot_joint": joint_of.to(device),
+        "slot_dof": slot_dof[driven].to(device),  # (S,)
+        "mask": anc[:, joint_of].to(dtype=dtype, device=device),  # (J, S)
+        "trans_axis": torch.nonzero(trans >= 0).flatten().to(device),  # world axes with a dof
+        "trans_dof": trans[trans >= 0].to(device),
+    }
+    sk._cache[key] = c
+    return c
+
+
+def _cross(a: Tensor, b: Tensor) -> Tensor:
+    """a x b with broadcasting: (..., 3), (..., 3) -> (..., 3)."""
+    a0, a1, a2 = a.unbind(-1)
+    b0, b1, b2 = b.unbind(-1)
+    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim=-1)
+
+
+def _turn(axis: Tensor, angle: Tensor, v: Tensor) -> Tensor:
+    """Rodrigues on vectors: R(axis, angle) v. axis, v (..., 3), angle (...) -> (..., 3)."""
+    s, co = torch.sin(angle)[..., None], torch.cos(angle)[..., None]
+    return v * co + _cross(axis, v) * s + axis * ((axis * v).sum(-1, keepdim=True) * (1 - co))
+
+
+def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
+    """Joint positions and their geometric Jacobian w.r.t. the pose, from one FK pass.
+
+    q: (..., D) -> joints (..., J, 3) metres, jac (..., J, 3, D) with jac[..., y, :, d] = d p_y / d q_d
+    (see the module docstring). Follows q's dtype and device. Not differentiable itself (it is a
+    first derivative; use autograd through `forward_kinematics` for second derivatives).
+    """
+    joints, rot = sk.forward_kinematics(q, rotations=True)
+    c = _constants(sk, q.dtype, q.device)
+    batch = q.shape[:-1]
+    # slot angles (..., J, 3): driven ones from q, the others at their frozen value
+    theta = torch.where(c["driven"], q.index_select(-1, c["slot_index"].flatten()).unflatten(-1, (-1, 3)),
+                        c["frozen"])
+    a1, a2, a3 = c["axes"].unbind(-2)  # (J, 3) each: the slots' axes in the parent frame
+    v2 = _turn(a1, theta[..., 0], a2)
+    v3 = _turn(a1, theta[..., 0], _turn(a2, theta[..., 1], a3))
+    local_axes = torch.stack([a1.expand_as(v2), v2, v3], dim=-2)  # (..., J, 3 slots, 3)
+    eye = torch.eye(3, dtype=q.dtype, device=q.device)
+    g_parent = torch.where(c["is_root"][:, None, None], eye, rot.index_select(-3, c["parents"]))
+    world_axes = torch.einsum("...jab,...jsb->...jsa", g_parent, local_axes)  # (..., J, 3, 3)
+    pivots = joints - torch.einsum("...jab,jb->...ja", rot, c["w"])  # o_i = p_i - l_i G_i w_i
+    a = world_axes.flatten(-3, -2).index_select(-2, c["slot_flat"])  # (..., S, 3)
+    o = pivots.index_select(-2, c["slot_joint"])  # (..., S, 3)
+    # a x (p_y - o) = a x p_y - a x o, masked to the slot's subtree: (..., J, S, 3)
+    cols = _cross(a[..., None, :, :], joints[..., :, None, :]) - _cross(a, o)[..., None, :, :]
+    cols = cols * c["mask"][..., None]
+    jac = q.new_zeros(*batch, joints.shape[-2], 3, sk.num_dofs)
+    jac.index_add_(-1, c["slot_dof"], cols.transpose(-1, -2))
+    if c["trans_dof"].numel():
+        jac[..., c["trans_axis"], c["trans_dof"]] = 1.0
+    return joints, jac
+
+
+def residual_jacobian(sk: Skeleton, residual_fn: ResidualFn, q: Tensor,
+                      joints_and_jacobian: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+    """Residuals r(q) = f(q, joints(q)) and their Jacobian w.r.t. q, with FK run once.
+
+    residual_fn(q (..., D), joints (..., J, 3)) -> (..., M) must be written in torch ops that
+    `torch.func.jvp` and `vmap` support (every ptrack cost term and `Camera.project` are).
+    joints_and_jacobian: `joint_jacobian(sk, q)` if already computed.
+    q: (..., D) -> r (..., M), jac (..., M, D) = df/dq + df/dX dX/dq.
+    """
+    joints, dx = joint_jacobian(sk, q) if joints_and_jacobian is None else joints_and_jacobian
+    d = q.shape[-1]
+    eye = torch.eye(d, dtype=q.dtype, device=q.device).reshape(d, *([1] * (q.ndim - 1)), d).expand(d, *q.shape)
+    tangent_x = dx.movedim(-1, 0)  # (D, ..., J, 3)
+
+    def column(tq: Tensor, tx: Tensor) -> tuple[Tensor, Tensor]:
+        return torch.func.jvp(residual_fn, (q, joints), (tq, tx))
+
+    r, cols = torch.func.vmap(column, out_dims=(None, 0))(eye, tangent_x)
+    return r, cols.movedim(0, -1)
+
+
+def pose_eval_from_joints(camera: Camera, keypoints: KeypointSet, q: Tensor, joints: Tensor) -> PoseEval:
+    """`ptrack.problem.evaluate_pose` without the FK: joints (..., J, 3) given for the pose q (..., D)."""
+    proj = camera.project(joints.index_select(-2, keypoints.index(q.device)))
+    return PoseEval(q=q, joints=joints, pixels=proj.pixels, depth=proj.depth)
+
+
+def objective_linearization(sk: Skeleton, objective: Objective, camera: Camera,
+                            keypoints: KeypointSet) -> Callable[[Tensor], Linearization]:
+    """The one-frame objective as the solvers read it: q (N, D) -> Linearization(residuals (N, M),
+    jacobian (N, M, D), weights (N, M) IRLS, energy (N,) the robust total), one FK per call.
+
+    The objective's terms must read only q, joints and keypoint pixels/depth (Reprojection,
+    JointLimits, JointKeyframe on one frame, ...), not joint_pixels.
+    """
+    if camera is None or keypoints is None:
+        raise InputError("objective_linearization needs a camera and a keypoint set")
+
+    def residual_fn(q: Tensor, joints: Tensor) -> Tensor:
+        return objective.residuals(pose_eval_from_joints(camera, keypoints, q, joints))
+
+    def linearize(q: Tensor) -> Linearization:
+        jj = joint_jacobian(sk, q)
+        r, jac = residual_jacobian(sk, residual_fn, q, jj)
+        ev = pose_eval_from_joints(camera, keypoints, q, jj[0])
+        return Linearization(r, jac, objective.robust_weights(ev), objective(ev).total)
+
+    return linearize

@@ -1,0 +1,388 @@
+"""Batched solvers over N independent problems at once: damped Gauss-Newton / Levenberg-Marquardt
+and L-BFGS, both with box constraints (joint limits).
+
+    levenberg_marquardt(linearize, q0 (N, D), lower, upper) -> q (N, D), LMInfo
+    lbfgs(energy_fn, q0 (N, D), lower, upper) -> q (N, D), LBFGSInfo
+
+Each problem keeps its own state (LM: damping, accept/reject; L-BFGS: history, step length and
+line search) and its own convergence flag; no Python loop runs over problems, only over iterations
+(and line-search trials). A converged problem's pose is frozen while the others go on, and the loop
+stops when all are done: one host sync per iteration. Callbacks always see the whole batch
+(N, D), so they may hold per-problem data (targets, observations) indexed by problem.
+
+Box constraints: q0 is clamped into [lower, upper] (+-inf = no bound); a dof at a bound whose
+gradient pushes outward is held for that step (the active set), and the step is projected onto the
+box. Convergence is tested on the projected gradient.
+
+Only torch here: `ptrack.jacobians.objective_linearization` makes the LM callback of a ptrack
+objective, and any `q (N, D) -> energy (N,)` made of torch ops serves L-BFGS.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, NamedTuple
+
+import torch
+from torch import Tensor
+
+from ptrack.errors import InputError
+
+
+class Linearization(NamedTuple):
+    """What a Gauss-Newton solver reads at a batch of poses q (N, D).
+
+    residuals (N, M); jacobian (N, M, D) d residuals / d q; weights (N, M) IRLS row weights
+    (rho' of robust terms, 1 for least squares; None = all 1); energy (N,) the objective the
+    solver lowers (None = 0.5 |r|^2, allowed only without weights). With robust weights the step
+    solves (J^T W J + lambda diag) dq = -J^T W r, whose right side is minus the gradient of the
+    robust energy, and steps are accepted on that energy.
+    """
+
+    residuals: Tensor
+    jacobian: Tensor
+    weights: Tensor | None = None
+    energy: Tensor | None = None
+
+
+class LMInfo(NamedTuple):
+    """Per-problem record of a `levenberg_marquardt` run (N problems, D dofs).
+
+    iterations (N,) linear solves made before the problem converged or the run stopped; converged
+    (N,) bool; cost (N,) final energy; hessian (N, D, D) the Gauss-Newton J^T W J at the solution
+    (no damping, no active set); gradient (N, D) J^T W r there; damping (N,) final lambda;
+    evaluations: calls of the callback (each on the whole batch).
+    """
+
+    iterations: Tensor
+    converged: Tensor
+    cost: Tensor
+    hessian: Tensor
+    gradient: Tensor
+    damping: Tensor
+    evaluations: int
+
+
+class LBFGSInfo(NamedTuple):
+    """Per-problem record of an `lbfgs` run (N problems, D dofs).
+
+    iterations (N,) accepted or attempted steps before the problem was done; converged (N,) bool
+    (False also when its line search failed from steepest descent); cost (N,) final energy;
+    gradient (N, D) final gradient; evaluations: energy + gradient calls on the whole batch.
+    """
+
+    iterations: Tensor
+    converged: Tensor
+    cost: Tensor
+    gradient: Tensor
+    evaluations: int
+
+
+LinearizeFn = Callable[[Tensor], "Linearization | tuple[Tensor, ...]"]
+EnergyFn = Callable[[Tensor], Tensor]
+
+
+# ---------------------------------------------------------------------------------------------
+# shared pieces
+
+
+def _check_start(q0: Tensor, lower, upper, who: str) -> tuple[Tensor, Tensor, Tensor]:
+    """Validate q0 (N, D) and the bounds; -> q0 clamped, lower (N|1, D), upper (N|1, D)."""
+    if not isinstance(q0, Tensor) or not q0.is_floating_point() or q0.ndim != 2:
+        raise InputError(f"{who}: q0 must be a floating tensor of shape (N, D), got "
+                         f"{type(q0).__name__} {tuple(getattr(q0, 'shape', ()))}")
+    n, d = q0.shape
+
+    def bound(x, fill: float, name: str) -> Tensor:
+        if x is None:
+            return q0.new_full((1, d), fill)
+        t = torch.as_tensor(x, dtype=q0.dtype, device=q0.device)
+        if t.ndim == 1:
+            t = t[None]
+        if t.ndim != 2 or t.shape[1] != d or t.shape[0] not in (1, n):
+            raise InputError(f"{who}: {name} must have shape (D,) or (N, D) = ({n}, {d}), got "
+                             f"{tuple(torch.as_tensor(x).shape)}")
+        return t
+
+    lo, hi = bound(lower, -math.inf, "lower"), bound(upper, math.inf, "upper")
+    if bool((lo.isnan() | hi.isnan() | (lo > hi)).any()):
+        raise InputError(f"{who}: bounds must be non-NaN with lower <= upper")
+    if not bool(torch.isfinite(q0).all()):
+        raise InputError(f"{who}: q0 has non-finite entries")
+    return torch.minimum(torch.maximum(q0, lo), hi), lo, hi
+
+
+def _free(q: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """(N, D) bool: dofs free to move this step (not at a bound with the gradient pushing outward)."""
+    return ~(((q <= lo) & (g > 0)) | ((q >= hi) & (g < 0)))
+
+
+def _projected_gradient(q: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """(N,) largest entry of |q - P(q - g)|: 0 exactly at a box-constrained stationary point."""
+    return (q - torch.minimum(torch.maximum(q - g, lo), hi)).abs().amax(-1)
+
+
+def _where(mask: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    """Per-problem select: mask (N,), a, b (N, ...)."""
+    return torch.where(mask.reshape(-1, *([1] * (a.ndim - 1))), a, b)
+
+
+# ---------------------------------------------------------------------------------------------
+# Levenberg-Marquardt
+
+
+def _linearize(fn: LinearizeFn, q: Tensor, weights_fn, energy_fn) -> Linearization:
+    out = fn(q)
+    if not isinstance(out, tuple) or not 2 <= len(out) <= 4:
+        raise InputError("levenberg_marquardt: the callback must return (residuals, jacobian) or a "
+                         f"Linearization, got {type(out).__name__}")
+    lin = Linearization(*out)
+    r, jac = lin.residuals, lin.jacobian
+    n, d = q.shape
+    if r.ndim != 2 or r.shape[0] != n or jac.shape != (n, r.shape[1], d):
+        raise InputError(f"levenberg_marquardt: residuals must be (N, M) and jacobian (N, M, D) with "
+                         f"N={n}, D={d}; got {tuple(r.shape)} and {tuple(jac.shape)}")
+    w = lin.weights if lin.weights is not None or weights_fn is None else weights_fn(q)
+    e = lin.energy if lin.energy is not None or energy_fn is None else energy_fn(q)
+    if e is None:
+        if w is not None:
+            raise InputError("levenberg_marquardt: with IRLS weights the energy must be given too "
+                             "(energy_fn, or Linearization.energy): it is not 0.5 |r|^2")
+        e = 0.5 * r.square().sum(-1)
+    if w is not None and w.shape != r.shape:
+        raise InputError(f"levenberg_marquardt: weights must have the residuals' shape {tuple(r.shape)}, "
+                         f"got {tuple(w.shape)}")
+    if e.shape != (n,):
+        raise InputError(f"levenberg_marquardt: energy must have shape ({n},), got {tuple(e.shape)}")
+    return Linearization(r, jac, w, e)
+
+
+def _normal_equations(lin: Linearization) -> tuple[Tensor, Tensor]:
+    """-> H = J^T W J (N, D, D), g = J^T W r (N, D)."""
+    jw = lin.jacobian if lin.weights is None else lin.jacobian * lin.weights[..., None]
+    h = jw.mT @ lin.jacobian
+    g = (jw.mT @ lin.residuals[..., None])[..., 0]
+    return h, g
+
+
+def _select(mask: Tensor, a: Linearization, b: Linearization) -> Linearization:
+    return Linearization(*(None if x is None else _where(mask, x, y) for x, y in zip(a, b)))
+
+
+def levenberg_marquardt(linearize: LinearizeFn, q0: Tensor, lower: Tensor | None = None,
+                        upper: Tensor | None = None, *, max_iter: int = 20, tol: float = 1e-10,
+                        gtol: float = 1e-10, damping: float = 1e-3,
+                        weights_fn: EnergyFn | None = None,
+                        energy_fn: EnergyFn | None = None) -> tuple[Tensor, LMInfo]:
+    """Minimise N independent (robust) least-squares problems by Levenberg-Marquardt.
+
+    Args:
+        linearize: q (N, D) -> (residuals (N, M), jacobian (N, M, D)) or a `Linearization` that
+            also carries IRLS weights and the energy (what `ptrack.jacobians.objective_linearization`
+            returns: one FK gives all four). Called once per iteration, at the trial poses.
+        q0: (N, D) start; clamped into the box.
+        lower, upper: (D,) or (N, D) bounds, +-inf for none; None = unbounded.
+        max_iter: at most this many iterations (one linear solve and one callback each).
+        tol: a problem converges when a step lowers its energy E by <= tol * E or moves q by
+            <= tol * (|q| + tol) (Euclidean norms).
+        gtol: ... or when its projected gradient's largest entry is <= gtol.
+        damping: initial lambda; the step solves (H + lambda diag(H)) dq = -g on the free dofs,
+            lambda per problem, updated by Nielsen's rule from the gain ratio (down on accept,
+            doubling-ever-faster up on reject).
+        weights_fn: q -> (N, M) IRLS weights, if the callback does not return them.
+        energy_fn: q -> (N,) energy, if the callback does not return it (required with weights;
+            without weights the energy is 0.5 |r|^2).
+
+    Returns:
+        q (N, D) the best pose of each problem, and `LMInfo`.
+    """
+    q, lo, hi = _check_start(q0, lower, upper, "levenberg_marquardt")
+    n, d = q.shape
+    lin = _linearize(linearize, q, weights_fn, energy_fn)
+    evaluations = 1
+    eye = torch.eye(d, dtype=q.dtype, device=q.device)
+    tiny = torch.finfo(q.dtype).tiny
+    h, g = _normal_equations(lin)
+    lam = float(damping) * h.diagonal(dim1=-2, dim2=-1).amax(-1).clamp(min=tiny)
+    nu = q.new_full((n,), 2.0)
+    done = torch.zeros(n, dtype=torch.bool, device=q.device)
+    converged = torch.zeros_like(done)
+    iterations = torch.zeros(n, dtype=torch.long, device=q.device)
+    for _ in range(max_iter):
+        small_g = _projected_gradient(q, g, lo, hi) <= gtol
+        converged |= small_g & ~done
+        done |= small_g
+        if bool(done.all()):
+            break
+        free = _free(q, g, lo, hi)
+        both = free[:, :, None] & free[:, None, :]
+        a = torch.where(both, h + lam[:, None, None] * eye, eye)
+        chol, info = torch.linalg.cholesky_ex(a)
+        ok = info == 0
+        b = -torch.where(free, g, 0.0)
+        dq = torch.cholesky_solve(b[..., None], torch.where(ok[:, None, None], chol, eye))[..., 0]
+        trial = torch.minimum(torch.maximum(q + dq, lo), hi)
+        step = trial - q
+        new = _linearize(linearize, trial, weights_fn, energy_fn)
+        evaluations += 1
+        predicted = -((g * step).sum(-1) + 0.5 * (step * (h @ step[..., None])[..., 0]).sum(-1))
+        actual = lin.energy - new.energy
+        active = ~done
+        iterations += active.long()
+        accept = active & ok & torch.isfinite(new.energy) & (actual > 0)
+        rho = actual / predicted.clamp(min=tiny)
+        step_norm = step.norm(dim=-1)
+        tiny_step = step_norm <= tol * (q.norm(dim=-1) + tol)
+        small_drop = accept & (actual <= tol * lin.energy)
+        lam = torch.where(accept, lam * torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3),
+                          torch.where(active, lam * nu, lam))
+        nu = torch.where(accept, torch.full_like(nu, 2.0), torch.where(active, nu * 2, nu))
+        q = _where(accept, trial, q)
+        lin = _select(accept, new, lin)
+        h_new, g_new = _normal_equations(new)
+        h, g = _where(accept, h_new, h), _where(accept, g_new, g)
+        stop = active & ok & (small_drop | tiny_step)
+        converged |= stop
+        done |= stop | (lam > 1e30)  # damping this high: no step lowers the energy any more
+    return q, LMInfo(iterations=iterations, converged=converged, cost=lin.energy, hessian=h,
+                     gradient=g, damping=lam, evaluations=evaluations)
+
+
+# ---------------------------------------------------------------------------------------------
+# L-BFGS
+
+
+def _value_and_grad(fn: EnergyFn, q: Tensor) -> tuple[Tensor, Tensor]:
+    """Energy (N,) and its gradient (N, D); problems are independent, so grad of the sum is per problem."""
+    with torch.enable_grad():
+        x = q.detach().requires_grad_(True)
+        e = fn(x)
+        if not isinstance(e, Tensor) or e.shape != (q.shape[0],):
+            raise InputError(f"lbfgs: energy_fn must return shape ({q.shape[0]},), got "
+                             f"{tuple(getattr(e, 'shape', ()))}")
+        (g,) = torch.autograd.grad(e.sum(), x)
+    return e.detach(), g
+
+
+def _two_loop(g: Tensor, s: Tensor, y: Tensor, rho: Tensor, gamma: Tensor) -> Tensor:
+    """Batched L-BFGS two-loop recursion: -H g for history s, y (N, m, D) (newest last), rho (N, m)
+    = 1 / s.y (0 for empty slots, which then do nothing), initial scaling gamma (N,)."""
+    m = s.shape[1]
+    v = g.clone()
+    alphas = []
+    for i in range(m - 1, -1, -1):
+        a = rho[:, i] * (s[:, i] * v).sum(-1)
+        v = v - a[:, None] * y[:, i]
+        alphas.append(a)
+    v = v * gamma[:, None]
+    for i in range(m):
+        b = rho[:, i] * (y[:, i] * v).sum(-1)
+        v = v + (alphas[m - 1 - i] - b)[:, None] * s[:, i]
+    return -v
+
+
+def lbfgs(energy_fn: EnergyFn, q0: Tensor, lower: Tensor | None = None, upper: Tensor | None = None, *,
+          max_iter: int = 100, history: int = 10, tol: float = 1e-10, gtol: float = 1e-8,
+          c1: float = 1e-4, max_line_search: int = 25) -> tuple[Tensor, LBFGSInfo]:
+    """Minimise N independent smooth energies by projected L-BFGS with per-problem everything.
+
+    Args:
+        energy_fn: q (N, D) -> (N,), differentiable by autograd; problem i's energy may depend on
+            row i of q only (the gradient is taken of the sum).
+        q0: (N, D) start; clamped into the box.
+        lower, upper: (D,) or (N, D) bounds, +-inf for none; None = unbounded.
+        max_iter: at most this many iterations (each: one direction, one line search).
+        history: pairs (s, y) kept per problem.
+        tol: a problem converges when an accepted step lowers its energy E by <= tol * |E| or
+            moves q by <= tol * (|q| + tol).
+        gtol: ... or when its projected gradient's largest entry is <= gtol.
+        c1: Armijo constant of the backtracking line search on the projected path
+            P(q + alpha d): accept when E(q_a) <= E(q) + c1 g.(q_a - q).
+        max_line_search: trials per iteration; the trial step is cut by a safeguarded quadratic
+            interpolation (to 0.1-0.5 of the previous one), per problem.
+
+    Each problem has its own history, initial step (1 with history; min(1, 1/|g|) without) and
+    step length. The direction uses the free dofs only (active set as in `levenberg_marquardt`);
+    a non-descent direction resets that problem's history; a pair with s.y <= 1e-10 |s| |y| is
+    skipped. A failed line search resets the history, and fails the problem if it had none.
+
+    Returns:
+        q (N, D) and `LBFGSInfo`.
+    """
+    if history < 1:
+        raise InputError(f"lbfgs: history must be >= 1, got {history}")
+    q, lo, hi = _check_start(q0, lower, upper, "lbfgs")
+    n, d = q.shape
+    e, g = _value_and_grad(energy_fn, q)
+    evaluations = 1
+    s_hist = q.new_zeros(n, history, d)
+    y_hist = q.new_zeros(n, history, d)
+    rho = q.new_zeros(n, history)
+    gamma = q.new_ones(n)
+    has_hist = torch.zeros(n, dtype=torch.bool, device=q.device)
+    done = torch.zeros_like(has_hist)
+    converged = torch.zeros_like(has_hist)
+    iterations = torch.zeros(n, dtype=torch.long, device=q.device)
+    for _ in range(max_iter):
+        small_g = _projected_gradient(q, g, lo, hi) <= gtol
+        converged |= small_g & ~done
+        done |= small_g
+        if bool(done.all()):
+            break
+        free = _free(q, g, lo, hi)
+        gf = torch.where(free, g, 0.0)
+        direction = torch.where(free, _two_loop(gf, s_hist, y_hist, rho, gamma), 0.0)
+        slope = (direction * gf).sum(-1)
+        descent = has_hist & (slope < 0)
+        direction = _where(descent, direction, -gf)
+        reset = has_hist & ~descent
+        s_hist, y_hist, rho = _where(reset, 0 * s_hist, s_hist), _where(reset, 0 * y_hist, y_hist), _where(reset, 0 * rho, rho)
+        gamma = torch.where(reset, torch.ones_like(gamma), gamma)
+        has_hist = has_hist & ~reset
+        slope = (direction * gf).sum(-1)
+        alpha = torch.where(descent, torch.ones_like(e), torch.clamp(1 / gf.norm(dim=-1).clamp(min=1e-300), max=1.0))
+
+        active = ~done
+        pending = active.clone()
+        found = torch.zeros_like(done)
+        q_new, e_new, g_new = q, e, g
+        for _ls in range(max_line_search):
+            trial = torch.minimum(torch.maximum(q + alpha[:, None] * direction, lo), hi)
+            e_t, g_t = _value_and_grad(energy_fn, trial)
+            evaluations += 1
+            armijo = torch.isfinite(e_t) & (e_t <= e + c1 * (g * (trial - q)).sum(-1))
+            hit = pending & armijo
+            q_new, e_new, g_new = _where(hit, trial, q_new), torch.where(hit, e_t, e_new), _where(hit, g_t, g_new)
+            found |= hit
+            pending &= ~armijo
+            if not bool(pending.any()):
+                break
+            # safeguarded quadratic interpolation of phi(alpha) = E(q + alpha d) along the search line
+            curv = 2 * (torch.nan_to_num(e_t, nan=math.inf, posinf=math.inf) - e - slope * alpha)
+            a_q = -slope * alpha * alpha / curv
+            a_q = torch.where(torch.isfinite(a_q) & (curv > 0), a_q, 0.1 * alpha)
+            alpha = torch.where(pending, torch.minimum(torch.maximum(a_q, 0.1 * alpha), 0.5 * alpha), alpha)
+
+        iterations += active.long()
+        s_new, y_new = q_new - q, g_new - g
+        sy = (s_new * y_new).sum(-1)
+        update = found & (sy > 1e-10 * s_new.norm(dim=-1) * y_new.norm(dim=-1))
+        s_hist = _where(update, torch.cat([s_hist[:, 1:], s_new[:, None]], 1), s_hist)
+        y_hist = _where(update, torch.cat([y_hist[:, 1:], y_new[:, None]], 1), y_hist)
+        rho = _where(update, torch.cat([rho[:, 1:], (1 / sy.clamp(min=1e-300))[:, None]], 1), rho)
+        gamma = torch.where(update, sy / y_new.square().sum(-1).clamp(min=1e-300), gamma)
+        has_hist |= update
+
+        drop = e - e_new
+        stop = found & ((drop <= tol * e.abs())
+                        | (s_new.norm(dim=-1) <= tol * (q.norm(dim=-1) + tol)))
+        failed = active & ~found & ~has_hist  # no step even along the steepest descent
+        retry = active & ~found & has_hist
+        s_hist, y_hist, rho = _where(retry, 0 * s_hist, s_hist), _where(retry, 0 * y_hist, y_hist), _where(retry, 0 * rho, rho)
+        gamma = torch.where(retry, torch.ones_like(gamma), gamma)
+        has_hist &= ~retry
+        q, e, g = q_new, e_new, g_new
+        converged |= stop
+        done |= stop | failed
+    return q, LBFGSInfo(iterations=iterations, converged=converged, cost=e, gradient=g,
+                        evaluations=evaluations)

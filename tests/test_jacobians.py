@@ -1,0 +1,178 @@
+"""Tests for ptrack.jacobians: the geometric joint Jacobian and residual Jacobians, against autograd
+(float64) on the bundled CMU skeleton with real poses, reduced models and random trees."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ptrack.camera import camera_for_motion
+from ptrack.costs import JointLimits, Objective, PoseEval, Reprojection
+from ptrack.errors import InputError
+from ptrack.jacobians import joint_jacobian, objective_linearization, residual_jacobian
+from ptrack.keypoints import make_keypoints
+from ptrack.limits import wrap_to_limits
+from ptrack.problem import evaluate_pose
+from ptrack.skeleton import Skeleton, load_amc
+
+DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
+F64 = torch.float64
+REDUCE = ["*fingers", "*thumb", "*hand", "*toes"]
+
+
+@pytest.fixture(scope="module")
+def cmu() -> Skeleton:
+    return Skeleton.from_asf(DATA / "10.asf")
+
+
+def _poses(sk: Skeleton, n: int = 5) -> torch.Tensor:
+    """n real poses of 10_02 (every 100th frame) in sk's dof layout, float64 (n, D)."""
+    return load_amc(DATA / "10_02.amc", sk).q[::100][:n].to(F64)
+
+
+def _autograd_joint_jacobian(sk: Skeleton, q: torch.Tensor) -> torch.Tensor:
+    """q (N, D) -> (N, J, 3, D) through the FK's own backward (problems are independent)."""
+    jac = torch.autograd.functional.jacobian(lambda x: sk.forward_kinematics(x).sum(0), q)  # (J, 3, N, D)
+    return jac.permute(2, 0, 1, 3)
+
+
+def _random_tree(seed: int, j: int = 9) -> Skeleton:
+    """A URDF-ish random tree: free unit axes (the Rodrigues FK path), rest rotations, offsets
+    fixed in the parent frame and turning with the joint, frozen slots at nonzero angles, a
+    partial root translation."""
+    rng = np.random.default_rng(seed)
+    parents = [-1] + [int(rng.integers(0, i)) for i in range(1, j)]
+    axes = rng.normal(size=(j, 3, 3))
+    axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
+    driven = rng.random((j, 3)) < 0.7
+    translation_dof = np.array([0, -1, 1])
+    axis_dof = -np.ones((j, 3), dtype=np.int64)
+    axis_dof[driven] = 2 + np.arange(int(driven.sum()))
+    d = 2 + int(driven.sum())
+    rest = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(j)])
+    rest *= np.sign(np.linalg.det(rest))[:, None, None]
+    offset_parent = rng.normal(size=(j, 3))
+    offset_parent[0] = 0.0
+    return Skeleton(
+        name=f"tree{seed}", joint_names=tuple(f"j{i}" for i in range(j)), parents=tuple(parents),
+        axes=axes, axis_dof=axis_dof, rest_rotation=rest, offset_parent=offset_parent,
+        offset_local=rng.normal(size=(j, 3)), lengths=rng.uniform(0.2, 1.5, size=j),
+        root_position=rng.normal(size=3), translation_dof=translation_dof,
+        dof_names=tuple(f"q{k}" for k in range(d)), lower=np.full(d, -math.inf), upper=np.full(d, math.inf),
+        frozen_axes=np.where(driven, 0.0, rng.uniform(-1, 1, size=(j, 3))),
+    )
+
+
+def test_joint_jacobian_matches_autograd_on_real_cmu_poses(cmu):
+    q = _poses(cmu)
+    joints, jac = joint_jacobian(cmu, q)
+    assert joints.shape == (5, cmu.num_joints, 3) and jac.shape == (5, cmu.num_joints, 3, cmu.num_dofs)
+    torch.testing.assert_close(joints, cmu.forward_kinematics(q), rtol=0, atol=1e-12)
+    torch.testing.assert_close(jac, _autograd_joint_jacobian(cmu, q), rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("patterns,value", [(REDUCE, 0.0), (["*clavicle", "lfemur.rz", "root.t*"], 0.3)],
+                         ids=["no_hands", "frozen_at_0.3"])
+def test_joint_jacobian_on_reduced_models(cmu, patterns, value):
+    sk = cmu.freeze(patterns, value=value)
+    q = _poses(sk)
+    joints, jac = joint_jacobian(sk, q)
+    assert jac.shape[-1] == sk.num_dofs < cmu.num_dofs
+    torch.testing.assert_close(joints, sk.forward_kinematics(q), rtol=0, atol=1e-12)
+    torch.testing.assert_close(jac, _autograd_joint_jacobian(sk, q), rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_joint_jacobian_on_random_urdf_like_trees(seed):
+    sk = _random_tree(seed)
+    q = torch.randn(4, sk.num_dofs, generator=torch.Generator().manual_seed(seed), dtype=F64)
+    joints, jac = joint_jacobian(sk, q)
+    torch.testing.assert_close(joints, sk.forward_kinematics(q), rtol=0, atol=1e-12)
+    torch.testing.assert_close(jac, _autograd_joint_jacobian(sk, q), rtol=0, atol=1e-10)
+
+
+def test_joint_jacobian_any_leading_dims_and_dtype(cmu):
+    q = _poses(cmu, 4)
+    _, flat = joint_jacobian(cmu, q)
+    joints, jac = joint_jacobian(cmu, q.reshape(2, 2, -1))
+    assert joints.shape == (2, 2, cmu.num_joints, 3)
+    torch.testing.assert_close(jac.reshape(flat.shape), flat, rtol=0, atol=0)
+    _, single = joint_jacobian(cmu, q[0])
+    torch.testing.assert_close(single, flat[0], rtol=0, atol=1e-14)
+    j32, jac32 = joint_jacobian(cmu, q.float())
+    assert j32.dtype == jac32.dtype == torch.float32
+    torch.testing.assert_close(jac32.double(), flat, rtol=0, atol=1e-4)
+
+
+def test_root_translation_columns_are_unit_vectors(cmu):
+    _, jac = joint_jacobian(cmu, _poses(cmu, 2))
+    for axis, name in enumerate(("root.tx", "root.ty", "root.tz")):
+        col = jac[..., cmu.dof_names.index(name)]  # (N, J, 3)
+        torch.testing.assert_close(col, torch.eye(3, dtype=F64)[axis].expand_as(col), rtol=0, atol=0)
+
+
+# -- residual Jacobians -------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def pose_problem(cmu):
+    """Reduced model with data limits, a camera on the clip, noisy keypoints of one frame, the
+    reprojection (Cauchy) + limits objective, and 6 poses near the true one (some outside limits)."""
+    sk = cmu.freeze(REDUCE).with_limits("data")
+    lo, hi = sk.limits(dtype=F64)
+    q_all = wrap_to_limits(load_amc(DATA / "10_02.amc", sk).q.to(F64), lo, hi, torch.as_tensor(sk.angular_dofs()))
+    joints = sk.forward_kinematics(q_all)
+    cam = camera_for_motion(joints, 6.0, 30.0, 10.0, 1000.0, 640, 480).to(dtype=F64)
+    kps = make_keypoints(sk)
+    g = torch.Generator().manual_seed(3)
+    obs = cam.project(joints[200, kps.index()]).pixels + 2.0 * torch.randn(kps.num_keypoints, 2, generator=g, dtype=F64)
+    conf = torch.rand(kps.num_keypoints, generator=g, dtype=F64) + 0.5
+    obj = Objective({"reprojection": Reprojection(obs, conf, sigma_px=2.0, loss="cauchy", scale=2.0),
+                     "limits": JointLimits(lo, hi, sigma=0.05)}, weights={"limits": 3.0})
+    q = q_all[200] + 0.2 * torch.randn(6, sk.num_dofs, generator=g, dtype=F64)
+    return sk, cam, kps, obj, q
+
+
+def _pipeline_residuals(sk, cam, kps, obj):
+    return lambda q: obj.residuals(evaluate_pose(sk, cam, kps, q))
+
+
+def test_residual_jacobian_matches_autograd_through_the_pipeline(pose_problem):
+    sk, cam, kps, obj, q = pose_problem
+
+    def f(q, joints):
+        proj = cam.project(joints.index_select(-2, kps.index()))
+        return obj.residuals(PoseEval(q=q, joints=joints, pixels=proj.pixels, depth=proj.depth))
+
+    r, jac = residual_jacobian(sk, f, q)
+    full = _pipeline_residuals(sk, cam, kps, obj)
+    torch.testing.assert_close(r, full(q), rtol=0, atol=1e-12)
+    ref = torch.autograd.functional.jacobian(lambda x: full(x).sum(0), q).permute(1, 0, 2)  # (N, M, D)
+    assert jac.shape == (6, r.shape[-1], sk.num_dofs)
+    assert (q < torch.as_tensor(sk.lower)).any() or (q > torch.as_tensor(sk.upper)).any()  # limit rows live
+    torch.testing.assert_close(jac, ref, rtol=0, atol=1e-6 * ref.abs().max())
+    torch.testing.assert_close(jac, ref, rtol=0, atol=1e-9)
+
+
+def test_objective_linearization_gives_the_objectives_weights_and_energy(pose_problem):
+    sk, cam, kps, obj, q = pose_problem
+    lin = objective_linearization(sk, obj, cam, kps)(q)
+    ev = evaluate_pose(sk, cam, kps, q)
+    torch.testing.assert_close(lin.residuals, obj.residuals(ev), rtol=0, atol=1e-12)
+    torch.testing.assert_close(lin.weights, obj.robust_weights(ev), rtol=0, atol=1e-12)
+    torch.testing.assert_close(lin.energy, obj(ev).total, rtol=0, atol=1e-12)
+    # J^T W r is the gradient of the robust energy
+    x = q.clone().requires_grad_(True)
+    obj(evaluate_pose(sk, cam, kps, x)).total.sum().backward()
+    grad = (lin.jacobian.mT @ (lin.weights * lin.residuals)[..., None])[..., 0]
+    torch.testing.assert_close(grad, x.grad, rtol=0, atol=1e-8)
+
+
+def test_objective_linearization_needs_camera_and_keypoints(pose_problem):
+    sk, cam, kps, obj, _ = pose_problem
+    with pytest.raises(InputError, match="camera"):
+        objective_linearization(sk, obj, None, kps)
