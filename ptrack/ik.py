@@ -46,9 +46,9 @@ import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
-from ptrack.jumps import Chain, Product, _mm, _mv, _unit, min_rotation, path_below
-from ptrack.kinematics import euler_zyx
-from ptrack.limits import TAU, outside_limits, wrap_to_limits
+from ptrack.jumps import (Chain, Product, _aos, _sconst, _scross, _sdot, _seye, _smin_rotation, _smm, _smv,
+                          _snorm, _soa, _st, _sunit, path_below)
+from ptrack.limits import TAU
 from ptrack.skeleton import Skeleton
 
 MODES = ("prune", "project")
@@ -177,225 +177,293 @@ def _tensors(plan: ChainIK, dtype: torch.dtype, device: torch.device) -> dict:
         return torch.as_tensor(np.ascontiguousarray(x), dtype=dtype, device=device)
 
     joints = plan.ancestors + plan.path
+    # the dofs IK reads, as rows of qs (the transposed q it works on)
+    used = sorted({int(d) for j in joints for d in sk.axis_dof[j] if d >= 0}
+                  | {int(d) for d in sk.translation_dof if d >= 0} | set(plan.dofs))
+    row = {d: i for i, d in enumerate(used)}
+
+    def rows(ds) -> Tensor:
+        return torch.as_tensor([row.get(int(d), 0) for d in ds], device=device)
+
     per = {}
     for j in joints:
         c = _frame(sk, j)
+        k1 = np.stack([np.cross(np.eye(3), a) for a in sk.axes[j]])  # k1[s] @ v = axes[s] x v
         per[j] = dict(
-            index=torch.as_tensor(np.clip(sk.axis_dof[j], 0, None), device=device),
-            mask=t(sk.axis_dof[j] >= 0),
-            frozen=t(np.where(sk.axis_dof[j] >= 0, 0.0, sk.frozen_axes[j])),
+            index=rows(sk.axis_dof[j]),
+            mask=t(sk.axis_dof[j] >= 0)[:, None],
+            frozen=t(np.where(sk.axis_dof[j] >= 0, 0.0, sk.frozen_axes[j]))[:, None],
             c=None if c is None else t(c),
-            axes=t(sk.axes[j]),
+            k1=t(-k1), k2=t(k1 @ k1),
             rest=None if np.allclose(sk.rest_rotation[j], np.eye(3)) else t(sk.rest_rotation[j]),
             u=None if not np.any(sk.offset_parent[j]) else t(sk.offset_parent[j] * sk.lengths[j]),
             w=t(sk.offset_local[j] * sk.lengths[j]),
         )
     lower, upper = sk.limits(dtype=dtype, device=device)
     dofs = torch.as_tensor(plan.dofs, device=device)
-    out = dict(per=per, dofs=dofs, lower=lower[dofs], upper=upper[dofs],
-               angular=torch.ones(len(plan.dofs), dtype=torch.bool, device=device),
-               root_position=t(sk.root_position),
-               trans_index=torch.as_tensor(np.clip(sk.translation_dof, 0, None), device=device),
-               trans_mask=t(sk.translation_dof >= 0))
+    shift, half = _limit_terms(lower[dofs], upper[dofs])
+    out = dict(per=per, dofs=dofs, lower=lower[dofs], upper=upper[dofs], shift=shift, half=half,
+               used=torch.as_tensor(used, device=device), hinge_row=row[plan.dofs[-1]],
+               root_position=t(sk.root_position)[:, None],
+               trans_index=rows(sk.translation_dof),
+               trans_mask=t(sk.translation_dof >= 0)[:, None])
     if plan.kind == "limb":
         lc = _limb_constants(plan)
-        out["limb"] = {k: (t(v) if isinstance(v, np.ndarray) else float(v)) for k, v in lc.items()}
-        out["ball_c"] = per[plan.balls[0]]["c"]
+        lt = {k: (t(v) if isinstance(v, np.ndarray) else float(v)) for k, v in lc.items()}
+        lt.update(ncross=torch.linalg.cross(lt["n"], lt["c"], dim=-1), nc=float(lc["n"] @ lc["c"]),
+                  a_unit=lt["a"] / torch.linalg.vector_norm(lt["a"]),
+                  length_m=float(sk.lengths[plan.balls[0]]), length_e=float(sk.lengths[plan.hinge]))
+        out["limb"] = lt
     plan._cache[key] = out
     return out
 
 
 # ---------------------------------------------------------------- forward kinematics along a path
+# Struct-of-arrays layout (see `ptrack.jumps`): angles (3, *M), rotations (3, 3, *M), positions
+# (3, *M), with M = (L, B) or (B,): leaves, then hypotheses last.
 
 
-def _slot_angles(pj: dict, q: Tensor) -> Tensor:
-    """(..., D) -> (..., 3) angles of one joint's axis slots (frozen slots at their value)."""
-    return q.index_select(-1, pj["index"]) * pj["mask"] + pj["frozen"]
+def _slot_angles(pj: dict, qs: Tensor) -> Tensor:
+    """Slot angles of one joint (frozen slots at their value): qs (D', B) -> (3, B)."""
+    return qs.index_select(0, pj["index"]) * pj["mask"] + pj["frozen"]
 
 
-def _rodrigues(axis: Tensor, angle: Tensor) -> Tensor:
-    k = torch.zeros(*angle.shape, 3, 3, dtype=angle.dtype, device=angle.device) + _skew(axis)
-    s, c = torch.sin(angle)[..., None, None], torch.cos(angle)[..., None, None]
-    return torch.eye(3, dtype=angle.dtype, device=angle.device) + s * k + (1 - c) * _mm(k, k)
-
-
-def _skew(v: Tensor) -> Tensor:
-    x, y, z = v.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).unflatten(-1, (3, 3))
+def _seuler(theta: Tensor) -> Tensor:
+    """Rz(z) Ry(y) Rx(x) for theta (3, *M) = (z, y, x) -> (3, 3, *M) (as `kinematics.euler_zyx`)."""
+    s, c = torch.sin(theta), torch.cos(theta)
+    sz, sy, sx = s
+    cz, cy, cx = c
+    czsy, szsy = cz * sy, sz * sy
+    return torch.stack([
+        cz * cy, czsy * sx - sz * cx, czsy * cx + sz * sx,
+        sz * cy, szsy * sx + cz * cx, szsy * cx - cz * sx,
+        -sy, cy * sx, cy * cx,
+    ]).unflatten(0, (3, 3))
 
 
 def _local(pj: dict, theta: Tensor) -> Tensor:
-    """A joint's rotation relative to its parent for slot angles theta (..., 3) -> (..., 3, 3)."""
+    """A joint's rotation relative to its parent for slot angles theta (3, *M) -> (3, 3, *M)."""
+    nd = theta.ndim - 1
     if pj["c"] is not None:
-        c = pj["c"]
-        r = _mm(_mm(c, euler_zyx(theta)), c.transpose(-1, -2))
+        c = _sconst(pj["c"], nd)
+        r = _smm(_smm(c, _seuler(theta)), _st(c))
     else:
-        r = _rodrigues(pj["axes"][0], theta[..., 0])
-        r = _mm(_mm(r, _rodrigues(pj["axes"][1], theta[..., 1])), _rodrigues(pj["axes"][2], theta[..., 2]))
-    return r if pj["rest"] is None else _mm(r, pj["rest"])
+        eye = _seye(theta, nd)
+        r = None
+        for s in range(3):
+            rs = eye + torch.sin(theta[s]) * _sconst(pj["k1"][s], nd) \
+                + (1 - torch.cos(theta[s])) * _sconst(pj["k2"][s], nd)
+            r = rs if r is None else _smm(r, rs)
+    return r if pj["rest"] is None else _smm(r, _sconst(pj["rest"], nd))
 
 
 def _step(pj: dict, g_par: Tensor, p_par: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
-    """One joint of forward kinematics: parent frame and position -> this joint's."""
-    g = _mm(g_par, _local(pj, theta))
-    p = p_par + _mv(g, pj["w"])
+    """One joint of forward kinematics: parent frame (3, 3, *M) and position (3, *M) -> this joint's."""
+    g = _smm(g_par, _local(pj, theta))
+    nd = g.ndim - 2
+    p = p_par + _smv(g, _sconst(pj["w"], nd))
     if pj["u"] is not None:
-        p = p + _mv(g_par, pj["u"])
+        p = p + _smv(g_par, _sconst(pj["u"], nd))
     return g, p
 
 
-def _ancestors(plan: ChainIK, tc: dict, q: Tensor) -> tuple[Tensor, Tensor]:
-    """World rotation (..., 3, 3) and position (..., 3) of the chain's root joint for q (..., D)."""
+def _ancestors(plan: ChainIK, tc: dict, qs: Tensor) -> tuple[Tensor, Tensor]:
+    """World rotation (3, 3, B) and position (3, B) of the chain's root joint for qs (D', B)."""
     per = tc["per"]
     root = plan.ancestors[0]
-    g = _local(per[root], _slot_angles(per[root], q))
-    p = q.index_select(-1, tc["trans_index"]) * tc["trans_mask"] + tc["root_position"] + _mv(g, per[root]["w"])
+    g = _local(per[root], _slot_angles(per[root], qs))
+    p = qs.index_select(0, tc["trans_index"]) * tc["trans_mask"] + tc["root_position"] \
+        + _smv(g, _sconst(per[root]["w"], 1))
     for j in plan.ancestors[1:]:
-        g, p = _step(per[j], g, p, _slot_angles(per[j], q))
+        g, p = _step(per[j], g, p, _slot_angles(per[j], qs))
     return g, p
 
 
-def _path_fk(plan: ChainIK, tc: dict, g: Tensor, p: Tensor, q: Tensor, solved: dict[int, Tensor]) -> Tensor:
-    """Positions (..., n+1, 3) of the chain's joints from the root frame g (..., 3, 3), position
-    p (..., 3), slot angles `solved` {joint: (..., 3)} and q (..., D) for the other path joints."""
+def _path_fk(plan: ChainIK, tc: dict, g: Tensor, p: Tensor, qs: Tensor, solved: dict[int, Tensor]) -> Tensor:
+    """Positions (n+1, 3, L, B) of the chain's joints from the root frame g (3, 3, 1, B), position
+    p (3, 1, B), solved slot angles {joint: (3, L, B)} and qs (D', B) for the other path joints."""
     per = tc["per"]
     pos = {plan.chain.joints[0]: p}
     for j in plan.path:
-        theta = solved[j] if j in solved else _slot_angles(per[j], q)
+        theta = solved[j] if j in solved else _slot_angles(per[j], qs)[:, None]
         g, p = _step(per[j], g, p, theta)
         pos[j] = p
-    return torch.stack(torch.broadcast_tensors(*(pos[j] for j in plan.chain.joints)), dim=-2)
+    return torch.stack(torch.broadcast_tensors(*(pos[j] for j in plan.chain.joints)))
 
 
 # ---------------------------------------------------------------- rotation -> angles
 
 
+def _seuler_solutions(r: Tensor, x_lock: Tensor) -> Tensor:
+    """`euler_zyx_solutions` on r (3, 3, *M), x_lock (*M) -> (3, 2, *M) (angle, solution)."""
+    r20, r21, r22 = r[2, 0], r[2, 1], r[2, 2]
+    lock = torch.hypot(r21, r22) <= 64 * torch.finfo(r.dtype).eps
+    x = torch.where(lock, x_lock, torch.atan2(r21, r22))
+    sx, cx = torch.sin(x), torch.cos(x)
+    y = torch.atan2(-r20, sx * r21 + cx * r22)
+    z = torch.atan2(sx * r[0, 2] - cx * r[0, 1], cx * r[1, 1] - sx * r[1, 2])
+    return torch.stack([torch.stack([z, z + math.pi]), torch.stack([y, math.pi - y]),
+                        torch.stack([x, x + math.pi])])
+
+
 def euler_zyx_solutions(r: Tensor, x_lock: Tensor) -> Tensor:
     """Both (z, y, x) angle triples with Rz(z) Ry(y) Rx(x) = r: (..., 3, 3) -> (..., 2, 3); the
-    first has |y| <= pi/2, the second is (z + pi, pi - y, x + pi). At the gimbal lock (cos y = 0)
-    x is taken from x_lock (...,) (e.g. the current angle) and z carries the rest."""
-    r20, r21, r22 = r[..., 2, 0], r[..., 2, 1], r[..., 2, 2]
-    lock = torch.hypot(r21, r22) <= 64 * torch.finfo(r.dtype).eps
-    x = torch.stack([torch.where(lock, x_lock, torch.atan2(r21, r22)),
-                     torch.where(lock, x_lock, torch.atan2(-r21, -r22))], dim=-1)
-    sx, cx = torch.sin(x), torch.cos(x)
-    y = torch.atan2(-r20[..., None], sx * r21[..., None] + cx * r22[..., None])
-    z = torch.atan2(sx * r[..., 0, 2, None] - cx * r[..., 0, 1, None],
-                    cx * r[..., 1, 1, None] - sx * r[..., 1, 2, None])
-    return torch.stack([z, y, x], dim=-1)
+    first has |y| <= pi/2, the second is (z + pi, pi - y, x + pi) (not wrapped). At the gimbal lock
+    (cos y = 0) x is taken from x_lock (...,) (e.g. the current angle) and z carries the rest.
+    Day's extraction (as `ptrack.rotations.matrix_to_euler_np`): x from the last row, y and z given x."""
+    out = _seuler_solutions(_soa(r, 2), x_lock.expand(r.shape[:-2]))  # (3, 2, ...)
+    return _aos(out, 2).transpose(-1, -2)
 
 
-def _pick(cands: Tensor, current: Tensor, lower: Tensor, upper: Tensor, angular: Tensor) -> Tensor:
-    """The candidate angle vector with least limit violation, ties (1e-9) to the nearest to
-    `current` on the circle: cands (..., C, M), current (..., M) broadcastable -> (..., M)."""
-    viol = outside_limits(cands, lower, upper, angular).sum(-1)  # (..., C)
-    diff = torch.remainder(cands - current[..., None, :] + math.pi, TAU) - math.pi
-    dist = (diff * diff).sum(-1)
-    best = viol.amin(-1, keepdim=True)
-    dist = torch.where(viol <= best + 1e-9, dist, torch.full_like(dist, math.inf))
-    i = dist.argmin(-1, keepdim=True)
-    return torch.gather(cands, -2, i[..., None].expand(*i.shape[:-1], 1, cands.shape[-1])).squeeze(-2)
+def _limit_terms(lower: Tensor, upper: Tensor) -> tuple[Tensor, Tensor]:
+    """(pi - centre, half width) of angular limits (M,) for `_pick`; unlimited: (pi, inf)."""
+    limited = torch.isfinite(lower) & torch.isfinite(upper)
+    centre = torch.where(limited, 0.5 * (lower + upper), torch.zeros_like(lower))
+    half = torch.where(limited, 0.5 * (upper - lower), torch.full_like(lower, math.inf))
+    return math.pi - centre, half
+
+
+def _pick(cands: Tensor, current: Tensor, shift: Tensor, half: Tensor) -> Tensor:
+    """The candidate angle vector with least limit violation (radians on the circle, summed over
+    dofs), ties within ~1e-6 going to the nearest to `current` (sum of 1 - cos of the differences):
+    cands (A, K, *M), current (A, *M) broadcastable, limits (A,) as `_limit_terms` -> (A, *M)."""
+    nd = cands.ndim - 1
+    rel = torch.remainder(cands + _sconst(shift, nd), TAU) - math.pi  # from the arc's centre, [-pi, pi)
+    viol = (rel.abs() - _sconst(half, nd)).clamp_min(0.0).sum(0)  # (K, *M)
+    near = (1.0 - torch.cos(cands - current.unsqueeze(1))).sum(0)
+    score = viol + 1e-6 * near
+    best, out = score[0], cands[:, 0]
+    for k in range(1, cands.shape[1]):  # K is 2 or 4: cheaper than argmin + gather over dim 1
+        better = score[k] < best
+        best = torch.where(better, score[k], best)
+        out = torch.where(better, cands[:, k], out)
+    return out
 
 
 # ---------------------------------------------------------------- solvers
 
 
 class IKResult(NamedTuple):
-    """IK of a chain for L leaves per hypothesis.
+    """IK of a chain (or of a product of chains) for L leaves per hypothesis.
 
-    q: (N, L, D) q with the chain's dofs set (in the limits' 2 pi window; clamped if projected).
-    positions: (N, L, n+1, 3) the chain's joints by forward kinematics of q (after projection).
+    angles: (N, L, M) the solved dofs, in the limits' 2 pi window (clamped if projected).
+    dofs: (M,) their q indices; `poses(q)` writes them into the hypotheses' poses.
+    positions: (N, L, n+1, 3) the chain's joints by forward kinematics of the solved pose (after
+        projection; for a product, the chains' joints one chain after the other).
     residual: (N, L) metres, largest distance of the closed form's chain joints from the targets
         (before projection; ~0 unless the targets break the model's bone lengths).
     exact: (N, L) bool, residual <= tol.
-    in_limits: (N, L) bool, the chain's angles were inside the joint limits before projection.
+    in_limits: (N, L) bool, the solved angles were inside the joint limits before projection.
     keep: (N, L) bool, "prune": exact & in_limits; "project": exact.
     projected: (N, L) bool, angles were clamped into the limits (project mode only).
-    dofs: (M,) q indices the chain sets.
     """
 
-    q: Tensor
+    angles: Tensor
+    dofs: tuple[int, ...]
     positions: Tensor
     residual: Tensor
     exact: Tensor
     in_limits: Tensor
     keep: Tensor
     projected: Tensor
-    dofs: tuple[int, ...]
+
+    def poses(self, q: Tensor) -> Tensor:
+        """Full poses per leaf: q (..., D) (the hypotheses IK started from) -> (..., L, D), every
+        dof outside `dofs` as in q."""
+        leaves = self.angles.shape[-2]
+        out = q[..., None, :].expand(*q.shape[:-1], leaves, q.shape[-1]).clone()
+        return out.index_copy_(-1, torch.as_tensor(self.dofs, device=q.device), self.angles.to(q))
 
 
-def _limb(plan: ChainIK, tc: dict, g_r: Tensor, q: Tensor, x: Tensor, ctol: float) -> Tensor:
-    """Limb angles (B, L, 4) = ball (z, y, x), hinge, for targets x (B, L, 3, 3)."""
+def _lower_bone(lc: dict, t: Tensor) -> Tensor:
+    """The limb's lower bone v(t) = D Rot(n, t) c in the ball's axis frame: t (*M) -> (3, *M)."""
+    nd = t.ndim
+    ct, st = torch.cos(t), torch.sin(t)
+    rot_c = _sconst(lc["c"], nd) * ct + _sconst(lc["ncross"], nd) * st + _sconst(lc["n"] * lc["nc"], nd) * (1 - ct)
+    return _smv(_sconst(lc["d"], nd), rot_c)
+
+
+def _limb_fk(tc: dict, a_frame: Tensor, p_r: Tensor, theta: Tensor) -> Tensor:
+    """Forward kinematics of a limb: positions (3, 3, L, B) of root, ball and hinge joints from the
+    ball's parent axis frame a_frame = G_r C (3, 3, 1, B), root position p_r (3, 1, B) and angles
+    theta (4, L, B). The ball joint's frame is G_r C Z C^T E (`ptrack.skeleton`), so its bone is
+    G_r C Z a and the next one G_r C Z v(t)."""
     lc = tc["limb"]
-    ball = tc["per"][plan.balls[0]]
-    cur_ball = _slot_angles(ball, q)  # (B, 3)
-    cur = torch.cat([cur_ball, q[..., plan.dofs[3], None]], -1)  # (B, 4)
-    a_frame = _mm(g_r, tc["ball_c"])[:, None]  # (B, 1, 3, 3): world <- ball axis frame
-    b1 = _unit(_mv(a_frame.transpose(-1, -2), x[:, :, 1] - x[:, :, 0]))  # (B, L, 3)
-    b2 = _unit(_mv(a_frame.transpose(-1, -2), x[:, :, 2] - x[:, :, 1]))
-    cos_k = _dot(b1, b2)
-    a, d, n, c = lc["a"], lc["d"], lc["n"], lc["c"]
+    az = _smm(a_frame, _seuler(theta[:3]))
+    p_m = p_r + lc["length_m"] * _smv(az, _sconst(lc["a"], 2))
+    p_e = p_m + lc["length_e"] * _smv(az, _lower_bone(lc, theta[3]))
+    return torch.stack(torch.broadcast_tensors(p_r, p_m, p_e))
+
+
+def _limb(plan: ChainIK, tc: dict, a_frame: Tensor, qs: Tensor, x: Tensor, ctol: float) -> Tensor:
+    """Limb angles (4, L, B) = ball (z, y, x), hinge, for targets x (3, 3, L, B) (joint, xyz, ...)."""
+    lc = tc["limb"]
+    cur_ball = _slot_angles(tc["per"][plan.balls[0]], qs)  # (3, B)
+    cur = torch.cat([cur_ball, qs[tc["hinge_row"]][None]])  # (4, B)
+    at = _st(a_frame)
+    b1 = _sunit(_smv(at, x[1] - x[0]))  # (3, L, B) bone directions in the ball's parent axis frame
+    b2 = _sunit(_smv(at, x[2] - x[1]))
+    cos_k = _sdot(b1, b2)
     # a . v(t) = rho cos(t - phi) + gamma must equal |a||c| cos_k. Not with acos (which loses half
     # the digits at a straight limb): with h-, h+ = |b1 -+ b2|^2 / 2 (exact near 0 and pi) and
     # delta = rho - (|a||c| - gamma) <= 0, rho cos(t - phi) = rho - delta - |a||c| h-, and
     # rho^2 sin^2(t - phi) = (delta + |a||c| h-) (delta - 2 gamma + |a||c| h+).
-    hm = 0.5 * _dot(b1 - b2, b1 - b2)
-    hp = 0.5 * _dot(b1 + b2, b1 + b2)
+    dm, dp = b1 - b2, b1 + b2
+    hm, hp = 0.5 * _sdot(dm, dm), 0.5 * _sdot(dp, dp)
     ac, delta, gamma = lc["ac"], lc["delta"], lc["gamma"]
     sin_part = torch.sqrt(((delta + ac * hm) * (delta - 2.0 * gamma + ac * hp)).clamp_min(0.0))
     half = torch.atan2(sin_part, lc["rho"] - delta - ac * hm)
-    t = lc["phi"] + torch.stack([half, -half], -1)  # (B, L, 2) hinge candidates
-    ct, st = torch.cos(t)[..., None], torch.sin(t)[..., None]
-    v = _mv(d, c * ct + torch.linalg.cross(n, c, dim=-1) * st + n * (n @ c) * (1 - ct))  # (B, L, 2, 3)
-    f1 = _unit(a).expand_as(v)
-    f2 = _unit(v - _dot(v, f1)[..., None] * f1)
-    frame_f = torch.stack([f1, f2, torch.linalg.cross(f1, f2, dim=-1)], -1)  # columns
-    g2 = _unit(b2 - cos_k[..., None] * b1)
-    frame_g = torch.stack([b1, g2, torch.linalg.cross(b1, g2, dim=-1)], -1)[:, :, None]
-    z = _mm(frame_g, frame_f.transpose(-1, -2))  # (B, L, 2, 3, 3)
+    t = lc["phi"] + torch.stack([half, -half])  # (2, L, B) hinge candidates
+    v = _lower_bone(lc, t)  # (3, 2, L, B)
+    # Z takes the frame (a, v(t)) onto the frame (b1, b2): Z = sum_i g_i f_i^T
+    f1 = _sconst(lc["a_unit"], 3)
+    f2 = _sunit(v - _sdot(v, f1) * f1)
+    f3 = _scross(f1, f2)
+    g2 = _sunit(b2 - cos_k * b1)
+    g3 = _scross(b1, g2)
+    z = b1[:, None, None] * f1[None] + g2[:, None, None] * f2[None] + g3[:, None, None] * f3[None]
     # straight limb: keep the current twist (smallest turn of the current upper bone onto b1)
-    z_cur = euler_zyx(cur_ball)[:, None]  # (B, 1, 3, 3)
-    z_swing = _mm(min_rotation(_mv(z_cur, a).expand_as(b1), b1), z_cur)
-    straight = torch.linalg.vector_norm(torch.linalg.cross(b1, b2, dim=-1), dim=-1) < ctol
-    z = torch.where(straight[..., None, None, None], z_swing[:, :, None], z)
-    eul = euler_zyx_solutions(z, cur_ball[:, None, None, 0])  # (B, L, 2 hinge, 2 euler, 3)
-    cands = torch.cat([eul, t[..., None, None].expand(*t.shape, 2, 1)], -1).flatten(-3, -2)  # (B, L, 4, 4)
-    return _pick(cands, cur[:, None], tc["lower"], tc["upper"], tc["angular"])
+    z_cur = _seuler(cur_ball)[:, :, None]  # (3, 3, 1, B)
+    z_swing = _smm(_smin_rotation(_smv(z_cur, _sconst(lc["a"], 2)).expand_as(b1), b1), z_cur)
+    straight = _snorm(_scross(b1, b2)) < ctol  # (L, B)
+    z = torch.where(straight, z_swing[:, :, None], z)  # (3, 3, 2, L, B)
+    eul = _seuler_solutions(z, cur_ball[2])  # (3, 2 Euler, 2 hinge, L, B)
+    cands = torch.cat([eul, t[None, None].expand(1, *eul.shape[1:])]).flatten(1, 2)  # (4, 4, L, B)
+    return _pick(cands, cur[:, None], tc["shift"], tc["half"])
 
 
-def _swing(plan: ChainIK, tc: dict, g_r: Tensor, p_r: Tensor, q: Tensor, x: Tensor) -> Tensor:
-    """Swing angles (B, L, 3 * n) (each ball's z, y, x) for targets x (B, L, n+1, 3)."""
+def _swing(plan: ChainIK, tc: dict, g_r: Tensor, p_r: Tensor, qs: Tensor, x: Tensor) -> Tensor:
+    """Swing angles (3 n, L, B) (each ball's z, y, x) for targets x (n+1, 3, L, B)."""
     per = tc["per"]
     frames = {plan.chain.joints[0]: (g_r, p_r)}
     g, p = g_r, p_r
     for j in plan.path:  # current frames and positions along the path (per hypothesis)
-        g, p = _step(per[j], g, p, _slot_angles(per[j], q))
+        g, p = _step(per[j], g, p, _slot_angles(per[j], qs))
         frames[j] = (g, p)
     turn: Tensor | None = None
     out = []
     for k, ((pa, ch), ball) in enumerate(zip(plan.chain.links, plan.balls)):
-        g_p = frames[pa][0][:, None]
-        link = (frames[ch][1] - frames[pa][1])[:, None]  # (B, 1, 3)
+        g_p = frames[pa][0][:, :, None]  # (3, 3, 1, B)
+        link = (frames[ch][1] - frames[pa][1])[:, None]  # (3, 1, B)
         if turn is not None:
-            g_p, link = _mm(turn, g_p), _mv(turn, link)
-        delta = min_rotation(link.expand_as(x[:, :, k]), x[:, :, k + 1] - x[:, :, k])
-        turn = delta if turn is None else _mm(delta, turn)
-        g_j = _mm(turn, frames[ball][0][:, None])
-        local = _mm(g_p.transpose(-1, -2), g_j)
+            g_p, link = _smm(turn, g_p), _smv(turn, link)
+        target = x[k + 1] - x[k]
+        delta = _smin_rotation(link.expand_as(target), target)
+        turn = delta if turn is None else _smm(delta, turn)
+        local = _smm(_st(g_p), _smm(turn, frames[ball][0][:, :, None]))
         if per[ball]["rest"] is not None:
-            local = _mm(local, per[ball]["rest"].transpose(-1, -2))
-        cb = per[ball]["c"]
-        zmat = _mm(_mm(cb.transpose(-1, -2), local), cb)
-        cur = _slot_angles(per[ball], q)[:, None]  # (B, 1, 3)
+            local = _smm(local, _sconst(per[ball]["rest"].T, 2))
+        cb = _sconst(per[ball]["c"], 2)
+        zmat = _smm(_smm(_st(cb), local), cb)
+        cur = _slot_angles(per[ball], qs)[:, None]  # (3, 1, B)
         sl = slice(3 * k, 3 * k + 3)
-        out.append(_pick(euler_zyx_solutions(zmat, cur[..., 2].expand(zmat.shape[:-2])), cur,
-                         tc["lower"][sl], tc["upper"][sl], tc["angular"][sl]))
-    return torch.cat(out, -1)
+        out.append(_pick(_seuler_solutions(zmat, cur[2]), cur, tc["shift"][sl], tc["half"][sl]))
+    return torch.cat(out)
 
 
-def _dot(a: Tensor, b: Tensor) -> Tensor:
-    return (a * b).sum(-1)
+def _solved(plan: ChainIK, tc: dict, theta: Tensor) -> dict[int, Tensor]:
+    """Solved angles (M, L, B) -> slot angles {joint: (3, L, B)} for `_path_fk` (swing chains)."""
+    return {b: theta[3 * i:3 * i + 3] for i, b in enumerate(plan.balls)}
 
 
 def chain_ik(plan: ChainIK, q: Tensor, positions: Tensor, mode: str = "prune", tol: float = 1e-4,
@@ -413,7 +481,8 @@ def chain_ik(plan: ChainIK, q: Tensor, positions: Tensor, mode: str = "prune", t
             straight (twist kept); default 1000 x the dtype's epsilon.
 
     Returns:
-        `IKResult` (leading dims `...` in place of N); dtype and device follow q.
+        `IKResult` (leading dims `...` in place of N); dtype and device follow q. Solved angles
+        are in the limits' 2 pi window (unlimited ones in [-pi, pi)).
     """
     if mode not in MODES:
         raise InputError(f"chain_ik: mode must be one of {', '.join(MODES)}, got {mode!r}")
@@ -422,87 +491,84 @@ def chain_ik(plan: ChainIK, q: Tensor, positions: Tensor, mode: str = "prune", t
         raise InputError(f"chain_ik: q must be a floating tensor (..., {sk.num_dofs}), got "
                          f"{tuple(getattr(q, 'shape', ()))}")
     n1 = chain.num_links + 1
-    if not isinstance(positions, Tensor) or positions.shape[-2:] != (n1, 3) \
-            or positions.shape[:-3] != q.shape[:-1]:
+    if not isinstance(positions, Tensor) or positions.ndim != q.ndim + 2 \
+            or positions.shape[-2:] != (n1, 3) or positions.shape[:-3] != q.shape[:-1]:
         raise InputError(f"chain_ik: positions must be (..., L, {n1}, 3) with q's batch dims "
                          f"{tuple(q.shape[:-1])} for chain {chain.name!r}, got "
                          f"{tuple(getattr(positions, 'shape', ()))}")
     batch, leaves = q.shape[:-1], positions.shape[-3]
     tc = _tensors(plan, q.dtype, q.device)
     qf = q.reshape(-1, sk.num_dofs)
-    x = positions.to(q).reshape(-1, leaves, n1, 3)
+    qs = qf.index_select(1, tc["used"]).T.contiguous()  # (D', B): the dofs IK reads
+    x = positions.to(q).reshape(-1, leaves, n1, 3).permute(2, 3, 1, 0).contiguous()  # (n+1, 3, L, B)
     ctol = 1000 * torch.finfo(q.dtype).eps if collinear_tol is None else collinear_tol
-    g_r, p_r = _ancestors(plan, tc, qf)
+    g_r, p_r = _ancestors(plan, tc, qs)
+    p_l = p_r[:, None]
     if plan.kind == "limb":
-        theta = _limb(plan, tc, g_r, qf, x, ctol)
+        a_frame = _smm(g_r, _sconst(tc["per"][plan.balls[0]]["c"], 1))[:, :, None]
+        theta = _limb(plan, tc, a_frame, qs, x, ctol)
+
+        def fk(th: Tensor) -> Tensor:
+            return _limb_fk(tc, a_frame, p_l, th)
     else:
-        theta = _swing(plan, tc, g_r, p_r, qf, x)
-    lower, upper, angular = tc["lower"], tc["upper"], tc["angular"]
-    theta = wrap_to_limits(theta, lower, upper, angular)
-    in_limits = (outside_limits(theta, lower, upper) == 0).all(-1)
-    g_l, p_l = g_r[:, None], p_r[:, None]
+        theta = _swing(plan, tc, g_r, p_r, qs, x)
+        g_l = g_r[:, :, None]
 
-    def fk(th: Tensor) -> Tensor:
-        return _path_fk(plan, tc, g_l, p_l, qf[:, None], _solved(plan, tc, th))
+        def fk(th: Tensor) -> Tensor:
+            return _path_fk(plan, tc, g_l, p_l, qs, _solved(plan, tc, th))
 
+    shift, half = _sconst(tc["shift"], 2), _sconst(tc["half"], 2)
+    theta = torch.remainder(theta + shift, TAU) - shift  # the limits' 2 pi window
+    in_limits = ((theta + shift - math.pi).abs() - half).clamp_min(0.0).sum(0) == 0  # (L, B)
     pos = fk(theta)
-    residual = torch.linalg.vector_norm(pos - x, dim=-1).amax(-1)
+    diff = pos - x
+    residual = torch.sqrt((diff * diff).sum(1)).amax(0)
     exact = residual <= tol
     projected = torch.zeros_like(in_limits)
     if mode == "project":
-        clamped = torch.clamp(theta, lower, upper)
         projected = ~in_limits
-        theta = torch.where(projected[..., None], clamped, theta)
-        pos = torch.where(projected[..., None, None], fk(theta), pos)
+        clamped = torch.clamp(theta, _sconst(tc["lower"], 2), _sconst(tc["upper"], 2))
+        theta = torch.where(projected, clamped, theta)
+        pos = torch.where(projected, fk(theta), pos)
         keep = exact
     else:
         keep = exact & in_limits
-    out_q = qf[:, None].expand(-1, leaves, -1).clone()
-    out_q.index_copy_(-1, tc["dofs"], theta)
     lead = (*batch, leaves)
-    return IKResult(q=out_q.reshape(*lead, sk.num_dofs), positions=pos.reshape(*lead, n1, 3),
-                    residual=residual.reshape(lead), exact=exact.reshape(lead),
-                    in_limits=in_limits.reshape(lead), keep=keep.reshape(lead),
-                    projected=projected.reshape(lead), dofs=plan.dofs)
+
+    def flags(f: Tensor) -> Tensor:
+        return f.T.reshape(lead)
+
+    return IKResult(angles=theta.permute(2, 1, 0).reshape(*lead, -1), dofs=plan.dofs,
+                    positions=pos.permute(3, 2, 0, 1).reshape(*lead, n1, 3),
+                    residual=flags(residual), exact=flags(exact), in_limits=flags(in_limits),
+                    keep=flags(keep), projected=flags(projected))
 
 
-def _solved(plan: ChainIK, tc: dict, theta: Tensor) -> dict[int, Tensor]:
-    """Solved angle vector (..., M) -> slot angles {joint: (..., 3)} for `_path_fk`."""
-    out = {b: theta[..., 3 * i:3 * i + 3] for i, b in enumerate(plan.balls)}
-    if plan.kind == "limb":
-        hinge = tc["per"][plan.hinge]
-        slots = hinge["frozen"].expand(*theta.shape[:-1], 3)
-        out[plan.hinge] = slots.index_copy(-1, torch.as_tensor([plan.hinge_slot], device=theta.device),
-                                           theta[..., 3:4])
-    return out
+def _select_leaves(r: IKResult, sel: Tensor) -> IKResult:
+    """The result at leaves `sel` (L',) long."""
+    return r._replace(angles=r.angles.index_select(-2, sel), positions=r.positions.index_select(-3, sel),
+                      **{k: getattr(r, k).index_select(-1, sel)
+                         for k in ("residual", "exact", "in_limits", "keep", "projected")})
 
 
-def product_ik(q: Tensor, results: list[IKResult], prod: Product) -> IKResult:
-    """Combine per-chain IK over a product of trees: q (..., D) and each chain's result over its own
-    leaves -> one result over the combined leaves (..., L): each chain's dofs from its leaf, flags
-    AND-ed (`positions` stacks the chains' joints in chain order, (..., L, sum(n_c + 1), 3);
-    `residual` is the largest). The chains must be independent (`jumps.check_independent`)."""
+def product_ik(results: list[IKResult], prod: Product) -> IKResult:
+    """Combine per-chain IK over a product of trees: each chain's result over its own leaves -> one
+    result over the combined leaves (..., L): each chain's angles from its leaf, `dofs` and
+    `positions` concatenated in chain order, flags AND-ed (`projected` OR-ed), `residual` the
+    largest. The chains must be independent (`jumps.check_independent`)."""
     if len(results) != len(prod.chains):
         raise InputError(f"product_ik: {len(results)} results for {len(prod.chains)} chains")
-    total = prod.flips.shape[0]
-    out_q = q[..., None, :].expand(*q.shape[:-1], total, q.shape[-1]).clone()
-    pos, res = [], []
-    keep = exact = in_limits = projected = None
-    for c, r in enumerate(results):
-        sel = prod.leaf[:, c]
-        dofs = torch.as_tensor(r.dofs, device=q.device)
-        out_q.index_copy_(-1, dofs, r.q.index_select(-2, sel).index_select(-1, dofs))
-        pos.append(r.positions.index_select(-3, sel))
-        res.append(r.residual.index_select(-1, sel))
-        flags = [f.index_select(-1, sel) for f in (r.keep, r.exact, r.in_limits, r.projected)]
-        if keep is None:
-            keep, exact, in_limits, projected = flags
-        else:
-            keep, exact, in_limits = keep & flags[0], exact & flags[1], in_limits & flags[2]
-            projected = projected | flags[3]
-    return IKResult(q=out_q, positions=torch.cat(pos, -2), residual=torch.stack(res, -1).amax(-1),
-                    exact=exact, in_limits=in_limits, keep=keep, projected=projected,
-                    dofs=tuple(d for r in results for d in r.dofs))
+    picked = [_select_leaves(r, prod.leaf[:, c]) for c, r in enumerate(results)]
+    first = picked[0]
+    keep, exact, in_limits, projected = first.keep, first.exact, first.in_limits, first.projected
+    for r in picked[1:]:
+        keep, exact, in_limits = keep & r.keep, exact & r.exact, in_limits & r.in_limits
+        projected = projected | r.projected
+    return IKResult(angles=torch.cat([r.angles for r in picked], -1),
+                    dofs=tuple(d for r in picked for d in r.dofs),
+                    positions=torch.cat([r.positions for r in picked], -2),
+                    residual=torch.stack([r.residual for r in picked], -1).amax(-1),
+                    exact=exact, in_limits=in_limits, keep=keep, projected=projected)
 
 
 __all__ = ["ChainIK", "ClosedFormUnavailable", "IKResult", "MODES", "chain_ik", "euler_zyx_solutions",

@@ -172,31 +172,86 @@ def joint_observations(keypoints: KeypointSet, pixels: Tensor, confidence: Tenso
     return out_px, out_c
 
 
-# ---------------------------------------------------------------- small rotation helpers
+# ---------------------------------------------------------------- struct-of-arrays helpers
+# The hot paths (trees here, `ptrack.ik`) hold vectors as (3, *M) and matrices as (3, 3, *M) (row,
+# column), with hypotheses last: every elementwise op then runs over long contiguous rows. On CPU,
+# torch ops broadcasting over tiny trailing dims ((..., 3) * (..., 1, 3)) are ~10x slower.
 
 
-def _dot(a: Tensor, b: Tensor) -> Tensor:
-    return (a * b).sum(-1)
+def _sdot(a: Tensor, b: Tensor) -> Tensor:
+    """(3, *M), (3, *M) -> (*M)."""
+    return (a * b).sum(0)
 
 
-def _mv(r: Tensor, v: Tensor) -> Tensor:
-    """(..., 3, 3) @ (..., 3) -> (..., 3)."""
-    return (r * v[..., None, :]).sum(-1)
+def _smv(r: Tensor, v: Tensor) -> Tensor:
+    """(3, 3, *M) @ (3, *M) -> (3, *M)."""
+    return (r * v[None]).sum(1)
 
 
-def _mm(a: Tensor, b: Tensor) -> Tensor:
-    """Batched 3x3 product (einsum beats `@` on tiny CPU matrices)."""
-    return torch.einsum("...ij,...jk->...ik", a, b)
+def _smm(a: Tensor, b: Tensor) -> Tensor:
+    """(3, 3, *M) @ (3, 3, *M) -> (3, 3, *M)."""
+    return (a[:, :, None] * b[None]).sum(1)
 
 
-def _unit(v: Tensor) -> Tensor:
-    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
+def _st(r: Tensor) -> Tensor:
+    """Transpose: (3, 3, *M) -> (3, 3, *M)."""
+    return r.transpose(0, 1)
 
 
-def _cross_matrix(k: Tensor) -> Tensor:
-    x, y, z = k.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).unflatten(-1, (3, 3))
+def _scross(a: Tensor, b: Tensor) -> Tensor:
+    """(3, *M) x (3, *M) -> (3, *M)."""
+    a0, a1, a2 = a
+    b0, b1, b2 = b
+    return torch.stack(torch.broadcast_tensors(a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
+
+
+def _snorm(a: Tensor) -> Tensor:
+    return torch.sqrt(_sdot(a, a))
+
+
+def _sunit(a: Tensor) -> Tensor:
+    return a / _snorm(a).clamp_min(torch.finfo(a.dtype).tiny)
+
+
+def _sconst(x: Tensor, ndim: int) -> Tensor:
+    """A constant (3,) or (3, 3) shaped to broadcast against (3, *M) / (3, 3, *M) with len(M) = ndim."""
+    return x.reshape(*x.shape, *([1] * ndim))
+
+
+def _seye(like: Tensor, ndim: int) -> Tensor:
+    return _sconst(torch.eye(3, dtype=like.dtype, device=like.device), ndim)
+
+
+def _smin_rotation(x: Tensor, y: Tensor) -> Tensor:
+    """`min_rotation` on (3, *M) vectors -> (3, 3, *M)."""
+    xu, yu = _sunit(x), _sunit(y)
+    c = _sdot(xu, yu)
+    opposite = c < 0
+    x1 = torch.where(opposite, -xu, xu)
+    k = _scross(x1, yu)
+    eye = _seye(k, k.ndim - 1)
+    zero = torch.zeros_like(k[0])
+    kx = torch.stack([zero, -k[2], k[1], k[2], zero, -k[0], -k[1], k[0], zero]).unflatten(0, (3, 3))
+    kk = k[:, None] * k[None] - _sdot(k, k) * eye  # kx @ kx
+    r = eye + kx + kk / (1.0 + c.abs())  # x1 -> y, angle <= pi / 2
+    # pi about u normal to x: 2 u u^T - I; u from the coordinate axis least aligned with x
+    a0, a1, a2 = xu.abs()
+    first = (a0 <= a1) & (a0 <= a2)
+    second = ~first & (a1 <= a2)
+    pick = torch.stack([first, second, ~first & ~second]).to(x)
+    u = _sunit(_scross(xu, pick))
+    half_turn = 2.0 * u[:, None] * u[None] - eye
+    return torch.where(opposite, _smm(r, half_turn), r)
+
+
+def _soa(x: Tensor, lead: int) -> Tensor:
+    """(*M, *C) -> (*C, *M) contiguous, with len(C) = lead trailing component dims moved first."""
+    return x.movedim(tuple(range(x.ndim - lead, x.ndim)), tuple(range(lead))).contiguous()
+
+
+def _aos(x: Tensor, lead: int) -> Tensor:
+    """Inverse of `_soa`: (*C, *M) -> (*M, *C) contiguous."""
+    return x.movedim(tuple(range(lead)), tuple(range(x.ndim - lead, x.ndim))).contiguous()
 
 
 def min_rotation(x: Tensor, y: Tensor) -> Tensor:
@@ -205,18 +260,8 @@ def min_rotation(x: Tensor, y: Tensor) -> Tensor:
     Exact for any pair: near-opposite directions (where the smallest rotation's axis is undefined)
     turn by pi about an axis normal to x, then by the small rotation from -x to y.
     """
-    xu, yu = _unit(x), _unit(y)
-    c = _dot(xu, yu)
-    opposite = c < 0
-    x1 = torch.where(opposite[..., None], -xu, xu)
-    k = _cross_matrix(torch.linalg.cross(x1, yu, dim=-1))
-    eye = torch.eye(3, dtype=x.dtype, device=x.device)
-    r = eye + k + _mm(k, k) / (1.0 + c.abs())[..., None, None]  # x1 -> y, angle <= pi / 2
-    # pi about u normal to x: 2 u u^T - I; u from the coordinate axis least aligned with x
-    pick = torch.nn.functional.one_hot(xu.abs().argmin(-1), 3).to(x)
-    u = _unit(torch.linalg.cross(xu, pick, dim=-1))
-    half_turn = 2.0 * u[..., :, None] * u[..., None, :] - eye
-    return torch.where(opposite[..., None, None], _mm(r, half_turn), r)
+    x, y = torch.broadcast_tensors(x, y)
+    return _aos(_smin_rotation(_soa(x, 1), _soa(y, 1)), 2)
 
 
 # ---------------------------------------------------------------- trees
@@ -246,9 +291,9 @@ class Tree(NamedTuple):
 
 
 def _tile(x: Tensor, leaves: int) -> Tensor:
-    """States indexed by the low bits of the leaf index -> all leaves: (B, S, ...) -> (B, leaves, ...)."""
+    """States indexed by the low bits of the leaf index -> all leaves: (3, S, B) -> (3, leaves, B)."""
     reps = leaves // x.shape[1]
-    return x if reps == 1 else x.repeat(1, reps, *([1] * (x.ndim - 2)))
+    return x if reps == 1 else x.repeat(1, reps, 1)
 
 
 def interpretation_tree(chain: Chain, joints: Tensor, camera: Camera, pixels: Tensor,
@@ -286,71 +331,77 @@ def interpretation_tree(chain: Chain, joints: Tensor, camera: Camera, pixels: Te
     leaves = chain.num_leaves
     dt, dev = joints.dtype, joints.device
     idx = torch.as_tensor(chain.joints, device=dev)
-    x = joints.index_select(-2, idx).reshape(-1, n + 1, 3)  # (B, n+1, 3)
+    x = joints.index_select(-2, idx).reshape(-1, n + 1, 3)
     b = x.shape[0]
     px = pixels.to(dtype=dt, device=dev).index_select(-2, idx[1:])
     conf = confidence.to(dtype=dt, device=dev).index_select(-1, idx[1:])
     px = px.expand(*batch, n, 2).reshape(b, n, 2)
     conf = conf.expand(*batch, n).reshape(b, n)
     observed = (conf > 0) & torch.isfinite(px).all(-1)  # (B, n)
-    origin, direction = camera.rays(torch.where(observed[..., None], px, torch.zeros_like(px)))
+    _, direction = camera.rays(torch.where(observed[..., None], px, torch.zeros_like(px)))
+    origin = _sconst(camera.center.to(dtype=dt, device=dev), 2)  # (3, 1, 1)
+    xs = x.permute(1, 2, 0).contiguous()  # (n+1, 3, B)
+    ds = direction.permute(1, 2, 0).contiguous()  # (n, 3, B)
+    obs_s = observed.T.contiguous()  # (n, B)
 
-    parent = x[:, :1]  # (B, S, 3) the parent's position in each state; S = 1 at the root
-    carry: Tensor | None = None  # (B, S, 3, 3) rotation of the links above, None = identity
-    dup = torch.zeros(b, 1, dtype=torch.bool, device=dev)
-    pen = torch.zeros(b, 1, dtype=dt, device=dev)
+    # states: the parent's position (3, S, B) in each of S = 2^k partial leaves (bits 0..k-1)
+    parent = xs[0][:, None]
+    carry: Tensor | None = None  # (3, 3, S, B) rotation of the links above, None = identity
+    dup = torch.zeros(1, b, dtype=torch.bool, device=dev)
+    pen = torch.zeros(1, b, dtype=dt, device=dev)
     levels = [parent]
     tangents: list[Tensor] = []
     misses: list[Tensor] = []
     for k in range(n):
-        bone = x[:, k + 1] - x[:, k]  # (B, 3)
-        length = torch.linalg.vector_norm(bone, dim=-1)[:, None]  # (B, 1)
-        moved = bone[:, None].expand_as(parent) if carry is None else _mv(carry, bone[:, None])
+        bone = (xs[k + 1] - xs[k])[:, None]  # (3, 1, B)
+        length = _snorm(bone)  # (1, B)
+        moved = bone if carry is None else _smv(carry, bone)
         ref = parent + moved  # the hypothesis's child carried with the links above
-        o, d = origin[:, k, None], direction[:, k, None]  # (B, 1, 3)
-        w = parent - o
-        e = w - _dot(w, d)[..., None] * d  # from the ray's closest point to the centre
-        h2 = _dot(e, e)
-        disc = length * length - h2
+        d = ds[k][:, None]  # (3, 1, B)
+        w = parent - origin
+        e = w - _sdot(w, d) * d  # from the ray's closest point to the centre
+        h2 = _sdot(e, e)
+        disc = length * length - h2  # (S, B)
         tol = tangent_tol * length * length
         two = disc > tol
-        hit = (disc >= 0)[..., None]
-        s = torch.sqrt(disc.clamp_min(0.0))[..., None]
+        s = torch.sqrt(disc.clamp_min(0.0))
+        centre = parent - e
         # no intersection: the sphere point nearest the ray
-        nearest = parent - length[..., None] * _unit(e)
-        sol1 = torch.where(hit, parent - e + s * d, nearest)
-        sol2 = torch.where(hit, parent - e - s * d, nearest)
-        swap = _dot(sol2 - ref, sol2 - ref) < _dot(sol1 - ref, sol1 - ref)
-        keep = torch.where(swap[..., None], sol2, sol1)
-        flip = torch.where(swap[..., None], sol1, sol2)
-        obs = observed[:, k, None]  # (B, 1)
-        keep = torch.where(obs[..., None], keep, ref)
-        flip = torch.where(obs[..., None], flip, ref)
+        nearest = parent - length * _sunit(e)
+        hit = disc >= 0
+        sol1 = torch.where(hit, centre + s * d, nearest)
+        sol2 = torch.where(hit, centre - s * d, nearest)
+        swap = _sdot(sol2 - ref, sol2 - ref) < _sdot(sol1 - ref, sol1 - ref)
+        obs = obs_s[k]  # (B,)
+        keep = torch.where(obs, torch.where(swap, sol2, sol1), ref)
+        flip = torch.where(obs, torch.where(swap, sol1, sol2), ref)
         miss = obs & (disc < -tol)
         tangents.append(obs & ~two & ~miss)
         misses.append(miss)
         gap = torch.where(miss, torch.sqrt(h2) - length, torch.zeros_like(h2))
         single = ~obs | ~two
-        child = torch.cat([keep, flip], dim=1)  # (B, 2S, 3): new bit k is the high bit
+        child = torch.cat([keep, flip], dim=1)  # (3, 2S, B): the new bit k is the high bit
         if k + 1 < n:
-            turn = min_rotation(torch.cat([moved, moved], 1), child - torch.cat([parent, parent], 1))
-            carry = turn if carry is None else _mm(turn, torch.cat([carry, carry], 1))
-        dup = torch.cat([dup, dup | single], dim=1)
-        pen = torch.cat([pen + gap, pen + gap], dim=1)
+            turn = _smin_rotation(torch.cat([moved, moved], 1).expand_as(child),
+                                  child - torch.cat([parent, parent], 1))
+            carry = turn if carry is None else _smm(turn, torch.cat([carry, carry], 2))
+        dup = torch.cat([dup, dup | single], dim=0)
+        pen = torch.cat([pen + gap, pen + gap], dim=0)
         parent = child
         levels.append(child)
 
-    positions = torch.stack([_tile(p, leaves) for p in levels], dim=2)  # (B, L, n+1, 3)
-    tangent = torch.stack([_tile(t, leaves) for t in tangents], dim=-1)
-    infeasible = torch.stack([_tile(m, leaves) for m in misses], dim=-1)
+    positions = torch.stack([_tile(p, leaves) for p in levels])  # (n+1, 3, L, B)
+    tangent = torch.stack([_tile(t[None], leaves)[0] for t in tangents])  # (n, L, B)
+    infeasible = torch.stack([_tile(m[None], leaves)[0] for m in misses])
+    lead = (*batch, leaves)
     return Tree(
         chain=chain,
-        positions=positions.reshape(*batch, leaves, n + 1, 3),
+        positions=positions.permute(3, 2, 0, 1).reshape(*lead, n + 1, 3),
         flips=torch.arange(leaves, device=dev),
-        unique=(~dup).reshape(*batch, leaves),
-        tangent=tangent.reshape(*batch, leaves, n),
-        infeasible=infeasible.reshape(*batch, leaves, n),
-        penalty=pen.reshape(*batch, leaves),
+        unique=(~dup).T.reshape(lead),
+        tangent=tangent.permute(2, 1, 0).reshape(*lead, n),
+        infeasible=infeasible.permute(2, 1, 0).reshape(*lead, n),
+        penalty=pen.T.reshape(lead),
         observed=observed.reshape(*batch, n),
     )
 
