@@ -43,8 +43,9 @@ ResidualFn = Callable[[Tensor, Tensor], Tensor]
 
 
 def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
-    """Per-skeleton constants, cached like the FK plan: slot axes, which slots are driven, the
-    ancestor-or-self mask per slot and the dof each slot drives."""
+    """Per-skeleton constants, cached like the FK plan: slot axes, which slots are driven, the dof
+    each slot drives, and the (joint, slot) pairs where the slot's joint is the joint or one of its
+    ancestors, with where their three entries go in a flattened (J, 3, D) Jacobian."""
     key = ("jacobian", dtype, str(device))
     c = sk._cache.get(key)
     if c is not None:
@@ -60,6 +61,10 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
     driven = slot_dof >= 0
     joint_of = torch.arange(j)[:, None].expand(j, 3)[driven]  # (S,) joint of each driven slot
     trans = torch.as_tensor(sk.translation_dof, dtype=torch.long)
+    d = sk.num_dofs
+    pair_joint, pair_slot = torch.nonzero(anc[:, joint_of], as_tuple=True)  # (P,) each
+    # flat index into (J, 3, D) of entry k of pair p: (y * 3 + k) * D + dof
+    pair_index = ((pair_joint[:, None] * 3 + torch.arange(3)) * d + slot_dof[driven][pair_slot][:, None]).flatten()
     c = {
         "axes": torch.as_tensor(sk.axes, dtype=dtype, device=device),  # (J, 3, 3)
         "slot_index": torch.as_tensor(sk.axis_dof.clip(0), dtype=torch.long, device=device),  # (J, 3)
@@ -71,7 +76,10 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
         "slot_flat": (torch.arange(j)[:, None] * 3 + torch.arange(3))[driven].to(device),  # (S,)
         "slot_joint": joint_of.to(device),
         "slot_dof": slot_dof[driven].to(device),  # (S,)
-        "mask": anc[:, joint_of].to(dtype=dtype, device=device),  # (J, S)
+        "injective": len(set(slot_dof[driven].tolist())) == int(driven.sum()),
+        "pair_joint": pair_joint.to(device),
+        "pair_slot": pair_slot.to(device),
+        "pair_index": pair_index.to(device),  # (3 P,)
         "trans_axis": torch.nonzero(trans >= 0).flatten().to(device),  # world axes with a dof
         "trans_dof": trans[trans >= 0].to(device),
     }
@@ -115,11 +123,16 @@ def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
     pivots = joints - torch.einsum("...jab,jb->...ja", rot, c["w"])  # o_i = p_i - l_i G_i w_i
     a = world_axes.flatten(-3, -2).index_select(-2, c["slot_flat"])  # (..., S, 3)
     o = pivots.index_select(-2, c["slot_joint"])  # (..., S, 3)
-    # a x (p_y - o) = a x p_y - a x o, masked to the slot's subtree: (..., J, S, 3)
-    cols = _cross(a[..., None, :, :], joints[..., :, None, :]) - _cross(a, o)[..., None, :, :]
-    cols = cols * c["mask"][..., None]
-    jac = q.new_zeros(*batch, joints.shape[-2], 3, sk.num_dofs)
-    jac.index_add_(-1, c["slot_dof"], cols.transpose(-1, -2))
+    # for each (joint y, slot s) pair with y in the subtree of s's joint: a_s x (p_y - o_s)
+    pair_a = a.index_select(-2, c["pair_slot"])  # (..., P, 3)
+    lever = joints.index_select(-2, c["pair_joint"]) - o.index_select(-2, c["pair_slot"])
+    vals = _cross(pair_a, lever).flatten(-2)  # (..., 3 P), entries (p, k)
+    jac = q.new_zeros(*batch, joints.shape[-2] * 3 * sk.num_dofs)
+    if c["injective"]:
+        jac.index_copy_(-1, c["pair_index"], vals)
+    else:
+        jac.index_add_(-1, c["pair_index"], vals)
+    jac = jac.unflatten(-1, (joints.shape[-2], 3, sk.num_dofs))
     if c["trans_dof"].numel():
         jac[..., c["trans_axis"], c["trans_dof"]] = 1.0
     return joints, jac

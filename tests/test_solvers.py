@@ -135,6 +135,18 @@ def test_lm_converged_flags_and_iterations(arms):
     assert mixed.converged.all() and mixed.iterations[2] == 0 and (mixed.iterations[[0, 1, 3, 4]] > 3).all()
 
 
+def test_callbacks_see_every_iteration(arms):
+    seen = []
+    q, info = levenberg_marquardt(arms.linearize, arms.q0, max_iter=7, callback=lambda it, q, c: seen.append((it, c.clone())))
+    assert [it for it, _ in seen] == list(range(7))
+    torch.testing.assert_close(seen[-1][1], info.cost, rtol=0, atol=0)
+    assert all((b <= a).all() for (_, a), (_, b) in zip(seen, seen[1:]))  # LM never raises a cost
+    seen.clear()
+    _, info = lbfgs(arms.energy, arms.q0, max_iter=5, callback=lambda it, q, c: seen.append((it, c.clone())))
+    assert [it for it, _ in seen] == list(range(5))
+    assert all((b <= a).all() for (_, a), (_, b) in zip(seen, seen[1:]))
+
+
 def test_lm_hessian_is_gauss_newton_at_the_solution(arms):
     q, info = levenberg_marquardt(arms.linearize, arms.q0, **TIGHT)
     r, jac = arms.linearize(q)
