@@ -42,6 +42,7 @@ Shapes: `N` hypotheses (any leading batch dims), `J` joints, `n` links, `L` leav
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -145,13 +146,17 @@ def check_independent(sk: Skeleton, chains: Sequence[Chain]) -> None:
     """Raise InputError unless the chains can combine as a product: no chain moves another's root
     or any joint another moves."""
     moved = [moving_joints(sk, c) for c in chains]
-    for i, a in enumerate(chains):
-        for k, b in enumerate(chains):
-            if i == k:
-                continue
-            if b.joints[0] in moved[i] or (k > i and moved[i] & moved[k]):
-                raise InputError(f"chains {a.name!r} and {b.name!r} are not independent: "
-                                 f"{a.name!r} moves joints of {b.name!r}")
+    pairs = [(i, k) for i in range(len(chains)) for k in range(len(chains)) if i != k]
+    for i, k in pairs:
+        a, b = chains[i], chains[k]
+        if b.joints[0] in moved[i]:
+            raise InputError(f"chains {a.name!r} and {b.name!r} are not independent: {a.name!r} "
+                             f"moves {b.name!r}'s root {b.joint_names[0]!r}")
+    for i, k in pairs:
+        shared = moved[i] & moved[k]
+        if shared:
+            raise InputError(f"chains {chains[i].name!r} and {chains[k].name!r} are not independent: "
+                             f"both move {sk.joint_names[min(shared)]!r}")
 
 
 # ---------------------------------------------------------------- observations
@@ -226,14 +231,15 @@ def _smin_rotation(x: Tensor, y: Tensor) -> Tensor:
     """`min_rotation` on (3, *M) vectors -> (3, 3, *M)."""
     xu, yu = _sunit(x), _sunit(y)
     c = _sdot(xu, yu)
-    opposite = c < 0
+    # within ~sqrt(eps) of opposite, the smallest rotation's axis is lost in rounding
+    opposite = 1.0 + c < math.sqrt(torch.finfo(x.dtype).eps)
     x1 = torch.where(opposite, -xu, xu)
     k = _scross(x1, yu)
     eye = _seye(k, k.ndim - 1)
     zero = torch.zeros_like(k[0])
     kx = torch.stack([zero, -k[2], k[1], k[2], zero, -k[0], -k[1], k[0], zero]).unflatten(0, (3, 3))
     kk = k[:, None] * k[None] - _sdot(k, k) * eye  # kx @ kx
-    r = eye + kx + kk / (1.0 + c.abs())  # x1 -> y, angle <= pi / 2
+    r = eye + kx + kk / (1.0 + torch.where(opposite, -c, c))  # x1 -> y
     # pi about u normal to x: 2 u u^T - I; u from the coordinate axis least aligned with x
     a0, a1, a2 = xu.abs()
     first = (a0 <= a1) & (a0 <= a2)
@@ -257,8 +263,8 @@ def _aos(x: Tensor, lead: int) -> Tensor:
 def min_rotation(x: Tensor, y: Tensor) -> Tensor:
     """The smallest rotation taking direction x to direction y: (..., 3), (..., 3) -> (..., 3, 3).
 
-    Exact for any pair: near-opposite directions (where the smallest rotation's axis is undefined)
-    turn by pi about an axis normal to x, then by the small rotation from -x to y.
+    Exact for any pair: near-opposite directions (1 + cos < sqrt(eps), where the smallest rotation's
+    axis is undefined) turn by pi about an axis normal to x, then by the small rotation from -x to y.
     """
     x, y = torch.broadcast_tensors(x, y)
     return _aos(_smin_rotation(_soa(x, 1), _soa(y, 1)), 2)
