@@ -22,7 +22,17 @@ Residual Jacobians. A one-frame objective is r(q) = f(q, X(q)) with X the joints
 df/dq + df/dX . dX/dq. `residual_jacobian` pushes the D columns (e_d, dX/dq_d) through f in one
 `torch.func.vmap` of `torch.func.jvp` (forward mode over f only: projection and cost terms, no FK).
 
-Timings: see scripts/bench_solver.py.
+Measured by scripts/bench_solver.py (N=256 poses of CMU subject 10 without fingers, thumbs, hands
+and toes: J=31, D=50; 17 keypoints + limits: M=84; float64, 1 thread on a shared, loaded 2-core
+CPU, so absolute times are noisy; ratios are from the same run):
+
+    joint positions    geometric 43 ms | torch.func.jacfwd 489 ms (11.5x) | autograd 555 ms (13.1x)
+    residuals          chain rule 76 ms | torch.func.jacfwd 594 ms (7.8x) | autograd 437 ms (5.8x)
+
+all equal to autograd within 4e-14 (float64). torch.func.jacrev does not run through the FK (its
+analytical backward is an autograd.Function without functorch support), and
+torch.autograd.functional.jacobian(vectorize=True) fails on it for the same reason; the autograd
+column is one backward pass per output row.
 """
 
 from __future__ import annotations
@@ -143,7 +153,8 @@ def residual_jacobian(sk: Skeleton, residual_fn: ResidualFn, q: Tensor,
     """Residuals r(q) = f(q, joints(q)) and their Jacobian w.r.t. q, with FK run once.
 
     residual_fn(q (..., D), joints (..., J, 3)) -> (..., M) must be written in torch ops that
-    `torch.func.jvp` and `vmap` support (every ptrack cost term and `Camera.project` are).
+    `torch.func.jvp` and `vmap` support (`Camera.project`, `Reprojection` and `JointLimits` are:
+    tests/test_jacobians.py).
     joints_and_jacobian: `joint_jacobian(sk, q)` if already computed.
     q: (..., D) -> r (..., M), jac (..., M, D) = df/dq + df/dX dX/dq.
     """
