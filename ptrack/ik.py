@@ -2,7 +2,7 @@
 
     plan = ik_plan(sk, chain)                     # raises ClosedFormUnavailable if no closed form
     res = chain_ik(plan, q, tree.positions, mode="prune")   # q (N, D), positions (N, L, n+1, 3)
-    res.q                                         # (N, L, D): q with the chain's dofs solved
+    res.angles, res.q                             # (N, L, M) solved dofs; (N, L, D) full poses
 
 Closed forms (Sminchisescu & Triggs 2003, section 3.1), chosen by `ik_plan` from the skeleton:
 
@@ -347,7 +347,8 @@ class IKResult(NamedTuple):
     """IK of a chain (or of a product of chains) for L leaves per hypothesis.
 
     angles: (N, L, M) the solved dofs, in the limits' 2 pi window (clamped if projected).
-    dofs: (M,) their q indices; `poses(q)` writes them into the hypotheses' poses.
+    dofs: (M,) their q indices.
+    start: (N, D) the poses IK started from; `q` (a property) writes the angles into them.
     positions: (N, L, n+1, 3) the chain's joints by forward kinematics of the solved pose (after
         projection; for a product, the chains' joints one chain after the other).
     residual: (N, L) metres, largest distance of the closed form's chain joints from the targets
@@ -360,6 +361,7 @@ class IKResult(NamedTuple):
 
     angles: Tensor
     dofs: tuple[int, ...]
+    start: Tensor
     positions: Tensor
     residual: Tensor
     exact: Tensor
@@ -367,10 +369,11 @@ class IKResult(NamedTuple):
     keep: Tensor
     projected: Tensor
 
-    def poses(self, q: Tensor) -> Tensor:
-        """Full poses per leaf: q (..., D) (the hypotheses IK started from) -> (..., L, D), every
-        dof outside `dofs` as in q."""
-        leaves = self.angles.shape[-2]
+    @property
+    def q(self) -> Tensor:
+        """(N, L, D) full poses per leaf: `start` with the solved dofs set. Built on each access
+        (a copy of N x L x D numbers): index `angles` instead where that is enough."""
+        q, leaves = self.start, self.angles.shape[-2]
         out = q[..., None, :].expand(*q.shape[:-1], leaves, q.shape[-1]).clone()
         return out.index_copy_(-1, torch.as_tensor(self.dofs, device=q.device), self.angles.to(q))
 
@@ -538,7 +541,7 @@ def chain_ik(plan: ChainIK, q: Tensor, positions: Tensor, mode: str = "prune", t
     def flags(f: Tensor) -> Tensor:
         return f.T.reshape(lead)
 
-    return IKResult(angles=theta.permute(2, 1, 0).reshape(*lead, -1), dofs=plan.dofs,
+    return IKResult(angles=theta.permute(2, 1, 0).reshape(*lead, -1), dofs=plan.dofs, start=q,
                     positions=pos.permute(3, 2, 0, 1).reshape(*lead, n1, 3),
                     residual=flags(residual), exact=flags(exact), in_limits=flags(in_limits),
                     keep=flags(keep), projected=flags(projected))
@@ -551,11 +554,11 @@ def _select_leaves(r: IKResult, sel: Tensor) -> IKResult:
                          for k in ("residual", "exact", "in_limits", "keep", "projected")})
 
 
-def product_ik(results: list[IKResult], prod: Product) -> IKResult:
-    """Combine per-chain IK over a product of trees: each chain's result over its own leaves -> one
-    result over the combined leaves (..., L): each chain's angles from its leaf, `dofs` and
-    `positions` concatenated in chain order, flags AND-ed (`projected` OR-ed), `residual` the
-    largest. The chains must be independent (`jumps.check_independent`)."""
+def product_ik(q: Tensor, results: list[IKResult], prod: Product) -> IKResult:
+    """Combine per-chain IK over a product of trees: q (..., D) the hypotheses and each chain's
+    result over its own leaves -> one result over the combined leaves (..., L): each chain's angles
+    from its leaf, `dofs` and `positions` concatenated in chain order, flags AND-ed (`projected`
+    OR-ed), `residual` the largest. The chains must be independent (`jumps.check_independent`)."""
     if len(results) != len(prod.chains):
         raise InputError(f"product_ik: {len(results)} results for {len(prod.chains)} chains")
     picked = [_select_leaves(r, prod.leaf[:, c]) for c, r in enumerate(results)]
@@ -565,7 +568,7 @@ def product_ik(results: list[IKResult], prod: Product) -> IKResult:
         keep, exact, in_limits = keep & r.keep, exact & r.exact, in_limits & r.in_limits
         projected = projected | r.projected
     return IKResult(angles=torch.cat([r.angles for r in picked], -1),
-                    dofs=tuple(d for r in picked for d in r.dofs),
+                    dofs=tuple(d for r in picked for d in r.dofs), start=q,
                     positions=torch.cat([r.positions for r in picked], -2),
                     residual=torch.stack([r.residual for r in picked], -1).amax(-1),
                     exact=exact, in_limits=in_limits, keep=keep, projected=projected)

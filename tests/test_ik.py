@@ -104,7 +104,7 @@ def _check_reproduces_fk(sk, q, seed=0, tol=1e-6):
         plan = ik_plan(sk, chain)
         start = _perturbed(q, plan.dofs, 0.3, seed)  # IK must not just copy the current angles
         res = chain_ik(plan, start, joints[:, None, list(chain.joints)])
-        solved = res.poses(start)[:, 0]
+        solved = res.q[:, 0]
         fk = sk.forward_kinematics(solved)
         err = (fk[:, list(chain.joints)] - joints[:, list(chain.joints)]).norm(dim=-1)
         assert float(err.max()) < tol, chain.name
@@ -149,7 +149,7 @@ def test_ik_of_every_leaf(cmu_file, subject, clip):
     _, trees = _trees(sk, q, chains)
     for chain, tree in zip(chains, trees):
         res = chain_ik(ik_plan(sk, chain), q, tree.positions)
-        fk = sk.forward_kinematics(res.poses(q))[..., list(chain.joints), :]
+        fk = sk.forward_kinematics(res.q)[..., list(chain.joints), :]
         err = (fk - tree.positions).norm(dim=-1).amax(-1)  # (N, L)
         assert float(err.max()) < 1e-6, chain.name
         assert bool(res.exact.all())
@@ -172,7 +172,7 @@ def test_straight_limb_keeps_the_current_twist(sk, poses):
     start = _perturbed(q, femur, 0.4, 1)
     res = chain_ik(plan, start, targets)
     fk_start, rot_start = sk.forward_kinematics(start, rotations=True)
-    fk_new, rot_new = sk.forward_kinematics(res.poses(start)[:, 0], rotations=True)
+    fk_new, rot_new = sk.forward_kinematics(res.q[:, 0], rotations=True)
     torch.testing.assert_close(fk_new[:, list(chain.joints)], joints[:, list(chain.joints)], atol=1e-9, rtol=0)
     m = chain.joints[1]
     turn = rot_new[:, m] @ rot_start[:, m].transpose(-1, -2)  # world rotation applied to the femur
@@ -226,7 +226,7 @@ def test_limits_prune_and_project(sk, poses):
         assert bool(((projected.angles >= lo - 1e-12) & (projected.angles <= hi + 1e-12)).all())
         torch.testing.assert_close(projected.angles[inside], pruned.angles[inside])
         torch.testing.assert_close(projected.angles[~inside], torch.clamp(pruned.angles[~inside], lo, hi))
-        fk = sk.forward_kinematics(projected.poses(poses))[..., list(chain.joints), :]
+        fk = sk.forward_kinematics(projected.q)[..., list(chain.joints), :]
         torch.testing.assert_close(projected.positions, fk, atol=1e-9, rtol=0)
         moved = (projected.positions - tree.positions).norm(dim=-1).amax(-1)
         assert bool((moved[~inside] > 1e-6).all()) and float(moved[inside].max()) < 1e-6
@@ -261,7 +261,7 @@ def test_batched_shapes(sk, poses):
     assert res.angles.shape == (2, 3, 4, 4) and res.positions.shape == (2, 3, 4, 3, 3)
     for f in (res.residual, res.exact, res.in_limits, res.keep, res.projected):
         assert f.shape == (2, 3, 4)
-    assert res.poses(q).shape == (2, 3, 4, sk.num_dofs)
+    assert res.q.shape == (2, 3, 4, sk.num_dofs)
     flat = chain_ik(plan, poses[:6], tree.positions)
     torch.testing.assert_close(res.angles.reshape(6, 4, 4), flat.angles)
     with pytest.raises(InputError, match="positions must be"):
@@ -276,7 +276,7 @@ def test_float32(sk, poses):
     for chain, tree in zip(chains, trees):
         res = chain_ik(ik_plan(sk, chain), poses.float(), tree.positions)
         assert res.angles.dtype == res.positions.dtype == torch.float32
-        fk = sk.forward_kinematics(res.poses(poses.float()))[..., list(chain.joints), :]
+        fk = sk.forward_kinematics(res.q)[..., list(chain.joints), :]
         assert float((fk - tree.positions).norm(dim=-1).max()) < 2e-5
         assert bool(res.exact.all())
 
@@ -296,10 +296,10 @@ def test_product_ik(sk, poses):
     joints, trees = _trees(sk, poses, chains)
     prod = product(trees)
     results = [chain_ik(ik_plan(sk, c), poses, t.positions) for c, t in zip(chains, trees)]
-    res = product_ik(results, prod)
+    res = product_ik(poses, results, prod)
     assert res.angles.shape == (poses.shape[0], 64, 4 + 4 + 6)
     assert res.dofs == results[0].dofs + results[1].dofs + results[2].dofs
-    fk = sk.forward_kinematics(res.poses(poses))
+    fk = sk.forward_kinematics(res.q)
     want = product_joints(joints, trees, prod)
     idx = [j for c in chains for j in c.joints]
     torch.testing.assert_close(fk[..., idx, :], want[..., idx, :], atol=1e-9, rtol=0)
@@ -307,7 +307,7 @@ def test_product_ik(sk, poses):
     keep = results[0].keep[:, prod.leaf[:, 0]] & results[1].keep[:, prod.leaf[:, 1]] & results[2].keep[:, prod.leaf[:, 2]]
     assert torch.equal(res.keep, keep)
     with pytest.raises(InputError, match="2 results for 3 chains"):
-        product_ik(results[:2], prod)
+        product_ik(poses, results[:2], prod)
 
 
 def test_euler_zyx_solutions():
