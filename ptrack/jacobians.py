@@ -85,7 +85,6 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
         "w": torch.as_tensor(sk.offset_local * sk.lengths[:, None], dtype=dtype, device=device),
         "slot_flat": (torch.arange(j)[:, None] * 3 + torch.arange(3))[driven].to(device),  # (S,)
         "slot_joint": joint_of.to(device),
-        "slot_dof": slot_dof[driven].to(device),  # (S,)
         "injective": len(set(slot_dof[driven].tolist())) == int(driven.sum()),
         "pair_joint": pair_joint.to(device),
         "pair_slot": pair_slot.to(device),

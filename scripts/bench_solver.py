@@ -90,7 +90,8 @@ def bench_jacobians(sk, cam, kps, obj, q0, repeats: int) -> None:
     t_geo, (_, jac_geo) = median_time(lambda: joint_jacobian(sk, q0), repeats)
     t_fwd, jac_fwd = median_time(lambda: torch.func.vmap(torch.func.jacfwd(fk))(q0), repeats)
     t_ad, jac_ad = median_time(
-        lambda: torch.autograd.functional.jacobian(lambda q: fk(q).sum(0), q0).permute(2, 0, 1, 3), max(1, repeats // 3))
+        lambda: torch.autograd.functional.jacobian(lambda q: fk(q).sum(0), q0).permute(2, 0, 1, 3),
+        max(1, repeats // 3))
     t_fk, _ = median_time(lambda: sk.forward_kinematics(q0, rotations=True), repeats)
     print(f"    joint positions (N, J, 3, D): FK alone {1e3 * t_fk:.1f}")
     print(f"      geometric {1e3 * t_geo:.1f} | jacfwd {1e3 * t_fwd:.1f} ({t_fwd / t_geo:.1f}x) | "

@@ -137,12 +137,13 @@ def test_lm_converged_flags_and_iterations(arms):
 
 def test_callbacks_see_every_iteration(arms):
     seen = []
-    q, info = levenberg_marquardt(arms.linearize, arms.q0, max_iter=7, callback=lambda it, q, c: seen.append((it, c.clone())))
+    record = lambda it, q, c: seen.append((it, c.clone()))  # noqa: E731
+    q, info = levenberg_marquardt(arms.linearize, arms.q0, max_iter=7, callback=record)
     assert [it for it, _ in seen] == list(range(7))
     torch.testing.assert_close(seen[-1][1], info.cost, rtol=0, atol=0)
     assert all((b <= a).all() for (_, a), (_, b) in zip(seen, seen[1:]))  # LM never raises a cost
     seen.clear()
-    _, info = lbfgs(arms.energy, arms.q0, max_iter=5, callback=lambda it, q, c: seen.append((it, c.clone())))
+    _, info = lbfgs(arms.energy, arms.q0, max_iter=5, callback=record)
     assert [it for it, _ in seen] == list(range(5))
     assert all((b <= a).all() for (_, a), (_, b) in zip(seen, seen[1:]))
 
@@ -296,4 +297,5 @@ def test_lm_fits_cmu_pose_to_noiseless_keypoints():
     assert (px < 0.1).all(), px
     assert info.converged.all() and ((q >= lo) & (q <= hi)).all()
     lin = linearize(q)
-    torch.testing.assert_close(info.hessian, lin.jacobian.mT @ (lin.weights[..., None] * lin.jacobian), rtol=1e-10, atol=1e-8)
+    gauss_newton = lin.jacobian.mT @ (lin.weights[..., None] * lin.jacobian)
+    torch.testing.assert_close(info.hessian, gauss_newton, rtol=1e-10, atol=1e-8)
