@@ -426,10 +426,11 @@ def _limb(plan: ChainIK, tc: dict, a_frame: Tensor, qs: Tensor, x: Tensor, ctol:
     g3 = _scross(b1, g2)
     z = b1[:, None, None] * f1[None] + g2[:, None, None] * f2[None] + g3[:, None, None] * f3[None]
     # straight limb: keep the current twist (smallest turn of the current upper bone onto b1)
-    z_cur = _seuler(cur_ball)[:, :, None]  # (3, 3, 1, B)
-    z_swing = _smm(_smin_rotation(_smv(z_cur, _sconst(lc["a"], 2)).expand_as(b1), b1), z_cur)
     straight = _snorm(_scross(b1, b2)) < ctol  # (L, B)
-    z = torch.where(straight, z_swing[:, :, None], z)  # (3, 3, 2, L, B)
+    if bool(straight.any()):  # one host sync; skips ~60 ops when no leaf is straight
+        z_cur = _seuler(cur_ball)[:, :, None]  # (3, 3, 1, B)
+        z_swing = _smm(_smin_rotation(_smv(z_cur, _sconst(lc["a"], 2)).expand_as(b1), b1), z_cur)
+        z = torch.where(straight, z_swing[:, :, None], z)  # (3, 3, 2, L, B)
     eul = _seuler_solutions(z, cur_ball[2])  # (3, 2 Euler, 2 hinge, L, B)
     cands = torch.cat([eul, t[None, None].expand(1, *eul.shape[1:])]).flatten(1, 2)  # (4, 4, L, B)
     return _pick(cands, cur[:, None], tc["shift"], tc["half"])

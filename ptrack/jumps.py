@@ -195,7 +195,7 @@ def _smv(r: Tensor, v: Tensor) -> Tensor:
 
 def _smm(a: Tensor, b: Tensor) -> Tensor:
     """(3, 3, *M) @ (3, 3, *M) -> (3, 3, *M)."""
-    return (a[:, :, None] * b[None]).sum(1)
+    return a[:, 0, None] * b[0] + a[:, 1, None] * b[1] + a[:, 2, None] * b[2]
 
 
 def _st(r: Tensor) -> Tensor:
@@ -240,6 +240,8 @@ def _smin_rotation(x: Tensor, y: Tensor) -> Tensor:
     kx = torch.stack([zero, -k[2], k[1], k[2], zero, -k[0], -k[1], k[0], zero]).unflatten(0, (3, 3))
     kk = k[:, None] * k[None] - _sdot(k, k) * eye  # kx @ kx
     r = eye + kx + kk / (1.0 + torch.where(opposite, -c, c))  # x1 -> y
+    if not bool(opposite.any()):  # one host sync; the rare case below costs as much as the rest
+        return r
     # pi about u normal to x: 2 u u^T - I; u from the coordinate axis least aligned with x
     a0, a1, a2 = xu.abs()
     first = (a0 <= a1) & (a0 <= a2)
