@@ -172,6 +172,22 @@ class Camera:
         pixels = xy @ K[:2, :2].T + K[:2, 2]
         return Projection(pixels=pixels, depth=depth, in_front=depth > min_depth)
 
+    def project_jacobian(self, X: Tensor, min_depth: float = 1e-3) -> tuple[Projection, Tensor]:
+        """`project` and its derivative w.r.t. the world points: X (..., 3) -> (Projection,
+        d pixels / d X (..., 2, 3)); d depth / d X is R[2] for every point. Zero w.r.t. depth
+        below ``min_depth``, like `project`'s gradient."""
+        proj = self.project(X, min_depth)
+        K, R, _ = self._params_like(X)
+        z = proj.depth.clamp_min(min_depth)
+        xy = (proj.pixels - K[:2, 2]) @ torch.linalg.inv(K[:2, :2]).T  # camera-frame x/z, y/z
+        front = (proj.depth > min_depth).to(X.dtype)
+        # d (x/z, y/z) / d x_cam = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
+        d_xy = torch.zeros(*X.shape[:-1], 2, 3, dtype=X.dtype, device=X.device)
+        d_xy[..., 0, 0] = 1.0 / z
+        d_xy[..., 1, 1] = 1.0 / z
+        d_xy[..., :, 2] = -xy * (front / z)[..., None]
+        return proj, K[:2, :2] @ d_xy @ R
+
     def in_image(self, pixels: Tensor) -> Tensor:
         """Whether pixels lie inside ``[0, W) x [0, H)``: pixels (..., 2) -> (...,) bool.
 

@@ -44,6 +44,7 @@ from torch import Tensor
 
 from ptrack.camera import Camera
 from ptrack.costs import Objective, PoseEval
+from ptrack.costs.base import PoseJacobian
 from ptrack.errors import InputError
 from ptrack.keypoints import KeypointSet
 from ptrack.skeleton import Skeleton
@@ -186,13 +187,25 @@ def objective_linearization(sk: Skeleton, objective: Objective, camera: Camera,
     if camera is None or keypoints is None:
         raise InputError("objective_linearization needs a camera and a keypoint set")
 
-    def residual_fn(q: Tensor, joints: Tensor) -> Tensor:
-        return objective.residuals(pose_eval_from_joints(camera, keypoints, q, joints))
-
     def linearize(q: Tensor) -> Linearization:
-        jj = joint_jacobian(sk, q)
-        r, jac = residual_jacobian(sk, residual_fn, q, jj)
-        ev = pose_eval_from_joints(camera, keypoints, q, jj[0])
-        return Linearization(r, jac, objective.robust_weights(ev), objective(ev).total)
+        ev, jac = pose_eval_and_jacobian(sk, camera, keypoints, q)
+        return Linearization(objective.residuals(ev), objective.jacobian(ev, jac), objective.robust_weights(ev),
+                             objective(ev).total)
 
     return linearize
+
+
+def pose_eval_and_jacobian(sk: Skeleton, camera: Camera, keypoints: KeypointSet,
+                           q: Tensor) -> tuple[PoseEval, PoseJacobian]:
+    """`ptrack.problem.evaluate_pose` and the derivatives of its fields w.r.t. q, from one FK pass:
+    q (..., D) -> PoseEval (joints (..., J, 3), pixels (..., K, 2), depth (..., K)) and PoseJacobian
+    (joints (..., J, 3, D), pixels (..., K, 2, D), depth (..., K, D)). Cost terms turn these into
+    their residual Jacobians (`Objective.jacobian`), in closed form where they can."""
+    joints, dx = joint_jacobian(sk, q)
+    idx = keypoints.index(q.device)
+    dkp = dx.index_select(-3, idx)  # (..., K, 3, D)
+    proj, dpix = camera.project_jacobian(joints.index_select(-2, idx))
+    _, R, _ = camera._params_like(joints)
+    ev = PoseEval(q=q, joints=joints, pixels=proj.pixels, depth=proj.depth)
+    jac = PoseJacobian(joints=dx, pixels=dpix @ dkp, depth=torch.einsum("c,...kcd->...kd", R[2], dkp))
+    return ev, jac

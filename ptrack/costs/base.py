@@ -31,6 +31,17 @@ class PoseEval(NamedTuple):
     joint_pixels: Tensor | None = None
 
 
+class PoseJacobian(NamedTuple):
+    """Derivatives of a `PoseEval`'s fields w.r.t. the pose q, the dof axis last: joints (..., J, 3, D),
+    pixels (..., K, 2, D), depth (..., K, D) (d q / d q is the identity). Terms with a `jacobian(ev,
+    jac) -> (..., M, D)` method use it to give the Jacobian of their residual in closed form;
+    `Objective.jacobian` pushes it through the others by forward-mode autograd."""
+
+    joints: Tensor
+    pixels: Tensor
+    depth: Tensor
+
+
 # ---------------------------------------------------------------------------------------------
 # Robust losses: rho(s; c) of the squared whitened residual s, with rho(s) ~ s near 0.
 

@@ -46,7 +46,7 @@ import torch
 from torch import Tensor
 
 from ptrack.checks import as_float_tensor
-from ptrack.costs.base import PoseEval, _LeastSquares, _positive, _shape
+from ptrack.costs.base import PoseJacobian, PoseEval, _LeastSquares, _positive, _shape
 from ptrack.errors import InputError
 from ptrack.silhouette import capsule_radii
 
@@ -229,6 +229,30 @@ class SelfIntersection(_LeastSquares):
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.joints (..., J, 3) -> (..., P): penetration beyond the margin / sigma, >= 0."""
         return (self.penetration(ev.joints) - self.margin).clamp(min=0.0) / self.sigma
+
+    def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
+        """jac.joints (..., J, 3, D) -> (..., P, D) in closed form: with the closest points held
+        (Danskin), d d_ab / d end = +-(1 - s or s) n along the unit gap n, zero for pairs apart."""
+        joints = ev.joints
+        self.penetration(joints)  # shape checks
+        ends = joints.index_select(-2, self._ends.to(joints.device)).unflatten(-2, (4, -1))
+        p0, p1, q0, q1 = ends.movedim((-3, -1), (0, 1))  # (3, ..., P) each
+        u, v, w = p1 - p0, q1 - q0, p0 - q0
+        with torch.no_grad():
+            s, t = _closest_parameters(u, v, w)
+        gap = w + s * u - t * v
+        d = torch.sqrt((gap * gap).sum(0) + self.eps * self.eps)
+        active = (self._reach.to(joints) - d - self.margin) > 0
+        out = joints.new_zeros(*active.shape, jac.joints.shape[-1])  # (..., P, D)
+        hit = active.flatten(0, -2).any(0).nonzero()[:, 0] if active.ndim > 1 else active.nonzero()[:, 0]
+        if hit.numel() == 0:  # nothing penetrates anywhere in the batch (the usual case)
+            return out
+        n = (gap / d).movedim(0, -1) * (-active.to(joints) / self.sigma)[..., None]  # (..., P, 3)
+        coef = torch.stack([1 - s, s, t - 1, -t], dim=-2)  # (..., 4, P)
+        ends = self._ends.to(joints.device).view(4, -1)[:, hit].reshape(-1)
+        dx = jac.joints.index_select(-3, ends).unflatten(-3, (4, -1))  # (..., 4, H, 3, D), H pairs hit
+        rows = torch.einsum("...ep,...pc,...epcd->...pd", coef.index_select(-1, hit), n.index_select(-2, hit), dx)
+        return out.index_copy(-2, hit, rows)
 
     @staticmethod
     def for_skeleton(sk: "Skeleton", radii: Tensor | Mapping[str, float] | None = None,

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
-from ptrack.costs.base import CostTerm, PoseEval
+from ptrack.costs.base import CostTerm, PoseEval, PoseJacobian
 
 # ---------------------------------------------------------------------------------------------
 # Objective.
@@ -79,8 +79,42 @@ class Objective:
         _same_batch("residuals", {name: r.shape[:-1] for name, r in parts.items()})
         return torch.cat(list(parts.values()), dim=-1)
 
+    def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
+        """ev, jac (its fields' derivatives w.r.t. q, D last) -> (..., M_total, D): the Jacobian of
+        `residuals`. Terms with a `jacobian` method give theirs in closed form; the others are
+        differentiated by forward-mode autograd through their residual alone (no kinematics)."""
+        parts = []
+        for name, term in self.terms.items():
+            closed = getattr(term, "jacobian", None)
+            j = None
+            if closed is not None:
+                try:
+                    j = closed(ev, jac)
+                except NotImplementedError:
+                    j = None
+            if j is None:
+                j = _forward_jacobian(term, ev, jac)
+            parts.append(math.sqrt(self.weights[name]) * j)
+        return torch.cat(parts, dim=-2)
+
     def robust_weights(self, ev: PoseEval) -> Tensor:
         """ev -> (..., M_total) IRLS weights rho'(s) aligned with `residuals` (1 for l2 terms)."""
         parts = {name: term.robust_weights(ev) for name, term in self.terms.items()}
         _same_batch("robust weights", {name: w.shape[:-1] for name, w in parts.items()})
         return torch.cat(list(parts.values()), dim=-1)
+
+
+def _forward_jacobian(term: CostTerm, ev: PoseEval, jac: PoseJacobian) -> Tensor:
+    """d term.residual / d q by `torch.func.jvp` over the D columns (e_d, jac[..., d]) of ev's fields."""
+    q = ev.q
+    d = q.shape[-1]
+    eye = torch.eye(d, dtype=q.dtype, device=q.device).reshape(d, *([1] * (q.ndim - 1)), d).expand(d, *q.shape)
+    tangents = (eye, jac.joints.movedim(-1, 0), jac.pixels.movedim(-1, 0), jac.depth.movedim(-1, 0))
+
+    def f(q_, joints, pixels, depth):
+        return term.residual(PoseEval(q_, joints, pixels, depth, ev.joint_pixels))
+
+    def column(tq, tj, tp, td):
+        return torch.func.jvp(f, (q, ev.joints, ev.pixels, ev.depth), (tq, tj, tp, td))[1]
+
+    return torch.func.vmap(column)(*tangents).movedim(0, -1)

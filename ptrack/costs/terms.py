@@ -12,7 +12,7 @@ from torch import Tensor
 
 from ptrack.errors import InputError
 from ptrack.checks import as_float_tensor
-from ptrack.costs.base import (PoseEval, _frame_count, _LeastSquares, _mask, _positive, _Robust,
+from ptrack.costs.base import (PoseEval, PoseJacobian, _frame_count, _LeastSquares, _mask, _positive, _Robust,
                                _shape, _times, robust_loss)
 
 # ---------------------------------------------------------------------------------------------
@@ -71,6 +71,12 @@ class Reprojection(_Robust):
         r = (p - self._target.to(p)) * self._sqrt_conf.to(p)[..., None]
         return r.flatten(-n)
 
+    def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
+        """jac.pixels (..., *O, K, 2, D) -> (..., |O|*K*2, D), rows as in `residual`."""
+        n = self.observed.ndim
+        j = jac.pixels * self._sqrt_conf.to(jac.pixels)[..., None, None]
+        return j.flatten(-n - 1, -2)
+
 
 @dataclass(frozen=True, eq=False)
 class JointLimits(_LeastSquares):
@@ -115,6 +121,14 @@ class JointLimits(_LeastSquares):
         above = torch.clamp(q - self.upper.to(q), min=0.0)
         r = (below + above) / self.sigma.to(q)
         return r.flatten(-2) if self.time_axis else r
+
+    def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
+        """(..., D) -> (..., D, D) diagonal: 1/sigma where q is outside its limits (time_axis: autograd)."""
+        if self.time_axis:
+            raise NotImplementedError("JointLimits.jacobian with time_axis")
+        q = ev.q
+        outside = (q < self.lower.to(q)) | (q > self.upper.to(q))
+        return torch.diag_embed(outside.to(q) / self.sigma.to(q).expand(q.shape[-1:]))
 
 
 @dataclass(frozen=True, eq=False)
@@ -290,3 +304,38 @@ class JointKeyframe(_LeastSquares):
         _frame_count("JointKeyframe", x, self._last, -3)
         e = x.index_select(-3, self.times.to(x.device)) - self._target.to(x)
         return (e * self._weight.to(x)).flatten(-3)
+
+
+@dataclass(frozen=True, eq=False)
+class PosePrior(_LeastSquares):
+    """Gaussian prior around a predicted pose, one prediction per hypothesis (a tracker's dynamics).
+
+    mean (..., D) predicted poses (broadcast against ev.q (..., D)); sigma float or (D,) standard
+    deviations (radians / metres). residual (..., D) = (q - mean) / sigma, energy (...,).
+    """
+
+    mean: Tensor
+    sigma: float | Tensor = 0.15
+
+    def __post_init__(self) -> None:
+        mean = as_float_tensor(self.mean, "mean")
+        if mean.ndim < 1 or not torch.isfinite(mean).all():
+            raise InputError(f"PosePrior.mean must be finite with shape (..., D), got {_shape(mean)}")
+        sigma = as_float_tensor(self.sigma, "sigma")
+        if sigma.ndim > 1 or (sigma.ndim == 1 and sigma.shape[0] != mean.shape[-1]):
+            raise InputError(f"PosePrior.sigma must be a float or shape ({mean.shape[-1]},), got {_shape(sigma)}")
+        _positive("PosePrior.sigma", sigma)
+        object.__setattr__(self, "mean", mean)
+        object.__setattr__(self, "sigma", sigma)
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """ev.q (..., D) -> (..., D)."""
+        if ev.q.shape[-1] != self.mean.shape[-1]:
+            raise InputError(f"PosePrior: ev.q {_shape(ev.q)} must end in D={self.mean.shape[-1]}")
+        return (ev.q - self.mean.to(ev.q)) / self.sigma.to(ev.q)
+
+    def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
+        """(..., D) -> (..., D, D) = diag(1 / sigma)."""
+        q = ev.q
+        inv = (1.0 / self.sigma.to(q)).expand(q.shape[-1:])
+        return torch.diag_embed(inv).expand(*q.shape, q.shape[-1])

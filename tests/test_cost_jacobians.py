@@ -1,0 +1,104 @@
+"""Closed-form residual Jacobians of the cost terms (`Objective.jacobian`, `PoseJacobian`) against
+autograd through the whole pipeline (FK + projection + terms), on a real CMU pose, in float64."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from ptrack.camera import camera_for_motion
+from ptrack.costs import JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
+from ptrack.errors import InputError
+from ptrack.jacobians import objective_linearization, pose_eval_and_jacobian
+from ptrack.keypoints import make_keypoints
+from ptrack.problem import evaluate_pose
+from ptrack.skeleton import Skeleton, load_amc
+
+DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
+
+
+@pytest.fixture(scope="module")
+def scene():
+    full = Skeleton.from_asf(DATA / "10.asf").with_limits("data")
+    sk = full.freeze(["*fingers", "*thumb", "*hand", "*toes"])
+    q = sk.reduce(load_amc(DATA / "10_02.amc", full).q[200:204], full)  # (4, D) float64
+    kps = make_keypoints(sk)
+    cam = camera_for_motion(sk.forward_kinematics(q), 6.0, 30.0, 10.0, 1000.0, 640, 480).to(dtype=torch.float64)
+    return sk, q, kps, cam
+
+
+def _autograd(sk, kps, cam, objective, q):
+    """(N, M, D): autograd through FK, projection and the terms; problem i depends on q[i] only."""
+    full = torch.autograd.functional.jacobian(lambda x: objective.residuals(evaluate_pose(sk, cam, kps, x)), q)
+    return torch.stack([full[i, :, i] for i in range(q.shape[0])])
+
+
+def test_camera_projection_jacobian(scene):
+    sk, q, kps, cam = scene
+    X = sk.forward_kinematics(q)
+    proj, d = cam.project_jacobian(X)
+    torch.testing.assert_close(proj.pixels, cam.project(X).pixels)
+    auto = torch.autograd.functional.jacobian(lambda x: cam.project(x).pixels, X[0])  # (J, 2, J, 3)
+    auto = torch.stack([auto[j, :, j] for j in range(X.shape[1])])
+    torch.testing.assert_close(d[0], auto, atol=1e-9, rtol=1e-9)
+
+
+def test_objective_jacobian_matches_autograd(scene):
+    """Reprojection (robust rows, a missing keypoint), limits (some dofs pushed outside), the pose
+    prior and self-intersection (an arm pushed into the torso)."""
+    sk, q, kps, cam = scene
+    gen = torch.Generator().manual_seed(0)
+    obs = cam.project(sk.forward_kinematics(q[0]).index_select(0, kps.index())).pixels
+    obs = obs + torch.randn(obs.shape, generator=gen, dtype=torch.float64)
+    conf = torch.ones(obs.shape[0], dtype=torch.float64)
+    conf[3] = 0.0
+    lower, upper = sk.limits(dtype=torch.float64)
+    x = q + 0.05 * torch.randn(q.shape, generator=gen, dtype=torch.float64)
+    x[1, sk.dof_names.index("lfemur.ry")] = upper[sk.dof_names.index("lfemur.ry")] + 0.3
+    x[2, sk.dof_names.index("lhumerus.rz")] += 1.6  # swing the arm across the body
+    collision = SelfIntersection.for_skeleton(sk)
+    assert (collision.residual(evaluate_pose(sk, cam, kps, x)) > 0).any()
+    objective = Objective({
+        "reprojection": Reprojection(obs, conf, sigma_px=2.0, loss="cauchy", scale=3.0),
+        "limits": JointLimits(lower, upper, sigma=0.02),
+        "prior": PosePrior(q, 0.1),
+        "collision": collision,
+    }, {"limits": 2.0, "collision": 0.5})
+    lin = objective_linearization(sk, objective, cam, kps)(x)
+    torch.testing.assert_close(lin.jacobian, _autograd(sk, kps, cam, objective, x), atol=1e-8, rtol=1e-7)
+    torch.testing.assert_close(lin.residuals, objective.residuals(evaluate_pose(sk, cam, kps, x)))
+
+
+def test_forward_mode_fallback_for_terms_without_closed_form(scene):
+    """A term with no `jacobian` method is differentiated by forward-mode autograd through its residual."""
+    sk, q, kps, cam = scene
+
+    class Height:  # a least-squares term of the joints only, with no closed form
+        def residual(self, ev):
+            return ev.joints[..., 1] * 3.0
+
+        def energy(self, ev):
+            return 0.5 * self.residual(ev).square().sum(-1)
+
+        def robust_weights(self, ev):
+            return torch.ones_like(self.residual(ev))
+
+    objective = Objective({"height": Height(), "prior": PosePrior(q, 0.2)})
+    lin = objective_linearization(sk, objective, cam, kps)(q)
+    torch.testing.assert_close(lin.jacobian, _autograd(sk, kps, cam, objective, q), atol=1e-9, rtol=1e-9)
+
+
+def test_pose_prior():
+    mean = torch.zeros(3, 4)
+    prior = PosePrior(mean, torch.tensor([1.0, 2.0, 4.0, 0.5]))
+    from ptrack.costs import PoseEval
+
+    ev = PoseEval(q=torch.ones(3, 4), joints=torch.zeros(3, 1, 3), pixels=torch.zeros(3, 1, 2), depth=torch.zeros(3, 1))
+    torch.testing.assert_close(prior.residual(ev)[0], torch.tensor([1.0, 0.5, 0.25, 2.0]))
+    assert prior.energy(ev).shape == (3,)
+    with pytest.raises(InputError):
+        PosePrior(mean, torch.tensor([1.0, -1.0, 1.0, 1.0]))
+    with pytest.raises(InputError):
+        PosePrior(mean, torch.ones(3))
