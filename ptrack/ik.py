@@ -46,8 +46,8 @@ import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
-from ptrack.jumps import (Chain, Product, _aos, _sconst, _scross, _sdot, _seye, _smin_rotation, _smm, _smv,
-                          _snorm, _soa, _st, _sunit, path_below)
+from ptrack.jumps import (Chain, Product, _aos, _flatten_bits, _sconst, _scross, _sdot, _seye, _smin_rotation,
+                          _smm, _smv, _snorm, _soa, _st, _sunit, path_below)
 from ptrack.limits import TAU
 from ptrack.skeleton import Skeleton
 
@@ -540,19 +540,12 @@ def chain_ik(plan: ChainIK, q: Tensor, positions: Tensor, mode: str = "prune", t
     lead = (*batch, leaves)
 
     def flags(f: Tensor) -> Tensor:
-        return f.T.reshape(lead)
+        return f.T.contiguous().reshape(lead)
 
-    return IKResult(angles=theta.permute(2, 1, 0).reshape(*lead, -1), dofs=plan.dofs, start=q,
-                    positions=pos.permute(3, 2, 0, 1).reshape(*lead, n1, 3),
+    return IKResult(angles=theta.permute(2, 1, 0).contiguous().reshape(*lead, -1), dofs=plan.dofs, start=q,
+                    positions=pos.permute(3, 2, 0, 1).contiguous().reshape(*lead, n1, 3),
                     residual=flags(residual), exact=flags(exact), in_limits=flags(in_limits),
                     keep=flags(keep), projected=flags(projected))
-
-
-def _select_leaves(r: IKResult, sel: Tensor) -> IKResult:
-    """The result at leaves `sel` (L',) long."""
-    return r._replace(angles=r.angles.index_select(-2, sel), positions=r.positions.index_select(-3, sel),
-                      **{k: getattr(r, k).index_select(-1, sel)
-                         for k in ("residual", "exact", "in_limits", "keep", "projected")})
 
 
 def product_ik(q: Tensor, results: list[IKResult], prod: Product) -> IKResult:
@@ -562,17 +555,30 @@ def product_ik(q: Tensor, results: list[IKResult], prod: Product) -> IKResult:
     OR-ed), `residual` the largest. The chains must be independent (`jumps.check_independent`)."""
     if len(results) != len(prod.chains):
         raise InputError(f"product_ik: {len(results)} results for {len(prod.chains)} chains")
-    picked = [_select_leaves(r, prod.leaf[:, c]) for c, r in enumerate(results)]
-    first = picked[0]
-    keep, exact, in_limits, projected = first.keep, first.exact, first.in_limits, first.projected
-    for r in picked[1:]:
-        keep, exact, in_limits = keep & r.keep, exact & r.exact, in_limits & r.in_limits
-        projected = projected | r.projected
-    return IKResult(angles=torch.cat([r.angles for r in picked], -1),
-                    dofs=tuple(d for r in picked for d in r.dofs), start=q,
-                    positions=torch.cat([r.positions for r in picked], -2),
-                    residual=torch.stack([r.residual for r in picked], -1).amax(-1),
-                    exact=exact, in_limits=in_limits, keep=keep, projected=projected)
+    first = results[0]
+    batch = first.residual.shape[:-1]
+    nb, start = prod.num_bits, len(batch)
+    bit_shape = (*batch, *([2] * nb))
+    m = sum(r.angles.shape[-1] for r in results)
+    joints = sum(r.positions.shape[-2] for r in results)
+    angles = first.angles.new_empty(*bit_shape, m)
+    positions = first.positions.new_empty(*bit_shape, joints, 3)
+    a_off = p_off = 0
+    for c, r in enumerate(results):  # each chain's leaves into its slice, by broadcasting
+        na, npos = r.angles.shape[-1], r.positions.shape[-2]
+        angles[..., a_off:a_off + na] = prod.bits_view(c, r.angles, -2)
+        positions[..., p_off:p_off + npos, :] = prod.bits_view(c, r.positions, -3)
+        a_off, p_off = a_off + na, p_off + npos
+    flags = {}
+    for name, combine in (("keep", torch.logical_and), ("exact", torch.logical_and),
+                          ("in_limits", torch.logical_and), ("projected", torch.logical_or),
+                          ("residual", torch.maximum)):
+        x = prod.bits_view(0, getattr(first, name), -1)
+        for c, r in enumerate(results[1:], start=1):
+            x = combine(x, prod.bits_view(c, getattr(r, name), -1))
+        flags[name] = _flatten_bits(x, start, nb)
+    return IKResult(angles=angles.flatten(start, start + nb - 1), dofs=tuple(d for r in results for d in r.dofs),
+                    start=q, positions=positions.flatten(start, start + nb - 1), **flags)
 
 
 __all__ = ["ChainIK", "ClosedFormUnavailable", "IKResult", "MODES", "chain_ik", "euler_zyx_solutions",

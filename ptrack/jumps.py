@@ -404,12 +404,12 @@ def interpretation_tree(chain: Chain, joints: Tensor, camera: Camera, pixels: Te
     lead = (*batch, leaves)
     return Tree(
         chain=chain,
-        positions=positions.permute(3, 2, 0, 1).reshape(*lead, n + 1, 3),
+        positions=positions.permute(3, 2, 0, 1).contiguous().reshape(*lead, n + 1, 3),
         flips=torch.arange(leaves, device=dev),
-        unique=(~dup).T.reshape(lead),
-        tangent=tangent.permute(2, 1, 0).reshape(*lead, n),
-        infeasible=infeasible.permute(2, 1, 0).reshape(*lead, n),
-        penalty=pen.T.reshape(lead),
+        unique=(~dup).T.contiguous().reshape(lead),
+        tangent=tangent.permute(2, 1, 0).contiguous().reshape(*lead, n),
+        infeasible=infeasible.permute(2, 1, 0).contiguous().reshape(*lead, n),
+        penalty=pen.T.contiguous().reshape(lead),
         observed=observed.reshape(*batch, n),
     )
 
@@ -441,6 +441,29 @@ class Product(NamedTuple):
     infeasible: Tensor
     penalty: Tensor
 
+    @property
+    def num_bits(self) -> int:
+        """T, the number of links of all chains: L = 2^T."""
+        return sum(c.num_links for c in self.chains)
+
+    def bits_view(self, c: int, x: Tensor, dim: int) -> Tensor:
+        """Chain c's values per leaf as a view that broadcasts over the combined leaves: x with its
+        L_c leaves at `dim` < 0 -> the leaf dim split into one size-2 dim per combined bit (highest
+        bit first; size 1 for the other chains' bits). Broadcasting such views of several chains and
+        flattening the T bit dims (expanded to 2) gives values per combined leaf without gathers."""
+        d = x.ndim + dim
+        n, off = self.chains[c].num_links, self.offsets[c]
+        bits = [1] * (self.num_bits - off - n) + [2] * n + [1] * off
+        return x.reshape(*x.shape[:d], *bits, *x.shape[d + 1:])
+
+
+def _flatten_bits(x: Tensor, start: int, bits: int) -> Tensor:
+    """Broadcast bit dims -> combined leaves: x (..., b_{T-1}, ..., b_0, ...) with each bit dim
+    of size 1 or 2, starting at `start` -> (..., 2^T, ...)."""
+    shape = list(x.shape)
+    shape[start:start + bits] = [2] * bits
+    return x.expand(shape).flatten(start, start + bits - 1)
+
 
 def product(trees: Sequence[Tree]) -> Product:
     """Combine trees of independent chains (the caller checks independence with `check_independent`)
@@ -458,16 +481,18 @@ def product(trees: Sequence[Tree]) -> Product:
     dev = trees[0].positions.device
     flips = torch.arange(total, device=dev)
     leaf = torch.stack([(flips >> o) & ((1 << nb) - 1) for o, nb in zip(offsets, bits)], dim=-1)
-    unique = torch.ones(*batch, total, dtype=torch.bool, device=dev)
-    infeasible = torch.zeros_like(unique)
-    penalty = trees[0].penalty.new_zeros(*batch, total)
-    for c, t in enumerate(trees):
-        sel = leaf[:, c]
-        unique = unique & t.unique.index_select(-1, sel)
-        infeasible = infeasible | t.infeasible.any(-1).index_select(-1, sel)
-        penalty = penalty + t.penalty.index_select(-1, sel)
-    return Product(chains=tuple(t.chain for t in trees), leaf=leaf, flips=flips, offsets=offsets,
-                   unique=unique, infeasible=infeasible, penalty=penalty)
+    prod = Product(chains=tuple(t.chain for t in trees), leaf=leaf, flips=flips, offsets=offsets,
+                   unique=None, infeasible=None, penalty=None)
+    unique = prod.bits_view(0, trees[0].unique, -1)
+    infeasible = prod.bits_view(0, trees[0].infeasible.any(-1), -1)
+    penalty = prod.bits_view(0, trees[0].penalty, -1)
+    for c, t in enumerate(trees[1:], start=1):  # broadcasting over the bit dims: no gathers
+        unique = unique & prod.bits_view(c, t.unique, -1)
+        infeasible = infeasible | prod.bits_view(c, t.infeasible.any(-1), -1)
+        penalty = penalty + prod.bits_view(c, t.penalty, -1)
+    nb, start = prod.num_bits, len(batch)
+    return prod._replace(unique=_flatten_bits(unique, start, nb), infeasible=_flatten_bits(infeasible, start, nb),
+                         penalty=_flatten_bits(penalty, start, nb))
 
 
 def product_joints(joints: Tensor, trees: Sequence[Tree], prod: Product) -> Tensor:
@@ -476,10 +501,10 @@ def product_joints(joints: Tensor, trees: Sequence[Tree], prod: Product) -> Tens
     run IK and forward kinematics for a consistent skeleton."""
     total = prod.flips.shape[0]
     out = joints[..., None, :, :].expand(*joints.shape[:-2], total, *joints.shape[-2:]).clone()
+    start = joints.ndim - 2
     for c, t in enumerate(trees):
         idx = torch.as_tensor(t.chain.joints, device=joints.device)
-        pos = t.positions.index_select(-3, prod.leaf[:, c])  # (..., L, n+1, 3)
-        out.index_copy_(-2, idx, pos)
+        out.index_copy_(-2, idx, _flatten_bits(prod.bits_view(c, t.positions, -3), start, prod.num_bits))
     return out
 
 

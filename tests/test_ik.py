@@ -178,7 +178,8 @@ def test_straight_limb_keeps_the_current_twist(sk, poses):
     turn = rot_new[:, m] @ rot_start[:, m].transpose(-1, -2)  # world rotation applied to the femur
     d_start = fk_start[:, m] - fk_start[:, chain.joints[0]]
     d_new = fk_new[:, m] - fk_new[:, chain.joints[0]]
-    axis = torch.stack([turn[:, 2, 1] - turn[:, 1, 2], turn[:, 0, 2] - turn[:, 2, 0], turn[:, 1, 0] - turn[:, 0, 1]], -1)
+    axis = torch.stack([turn[:, 2, 1] - turn[:, 1, 2], turn[:, 0, 2] - turn[:, 2, 0],
+                        turn[:, 1, 0] - turn[:, 0, 1]], -1)
     # a smallest rotation turns about d_start x d_new: its axis is normal to both directions
     torch.testing.assert_close((axis * d_start).sum(-1), torch.zeros(20, dtype=q.dtype), atol=1e-9, rtol=0)
     torch.testing.assert_close((axis * d_new).sum(-1), torch.zeros(20, dtype=q.dtype), atol=1e-9, rtol=0)
@@ -304,7 +305,8 @@ def test_product_ik(sk, poses):
     idx = [j for c in chains for j in c.joints]
     torch.testing.assert_close(fk[..., idx, :], want[..., idx, :], atol=1e-9, rtol=0)
     torch.testing.assert_close(res.positions, want[..., idx, :], atol=1e-9, rtol=0)
-    keep = results[0].keep[:, prod.leaf[:, 0]] & results[1].keep[:, prod.leaf[:, 1]] & results[2].keep[:, prod.leaf[:, 2]]
+    keep = (results[0].keep[:, prod.leaf[:, 0]] & results[1].keep[:, prod.leaf[:, 1]]
+            & results[2].keep[:, prod.leaf[:, 2]])
     assert torch.equal(res.keep, keep)
     with pytest.raises(InputError, match="2 results for 3 chains"):
         product_ik(poses, results[:2], prod)

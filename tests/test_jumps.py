@@ -337,7 +337,8 @@ def test_product_of_trees(sk, scene):
     # the combined index is the bitmask: chain c's leaf is its bits
     assert prod.leaf[0b10_01_11].tolist() == [0b11, 0b01, 0b10]
     assert flip_names(prod, 0b10_01_11) == ["larm:lhumerus", "larm:lradius", "head:upperneck", "rleg:rtibia"]
-    unique = trees[0].unique[:, prod.leaf[:, 0]] & trees[1].unique[:, prod.leaf[:, 1]] & trees[2].unique[:, prod.leaf[:, 2]]
+    unique = (trees[0].unique[:, prod.leaf[:, 0]] & trees[1].unique[:, prod.leaf[:, 1]]
+              & trees[2].unique[:, prod.leaf[:, 2]])
     assert torch.equal(prod.unique, unique)
     penalty = sum(t.penalty[:, prod.leaf[:, c]] for c, t in enumerate(trees))
     torch.testing.assert_close(prod.penalty, penalty)
