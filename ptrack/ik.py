@@ -22,17 +22,22 @@ Closed forms (Sminchisescu & Triggs 2003, section 3.1), chosen by `ik_plan` from
 Each ball's rotation has two Euler solutions (y and pi - y) and a limb's hinge two candidates, all
 reproducing the same positions; the one inside the joint limits is chosen (least violation),
 ties going to the nearest to the current angles. Angles are returned in the limits' 2 pi window
-(`ptrack.limits.wrap_to_limits`). Leaves whose angles still break the limits are flagged for
-`mode="prune"`, or clamped into them and re-run through the chain's forward kinematics for
-`mode="project"`. The chain's root must stay where q's forward kinematics puts it; bone lengths
-are the model's (`sk.lengths`).
+(as `ptrack.limits.wrap_to_limits`; unlimited angles in [-pi, pi)). Leaves whose angles still
+break the limits are flagged for `mode="prune"`, or clamped into them and re-run through the
+chain's forward kinematics for `mode="project"`. The chain's root must stay where q's forward
+kinematics puts it; bone lengths are the model's (`sk.lengths`). Joints past the chain's end
+(hand, foot) follow through q's own angles below it.
 
-The iterative fallback (any chain, URDF models, and leaves whose closed form is not `exact`) is to
-run the shared solver `ptrack.solvers` on the chain's dofs; it is not here yet. Where to plug it in:
-`ik_plan` raises `ClosedFormUnavailable` for chains without a closed form, and `IKResult.exact`
-marks leaves where the closed form missed its targets (bone lengths inconsistent with the model).
+Not here yet: the iterative fallback for chains without a closed form (URDF models, other
+structures) and for leaves whose closed form missed (`IKResult.exact` False: targets that break the
+model's bone lengths). It is to minimise |FK(q)[chain joints] - positions|^2 over `dofs` with the
+shared solver (`ptrack.solvers.levenberg_marquardt`, Jacobians from `ptrack.jacobians`), within
+the limits, and return an `IKResult`; callers catch `ClosedFormUnavailable` from `ik_plan` (which
+names the chain and the joint that breaks the closed form) to take that path.
 
-Shapes: `N` hypotheses (any leading batch dims), `L` leaves, `D` dofs, n links.
+Layout: the solvers work on struct-of-arrays tensors (`ptrack.jumps`), hypotheses last; inputs and
+outputs are ordinary batch-first tensors. Shapes: `N` hypotheses (any leading batch dims), `L`
+leaves, `D` dofs, `M` solved dofs, n links.
 """
 
 from __future__ import annotations
@@ -109,7 +114,7 @@ def ik_plan(sk: Skeleton, chain: Chain) -> ChainIK:
         seg = path_below(sk, p, c)
         firsts.append(seg[0])
         path.extend(seg)
-    r, names = chain.joints[0], chain.joint_names
+    names = chain.joint_names
     if chain.num_links == 2 and path == list(chain.joints[1:]) and _is_ball(sk, path[0]):
         e = path[1]
         driven = np.flatnonzero(sk.axis_dof[e] >= 0)
@@ -194,15 +199,15 @@ def _tensors(plan: ChainIK, dtype: torch.dtype, device: torch.device) -> dict:
             mask=t(sk.axis_dof[j] >= 0)[:, None],
             frozen=t(np.where(sk.axis_dof[j] >= 0, 0.0, sk.frozen_axes[j]))[:, None],
             c=None if c is None else t(c),
-            k1=t(-k1), k2=t(k1 @ k1),
+            k1=t(k1), k2=t(k1 @ k1),
             rest=None if np.allclose(sk.rest_rotation[j], np.eye(3)) else t(sk.rest_rotation[j]),
             u=None if not np.any(sk.offset_parent[j]) else t(sk.offset_parent[j] * sk.lengths[j]),
             w=t(sk.offset_local[j] * sk.lengths[j]),
         )
     lower, upper = sk.limits(dtype=dtype, device=device)
     dofs = torch.as_tensor(plan.dofs, device=device)
-    shift, half = _limit_terms(lower[dofs], upper[dofs])
-    out = dict(per=per, dofs=dofs, lower=lower[dofs], upper=upper[dofs], shift=shift, half=half,
+    out = dict(per=per, dofs=dofs, lower=lower[dofs], upper=upper[dofs],
+               shift=_window_shift(lower[dofs], upper[dofs]),
                used=torch.as_tensor(used, device=device), hinge_row=row[plan.dofs[-1]],
                root_position=t(sk.root_position)[:, None],
                trans_index=rows(sk.translation_dof),
@@ -315,21 +320,28 @@ def euler_zyx_solutions(r: Tensor, x_lock: Tensor) -> Tensor:
     return _aos(out, 2).transpose(-1, -2)
 
 
-def _limit_terms(lower: Tensor, upper: Tensor) -> tuple[Tensor, Tensor]:
-    """(pi - centre, half width) of angular limits (M,) for `_pick`; unlimited: (pi, inf)."""
+def _window_shift(lower: Tensor, upper: Tensor) -> Tensor:
+    """pi - centre of each dof's 2 pi window (M,): the arc's centre for two finite bounds, else 0;
+    angle a is in its window as remainder(a + shift, 2 pi) - shift (`ptrack.limits.wrap_to_limits`)."""
     limited = torch.isfinite(lower) & torch.isfinite(upper)
-    centre = torch.where(limited, 0.5 * (lower + upper), torch.zeros_like(lower))
-    half = torch.where(limited, 0.5 * (upper - lower), torch.full_like(lower, math.inf))
-    return math.pi - centre, half
+    return math.pi - torch.where(limited, 0.5 * (lower + upper), torch.zeros_like(lower))
 
 
-def _pick(cands: Tensor, current: Tensor, shift: Tensor, half: Tensor) -> Tensor:
-    """The candidate angle vector with least limit violation (radians on the circle, summed over
-    dofs), ties within ~1e-6 going to the nearest to `current` (sum of 1 - cos of the differences):
-    cands (A, K, *M), current (A, *M) broadcastable, limits (A,) as `_limit_terms` -> (A, *M)."""
-    nd = cands.ndim - 1
-    rel = torch.remainder(cands + _sconst(shift, nd), TAU) - math.pi  # from the arc's centre, [-pi, pi)
-    viol = (rel.abs() - _sconst(half, nd)).clamp_min(0.0).sum(0)  # (K, *M)
+def _violation(theta: Tensor, tc: dict, sl: slice = slice(None)) -> tuple[Tensor, Tensor]:
+    """Angles in their windows and their summed limit violation: theta (A, *M) (dofs tc[...][sl])
+    -> (A, *M), (*M) radians."""
+    nd = theta.ndim - 1
+    shift = _sconst(tc["shift"][sl], nd)
+    w = torch.remainder(theta + shift, TAU) - shift
+    viol = (_sconst(tc["lower"][sl], nd) - w).clamp_min(0.0) + (w - _sconst(tc["upper"][sl], nd)).clamp_min(0.0)
+    return w, viol.sum(0)
+
+
+def _pick(cands: Tensor, current: Tensor, tc: dict, sl: slice = slice(None)) -> Tensor:
+    """The candidate angle vector with least limit violation (radians, summed over dofs), ties
+    within ~1e-6 going to the nearest to `current` (sum of 1 - cos of the differences):
+    cands (A, K, *M), current (A, *M) broadcastable, limits of dofs tc[...][sl] -> (A, *M)."""
+    _, viol = _violation(cands, tc, sl)  # (K, *M)
     near = (1.0 - torch.cos(cands - current.unsqueeze(1))).sum(0)
     score = viol + 1e-6 * near
     best, out = score[0], cands[:, 0]
@@ -433,7 +445,7 @@ def _limb(plan: ChainIK, tc: dict, a_frame: Tensor, qs: Tensor, x: Tensor, ctol:
         z = torch.where(straight, z_swing[:, :, None], z)  # (3, 3, 2, L, B)
     eul = _seuler_solutions(z, cur_ball[2])  # (3, 2 Euler, 2 hinge, L, B)
     cands = torch.cat([eul, t[None, None].expand(1, *eul.shape[1:])]).flatten(1, 2)  # (4, 4, L, B)
-    return _pick(cands, cur[:, None], tc["shift"], tc["half"])
+    return _pick(cands, cur[:, None], tc)
 
 
 def _swing(plan: ChainIK, tc: dict, g_r: Tensor, p_r: Tensor, qs: Tensor, x: Tensor) -> Tensor:
@@ -461,7 +473,7 @@ def _swing(plan: ChainIK, tc: dict, g_r: Tensor, p_r: Tensor, qs: Tensor, x: Ten
         zmat = _smm(_smm(_st(cb), local), cb)
         cur = _slot_angles(per[ball], qs)[:, None]  # (3, 1, B)
         sl = slice(3 * k, 3 * k + 3)
-        out.append(_pick(_seuler_solutions(zmat, cur[2]), cur, tc["shift"][sl], tc["half"][sl]))
+        out.append(_pick(_seuler_solutions(zmat, cur[2]), cur, tc, sl))
     return torch.cat(out)
 
 
@@ -521,9 +533,8 @@ def chain_ik(plan: ChainIK, q: Tensor, positions: Tensor, mode: str = "prune", t
         def fk(th: Tensor) -> Tensor:
             return _path_fk(plan, tc, g_l, p_l, qs, _solved(plan, tc, th))
 
-    shift, half = _sconst(tc["shift"], 2), _sconst(tc["half"], 2)
-    theta = torch.remainder(theta + shift, TAU) - shift  # the limits' 2 pi window
-    in_limits = ((theta + shift - math.pi).abs() - half).clamp_min(0.0).sum(0) == 0  # (L, B)
+    theta, viol = _violation(theta, tc)  # in the limits' 2 pi windows
+    in_limits = viol == 0  # (L, B)
     pos = fk(theta)
     diff = pos - x
     residual = torch.sqrt((diff * diff).sum(1)).amax(0)

@@ -9,6 +9,7 @@ their interpretation trees.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -236,6 +237,22 @@ def test_limits_prune_and_project(sk, poses):
         chain_ik(ik_plan(sk, chains[0]), poses, trees[0].positions, mode="clamp")
 
 
+def test_one_sided_limit(sk, poses):
+    """A dof bounded on one side only is still checked and clamped on that side."""
+    chain = default_chains(sk, ["lleg"])[0]
+    knee = sk.dof_names.index("ltibia.rx")
+    lower, upper = sk.lower.copy(), sk.upper.copy()
+    lower[knee], upper[knee] = -math.inf, 1.0
+    one_sided = replace(sk, lower=lower, upper=upper)
+    _, (tree,) = _trees(one_sided, poses, [chain])
+    plan = ik_plan(one_sided, chain)
+    pruned = chain_ik(plan, poses, tree.positions)
+    bent = pruned.angles[..., 3] > 1.0
+    assert bool(bent.any()) and bool((~pruned.in_limits[bent]).all())
+    projected = chain_ik(plan, poses, tree.positions, mode="project")
+    assert float(projected.angles[..., 3].max()) <= 1.0
+
+
 def test_limits_choose_among_equivalent_solutions(sk, poses):
     """The elbow angle t and its mirror (with the humerus twisted by pi) give the same positions; the
     one inside the limits is returned even when the start is nearer the other."""
@@ -310,6 +327,19 @@ def test_product_ik(sk, poses):
     assert torch.equal(res.keep, keep)
     with pytest.raises(InputError, match="2 results for 3 chains"):
         product_ik(poses, results[:2], prod)
+
+
+def test_generic_axes_path_matches_frames(sk, poses):
+    """Joints whose axes are not a frame go through Rodrigues products: same rotations as C Z C^T."""
+    from ptrack.ik import _local, _slot_angles, _tensors  # the two paths of one joint's rotation
+
+    plan = ik_plan(sk, default_chains(sk, ["larm"])[0])
+    tc = _tensors(plan, torch.float64, torch.device("cpu"))
+    qs = poses.index_select(1, tc["used"]).T.contiguous()
+    for j in plan.ancestors + plan.path:
+        pj = tc["per"][j]
+        theta = _slot_angles(pj, qs)
+        torch.testing.assert_close(_local(dict(pj, c=None), theta), _local(pj, theta))
 
 
 def test_euler_zyx_solutions():
