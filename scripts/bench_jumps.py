@@ -16,7 +16,9 @@ Baselines measured in the same run, same dtype:
 - FK of the N x 8 leaf poses (ptrack's batched forward kinematics): the cost of merely evaluating
   the leaves the trees produce.
 A ratio > 1 means trees + IK are faster. Medians of `--repeats` runs (wall clock); the machine's
-load average is printed, since a shared 2-core machine skews every number.
+load average is printed, since a shared 2-core machine skews every number: with other jobs
+running, two torch threads wait on each other (FK and trees + IK alike get 3-20x slower), and
+`--threads 1` measures the code rather than the contention.
 """
 
 from __future__ import annotations
