@@ -84,6 +84,35 @@ class FrameMethodConfig:
 
 
 @dataclass(frozen=True)
+class KjsMethodConfig:
+    """Settings of the sampling trackers `kjs` (kinematic jumps + CSS diffusion), `css` and `ss`."""
+
+    modes: int = 8  # K: mixture modes kept per frame
+    samples: int = 256  # hypotheses polished per frame (diffusion samples + jump leaves), same budget for all
+    scale: float = 4.0  # covariance scale s of the diffusion (s times the inverse Gauss-Newton Hessian)
+    tail: str = "student"  # diffusion tail: gaussian, student, cauchy
+    tail_dof: float = 3.0  # Student-t degrees of freedom (tail: student)
+    # kinematic sub-chains that may be flipped, by name (`ptrack.jumps.default_chains`: larm, rarm, lleg,
+    # rleg, head); other chains through the Python API
+    chains: tuple[str, ...] = ("larm", "rarm", "lleg", "rleg", "head")
+    jumps_per_sample: int = 1  # chains flipped per diffusion sample, chosen by covariance voting
+    limits_mode: str = "prune"  # jump leaves outside the joint limits: prune or project
+    polisher: str = "lm"  # local optimiser of every hypothesis: lm (Levenberg-Marquardt) or lbfgs
+    polish_iterations: int = 4  # Levenberg-Marquardt iterations of every hypothesis
+    refine_iterations: int = 10  # further iterations of the 4K most promising distinct minima
+    momentum: float = 0.0  # share of a mode's last velocity in its prediction (0: constant position)
+    distinct_deg: float = 3.0  # minima closer than this in every dof are one
+    temperature: float = 1.0  # weights ∝ prior * exp(-cost / temperature)
+    prior_sigma: float = 0.15  # radians (or metres) per frame: the dynamics' velocity prior
+    collision_weight: float = 1.0  # body non-self-intersection term
+    floor_deg: float = 0.5  # smallest sampling std per dof (unobservable directions)
+    ceiling_deg: float = 30.0  # largest sampling std per dof
+    viterbi_sigma: float = 0.15  # radians per frame: smoothness of the best trajectory through the modes
+    init: str = "keyframe"  # keyframe: frame 0's 3D pose given; tree: rest pose fitted in view + every flip
+    rest_sigma: float = 1.0  # radians: init tree's prior of every angle around the rest pose
+
+
+@dataclass(frozen=True)
 class RunConfig:
     method: str = "frame"
     seed: int = 0
@@ -97,10 +126,11 @@ class RunConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     costs: CostsConfig = field(default_factory=CostsConfig)
     frame: FrameMethodConfig = field(default_factory=FrameMethodConfig)
+    kjs: KjsMethodConfig = field(default_factory=KjsMethodConfig)
     name: str = "run"  # config name, used for the default out_dir
 
 
-METHODS = ("frame",)
+METHODS = ("frame", "kjs", "css", "ss")
 _PATH_KEYS = {"data.asf", "data.amc", "observations.file", "out_dir"}
 
 
@@ -297,6 +327,26 @@ def validate(cfg: RunConfig) -> None:
         raise InputError(f"config key 'frame.init' must be 'keyframe' or 'rest', got {cfg.frame.init!r}")
     if cfg.frame.iterations < 1 or cfg.frame.first_iterations < 1:
         raise InputError("config keys 'frame.iterations' and 'frame.first_iterations' must be >= 1")
+    k = cfg.kjs
+    if k.modes < 1:
+        raise InputError(f"config key 'kjs.modes' must be >= 1, got {k.modes}")
+    if k.samples < k.modes:
+        raise InputError(f"config key 'kjs.samples' must be at least kjs.modes ({k.modes}), got {k.samples}")
+    for key in ("scale", "tail_dof", "distinct_deg", "temperature", "prior_sigma", "floor_deg", "ceiling_deg",
+                "viterbi_sigma", "rest_sigma"):
+        if not getattr(k, key) > 0:
+            raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(k, key)}")
+    if k.collision_weight < 0:
+        raise InputError(f"config key 'kjs.collision_weight' must be >= 0, got {k.collision_weight}")
+    if k.polish_iterations < 0 or k.refine_iterations < 0 or k.jumps_per_sample < 0:
+        raise InputError("config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' "
+                         "must be >= 0")
+    if not 0 <= k.momentum <= 1:
+        raise InputError(f"config key 'kjs.momentum' must be in [0, 1], got {k.momentum}")
+    for key, allowed in (("tail", ("gaussian", "student", "cauchy")), ("limits_mode", ("prune", "project")),
+                         ("polisher", ("lm", "lbfgs")), ("init", ("keyframe", "tree"))):
+        if getattr(k, key) not in allowed:
+            raise InputError(f"config key 'kjs.{key}' must be one of {', '.join(allowed)}, got {getattr(k, key)!r}")
     if cfg.costs.sigma_px <= 0:
         raise InputError(f"config key 'costs.sigma_px' must be positive, got {cfg.costs.sigma_px}")
 

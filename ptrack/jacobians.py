@@ -189,8 +189,7 @@ def objective_linearization(sk: Skeleton, objective: Objective, camera: Camera,
 
     def linearize(q: Tensor) -> Linearization:
         ev, jac = pose_eval_and_jacobian(sk, camera, keypoints, q)
-        return Linearization(objective.residuals(ev), objective.jacobian(ev, jac), objective.robust_weights(ev),
-                             objective(ev).total)
+        return Linearization(*objective.linearize(ev, jac))
 
     return linearize
 

@@ -17,12 +17,14 @@ from ptrack.errors import InputError
 
 
 class Modes(NamedTuple):
-    """K weighted modes of one frame: q (K, D), weight (K,) summing to 1, cost (K,), chol (K, D, D)."""
+    """K weighted modes of one frame: q (K, D), weight (K,) summing to 1, cost (K,), chol (K, D, D),
+    velocity (K, D) per frame (the change from the mode it came from; zeros at the start)."""
 
     q: Tensor
     weight: Tensor
     cost: Tensor
     chol: Tensor
+    velocity: Tensor
 
 
 def distinct_minima(q: Tensor, cost: Tensor, min_distance: float, limit: int | None = None) -> Tensor:

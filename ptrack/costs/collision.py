@@ -234,7 +234,8 @@ class SelfIntersection(_LeastSquares):
         """jac.joints (..., J, 3, D) -> (..., P, D) in closed form: with the closest points held
         (Danskin), d d_ab / d end = +-(1 - s or s) n along the unit gap n, zero for pairs apart."""
         joints = ev.joints
-        self.penetration(joints)  # shape checks
+        if joints.ndim < 2 or joints.shape[-1] != 3 or joints.shape[-2] < self._joints_needed:
+            self.penetration(joints)  # raises the shape error
         ends = joints.index_select(-2, self._ends.to(joints.device)).unflatten(-2, (4, -1))
         p0, p1, q0, q1 = ends.movedim((-3, -1), (0, 1))  # (3, ..., P) each
         u, v, w = p1 - p0, q1 - q0, p0 - q0

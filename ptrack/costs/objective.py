@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
-from ptrack.costs.base import CostTerm, PoseEval, PoseJacobian
+from ptrack.costs.base import CostTerm, PoseEval, PoseJacobian, _LeastSquares
 
 # ---------------------------------------------------------------------------------------------
 # Objective.
@@ -96,6 +96,24 @@ class Objective:
                 j = _forward_jacobian(term, ev, jac)
             parts.append(math.sqrt(self.weights[name]) * j)
         return torch.cat(parts, dim=-2)
+
+    def linearize(self, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """`residuals`, `jacobian`, `robust_weights` and the total energy at once, each least-squares
+        term's residual computed once: -> (..., M), (..., M, D), (..., M), (...,)."""
+        rs, ws, es = [], [], []
+        for name, term in self.terms.items():
+            w = self.weights[name]
+            if isinstance(term, _LeastSquares):
+                r = term.residual(ev)
+                rs.append(math.sqrt(w) * r)
+                ws.append(torch.ones_like(r))
+                es.append(0.5 * w * r.square().sum(-1))
+            else:
+                rs.append(math.sqrt(w) * term.residual(ev))
+                ws.append(term.robust_weights(ev))
+                es.append(w * term.energy(ev))
+        _same_batch("residuals", {name: r.shape[:-1] for name, r in zip(self.terms, rs)})
+        return torch.cat(rs, -1), self.jacobian(ev, jac), torch.cat(ws, -1), torch.stack(es).sum(0)
 
     def robust_weights(self, ev: PoseEval) -> Tensor:
         """ev -> (..., M_total) IRLS weights rho'(s) aligned with `residuals` (1 for l2 terms)."""

@@ -7,7 +7,8 @@ iterable to show progress (identity when quiet).
 """
 
 from ptrack.estimators.frame import estimate_frames
+from ptrack.estimators.kjs import estimate_css, estimate_kjs, estimate_ss
 
-ESTIMATORS = {"frame": estimate_frames}
+ESTIMATORS = {"frame": estimate_frames, "kjs": estimate_kjs, "css": estimate_css, "ss": estimate_ss}
 
-__all__ = ["ESTIMATORS", "estimate_frames"]
+__all__ = ["ESTIMATORS", "estimate_css", "estimate_frames", "estimate_kjs", "estimate_ss"]

@@ -1,0 +1,382 @@
+"""`method: kjs` (kinematic jumps + covariance scaled diffusion), `css` and `ss`: mixture density
+propagation trackers (Sminchisescu & Triggs 2003, figs. 4-5).
+
+The posterior of each frame is a mixture of K modes (`ptrack.mixture.Modes`). One step of the tracker,
+from frame t-1's modes to frame t's:
+
+1. predict: each mode's centre is carried to frame t (constant position; its prior below is the
+   dynamics' velocity noise `kjs.prior_sigma`);
+2. diffusion: samples around the modes, mode m getting a share of the budget by its weight, drawn
+   from its covariance scaled by `kjs.scale` (CSS), or isotropically with the same volume (SS), with
+   Gaussian, Student-t or Cauchy tails, then projected onto the joint limits;
+3. jumps (kjs only): each sample picks a chain by the covariance vote of its mode (the chain holding
+   most of the mode's uncertainty is flipped most often), the chain's interpretation tree is grown
+   through the observed 2D joints of frame t (`ptrack.jumps`), and every leaf is turned back into
+   angles by closed-form IK (`ptrack.ik`); leaves outside the limits are pruned or projected;
+4. polishing: every hypothesis (the predicted modes, the samples, the leaves: `kjs.samples` in all,
+   the same budget for kjs, css and ss) runs a batched Levenberg-Marquardt or L-BFGS
+   (`ptrack.solvers`) on robust reprojection + joint limits + body non-self-intersection + the
+   prior around its mode's prediction;
+5. distinct minima (no dof apart by more than `kjs.distinct_deg`), weights ∝ (weight of the mode they
+   came from) * exp(-cost / temperature), the K heaviest kept, each with the covariance
+   scale * (Gauss-Newton Hessian)^-1 for the next frame's diffusion.
+
+Frame 0 starts from a 3D keyframe (`kjs.init: keyframe`), or, with no 3D input (`init: tree`), from
+the rest pose placed in view and fitted to frame 0's 2D, followed by every flip combination of the
+chains (the product of their trees) and the K best distinct minima. A frame with no observed
+keypoint is carried by the dynamics. The output's `hypotheses` are the K modes of each frame;
+`q`/`joints` are the best trajectory through them by Viterbi with a velocity prior.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Iterable
+
+import torch
+from torch import Tensor
+
+from ptrack.costs import JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
+from ptrack.errors import InputError
+from ptrack.estimators.frame import rest_pose_in_view
+from ptrack.ik import ChainIK, ClosedFormUnavailable, chain_ik, ik_plan, product_ik
+from ptrack.jacobians import objective_linearization, pose_eval_from_joints
+from ptrack.jumps import (Chain, check_independent, default_chains, interpretation_tree, interpretation_trees,
+                          joint_observations, product)
+from ptrack.limits import wrap_to_limits
+from ptrack.mixture import Modes, distinct_minima, posterior_weights, viterbi
+from ptrack.problem import Estimate, Problem
+from ptrack.samplers import css_proposal, project_to_limits, scaled_covariance, spherical_proposal
+from ptrack.solvers import lbfgs, levenberg_marquardt
+
+
+@dataclass(frozen=True)
+class Strategy:
+    """What distinguishes the three trackers: the diffusion's core shape and whether to jump."""
+
+    name: str
+    spherical: bool
+    jumps: bool
+
+
+KJS = Strategy("kjs", spherical=False, jumps=True)
+CSS = Strategy("css", spherical=False, jumps=False)
+SS = Strategy("ss", spherical=True, jumps=False)
+
+
+@dataclass(frozen=True, eq=False)
+class Setup:
+    """Everything fixed over the sequence: model, limits, cost terms without the frame's data,
+    chains with their IK plans."""
+
+    problem: Problem
+    cfg: object
+    lower: Tensor  # (D,)
+    upper: Tensor  # (D,)
+    angular: Tensor  # (D,) bool
+    collision: SelfIntersection | None
+    chains: tuple[Chain, ...]
+    plans: tuple[ChainIK, ...]
+    chain_dofs: Tensor  # (C, D) bool: dofs each chain's IK sets
+
+
+def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
+    sk = problem.skeleton
+    obs = problem.observations
+    dtype, device = obs.keypoints.dtype, obs.keypoints.device
+    k = cfg.kjs
+    lower, upper = sk.limits(dtype=dtype, device=device)
+    angular = torch.as_tensor(sk.angular_dofs(), device=device)
+    collision = None
+    if k.collision_weight > 0:
+        collision = SelfIntersection.for_skeleton(sk)
+    chains: tuple[Chain, ...] = ()
+    plans: tuple[ChainIK, ...] = ()
+    if strategy.jumps or k.init == "tree":
+        try:
+            chains = default_chains(sk, k.chains)
+        except InputError as e:
+            raise InputError(f"config key 'kjs.chains': {e}") from None
+        check_independent(sk, chains)
+        try:
+            plans = tuple(ik_plan(sk, c) for c in chains)
+        except ClosedFormUnavailable as e:
+            raise InputError(f"config key 'kjs.chains': {e}") from None
+    chain_dofs = torch.zeros(len(chains), sk.num_dofs, dtype=torch.bool, device=device)
+    for c, plan in enumerate(plans):
+        chain_dofs[c, list(plan.dofs)] = True
+    return Setup(problem, cfg, lower, upper, angular, collision, chains, plans, chain_dofs)
+
+
+# ---------------------------------------------------------------- the frame's objective
+
+
+def _objective(s: Setup, t: int, mean: Tensor | None, sigma: float | Tensor | None = None) -> Objective:
+    """Robust reprojection on frame t + limits + collision (+ the prior around `mean` (N, D), std `sigma`,
+    by default the dynamics' `kjs.prior_sigma`)."""
+    cc, k = s.cfg.costs, s.cfg.kjs
+    obs = s.problem.observations
+    terms = {"reprojection": Reprojection(obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss,
+                                          scale=cc.robust_scale),
+             "limits": JointLimits(s.lower, s.upper, sigma=cc.limits_sigma)}
+    weights = {"limits": cc.limits_weight}
+    if s.collision is not None:
+        terms["collision"] = s.collision
+        weights["collision"] = k.collision_weight
+    if mean is not None:
+        terms["prior"] = PosePrior(mean, k.prior_sigma if sigma is None else sigma)
+    return Objective(terms, weights)
+
+
+def _polish(s: Setup, t: int, q: Tensor, mean: Tensor | None, iterations: int,
+            sigma: float | Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Local optimisation of N hypotheses on frame t. q, mean: (N, D) -> q (N, D), cost (N,), hessian (N, D, D)."""
+    prob = s.problem
+    sk, cam, kps = prob.skeleton, prob.observations.camera, prob.keypoints
+    objective = _objective(s, t, mean, sigma)
+    linearize = objective_linearization(sk, objective, cam, kps)
+    if s.cfg.kjs.polisher == "lbfgs" and iterations > 0:
+        def energy(x: Tensor) -> Tensor:
+            return objective(pose_eval_from_joints(cam, kps, x, sk.forward_kinematics(x))).total
+
+        q, _ = lbfgs(energy, q, s.lower, s.upper, max_iter=iterations)
+        iterations = 1  # one Gauss-Newton pass for the Hessian and the cost
+    q, info = levenberg_marquardt(linearize, q, s.lower, s.upper, max_iter=max(iterations, 1), tol=1e-6)
+    return q, info.cost, info.hessian
+
+
+def _cholesky(s: Setup, hessian: Tensor) -> Tensor:
+    k = s.cfg.kjs
+    return scaled_covariance(hessian, k.scale, max_std=math.radians(k.ceiling_deg) / math.sqrt(k.scale),
+                             min_std=math.radians(k.floor_deg) / math.sqrt(k.scale)).chol
+
+
+# ---------------------------------------------------------------- sampling
+
+
+def _allocate(weight: Tensor, total: int) -> list[int]:
+    """Split `total` samples over modes by weight, every mode at least one (if total allows)."""
+    m = weight.shape[0]
+    base = min(1, total // max(m, 1))
+    rest = total - base * m
+    share = torch.floor(weight.double() * rest)
+    left = rest - int(share.sum())
+    order = torch.argsort(weight.double() * rest - share, descending=True)
+    share[order[:left]] += 1
+    return [base + int(x) for x in share.tolist()]
+
+
+def _diffuse(s: Setup, modes: Modes, total: int, strategy: Strategy, gen: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Draw `total` diffusion samples: -> q (total, D), parent mode index (total,)."""
+    k = s.cfg.kjs
+    counts = _allocate(modes.weight, total)
+    dof = k.tail_dof if k.tail == "student" else None
+    propose = spherical_proposal if strategy.spherical else css_proposal
+    draws = propose(modes.q, modes.chol, counts, gen, tail=k.tail, dof=dof)
+    q = project_to_limits(draws.samples, s.lower, s.upper, s.angular, mode="reflect")
+    return q, draws.component
+
+
+def _chain_votes(s: Setup, chol: Tensor) -> Tensor:
+    """(M, D, D) scale factors -> (M, C) probability of flipping each chain: the share of each mode's
+    covariance (trace over the chain's dofs) that the chain holds."""
+    var = chol.square().sum(-1)  # (M, D) marginal variances = diag(L L^T)
+    votes = (var[:, None, :] * s.chain_dofs.to(var)).sum(-1)  # (M, C)
+    return votes / votes.sum(-1, keepdim=True).clamp_min(torch.finfo(var.dtype).tiny)
+
+
+def _jump(s: Setup, t: int, q: Tensor, parent: Tensor, modes: Modes, gen: torch.Generator,
+          per_sample: int) -> tuple[Tensor, Tensor]:
+    """Kinematic jumps of samples q (S, D) on frame t: each flips `per_sample` chains chosen by its mode's
+    covariance vote. -> leaves q (L_all, D) (the samples' own leaf 0 included), parent mode (L_all,)."""
+    prob = s.problem
+    sk, obs = prob.skeleton, prob.observations
+    if per_sample == 0 or not s.chains:
+        return q, parent
+    px, conf = joint_observations(prob.keypoints, obs.keypoints[t], obs.confidence[t], sk.num_joints)
+    probs = _chain_votes(s, modes.chol)[parent]  # (S, C)
+    picks = torch.multinomial(probs.double().cpu(), min(per_sample, len(s.chains)), replacement=False,
+                              generator=gen).to(q.device)  # (S, c)
+    out_q, out_parent = [q], [parent]
+    joints = sk.forward_kinematics(q)
+    for c, (chain, plan) in enumerate(zip(s.chains, s.plans)):
+        rows = (picks == c).any(-1).nonzero()[:, 0]
+        if rows.numel() == 0:
+            continue
+        tree = interpretation_tree(chain, joints[rows], obs.camera, px, conf)
+        ik = chain_ik(plan, q[rows], tree.positions, mode=s.cfg.kjs.limits_mode)
+        keep = ik.keep & tree.unique & ~tree.infeasible.any(-1)
+        keep[:, 0] = False  # leaf 0 keeps the sample's own interpretation: already in out_q
+        idx = keep.nonzero()
+        out_q.append(ik.q[idx[:, 0], idx[:, 1]])
+        out_parent.append(parent[rows][idx[:, 0]])
+    return torch.cat(out_q), torch.cat(out_parent)
+
+
+# ---------------------------------------------------------------- one tracking step
+
+
+def _select(s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, prior_weight: Tensor, origin: Tensor,
+            count: int) -> Tensor:
+    """Distinct minima among polished hypotheses, the `count` heaviest first: -> indices (M,) and their
+    normalised weights (M,). prior_weight (N,): weight of the mode each came from."""
+    k = s.cfg.kjs
+    keep = distinct_minima(q, cost, math.radians(k.distinct_deg))
+    w = posterior_weights(cost[keep] - cost[keep].min(), prior_weight[keep], k.temperature)
+    order = torch.argsort(w, descending=True)[:count]
+    return keep[order], w[order] / w[order].sum()
+
+
+def _modes(s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, weight: Tensor, origin: Tensor) -> Modes:
+    """Modes from selected hypotheses; origin (M, D): the previous-frame pose each came from."""
+    return Modes(q=q, weight=weight, cost=cost, chol=_cholesky(s, hessian), velocity=q - origin)
+
+
+def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generator) -> Modes:
+    k = s.cfg.kjs
+    obs = s.problem.observations
+    predicted = modes.q + k.momentum * modes.velocity  # (K, D): the dynamics' prediction of each mode
+    if not bool((obs.confidence[t] > 0).any()):  # nothing seen: the dynamics carry the modes
+        return modes._replace(q=predicted)
+    centres = modes._replace(q=predicted)
+    budget = k.samples - modes.q.shape[0]
+    if strategy.jumps and s.chains and k.jumps_per_sample > 0:
+        # each diffusion sample brings up to 2^n - 1 flipped leaves per chain it jumps
+        leaves = max(2 ** max(c.num_links for c in s.chains) - 1, 1) * min(k.jumps_per_sample, len(s.chains))
+        n_diffuse = max(budget // (1 + leaves), 1)
+    else:
+        n_diffuse = budget
+    q, parent = _diffuse(s, centres, n_diffuse, strategy, gen)
+    if strategy.jumps:
+        q, parent = _jump(s, t, q, parent, centres, gen, k.jumps_per_sample)
+        q, parent = q[:budget], parent[:budget]
+    idx = torch.arange(modes.q.shape[0], device=q.device)
+    q = torch.cat([predicted, q])
+    parent = torch.cat([idx, parent])
+    # polish everything briefly, then the most promising distinct minima to convergence
+    q, cost, hessian = _polish(s, t, q, predicted[parent], k.polish_iterations)
+    best, _ = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], 4 * k.modes)
+    q, parent = q[best], parent[best]
+    q, cost, hessian = _polish(s, t, q, predicted[parent], k.refine_iterations)
+    keep, w = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], k.modes)
+    return _modes(s, q[keep], cost[keep], hessian[keep], w, modes.q[parent[keep]])
+
+
+# ---------------------------------------------------------------- initialisation
+
+
+def _init_keyframe(s: Setup) -> Tensor:
+    prob = s.problem
+    kf = prob.keyframes
+    if kf is None or not bool((kf.frames == 0).any()):
+        raise InputError("kjs.init is 'keyframe' but no 3D keyframe is given for frame 0")
+    q0 = kf.q[(kf.frames == 0).nonzero()[0, 0]].to(s.lower)
+    return wrap_to_limits(q0, s.lower, s.upper, s.angular)[None]
+
+
+def _rest_prior(s: Setup, q: Tensor) -> tuple[Tensor, Tensor]:
+    """The prior of a start without 3D input: every angle near the rest pose (std `kjs.rest_sigma`), the
+    root's position near where the rigid fit of the body put it (std 0.1 m: monocular depth is otherwise
+    traded for limbs tilted in depth), its rotation free. q (N, D) -> mean (N, D), sigma (D,)."""
+    sk = s.problem.skeleton
+    root = torch.zeros(sk.num_dofs, dtype=torch.bool, device=q.device)
+    root[[i for i, n in enumerate(sk.dof_names) if n.startswith("root.")]] = True
+    trans = torch.zeros_like(root)
+    trans[[int(d) for d in sk.translation_dof if d >= 0]] = True
+    mean = torch.where(root, q, torch.zeros_like(q))
+    sigma = torch.full_like(q[0], s.cfg.kjs.rest_sigma)
+    sigma = torch.where(root, torch.full_like(sigma, 1e3), sigma)
+    sigma = torch.where(trans, torch.full_like(sigma, 0.1), sigma)
+    return mean, sigma
+
+
+def _init_tree(s: Setup) -> Tensor:
+    """No 3D input: the rest pose in view, fitted to frame 0's 2D (root first, then every dof with the
+    rest prior), then every flip combination of the chains. -> candidates (N, D)."""
+    prob = s.problem
+    sk, obs = prob.skeleton, prob.observations
+    q = torch.clamp(rest_pose_in_view(prob, s.lower.dtype), s.lower, s.upper)[None]
+    root = torch.zeros(sk.num_dofs, dtype=torch.bool, device=q.device)
+    root[[i for i, n in enumerate(sk.dof_names) if n.startswith("root.")]] = True
+    lo = torch.where(root, s.lower, q[0])
+    hi = torch.where(root, s.upper, q[0])
+    q, _ = levenberg_marquardt(objective_linearization(sk, _objective(s, 0, None), obs.camera, prob.keypoints),
+                               q, lo, hi, max_iter=30)
+    mean, sigma = _rest_prior(s, q)
+    q, _, _ = _polish(s, 0, q, mean, 30, sigma)
+    px, conf = joint_observations(prob.keypoints, obs.keypoints[0], obs.confidence[0], sk.num_joints)
+    trees = interpretation_trees(s.chains, sk.forward_kinematics(q), obs.camera, px, conf)
+    prod = product(trees)
+    results = [chain_ik(plan, q, tree.positions, mode=s.cfg.kjs.limits_mode) for plan, tree in zip(s.plans, trees)]
+    ik = product_ik(q, results, prod)
+    keep = (ik.keep & prod.unique)[0]
+    return ik.q[0][keep]
+
+
+def _first_modes(s: Setup, strategy: Strategy) -> Modes:
+    k = s.cfg.kjs
+    if k.init == "keyframe":  # the user's 3D pose, held by a tight prior (0.01 rad / m): it is their word
+        q = _init_keyframe(s)
+        q, cost, hessian = _polish(s, 0, q, q, 20, 0.01)
+    else:
+        q = _init_tree(s)
+        mean, sigma = _rest_prior(s, q)
+        q, cost, hessian = _polish(s, 0, q, mean, 20, sigma)
+    keep, w = _select(s, q, cost, hessian, torch.ones_like(cost), q, k.modes)
+    return _modes(s, q[keep], cost[keep], hessian[keep], w, q[keep])
+
+
+# ---------------------------------------------------------------- the estimator
+
+
+def _pad(modes: Modes, k: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Modes -> (K, D) q, (K,) weights, (K,) costs, padding with copies of the best at weight 0."""
+    m = modes.q.shape[0]
+    if m >= k:
+        return modes.q, modes.weight, modes.cost
+    fill = k - m
+    return (torch.cat([modes.q, modes.q[:1].expand(fill, -1)]),
+            torch.cat([modes.weight, modes.weight.new_zeros(fill)]),
+            torch.cat([modes.cost, modes.cost[:1].expand(fill)]))
+
+
+def track(problem: Problem, cfg, generator: torch.Generator, strategy: Strategy,
+          progress: Callable[[Iterable], Iterable] = lambda x: x) -> Estimate:
+    """Run the tracker `strategy` over every frame of `problem` (see the module docstring)."""
+    s = _setup(problem, cfg, strategy)
+    sk, obs = problem.skeleton, problem.observations
+    k = cfg.kjs
+    qs, ws, cs = [], [], []
+    modes = None
+    for t in progress(range(obs.num_frames)):
+        modes = _first_modes(s, strategy) if modes is None else _step(s, t, modes, strategy, generator)
+        q, w, c = _pad(modes, k.modes)
+        qs.append(q)
+        ws.append(w)
+        cs.append(c)
+    hq, hw, hc = torch.stack(qs), torch.stack(ws), torch.stack(cs)  # (T, K, D), (T, K), (T, K)
+    unary = hc - torch.log(hw.clamp_min(torch.finfo(hw.dtype).tiny))
+    path = viterbi(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), hq, k.viterbi_sigma)
+    frames = torch.arange(hq.shape[0], device=hq.device)
+    q = hq[frames, path]
+    with torch.no_grad():
+        hyp_joints = sk.forward_kinematics(hq)
+        joints = hyp_joints[frames, path]
+    return Estimate(q=q, joints=joints, cost=hc[frames, path], terms={"mode_cost": hc[frames, path]},
+                    hypotheses=hyp_joints, hypothesis_weights=hw, hypothesis_costs=hc)
+
+
+def estimate_kjs(problem, cfg, generator, progress=lambda x: x) -> Estimate:
+    """`method: kjs`: kinematic jump sampling with CSS diffusion."""
+    return track(problem, cfg, generator, KJS, progress)
+
+
+def estimate_css(problem, cfg, generator, progress=lambda x: x) -> Estimate:
+    """`method: css`: covariance scaled sampling only, same hypothesis budget."""
+    return track(problem, cfg, generator, CSS, progress)
+
+
+def estimate_ss(problem, cfg, generator, progress=lambda x: x) -> Estimate:
+    """`method: ss`: spherical sampling only, same hypothesis budget and core volume."""
+    return track(problem, cfg, generator, SS, progress)

@@ -1,0 +1,144 @@
+"""Tests for the sampling trackers (`method: kjs`, `css`, `ss`) on seeded real CMU clips: the true pose
+stays among the K modes, the outputs are well formed and reproducible, bad settings are refused."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from ptrack import metrics as M
+from ptrack.cli import main
+from ptrack.config import load_config
+from ptrack.errors import InputError
+from ptrack.estimators import ESTIMATORS
+from ptrack.estimators.kjs import KJS, _chain_votes, _setup, track
+from ptrack.problem import Problem
+from ptrack.run import prepare
+
+REPO = Path(__file__).resolve().parents[1]
+KJS_YAML = REPO / "configs" / "kjs.yaml"
+# the issue's accuracy setting: 1 px noise, nothing missing, frame 0 given in 3D; 1 s of the kick
+EXACT = ["data.stop=120", "observations.noise_px=1", "observations.missing=0", "progress=false"]
+K = 8
+
+
+def _run(*extra: str, seed: int = 1):
+    cfg = load_config(KJS_YAML, [*EXACT, *extra])
+    prep = prepare(cfg)
+    est = ESTIMATORS[cfg.method](prep.problem, cfg, torch.Generator().manual_seed(seed))
+    return prep, est
+
+
+def _errors(prep, est) -> tuple[float, float]:
+    """-> (best trajectory MPJPE, best-of-K MPJPE) over the 17 keypoints, mm."""
+    idx = prep.problem.keypoints.index()
+    gt = prep.gt_joints.to(est.joints).index_select(-2, idx)
+    traj = M.mpjpe(est.joints.index_select(-2, idx), gt).mean()
+    best = M.best_of_k_mpjpe(est.hypotheses.index_select(-2, idx), gt).mean()
+    return float(traj), float(best)
+
+
+@pytest.fixture(scope="module")
+def kjs_run():
+    return _run()
+
+
+def test_outputs(kjs_run):
+    prep, est = kjs_run
+    T, D, J = 30, prep.problem.skeleton.num_dofs, prep.problem.skeleton.num_joints
+    assert est.q.shape == (T, D) and est.joints.shape == (T, J, 3)
+    assert est.hypotheses.shape == (T, K, J, 3)
+    assert est.hypothesis_weights.shape == est.hypothesis_costs.shape == (T, K)
+    torch.testing.assert_close(est.hypothesis_weights.sum(-1), torch.ones(T), atol=1e-5, rtol=0)
+    assert (est.hypothesis_weights >= 0).all() and torch.isfinite(est.hypotheses).all()
+    # q/joints is one hypothesis per frame (the Viterbi path)
+    d = (est.hypotheses - est.joints[:, None]).norm(dim=-1).amax(-1).amin(-1)
+    assert float(d.max()) < 1e-5
+
+
+def test_keyframe_accuracy(kjs_run):
+    """Issue target: best-of-K under 20 mm at 1 px, nothing missing, keyframe start (measured on frames
+    0-116 of 10_02: best-of-K 13.6 mm, best trajectory 16.9 mm)."""
+    traj, best = _errors(*kjs_run)
+    assert best < 20.0, f"best-of-K {best:.1f} mm"
+    assert traj < 25.0, f"best trajectory {traj:.1f} mm"
+
+
+def test_deterministic_per_seed():
+    _, est = _run("data.stop=24", seed=1)
+    _, again = _run("data.stop=24", seed=1)
+    assert torch.equal(again.hypotheses, est.hypotheses)
+    _, other = _run("data.stop=24", seed=2)
+    assert not torch.equal(other.hypotheses, est.hypotheses)
+
+
+def test_tree_init_needs_no_3d():
+    """init: tree fits the rest pose in view and enumerates every flip: no keyframe used (measured:
+    best-of-K 25.6 mm, best trajectory 30.0 mm on frames 0-116 of 10_02; the threshold leaves room for
+    the shorter clip here)."""
+    cfg = load_config(KJS_YAML, [*EXACT, "kjs.init=tree", "data.stop=80"])
+    prep = prepare(cfg)
+    bare = Problem(prep.problem.skeleton, prep.problem.keypoints, prep.problem.observations)  # no keyframes
+    est = track(bare, cfg, torch.Generator().manual_seed(1), KJS)
+    traj, best = _errors(prep, est)
+    assert best < 40.0, f"best-of-K {best:.1f} mm"
+
+
+@pytest.mark.parametrize("method", ["css", "ss"])
+def test_sampling_baselines_run_at_the_same_budget(method):
+    """css/ss: no jumps, same hypothesis budget (measured best-of-K: css 14.7 mm, ss 15.1 mm)."""
+    prep, est = _run(f"method={method}", "data.stop=40")
+    _, best = _errors(prep, est)
+    assert est.hypotheses.shape[1] == K and best < 25.0
+
+
+def test_frames_without_keypoints_are_carried():
+    cfg = load_config(KJS_YAML, [*EXACT, "data.stop=32"])
+    prep = prepare(cfg)
+    obs = prep.problem.observations
+    conf = obs.confidence.clone()
+    conf[4:6] = 0.0
+    blind = Problem(prep.problem.skeleton, prep.problem.keypoints, obs.__class__(**{**obs.__dict__, "confidence": conf}),
+                    prep.problem.keyframes)
+    est = track(blind, cfg, torch.Generator().manual_seed(0), KJS)
+    assert torch.isfinite(est.q).all()
+    assert torch.equal(est.hypotheses[4], est.hypotheses[3])  # carried by the (constant-position) dynamics
+
+
+def test_chain_votes_follow_the_covariance(kjs_run):
+    prep, _ = kjs_run
+    cfg = load_config(KJS_YAML, EXACT)
+    s = _setup(prep.problem, cfg, KJS)
+    D = prep.problem.skeleton.num_dofs
+    chol = torch.eye(D).expand(2, D, D).clone() * 1e-3
+    larm = s.chain_dofs[0]
+    chol[1][larm] *= 100.0  # mode 1 is uncertain about the left arm
+    votes = _chain_votes(s, chol)
+    assert torch.allclose(votes.sum(-1), torch.ones(2))
+    assert int(votes[1].argmax()) == 0 and float(votes[1, 0]) > 0.99
+
+
+@pytest.mark.parametrize("override, key", [
+    ("kjs.chains=[larm,tail]", "kjs.chains"),
+    ("kjs.modes=0", "kjs.modes"),
+    ("kjs.samples=4", "kjs.samples"),
+    ("kjs.scale=-1", "kjs.scale"),
+    ("kjs.tail=uniform", "kjs.tail"),
+    ("kjs.init=guess", "kjs.init"),
+])
+def test_bad_settings_are_one_line_errors(tmp_path, capsys, override, key):
+    out = tmp_path / "run"
+    rc = main(["run", str(KJS_YAML), "data.stop=12", override, f"out_dir={out}", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("ptrack: error:") and key in err[0], err
+    assert not out.exists()
+
+
+def test_run_writes_hypotheses(tmp_path):
+    out = tmp_path / "kjs"
+    assert main(["run", str(KJS_YAML), "data.stop=16", f"out_dir={out}", "--quiet"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["method"] == "kjs" and m["best_of_k_mpjpe_mm"] <= m["mpjpe_mm"] + 1e-6
