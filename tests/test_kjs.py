@@ -3,6 +3,7 @@ stays among the K modes, the outputs are well formed and reproducible, bad setti
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -101,7 +102,7 @@ def test_frames_without_keypoints_are_carried():
     obs = prep.problem.observations
     conf = obs.confidence.clone()
     conf[4:6] = 0.0
-    blind = Problem(prep.problem.skeleton, prep.problem.keypoints, obs.__class__(**{**obs.__dict__, "confidence": conf}),
+    blind = Problem(prep.problem.skeleton, prep.problem.keypoints, dataclasses.replace(obs, confidence=conf),
                     prep.problem.keyframes)
     est = track(blind, cfg, torch.Generator().manual_seed(0), KJS)
     assert torch.isfinite(est.q).all()
@@ -142,3 +143,17 @@ def test_run_writes_hypotheses(tmp_path):
     assert main(["run", str(KJS_YAML), "data.stop=16", f"out_dir={out}", "--quiet"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["method"] == "kjs" and m["best_of_k_mpjpe_mm"] <= m["mpjpe_mm"] + 1e-6
+
+
+def test_tree_init_when_every_flip_is_pruned(cmu_file):
+    """On the first frame of CMU 09_06 (a run) seen as configs/eval_kjs.yaml sees it, every flipped leaf
+    broke the limits and the tracker crashed with no candidate left; the fitted pose itself always stays
+    a candidate. (The camera frames the whole 3 s, so the problem is cut to 4 frames after `prepare`.)"""
+    amc = cmu_file("09_06.amc")
+    cfg = load_config(REPO / "configs" / "eval_kjs.yaml", [f"data.amc={amc}", f"data.asf={amc.parent / '09.asf'}",
+                                                           "kjs.init=tree", "progress=false"])
+    prep = prepare(cfg)
+    obs = prep.problem.observations
+    short = dataclasses.replace(obs, keypoints=obs.keypoints[:4], confidence=obs.confidence[:4], times=obs.times[:4])
+    est = track(Problem(prep.problem.skeleton, prep.problem.keypoints, short), cfg, torch.Generator().manual_seed(0), KJS)
+    assert torch.isfinite(est.hypotheses).all() and est.hypotheses.shape[:2] == (4, K)

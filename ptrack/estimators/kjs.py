@@ -311,7 +311,8 @@ def _init_tree(s: Setup) -> Tensor:
     results = [chain_ik(plan, q, tree.positions, mode=s.cfg.kjs.limits_mode) for plan, tree in zip(s.plans, trees)]
     ik = product_ik(q, results, prod)
     keep = (ik.keep & prod.unique)[0]
-    return ik.q[0][keep]
+    keep[0] = False  # leaf 0 is the fit itself, kept below whatever its IK flags say
+    return torch.cat([q, ik.q[0][keep]])
 
 
 def _first_modes(s: Setup, strategy: Strategy) -> Modes:
