@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from ptrack.costs import JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
-from ptrack.errors import InputError
+from ptrack.errors import EstimationError, InputError
 from ptrack.estimators.frame import rest_pose_in_view
 from ptrack.ik import ChainIK, ClosedFormUnavailable, chain_ik, ik_plan, product_ik
 from ptrack.jacobians import objective_linearization, pose_eval_from_joints
@@ -260,6 +260,8 @@ def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generat
     q, parent = q[best], parent[best]
     q, cost, hessian = _polish(s, t, q, predicted[parent], k.refine_iterations)
     keep, w = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], k.modes)
+    if keep.numel() == 0:  # every hypothesis diverged (non-finite cost): the dynamics carry the modes
+        return modes._replace(q=predicted)
     return _modes(s, q[keep], cost[keep], hessian[keep], w, modes.q[parent[keep]])
 
 
@@ -325,6 +327,8 @@ def _first_modes(s: Setup, strategy: Strategy) -> Modes:
         mean, sigma = _rest_prior(s, q)
         q, cost, hessian = _polish(s, 0, q, mean, 20, sigma)
     keep, w = _select(s, q, cost, hessian, torch.ones_like(cost), q, k.modes)
+    if keep.numel() == 0:
+        raise EstimationError(f"method {strategy.name!r}: no start pose with a finite cost on frame 0")
     return _modes(s, q[keep], cost[keep], hessian[keep], w, q[keep])
 
 

@@ -1,0 +1,61 @@
+"""Benchmark: whole `ptrack run`s of the sampling trackers against the per-frame baseline.
+
+    python scripts/bench_kjs.py [--stop 592] [--methods kjs css ss] [--samples 256] [--modes 8]
+
+Each run is `ptrack.run.execute` on configs/kjs.yaml (the bundled CMU 10_02 soccer kick at 30 fps, 2 px
+noise, 10% missing keypoints), data loading, observation simulation, metrics and every output file
+included, so frames per second are what a user sees. The baseline, measured in the same process and
+on the same clip, is `method: frame` (per-frame L-BFGS, one hypothesis). Printed per method: frames,
+seconds, frames per second, the time ratio against frame written like `12.3x` (how many times longer
+the tracker takes), best-trajectory and best-of-K MPJPE. The machine's load average is printed too:
+on a shared 2-core machine other jobs slow every number.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+from ptrack.config import load_config
+from ptrack.run import execute
+
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "kjs.yaml"
+
+
+def run(method: str, args: argparse.Namespace, root: Path) -> dict:
+    cfg = load_config(CONFIG, [f"method={method}", f"data.stop={args.stop}", f"kjs.samples={args.samples}",
+                               f"kjs.modes={args.modes}", f"out_dir={root / method}", "progress=false"])
+    t0 = time.perf_counter()
+    out = execute(cfg, progress=False)
+    seconds = time.perf_counter() - t0
+    m = json.loads((out / "metrics.json").read_text())
+    return {**m, "seconds": seconds, "fps": m["frames"] / seconds}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--stop", type=int, default=592, help="AMC frames 0..stop (592: the whole clip, 148 frames)")
+    ap.add_argument("--methods", nargs="+", default=["kjs", "css", "ss"])
+    ap.add_argument("--samples", type=int, default=256, help="hypotheses per frame")
+    ap.add_argument("--modes", type=int, default=8, help="K")
+    args = ap.parse_args()
+    print(f"load average before: {os.getloadavg()[0]:.2f}")
+    with tempfile.TemporaryDirectory() as tmp:
+        base = run("frame", args, Path(tmp))
+        print(f"{'method':8s} {'frames':>6s} {'seconds':>8s} {'fps':>6s} {'time vs frame':>14s} "
+              f"{'MPJPE mm':>9s} {'best-of-K mm':>13s}")
+        rows = [("frame", base)] + [(m, run(m, args, Path(tmp))) for m in args.methods]
+        for name, m in rows:
+            ratio = m["seconds"] / base["seconds"]
+            best = m.get("best_of_k_mpjpe_mm")
+            print(f"{name:8s} {m['frames']:6d} {m['seconds']:8.1f} {m['fps']:6.1f} {ratio:13.1f}x "
+                  f"{m['mpjpe_mm']:9.1f} {best if best is not None else float('nan'):13.1f}")
+    print(f"load average after: {os.getloadavg()[0]:.2f}; K={args.modes}, {args.samples} hypotheses per frame")
+
+
+if __name__ == "__main__":
+    main()
