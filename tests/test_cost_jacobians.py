@@ -11,7 +11,7 @@ import torch
 from ptrack.camera import camera_for_motion
 from ptrack.costs import JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
 from ptrack.errors import InputError
-from ptrack.jacobians import objective_linearization, pose_eval_and_jacobian
+from ptrack.jacobians import objective_linearization
 from ptrack.keypoints import make_keypoints
 from ptrack.problem import evaluate_pose
 from ptrack.skeleton import Skeleton, load_amc

@@ -207,7 +207,6 @@ def test_markdown_table_all_failed():
 
 def test_estimator_failure_is_reported_per_clip(tmp_path, monkeypatch):
     """A clip on which the estimator returns non-finite poses is a failed row; the others still run."""
-    import torch
 
     from ptrack.estimators import ESTIMATORS, estimate_frames
     from ptrack.problem import Estimate

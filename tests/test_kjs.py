@@ -13,7 +13,6 @@ import torch
 from ptrack import metrics as M
 from ptrack.cli import main
 from ptrack.config import load_config
-from ptrack.errors import InputError
 from ptrack.estimators import ESTIMATORS
 from ptrack.estimators.kjs import KJS, _chain_votes, _setup, track
 from ptrack.problem import Problem

@@ -15,7 +15,7 @@ import torch
 from ptrack import metrics as M
 from ptrack.config import ModelConfig, load_config
 from ptrack.errors import InputError
-from ptrack.limits import arc_bounds, data_limits_path, read_limits_file, with_limits, wrap_to_limits
+from ptrack.limits import arc_bounds, data_limits_path, read_limits_file, wrap_to_limits
 from ptrack.skeleton import Skeleton, load_amc
 
 REPO = Path(__file__).resolve().parents[1]

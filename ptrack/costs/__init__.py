@@ -23,6 +23,6 @@ from ptrack.costs.terms import JointKeyframe, JointLimits, Keyframe, PosePrior, 
 
 __all__ = [
     "CostTerm", "JointKeyframe", "JointLimits", "Keyframe", "Objective", "ObjectiveValue", "PosePrior", "PoseEval",
-    "Reprojection", "Silhouette", "Smoothness", "cauchy", "distance_transform", "geman_mcclure", "huber",
+    "Reprojection", "SelfIntersection", "Silhouette", "Smoothness", "cauchy", "distance_transform", "geman_mcclure", "huber",
     "l2", "robust_loss", "robust_loss_derivative",
 ]
