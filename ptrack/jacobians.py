@@ -170,12 +170,6 @@ def residual_jacobian(sk: Skeleton, residual_fn: ResidualFn, q: Tensor,
     return r, cols.movedim(0, -1)
 
 
-def pose_eval_from_joints(camera: Camera, keypoints: KeypointSet, q: Tensor, joints: Tensor) -> PoseEval:
-    """`ptrack.problem.evaluate_pose` without the FK: joints (..., J, 3) given for the pose q (..., D)."""
-    proj = camera.project(joints.index_select(-2, keypoints.index(q.device)))
-    return PoseEval(q=q, joints=joints, pixels=proj.pixels, depth=proj.depth)
-
-
 def objective_linearization(sk: Skeleton, objective: Objective, camera: Camera,
                             keypoints: KeypointSet) -> Callable[[Tensor], Linearization]:
     """The one-frame objective as the solvers read it: q (N, D) -> Linearization(residuals (N, M),

@@ -109,8 +109,12 @@ class Estimate(NamedTuple):
 def evaluate_pose(skeleton: Skeleton, camera: Camera, keypoints: KeypointSet, q: Tensor,
                   joint_pixels: bool = False) -> PoseEval:
     """FK + projection. q: (..., D) -> PoseEval with joints (..., J, 3), pixels (..., K, 2)."""
-    joints = skeleton.forward_kinematics(q)
-    kp = joints.index_select(-2, keypoints.index(q.device))
-    proj = camera.project(kp)
+    return pose_eval_from_joints(camera, keypoints, q, skeleton.forward_kinematics(q), joint_pixels)
+
+
+def pose_eval_from_joints(camera: Camera, keypoints: KeypointSet, q: Tensor, joints: Tensor,
+                          joint_pixels: bool = False) -> PoseEval:
+    """`evaluate_pose` without the FK: joints (..., J, 3) given for the pose q (..., D)."""
+    proj = camera.project(joints.index_select(-2, keypoints.index(q.device)))
     jp = camera.project(joints).pixels if joint_pixels else None
     return PoseEval(q=q, joints=joints, pixels=proj.pixels, depth=proj.depth, joint_pixels=jp)
