@@ -41,12 +41,12 @@ from ptrack.costs import JointLimits, Objective, PosePrior, Reprojection, SelfIn
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators.frame import rest_pose_in_view
 from ptrack.ik import ChainIK, ClosedFormUnavailable, chain_ik, ik_plan, product_ik
-from ptrack.jacobians import objective_linearization, pose_eval_from_joints
+from ptrack.jacobians import objective_linearization
 from ptrack.jumps import (Chain, check_independent, default_chains, interpretation_tree, interpretation_trees,
                           joint_observations, product)
 from ptrack.limits import wrap_to_limits
 from ptrack.mixture import Modes, distinct_minima, posterior_weights, viterbi
-from ptrack.problem import Estimate, Problem
+from ptrack.problem import Estimate, Problem, pose_eval_from_joints
 from ptrack.samplers import css_proposal, project_to_limits, scaled_covariance, spherical_proposal
 from ptrack.solvers import lbfgs, levenberg_marquardt
 
@@ -79,6 +79,7 @@ class Setup:
     chains: tuple[Chain, ...]
     plans: tuple[ChainIK, ...]
     chain_dofs: Tensor  # (C, D) bool: dofs each chain's IK sets
+    root: Tensor  # (D,) bool: the root joint's rotation and translation dofs
 
 
 def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
@@ -106,7 +107,9 @@ def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
     chain_dofs = torch.zeros(len(chains), sk.num_dofs, dtype=torch.bool, device=device)
     for c, plan in enumerate(plans):
         chain_dofs[c, list(plan.dofs)] = True
-    return Setup(problem, cfg, lower, upper, angular, collision, chains, plans, chain_dofs)
+    root = torch.zeros(sk.num_dofs, dtype=torch.bool, device=device)
+    root[[int(d) for d in (*sk.axis_dof[0], *sk.translation_dof) if d >= 0]] = True
+    return Setup(problem, cfg, lower, upper, angular, collision, chains, plans, chain_dofs, root)
 
 
 # ---------------------------------------------------------------- the frame's objective
@@ -282,8 +285,7 @@ def _rest_prior(s: Setup, q: Tensor) -> tuple[Tensor, Tensor]:
     root's position near where the rigid fit of the body put it (std 0.1 m: monocular depth is otherwise
     traded for limbs tilted in depth), its rotation free. q (N, D) -> mean (N, D), sigma (D,)."""
     sk = s.problem.skeleton
-    root = torch.zeros(sk.num_dofs, dtype=torch.bool, device=q.device)
-    root[[i for i, n in enumerate(sk.dof_names) if n.startswith("root.")]] = True
+    root = s.root
     trans = torch.zeros_like(root)
     trans[[int(d) for d in sk.translation_dof if d >= 0]] = True
     mean = torch.where(root, q, torch.zeros_like(q))
@@ -299,10 +301,8 @@ def _init_tree(s: Setup) -> Tensor:
     prob = s.problem
     sk, obs = prob.skeleton, prob.observations
     q = torch.clamp(rest_pose_in_view(prob, s.lower.dtype), s.lower, s.upper)[None]
-    root = torch.zeros(sk.num_dofs, dtype=torch.bool, device=q.device)
-    root[[i for i, n in enumerate(sk.dof_names) if n.startswith("root.")]] = True
-    lo = torch.where(root, s.lower, q[0])
-    hi = torch.where(root, s.upper, q[0])
+    lo = torch.where(s.root, s.lower, q[0])
+    hi = torch.where(s.root, s.upper, q[0])
     q, _ = levenberg_marquardt(objective_linearization(sk, _objective(s, 0, None), obs.camera, prob.keypoints),
                                q, lo, hi, max_iter=30)
     mean, sigma = _rest_prior(s, q)
