@@ -174,9 +174,9 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
         if kps.limbs:
             flips = M.limb_flip_errors(est_kp, gt_kp, kps.limbs, cam.R.to(gt), cam.t.to(gt))
             per_limb = M.flip_error_rate(flips)
-            summary["flip_error_rate"] = _nan_to_none(float(flips.nanmean()))
+            summary["flip_error_rate"] = float(flips.nanmean())  # NaN -> null in metrics.json
             summary["flip_error_rate_per_limb"] = {
-                f"{kps.names[a]}-{kps.names[b]}": _nan_to_none(float(r)) for (a, b), r in zip(kps.limbs, per_limb)}
+                f"{kps.names[a]}-{kps.names[b]}": float(r) for (a, b), r in zip(kps.limbs, per_limb)}
             series["flip_error_rate"] = flips.nanmean(-1).double().cpu().numpy()
         if est.hypotheses is not None:
             put("best_of_k_mpjpe_mm", M.best_of_k_mpjpe(est.hypotheses.index_select(-2, idx), gt_kp, root=root))
@@ -184,10 +184,6 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
     for k, v in est.terms.items():
         series[f"cost_{k}"] = v.detach().double().cpu().numpy()
     return summary, series
-
-
-def _nan_to_none(x: float) -> float | None:
-    return None if math.isnan(x) else x
 
 
 def json_safe(obj):
