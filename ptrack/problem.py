@@ -19,7 +19,7 @@ from ptrack.camera import Camera
 from ptrack.costs import PoseEval
 from ptrack.errors import InputError
 from ptrack.keypoints import KeypointSet
-from ptrack.limits import outside_limits
+from ptrack.limits import outside_limits, wrap_to_limits
 from ptrack.observations import Observations
 from ptrack.skeleton import Skeleton
 
@@ -61,6 +61,18 @@ class Problem:
                              f"{self.skeleton.num_dofs}")
         if self.keyframes is not None:
             warn_keyframes_outside_limits(self.skeleton, self.keyframes)
+
+
+def first_keyframe(problem: Problem, key: str, lower: Tensor, upper: Tensor) -> Tensor:
+    """The user's 3D pose of frame 0 as the start of a tracker whose config key `key` asked for it,
+    its angles written in the limits' 2 pi window (the same pose; never clamped). -> (D,) in lower's
+    dtype and device. Raises InputError when frame 0 has no keyframe."""
+    kf = problem.keyframes
+    if kf is None or not bool((kf.frames == 0).any()):
+        raise InputError(f"{key} is 'keyframe' but no 3D keyframe is given for frame 0")
+    q0 = kf.q[(kf.frames == 0).nonzero()[0, 0]].to(lower)
+    angular = torch.as_tensor(problem.skeleton.angular_dofs(), device=lower.device)
+    return wrap_to_limits(q0, lower, upper, angular)
 
 
 def warn_keyframes_outside_limits(skeleton: Skeleton, keyframes: Keyframes, tol: float = 1e-3) -> int:

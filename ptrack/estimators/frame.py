@@ -17,9 +17,7 @@ import torch
 from torch import Tensor
 
 from ptrack.costs import JointLimits, PoseEval, Reprojection, Smoothness
-from ptrack.errors import InputError
-from ptrack.limits import wrap_to_limits
-from ptrack.problem import Estimate, Problem, evaluate_pose
+from ptrack.problem import Estimate, Problem, evaluate_pose, first_keyframe
 
 
 def rest_pose_in_view(problem: Problem, dtype: torch.dtype) -> Tensor:
@@ -62,13 +60,7 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
         Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma, sigma_acceleration=cc.accel_sigma)
 
     if fc.init == "keyframe":
-        kf = problem.keyframes
-        if kf is None or not bool((kf.frames == 0).any()):
-            raise InputError("frame.init is 'keyframe' but no 3D keyframe is given for frame 0")
-        q0 = kf.q[(kf.frames == 0).nonzero()[0, 0]].to(device=device, dtype=dtype)
-        # the same pose, its angles written in the limits' 2 pi window; never clamped (a user keyframe is kept
-        # as given, and Problem warns when it breaks the limits)
-        q0 = wrap_to_limits(q0, lower, upper, torch.as_tensor(sk.angular_dofs(), device=device))
+        q0 = first_keyframe(problem, "frame.init", lower, upper)  # kept as given (Problem warns off limits)
     else:
         q0 = torch.clamp(rest_pose_in_view(problem, dtype), lower, upper)
     q_prev = q0

@@ -44,9 +44,8 @@ from ptrack.ik import ChainIK, ClosedFormUnavailable, chain_ik, ik_plan, product
 from ptrack.jacobians import objective_linearization
 from ptrack.jumps import (Chain, check_independent, default_chains, interpretation_tree, interpretation_trees,
                           joint_observations, product)
-from ptrack.limits import wrap_to_limits
 from ptrack.mixture import Modes, distinct_minima, posterior_weights, viterbi
-from ptrack.problem import Estimate, Problem, pose_eval_from_joints
+from ptrack.problem import Estimate, Problem, first_keyframe, pose_eval_from_joints
 from ptrack.samplers import css_proposal, project_to_limits, scaled_covariance, spherical_proposal
 from ptrack.solvers import lbfgs, levenberg_marquardt
 
@@ -272,12 +271,7 @@ def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generat
 
 
 def _init_keyframe(s: Setup) -> Tensor:
-    prob = s.problem
-    kf = prob.keyframes
-    if kf is None or not bool((kf.frames == 0).any()):
-        raise InputError("kjs.init is 'keyframe' but no 3D keyframe is given for frame 0")
-    q0 = kf.q[(kf.frames == 0).nonzero()[0, 0]].to(s.lower)
-    return wrap_to_limits(q0, s.lower, s.upper, s.angular)[None]
+    return first_keyframe(s.problem, "kjs.init", s.lower, s.upper)[None]
 
 
 def _rest_prior(s: Setup, q: Tensor) -> tuple[Tensor, Tensor]:
