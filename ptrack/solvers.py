@@ -410,3 +410,163 @@ def lbfgs(energy_fn: EnergyFn, q0: Tensor, lower: Tensor | None = None, upper: T
             callback(it, q, e)
     return q, LBFGSInfo(iterations=iterations, converged=converged, cost=e, gradient=g,
                         evaluations=evaluations)
+
+
+# ---------------------------------------------------------------------------------------------
+# Levenberg-Marquardt over trajectories: block-banded normal equations
+
+
+class BandedLinearization(NamedTuple):
+    """What `banded_levenberg_marquardt` reads at B trajectories q (B, T, D): the Gauss-Newton
+    normal equations of each, H = J^T W J as a `ptrack.banded.BlockBanded` (diagonal (B, T, D, D),
+    lower couplings (B|1, T, W, D[, D])), gradient g = J^T W r (B, T, D), and energy (B,) the
+    objective lowered (with IRLS weights W, g is its gradient). The caller forms H and g blockwise
+    (per-frame terms on the diagonal, temporal terms on the band), never the stacked J."""
+
+    hessian: "BlockBanded"
+    gradient: Tensor
+    energy: Tensor
+
+
+class BandedLMInfo(NamedTuple):
+    """Per-trajectory record of a `banded_levenberg_marquardt` run (B trajectories of T frames, D dofs).
+
+    iterations (B,); converged (B,) bool; cost (B,) final energy; history (I+1, B) the energy
+    after each iteration (the start first; a rejected step repeats the last value); hessian: the
+    undamped `BlockBanded` Gauss-Newton Hessian at the solution; gradient (B, T, D) there;
+    damping (B,) final lambda; evaluations: calls of `linearize`.
+    """
+
+    iterations: Tensor
+    converged: Tensor
+    cost: Tensor
+    history: Tensor
+    hessian: "BlockBanded"
+    gradient: Tensor
+    damping: Tensor
+    evaluations: int
+
+
+def _band_select(mask: Tensor, a, b):
+    """Per-trajectory select of two BlockBanded (mask (B,)); couplings shared by all (leading 1) stay."""
+    from ptrack.banded import BlockBanded
+
+    lower = a.lower if a.lower is b.lower else _where(mask, a.lower, b.lower)
+    return BlockBanded(_where(mask, a.diagonal, b.diagonal), lower)
+
+
+def _band_damped(h, free: Tensor, lam: Tensor):
+    """H + lambda I restricted to the free dofs (B, T, D) (other rows/columns: identity)."""
+    from ptrack.banded import BlockBanded
+
+    d = free.shape[-1]
+    eye = torch.eye(d, dtype=h.diagonal.dtype, device=h.diagonal.device)
+    both = free[..., :, None] & free[..., None, :]
+    diag = torch.where(both, h.diagonal + lam[:, None, None, None] * eye, eye)
+    w = h.lower.shape[-2] if h.coupling_is_diagonal else h.lower.shape[-3]
+    f = free.to(h.diagonal.dtype)
+    t_len = f.shape[1]
+    prev = torch.stack([torch.nn.functional.pad(f[:, :t_len - k], (0, 0, min(k, t_len), 0)) for k in range(1, w + 1)],
+                       dim=2)  # (B, T, W, D): free at t-k
+    if h.coupling_is_diagonal:  # (B, T, W, D): row dof free at t and at t-k
+        lower = h.lower * f[:, :, None, :] * prev
+    else:
+        lower = h.lower * f[:, :, None, :, None] * prev[..., None, :]
+    return BlockBanded(diag, lower)
+
+
+def banded_levenberg_marquardt(linearize: Callable[[Tensor], BandedLinearization], q0: Tensor,
+                               lower: Tensor | None = None, upper: Tensor | None = None, *, max_iter: int = 30,
+                               tol: float = 1e-8, gtol: float = 1e-8, damping: float = 1e-4,
+                               callback: Callback | None = None) -> tuple[Tensor, BandedLMInfo]:
+    """Minimise B independent trajectory objectives by Levenberg-Marquardt on block-banded normal
+    equations (DiFranco et al. 2001 §4: Gauss-Newton with a sparse solve).
+
+    Args:
+        linearize: q (B, T, D) -> `BandedLinearization`, called once per iteration at the trial
+            trajectories (the whole batch).
+        q0: (B, T, D) start; clamped into the box.
+        lower, upper: (D,), (T, D) or (B, T, D) bounds, +-inf for none; None = unbounded. A dof at
+            a bound whose gradient pushes outward is held for the step (active set), as in
+            `levenberg_marquardt`.
+        max_iter, tol, gtol, damping, callback: as in `levenberg_marquardt` (damping lambda I
+            relative to the largest diagonal entry of each trajectory's H; Nielsen's update; one
+            accept/reject per trajectory). callback(iteration, q (B, T, D), cost (B,)).
+
+    Each step solves (H + lambda I) dq = -g by `ptrack.banded.factorize` / `solve`: O(T W^2 D^3)
+    work and O(T W D^2) memory, never the dense (T D) x (T D) matrix. A failed factorisation (not
+    positive definite) counts as a rejected step.
+
+    Returns:
+        q (B, T, D) the best trajectory of each problem, and `BandedLMInfo`.
+    """
+    from ptrack.banded import factorize, matvec, solve
+
+    if not isinstance(q0, Tensor) or not q0.is_floating_point() or q0.ndim != 3:
+        raise InputError(f"banded_levenberg_marquardt: q0 must be a floating tensor (B, T, D), got "
+                         f"{tuple(getattr(q0, 'shape', ()))}")
+    b_len, t_len, d = q0.shape
+    flat_lo = None if lower is None else torch.as_tensor(lower, dtype=q0.dtype, device=q0.device).expand(
+        b_len, t_len, d).reshape(b_len * t_len, d)
+    flat_hi = None if upper is None else torch.as_tensor(upper, dtype=q0.dtype, device=q0.device).expand(
+        b_len, t_len, d).reshape(b_len * t_len, d)
+    q, lo, hi = _check_start(q0.reshape(b_len * t_len, d), flat_lo, flat_hi, "banded_levenberg_marquardt")
+    q, lo, hi = q.reshape(b_len, t_len, d), lo.expand(b_len * t_len, d).reshape(b_len, t_len, d), \
+        hi.expand(b_len * t_len, d).reshape(b_len, t_len, d)
+
+    def lin_at(x: Tensor) -> BandedLinearization:
+        out = linearize(x)
+        if not isinstance(out, BandedLinearization) or out.gradient.shape != x.shape or out.energy.shape != (b_len,):
+            raise InputError("banded_levenberg_marquardt: linearize must return a BandedLinearization with "
+                             f"gradient {tuple(x.shape)} and energy ({b_len},)")
+        return out
+
+    lin = lin_at(q)
+    evaluations = 1
+    tiny = torch.finfo(q.dtype).tiny
+    lam = float(damping) * lin.hessian.diagonal.diagonal(dim1=-2, dim2=-1).amax((-2, -1)).clamp(min=tiny)
+    nu = q.new_full((b_len,), 2.0)
+    done = torch.zeros(b_len, dtype=torch.bool, device=q.device)
+    converged = torch.zeros_like(done)
+    iterations = torch.zeros(b_len, dtype=torch.long, device=q.device)
+    history = [lin.energy]
+
+    def flat(x: Tensor) -> Tensor:
+        return x.reshape(b_len, t_len * d)
+
+    for it in range(max_iter):
+        g = lin.gradient
+        small_g = _projected_gradient(flat(q), flat(g), flat(lo), flat(hi)) <= gtol
+        converged |= small_g & ~done
+        done |= small_g
+        if bool(done.all()):
+            break
+        free = _free(q, g, lo, hi)
+        factor, ok = factorize(_band_damped(lin.hessian, free, lam))
+        dq = solve(factor, -torch.where(free, g, 0.0))
+        trial = torch.minimum(torch.maximum(q + dq, lo), hi)
+        step = trial - q
+        new = lin_at(trial)
+        evaluations += 1
+        predicted = -(flat(g * step).sum(-1) + 0.5 * flat(step * matvec(lin.hessian, step)).sum(-1))
+        actual = lin.energy - new.energy
+        active = ~done
+        iterations += active.long()
+        accept = active & ok & torch.isfinite(new.energy) & (actual > 0)
+        rho = actual / predicted.clamp(min=tiny)
+        tiny_step = flat(step).norm(dim=-1) <= tol * (flat(q).norm(dim=-1) + tol)
+        small_drop = accept & (actual <= tol * lin.energy)
+        lam = torch.where(accept, lam * torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3),
+                          torch.where(active, lam * nu, lam))
+        nu = torch.where(accept, torch.full_like(nu, 2.0), torch.where(active, nu * 2, nu))
+        q = _where(accept, trial, q)
+        lin = BandedLinearization(_band_select(accept, new.hessian, lin.hessian),
+                                  _where(accept, new.gradient, lin.gradient), torch.where(accept, new.energy, lin.energy))
+        stop = active & ok & (small_drop | tiny_step)
+        converged |= stop
+        done |= stop | (lam > 1e30)
+        history.append(lin.energy)
+        if callback is not None:
+            callback(it, q, lin.energy)
+    return q, BandedLMInfo(iterations=iterations, converged=converged, cost=lin.energy, history=torch.stack(history),
+                           hessian=lin.hessian, gradient=lin.gradient, damping=lam, evaluations=evaluations)
