@@ -71,29 +71,37 @@ def test_plans_of_cmu_chains(sk):
     assert [sk.joint_names[j] for j in head.path] == ["lowerneck", "upperneck", "head"]
 
 
-def test_no_closed_form_points_to_the_fallback(sk):
+def test_no_closed_form_falls_back_to_iterative(sk):
     # a chain past the wrist: the radius has one dof, the wrist one
-    with pytest.raises(ClosedFormUnavailable, match="'forearm'.*'lradius' is not a 3-dof ball.*fallback"):
-        ik_plan(sk, make_chain(sk, ("lhumerus", "lradius", "lwrist"), name="forearm"))
+    forearm = ik_plan(sk, make_chain(sk, ("lhumerus", "lradius", "lwrist"), name="forearm"))
+    assert forearm.kind == "iterative"
+    assert [sk.dof_names[d] for d in forearm.dofs] == ["lradius.rx", "lwrist.ry"]
     # a reduced model without the humerus twist
     reduced = sk.freeze(["lhumerus.ry"])
-    with pytest.raises(ClosedFormUnavailable, match="'larm'"):
-        ik_plan(reduced, default_chains(reduced, ["larm"])[0])
+    plan = ik_plan(reduced, default_chains(reduced, ["larm"])[0])
+    assert plan.kind == "iterative"
+    assert [reduced.dof_names[d] for d in plan.dofs] == ["lhumerus.rz", "lhumerus.rx", "lradius.rx"]
+    # nothing moves the chain: still an error, naming the chain
+    frozen = sk.freeze(["lhumerus.*", "lradius.*"])
+    with pytest.raises(ClosedFormUnavailable, match="'larm'.*no dof moves its joints"):
+        ik_plan(frozen, default_chains(frozen, ["larm"])[0])
     assert issubclass(ClosedFormUnavailable, InputError)
     # freezing other dofs (fingers, clavicles) keeps the closed form, with the dofs renumbered
     light = sk.freeze(["*fingers", "*thumb", "*clavicle"])
     plan = ik_plan(light, default_chains(light, ["larm"])[0])
+    assert plan.kind == "limb"
     assert [light.dof_names[d] for d in plan.dofs] == ["lhumerus.rz", "lhumerus.ry", "lhumerus.rx", "lradius.rx"]
 
 
-def test_urdf_models_need_the_fallback(sk, tmp_path):
+def test_urdf_models_take_the_iterative_path(sk, tmp_path):
     pytest.importorskip("pytorch_kinematics")
     path = tmp_path / "cmu.urdf"
     path.write_text(sk.to_urdf())
     urdf = Skeleton.from_urdf(path, floating_base=False)
     chain = default_chains(urdf, ["larm"])[0]  # the same joint names: trees work on any model
-    with pytest.raises(ClosedFormUnavailable, match="fallback"):
-        ik_plan(urdf, chain)
+    plan = ik_plan(urdf, chain)
+    assert plan.kind == "iterative"
+    assert [urdf.dof_names[d] for d in plan.dofs] == ["lhumerus.rz", "lhumerus.ry", "lhumerus.rx", "lradius.rx"]
 
 
 # -- IK reproduces FK -------------------------------------------------------------------------
