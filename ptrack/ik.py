@@ -639,8 +639,7 @@ def _fit(plan: ChainIK, tc: dict, g_par: Tensor, pivot: Tensor, qs: Tensor, x: T
                                         lo, hi, max_iter=min(rounds, left))
         left, rounds = left - rounds, 2 * rounds
         if idx is None:
-            theta, running = sol, ~info.converged
-            idx = running.nonzero()[:, 0]
+            theta, idx = sol, (~info.converged).nonzero()[:, 0]
         else:
             theta[idx] = sol
             idx = idx[~info.converged]
@@ -690,6 +689,7 @@ def _iterative(plan: ChainIK, tc: dict, qs: Tensor, x: Tensor, mode: str, tol: f
             lo, hi = _sconst(tc["lower"], 1), _sconst(tc["upper"], 1)
             sub = _fit(plan, tc, gp[..., i], pv[:, i], qp[:, i], xp[..., i],
                        torch.clamp(theta[:, i], lo, hi), True, max_iter)
+            sub = _violation(sub, tc)[0]  # unlimited dofs back into [-pi, pi)
             theta[:, i] = sub
             pos[..., i] = _walk_fk(plan, tc, gp[..., i], pv[:, i], qp[:, i], sub, False)[0]
         keep = exact
@@ -705,7 +705,9 @@ def _iterative(plan: ChainIK, tc: dict, qs: Tensor, x: Tensor, mode: str, tol: f
 def _refine(plan: ChainIK, tc: dict, qs: Tensor, x: Tensor, theta: Tensor, pos: Tensor, residual: Tensor,
             viol: Tensor, miss: Tensor, max_iter: int) -> None:
     """Refine the closed form's missed leaves miss (L, B) iteratively from its angles, in place:
-    theta (M, L, B) (wrapped into the windows), pos (n+1, 3, L, B), residual and viol (L, B)."""
+    theta (M, L, B) (wrapped into the windows), pos (n+1, 3, L, B), residual and viol (L, B). A
+    leaf keeps the closed form's answer if the fit does not lower its residual (e.g. targets that
+    break the bone lengths, where the two answers are different compromises)."""
     li, bi = miss.nonzero(as_tuple=True)
     g_par, pivot = _root_parent(plan, tc, qs)
     g_par, pivot, qs_p, xp = g_par[..., bi], pivot[:, bi], qs[:, bi], x[:, :, li, bi]
@@ -713,10 +715,12 @@ def _refine(plan: ChainIK, tc: dict, qs: Tensor, x: Tensor, theta: Tensor, pos: 
     sub, sub_viol = _violation(sub, tc)
     sub_pos, _ = _walk_fk(plan, tc, g_par, pivot, qs_p, sub, False)
     diff = sub_pos - xp
-    theta[:, li, bi] = sub
-    pos[:, :, li, bi] = sub_pos
-    residual[li, bi] = torch.sqrt((diff * diff).sum(1)).amax(0)
-    viol[li, bi] = sub_viol
+    sub_res = torch.sqrt((diff * diff).sum(1)).amax(0)
+    better = sub_res < residual[li, bi]
+    theta[:, li, bi] = torch.where(better, sub, theta[:, li, bi])
+    pos[:, :, li, bi] = torch.where(better, sub_pos, pos[:, :, li, bi])
+    residual[li, bi] = torch.where(better, sub_res, residual[li, bi])
+    viol[li, bi] = torch.where(better, sub_viol, viol[li, bi])
 
 
 def chain_ik(plan: ChainIK, q: Tensor, positions: Tensor, mode: str = "prune", tol: float = 1e-4,

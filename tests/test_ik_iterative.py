@@ -297,3 +297,43 @@ def test_refinement_fixes_missed_closed_form_leaves(cmu):
         torch.testing.assert_close(fixed.positions[refined], exact.positions[refined], atol=1e-6, rtol=0)
         lo, hi = (t[list(plan.dofs)] for t in cmu.limits(torch.float64))
         assert torch.equal(fixed.in_limits, ((fixed.angles >= lo) & (fixed.angles <= hi)).all(-1))
+
+
+def test_refinement_never_worsens_a_leaf(cmu):
+    """Targets that break the bone lengths (the forearm 10% longer): neither answer is exact; the
+    refined leaf is the closer of the closed form's and the fit's."""
+    q = cmu.load_amc(DATA / "10_02.amc").q[::10][:20]
+    chain = default_chains(cmu, ["larm"])[0]
+    plan = ik_plan(cmu, chain)
+    targets = cmu.forward_kinematics(q)[:, None, list(chain.joints)].clone()
+    targets[:, 0, 2] = targets[:, 0, 1] + 1.1 * (targets[:, 0, 2] - targets[:, 0, 1])
+    closed = chain_ik(plan, q, targets, refine=False)
+    refined = chain_ik(plan, q, targets)
+    assert not closed.exact.any() and not refined.exact.any()
+    assert bool((refined.residual <= closed.residual).all())
+    assert bool((refined.residual < closed.residual - 1e-4).any())  # the least-squares fit is closer
+    fk = cmu.forward_kinematics(refined.q)[..., list(chain.joints), :]
+    torch.testing.assert_close(refined.positions, fk, atol=1e-9, rtol=0)
+
+
+def test_unlimited_dofs_stay_in_their_window(tmp_path):
+    """A continuous shoulder yaw: its angle comes back in [-pi, pi), also after the bounded fit of
+    "project" mode (which bounds only the limited dofs)."""
+    pytest.importorskip("pytorch_kinematics")
+    text = ARM_URDF.replace('<joint name="shoulder_yaw" type="revolute">', '<joint name="shoulder_yaw" type="continuous">')
+    text = text.replace('<limit lower="-2.0" upper="2.0" effort="1" velocity="1"/>', "")  # the yaw's
+    path = tmp_path / "continuous.urdf"
+    path.write_text(text)
+    sk = Skeleton.from_urdf(path, floating_base=True)
+    assert math.isinf(sk.lower[sk.dof_names.index("shoulder_yaw")])
+    chain = make_chain(sk, ARM_CHAIN)
+    plan = ik_plan(sk, chain)
+    yaw = list(plan.dofs).index(sk.dof_names.index("shoulder_yaw"))
+    q = _random_poses(sk, 60, 7)
+    _, _, (tree,) = _own_trees(sk, q, [chain])
+    for mode in ("prune", "project"):
+        res = chain_ik(plan, q, tree.positions, mode=mode)
+        assert bool((res.angles[..., yaw].abs() <= math.pi).all())
+        fk = sk.forward_kinematics(res.q)[..., list(chain.joints), :]
+        torch.testing.assert_close(res.positions, fk, atol=1e-9, rtol=0)
+    assert bool(res.projected.any())
