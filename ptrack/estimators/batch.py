@@ -1,0 +1,348 @@
+"""`method: batch` — the maximum a posteriori trajectory of the whole sequence (DiFranco, Cham &
+Rehg 2001, eq. 5), by Levenberg-Marquardt on its block-banded normal equations.
+
+For the trajectory Q = (q_0 .. q_{T-1}), q_t (D,), the energy is
+
+    L(Q) = sum_t [ robust reprojection_t(q_t) + joint limits_t(q_t) ]        per frame (eqs. 1, 2)
+         + 1/2 sum_n sum_t |a_n * diff_n(Q)_t|^2                            smoothing (eq. 3), n = 1, 2
+         + 1/2 sum_f |(q_{t_f} - f_f) / sigma_f|^2 over the given dofs       angle keyframes (eq. 4)
+         + 1/2 sum_g |(X_j(q_{t_g}) - x_g) / sigma_g|^2 over the given joints joint-position keyframes
+
+with a_1 = 1 / (dt sigma_velocity), a_2 = 1 / (dt^2 sigma_acceleration) per dof (angles and the root
+position have their own sigmas). Missing keypoints (confidence 0) and frames without any 2D add
+nothing: the dynamics fill them, which is how `batch.upsample` reconstructs frames between the
+observed ones. The per-frame terms give the diagonal blocks J_t^T W J_t of the Gauss-Newton Hessian
+(J_t from the geometric joint Jacobian, one FK pass batched over all frames); the smoothing prior is
+linear in Q and couples each dof only with itself, so it adds a constant band of diagonal couplings
+(block-pentadiagonal with an acceleration term). `ptrack.solvers.banded_levenberg_marquardt` solves
+it with `ptrack.banded` (never a dense (T*D)^2 matrix) inside the joint-limit box.
+
+Uncertainty: the diagonal blocks of the inverse Gauss-Newton Hessian at the solution (the banded
+recursion of `ptrack.banded.marginal_blocks`) are the per-frame marginal covariances of the pose;
+through the joint Jacobian G_t (J, 3, D) each joint's position covariance is G Sigma_t G^T, and
+`joint_std` (T, J) is the square root of its trace (metres: the RMS 3D error it predicts).
+
+The start is the per-frame fit (`method: frame`), or an earlier run's trajectory (`init_from`), or
+the keyframes interpolated (`batch.init: keyframes`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ptrack.banded import BlockBanded, factorize, marginal_blocks
+from ptrack.costs import Reprojection, robust_loss, robust_loss_derivative
+from ptrack.errors import InputError
+from ptrack.jacobians import joint_jacobian, pose_eval_and_jacobian
+from ptrack.limits import wrap_to_limits
+from ptrack.problem import Estimate, Problem
+from ptrack.solvers import BandedLinearization, banded_levenberg_marquardt
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """The MAP objective of one sequence of T frames (D dofs, J joints, K keypoints); see the module
+    docstring. Built by `trajectory_objective`.
+
+    reprojection: `Reprojection` on observed (T, K, 2); lower, upper (D,) joint limits; limits_scale
+    sqrt(weight) / sigma; smooth: ((n, a_n (D,)), ...) difference order and per-dof weight;
+    band (T, W+1, D) the smoothing Hessian (band[t, k] = its (t, t-k) diagonal block's diagonal);
+    kf_frames (F,), kf_target (F, D), kf_weight (F, D) = 1/sigma (0 where not given), angular (D,)
+    bool; jk_frames (G,), jk_target (G, J, 3), jk_weight (G, J) = 1/sigma (0 where not given).
+    """
+
+    problem: Problem
+    reprojection: Reprojection
+    lower: Tensor
+    upper: Tensor
+    limits_scale: float
+    smooth: tuple[tuple[int, Tensor], ...]
+    band: Tensor
+    kf_frames: Tensor
+    kf_target: Tensor
+    kf_weight: Tensor
+    angular: Tensor
+    jk_frames: Tensor
+    jk_target: Tensor
+    jk_weight: Tensor
+
+
+def smoothing_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Tensor) -> Tensor:
+    """Band of sum_n a_n^2 D_n^T D_n (D_n: n-th forward difference over T frames, per dof).
+    -> (T, W+1, D) with W = the largest n (at least 1); entry [t, k] is the (t, t-k) block's diagonal."""
+    d = like.shape[-1]
+    w = max([n for n, _ in smooth] + [1])
+    band = like.new_zeros(t_len, w + 1, d)
+    for n, a in smooth:
+        if t_len <= n:
+            continue
+        coef = torch.tensor([(-1) ** (n - j) * math.comb(n, j) for j in range(n + 1)], dtype=like.dtype,
+                            device=like.device)
+        rows = t_len - n  # residual i covers frames i .. i+n
+        for j in range(n + 1):
+            for k in range(j + 1):
+                band[k + (j - k):rows + j, j - k] += coef[j] * coef[k] * a.square()
+    return band
+
+
+def _band_matvec(band: Tensor, q: Tensor) -> Tensor:
+    """The smoothing Hessian times q: band (T, W+1, D), q (B, T, D) -> (B, T, D)."""
+    out = band[:, 0] * q
+    t_len = q.shape[-2]
+    for k in range(1, min(band.shape[1] - 1, t_len - 1) + 1):
+        c = band[k:, k]
+        out = out + torch.nn.functional.pad(c * q[:, :-k], (0, 0, k, 0)) + \
+            torch.nn.functional.pad(c * q[:, k:], (0, 0, 0, k))
+    return out
+
+
+def trajectory_objective(problem: Problem, cfg, dtype: torch.dtype, device: torch.device,
+                         smoothing: bool = True, limits: bool = True) -> Trajectory:
+    """The batch objective of `problem` under config `cfg` (costs.*, batch.*, keyframes.*).
+    smoothing / limits False drop those terms (the ablation)."""
+    sk, obs, cc, bc = problem.skeleton, problem.observations, cfg.costs, cfg.batch
+    t_len, d = obs.num_frames, sk.num_dofs
+    reproj = Reprojection(obs.keypoints.to(device=device, dtype=dtype), obs.confidence.to(device=device, dtype=dtype),
+                          sigma_px=cc.sigma_px, loss=cc.loss, scale=cc.robust_scale)
+    lower, upper = sk.limits(dtype=dtype, device=device)
+    if not limits:
+        lower, upper = torch.full_like(lower, -math.inf), torch.full_like(upper, math.inf)
+    times = obs.times.double()
+    dt = float(torch.median(times[1:] - times[:-1])) if t_len > 1 else 1.0
+    trans = torch.zeros(d, dtype=torch.bool, device=device)
+    trans[[i for i in sk.translation_dof.tolist() if i >= 0]] = True
+    angular = torch.as_tensor(sk.angular_dofs(), device=device)
+
+    def weights(sigma_angle: float | None, sigma_m: float | None, n: int) -> Tensor | None:
+        if sigma_angle is None and sigma_m is None:
+            return None
+        inv = lambda s: 0.0 if s is None else 1.0 / (dt ** n * s)  # noqa: E731
+        return torch.where(trans, inv(sigma_m), inv(sigma_angle)).to(dtype)
+
+    smooth = []
+    if smoothing:
+        for n, sa, sm in ((1, bc.velocity_sigma, bc.velocity_sigma_m), (2, bc.accel_sigma, bc.accel_sigma_m)):
+            a = weights(sa, sm, n)
+            if a is not None:
+                smooth.append((n, a))
+    like = torch.zeros(d, dtype=dtype, device=device)
+    band = smoothing_band(t_len, tuple(smooth), like)
+
+    kf = problem.keyframes
+    if kf is not None:
+        frames = kf.frames.to(device=device, dtype=torch.long)
+        mask = torch.ones_like(kf.q, dtype=torch.bool) if kf.mask is None else kf.mask
+        mask = mask.to(device)
+        default = torch.where(trans, cfg.keyframes.sigma_m, math.radians(cfg.keyframes.sigma_deg)).to(dtype)
+        sigma = default.expand(kf.q.shape) if kf.sigma is None else kf.sigma.to(device=device, dtype=dtype)
+        target = torch.where(mask, kf.q.to(device=device, dtype=dtype), 0.0)
+        target = wrap_to_limits(target, *sk.limits(dtype=dtype, device=device), angular)
+        kf_frames, kf_target, kf_weight = frames, target, torch.where(mask, 1.0 / sigma, 0.0)
+    else:
+        kf_frames, kf_target, kf_weight = (torch.zeros(0, dtype=torch.long, device=device),
+                                           like.new_zeros(0, d), like.new_zeros(0, d))
+    jk = problem.joint_keyframes
+    j = sk.num_joints
+    if jk is not None:
+        mask = jk.mask.to(device)
+        jk_frames = jk.frames.to(device=device, dtype=torch.long)
+        jk_target = torch.where(mask[..., None], jk.joints.to(device=device, dtype=dtype), 0.0)
+        jk_weight = torch.where(mask, 1.0 / jk.sigma.to(device=device, dtype=dtype)[:, None], 0.0)
+    else:
+        jk_frames = torch.zeros(0, dtype=torch.long, device=device)
+        jk_target, jk_weight = like.new_zeros(0, j, 3), like.new_zeros(0, j)
+    for name, fr in (("keyframe", kf_frames), ("joint keyframe", jk_frames)):
+        if fr.numel() and (int(fr.min()) < 0 or int(fr.max()) >= t_len):
+            raise InputError(f"a {name} at frame {int(fr.max())} lies outside the {t_len} reconstructed frames")
+    return Trajectory(problem, reproj, lower, upper, math.sqrt(cc.limits_weight) / cc.limits_sigma, tuple(smooth),
+                      band, kf_frames, kf_target, kf_weight, angular, jk_frames, jk_target, jk_weight)
+
+
+def _wrapped(diff: Tensor, angular: Tensor) -> Tensor:
+    """Angle differences into [-pi, pi) (translations unchanged). (..., D) -> (..., D)."""
+    return torch.where(angular, torch.remainder(diff + math.pi, 2 * math.pi) - math.pi, diff)
+
+
+def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True
+             ) -> tuple[dict[str, Tensor], Tensor | None, Tensor | None]:
+    """Per-frame energies of each term, and the per-frame Gauss-Newton pieces.
+
+    q (B, T, D) -> terms {name: (B, T)} (reprojection, limits, smooth, keyframes; each smoothing
+    residual counted at its middle frame), H (B, T, D, D) the per-frame blocks J_t^T W J_t of every
+    term but the smoothing band, g (B, T, D) the gradient of the whole energy (smoothing included);
+    H and g are None without `with_jacobian`.
+    """
+    p = obj.problem
+    sk, cam, kps = p.skeleton, p.observations.camera, p.keypoints
+    b_len, t_len, d = q.shape
+    if with_jacobian:
+        ev, jac = pose_eval_and_jacobian(sk, cam.to(device=q.device, dtype=q.dtype), kps, q)
+    else:
+        from ptrack.problem import evaluate_pose
+
+        ev, jac = evaluate_pose(sk, cam.to(device=q.device, dtype=q.dtype), kps, q), None
+    rp = obj.reprojection
+    k = rp.observed.shape[-2]
+    r = rp.residual(ev).unflatten(-1, (t_len, k, 2))  # (B, T, K, 2)
+    s = r.square().sum(-1)
+    terms = {"reprojection": 0.5 * robust_loss(rp.loss)(s, rp.scale).sum(-1)}
+    lim = (torch.clamp(q - obj.lower, max=0.0) + torch.clamp(q - obj.upper, min=0.0)) * obj.limits_scale
+    terms["limits"] = 0.5 * lim.square().sum(-1)
+    smooth = q.new_zeros(b_len, t_len)
+    for n, a in obj.smooth:
+        if t_len > n:
+            e = 0.5 * (a * torch.diff(q, n=n, dim=-2)).square().sum(-1)  # (B, T-n)
+            smooth = smooth + torch.nn.functional.pad(e, ((n + 1) // 2, n - (n + 1) // 2))
+    terms["smooth"] = smooth
+    kf_r = _wrapped(q[:, obj.kf_frames] - obj.kf_target, obj.angular) * obj.kf_weight  # (B, F, D)
+    keyframes = q.new_zeros(b_len, t_len).index_add(1, obj.kf_frames, 0.5 * kf_r.square().sum(-1))
+    jk_r = (ev.joints[:, obj.jk_frames] - obj.jk_target) * obj.jk_weight[..., None]  # (B, G, J, 3)
+    terms["keyframes"] = keyframes.index_add(1, obj.jk_frames, 0.5 * jk_r.square().sum((-1, -2)))
+    if not with_jacobian:
+        return terms, None, None
+
+    w = robust_loss_derivative(rp.loss)(s, rp.scale)  # (B, T, K) IRLS weights
+    jr = rp.jacobian(ev, jac).unflatten(-2, (t_len, k, 2))  # (B, T, K, 2, D)
+    jw = jr * w[..., None, None]
+    h = torch.einsum("btkcd,btkce->btde", jw, jr)
+    g = torch.einsum("btkcd,btkc->btd", jw, r)
+    outside = ((q < obj.lower) | (q > obj.upper)).to(q.dtype)
+    diag = outside * obj.limits_scale ** 2
+    g = g + lim * obj.limits_scale
+    kf_w2 = obj.kf_weight.square()
+    diag = diag.index_add(1, obj.kf_frames, kf_w2.expand(b_len, -1, -1))
+    g = g.index_add(1, obj.kf_frames, kf_r * obj.kf_weight)
+    if obj.jk_frames.numel():
+        gj = jac.joints[:, obj.jk_frames] * obj.jk_weight[..., None, None]  # (B, G, J, 3, D)
+        h = h.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjce->bgde", gj, gj))
+        g = g.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjc->bgd", gj, jk_r))
+    h = h + torch.diag_embed(diag)
+    g = g + _band_matvec(obj.band, q)
+    return terms, h, g
+
+
+def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
+    """q (B, T, D) -> `BandedLinearization` of the whole objective (smoothing on the band)."""
+    band = obj.band
+    lower = band[None, :, 1:]  # (1, T, W, D): [t, k-1] = block (t, t-k)
+
+    def linearize(q: Tensor) -> BandedLinearization:
+        terms, h, g = evaluate(obj, q)
+        h = h + torch.diag_embed(band[:, 0])
+        energy = torch.stack(list(terms.values())).sum(0).sum(-1)
+        return BandedLinearization(BlockBanded(h, lower.to(q)), g, energy)
+
+    return linearize
+
+
+def joint_std(obj: Trajectory, q: Tensor, hessian: BlockBanded) -> Tensor:
+    """Per-joint 3D standard deviation from the Gauss-Newton Hessian at the solution.
+
+    q (B, T, D), hessian (diagonal (B, T, D, D)) -> (B, T, J) metres = sqrt(trace(G_t Sigma_t G_t^T))
+    per joint, Sigma_t the marginal covariance of q_t (banded recursion). A tiny ridge (1e-9 of the
+    largest diagonal entry) keeps directions no term constrains finite."""
+    ridge = 1e-9 * hessian.diagonal.diagonal(dim1=-2, dim2=-1).amax((-2, -1)).clamp(min=1e-30)
+    eye = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device)
+    factor, ok = factorize(BlockBanded(hessian.diagonal + ridge[:, None, None, None] * eye, hessian.lower))
+    sigma = marginal_blocks(factor)  # (B, T, D, D)
+    _, g = joint_jacobian(obj.problem.skeleton, q)  # (B, T, J, 3, D)
+    var = torch.einsum("btjcd,btde,btjce->btj", g, sigma, g)
+    std = var.clamp(min=0).sqrt()
+    return torch.where(ok[:, None, None], std, torch.full_like(std, math.nan))
+
+
+def load_init(run_dir: str | Path, problem: Problem, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The trajectory q (T, D) of an earlier run folder, checked to be the same model and frames."""
+    path = Path(run_dir) / "result.npz"
+    if not path.is_file():
+        raise InputError(f"init_from {run_dir}: not a run folder (no result.npz)")
+    try:
+        with np.load(path) as z:
+            q, names, times = z["q"], [str(n) for n in z["dof_names"]], z["times"]
+    except (OSError, ValueError, KeyError) as e:
+        raise InputError(f"init_from {path}: unreadable run result ({' '.join(str(e).split())})") from None
+    sk, obs = problem.skeleton, problem.observations
+    if names != list(sk.dof_names):
+        raise InputError(f"init_from {run_dir}: its dofs ({len(names)}) are not this model's ({sk.num_dofs}); "
+                         f"the run must use the same skeleton and model.freeze")
+    own = obs.times.detach().double().cpu().numpy()
+    if q.shape != (obs.num_frames, sk.num_dofs) or times.shape != own.shape or not np.allclose(times, own, atol=1e-6):
+        raise InputError(f"init_from {run_dir}: its {q.shape[0]} frames are not this run's {obs.num_frames} frames "
+                         f"(data.start/stop/stride and batch.upsample must match)")
+    if not np.isfinite(q).all():
+        raise InputError(f"init_from {run_dir}: its trajectory has non-finite values")
+    return torch.as_tensor(q, dtype=dtype, device=device)
+
+
+def interpolate_keyframes(problem: Problem, lower: Tensor, upper: Tensor) -> Tensor:
+    """A start from the full angle keyframes: linear between them, constant beyond. -> (T, D)."""
+    kf = problem.keyframes
+    t_len = problem.observations.num_frames
+    full = None if kf is None else (torch.ones(kf.frames.shape, dtype=torch.bool) if kf.mask is None
+                                    else kf.mask.all(-1).cpu())
+    if kf is None or not bool(full.any()):
+        raise InputError("batch.init is 'keyframes' but no keyframe gives every dof")
+    frames = kf.frames.cpu()[full]
+    order = torch.argsort(frames)
+    frames, q = frames[order], kf.q.to(lower)[full.to(lower.device)][order.to(lower.device)]
+    angular = torch.as_tensor(problem.skeleton.angular_dofs(), device=lower.device)
+    q = wrap_to_limits(q, lower, upper, angular)
+    t = torch.arange(t_len, dtype=lower.dtype, device=lower.device)
+    f = frames.to(lower)
+    idx = torch.searchsorted(f, t, right=True).clamp(1, max(len(f) - 1, 1)) - 1
+    nxt = (idx + 1).clamp(max=len(f) - 1)
+    span = (f[nxt] - f[idx]).clamp(min=1)
+    u = ((t - f[idx]) / span).clamp(0, 1)[:, None]
+    out = q[idx] + u * (q[nxt] - q[idx])
+    return torch.minimum(torch.maximum(out, lower), upper)
+
+
+def estimate_batch(problem: Problem, cfg, generator: torch.Generator,
+                   progress: Callable[[Iterable], Iterable] = lambda x: x,
+                   callback: Callable[[int, Tensor, Tensor], None] | None = None) -> Estimate:
+    """The MAP trajectory (module docstring). Deterministic given its start (uses no randomness).
+    Solved in float64 on the observations' device; the Estimate is in the observations' dtype.
+
+    callback(iteration, q (1, T, D), cost (1,)) is called after every solver iteration."""
+    bc = cfg.batch
+    obs = problem.observations
+    out_dtype, device = obs.keypoints.dtype, obs.keypoints.device
+    dtype = torch.float64  # the whole-sequence normal equations are solved in double precision
+    obj = trajectory_objective(problem, cfg, dtype, device)
+    lower, upper = obj.lower, obj.upper
+    if cfg.init_from:
+        q0 = load_init(cfg.init_from, problem, dtype, device)
+    elif bc.init == "keyframes":
+        q0 = interpolate_keyframes(problem, lower, upper)
+    else:
+        from ptrack.estimators.frame import estimate_frames
+
+        kf = problem.keyframes
+        full0 = kf is not None and any(bool(kf.mask is None or kf.mask[i].all()) for i in
+                                       torch.nonzero(kf.frames == 0).flatten().tolist())
+        frame_cfg = cfg if full0 else dataclasses.replace(cfg, frame=dataclasses.replace(cfg.frame, init="rest"))
+        q0 = estimate_frames(problem, frame_cfg, generator, progress).q
+    q0 = wrap_to_limits(q0.detach().to(dtype), lower, upper, obj.angular)
+    q, info = banded_levenberg_marquardt(linearization(obj), q0[None], lower, upper, max_iter=bc.iterations,
+                                         tol=bc.tol, gtol=bc.tol * 1e-2, damping=bc.damping, callback=callback)
+    log.info("batch: %d iterations, cost %.6g -> %.6g", int(info.iterations[0]), float(info.history[0, 0]),
+             float(info.cost[0]))
+    with torch.no_grad():
+        terms, _, _ = evaluate(obj, q, with_jacobian=False)
+        joints = problem.skeleton.forward_kinematics(q[0])
+        std = joint_std(obj, q, info.hessian)[0] if bc.uncertainty else None
+    terms = {name: v[0].to(out_dtype) for name, v in terms.items()}
+    return Estimate(q=q[0].to(out_dtype), joints=joints.to(out_dtype), cost=torch.stack(list(terms.values())).sum(0),
+                    terms=terms, joint_std=None if std is None else std.to(out_dtype),
+                    solver_cost=info.history[:, 0].to(out_dtype))
