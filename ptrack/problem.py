@@ -29,11 +29,14 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class Keyframes:
     """User-given 3D poses. frames: (F,) indices into the reconstruction frames; q: (F, D);
-    mask: (F, D) bool, True where a dof is given (partial keyframes), None = all given."""
+    mask: (F, D) bool, True where a dof is given (partial keyframes), None = all given;
+    sigma: (F, D) standard deviation of each given dof (radians / metres; DiFranco et al. eq. 4),
+    None = the estimator's default."""
 
     frames: Tensor
     q: Tensor
     mask: Tensor | None = None
+    sigma: Tensor | None = None
 
     def __post_init__(self) -> None:
         if self.frames.ndim != 1 or self.q.ndim != 2 or self.q.shape[0] != self.frames.shape[0]:
@@ -41,6 +44,28 @@ class Keyframes:
                              f"and {tuple(self.q.shape)}")
         if self.mask is not None and self.mask.shape != self.q.shape:
             raise InputError(f"keyframes: mask shape {tuple(self.mask.shape)} must equal q's {tuple(self.q.shape)}")
+        if self.sigma is not None and self.sigma.shape != self.q.shape:
+            raise InputError(f"keyframes: sigma shape {tuple(self.sigma.shape)} must equal q's {tuple(self.q.shape)}")
+
+
+@dataclass(frozen=True)
+class JointKeyframes:
+    """User-given 3D joint positions. frames: (F,) indices into the reconstruction frames; joints:
+    (F, J, 3) metres in the world frame; mask: (F, J) bool, True where a joint is given; sigma: (F,)
+    metres, the standard deviation of each given coordinate."""
+
+    frames: Tensor
+    joints: Tensor
+    mask: Tensor
+    sigma: Tensor
+
+    def __post_init__(self) -> None:
+        f = self.frames.shape[0]
+        ok = self.frames.ndim == 1 and self.joints.ndim == 3 and self.joints.shape[0] == f and self.joints.shape[2] == 3
+        if not ok or self.mask.shape != self.joints.shape[:2] or self.sigma.shape != (f,):
+            raise InputError(f"joint keyframes: frames (F,), joints (F, J, 3), mask (F, J), sigma (F,) expected, got "
+                             f"{tuple(self.frames.shape)}, {tuple(self.joints.shape)}, {tuple(self.mask.shape)}, "
+                             f"{tuple(self.sigma.shape)}")
 
 
 @dataclass(frozen=True)
@@ -51,6 +76,7 @@ class Problem:
     keypoints: KeypointSet
     observations: Observations
     keyframes: Keyframes | None = None
+    joint_keyframes: JointKeyframes | None = None
 
     def __post_init__(self) -> None:
         if self.observations.num_keypoints != self.keypoints.num_keypoints:
@@ -106,7 +132,7 @@ class Estimate(NamedTuple):
 
     q: (T, D); joints: (T, J, 3) world metres; cost: (T,) final objective per frame; terms:
     per-term breakdown {name: (T,)}; hypotheses: (T, N, J, 3) or None, with weights (T, N) and
-    costs (T, N).
+    costs (T, N); joint_std: (T, J) or None, sqrt of the trace of each joint's 3D position covariance.
     """
 
     q: Tensor
@@ -116,6 +142,11 @@ class Estimate(NamedTuple):
     hypotheses: Tensor | None = None
     hypothesis_weights: Tensor | None = None
     hypothesis_costs: Tensor | None = None
+    joint_std: Tensor | None = None  # (T, J) metres: per-joint 3D standard deviation, where a method has it
+    solver_cost: Tensor | None = None  # (I+1,) objective after each solver iteration (start first), batch methods
+    # (T, N, J, 3) metres: each hypothesis's principal covariance direction as joint displacements (trackers)
+    hypothesis_directions: Tensor | None = None
+    jumps: dict[str, Tensor] | None = None  # {chain: (T,) kinematic-jump leaves kept per frame} (kjs)
 
 
 def evaluate_pose(skeleton: Skeleton, camera: Camera, keypoints: KeypointSet, q: Tensor,

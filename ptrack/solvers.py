@@ -562,7 +562,9 @@ def banded_levenberg_marquardt(linearize: Callable[[Tensor], BandedLinearization
         q = _where(accept, trial, q)
         lin = BandedLinearization(_band_select(accept, new.hessian, lin.hessian),
                                   _where(accept, new.gradient, lin.gradient), torch.where(accept, new.energy, lin.energy))
-        stop = active & ok & (small_drop | tiny_step)
+        # the model itself promises nothing more (a step the box cut into a non-descent one does not count)
+        no_gain = (predicted >= 0) & (predicted <= tol * lin.energy)
+        stop = active & ok & (small_drop | tiny_step | (~accept & no_gain))
         converged |= stop
         done |= stop | (lam > 1e30)
         history.append(lin.energy)

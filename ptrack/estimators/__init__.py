@@ -6,9 +6,11 @@ method reads its own section), `generator` a seeded `torch.Generator` and `progr
 iterable to show progress (identity when quiet).
 """
 
+from ptrack.estimators.batch import estimate_batch
 from ptrack.estimators.frame import estimate_frames
 from ptrack.estimators.kjs import estimate_css, estimate_kjs, estimate_ss
 
-ESTIMATORS = {"frame": estimate_frames, "kjs": estimate_kjs, "css": estimate_css, "ss": estimate_ss}
+ESTIMATORS = {"frame": estimate_frames, "kjs": estimate_kjs, "css": estimate_css, "ss": estimate_ss,
+              "batch": estimate_batch}
 
-__all__ = ["ESTIMATORS", "estimate_css", "estimate_frames", "estimate_kjs", "estimate_ss"]
+__all__ = ["ESTIMATORS", "estimate_batch", "estimate_css", "estimate_frames", "estimate_kjs", "estimate_ss"]
