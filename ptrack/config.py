@@ -107,12 +107,51 @@ class KjsMethodConfig:
     # convergence, so this alone holds the weakly observed dofs: 0.05 measured better than 0.08 and 0.15
     # on 2 s of CMU 16_01 (42.4, 42.9, 63.6 mm)
     prior_sigma: float = 0.05
+    # per mode and dof, the prior's std is sqrt(prior_sigma^2 + (motion_scale * last displacement)^2)
+    motion_scale: float = 1.0
     collision_weight: float = 1.0  # body non-self-intersection term
     floor_deg: float = 0.5  # smallest sampling std per dof (unobservable directions)
     ceiling_deg: float = 30.0  # largest sampling std per dof
     viterbi_sigma: float = 0.05  # radians per frame: smoothness of the best trajectory through the modes
     init: str = "keyframe"  # keyframe: frame 0's 3D pose given; tree: rest pose fitted in view + every flip
-    rest_sigma: float = 1.0  # radians: init tree's prior of every angle around the rest pose
+    # init tree: the CMU pose prior's spread is scaled by this (1.0-2.0 gave the same mean best-of-K on
+    # frame 0 of the dev clips, 1.5 is between); angles it does not name: std rest_sigma around 0
+    start_prior_scale: float = 1.5
+    rest_sigma: float = 1.0
+    init_yaws: int = 8  # init tree: headings of the rest pose tried (each also leaned forward and back)
+    init_fits: int = 4  # init tree: distinct fitted poses whose chains are flipped (every combination)
+
+
+@dataclass(frozen=True)
+class KeyframesConfig:
+    """3D keyframes: from a file (`ptrack/keyframes.py` documents the YAML/JSON format) or, for
+    synthetic evaluation, from the ground truth (frame 0 always; the methods other than batch read
+    frame 0's only)."""
+
+    file: str | None = None  # YAML/JSON keyframe file; replaces the ground-truth keyframes
+    every_s: float | None = None  # ground truth every this many seconds (null: frame 0 only)
+    last: bool = False  # ground truth at the last frame too
+    noise_deg: float = 0.0  # Gaussian noise (std, degrees) added to the ground-truth keyframes' angles
+    sigma_deg: float = 2.0  # prior std of a ground-truth keyframe's angles (and a file's default)
+    sigma_m: float = 0.02  # prior std of a ground-truth keyframe's root position (and a file's default)
+
+
+@dataclass(frozen=True)
+class BatchMethodConfig:
+    """`method: batch`, the MAP trajectory of the whole sequence (DiFranco, Cham & Rehg 2001)."""
+
+    iterations: int = 30  # Levenberg-Marquardt iterations on the whole trajectory
+    tol: float = 1e-9  # relative energy decrease (or step) at which it stops
+    damping: float = 1e-4  # initial lambda relative to the Hessian's largest diagonal entry
+    # dynamic smoothing, per second (units: rad/s, rad/s^2 for angles; m/s, m/s^2 for the root
+    # position); null drops the term
+    velocity_sigma: float | None = None
+    accel_sigma: float | None = 20.0
+    velocity_sigma_m: float | None = None
+    accel_sigma_m: float | None = 5.0
+    upsample: int = 1  # reconstruct N frames per observed frame (data.stride must be divisible by N)
+    init: str = "frame"  # start: "frame" (per-frame fits, `frame.*` settings) or "keyframes" (interpolated)
+    uncertainty: bool = True  # marginal covariances -> joint_std (T, J) in result.npz
 
 
 @dataclass(frozen=True)
@@ -130,11 +169,14 @@ class RunConfig:
     costs: CostsConfig = field(default_factory=CostsConfig)
     frame: FrameMethodConfig = field(default_factory=FrameMethodConfig)
     kjs: KjsMethodConfig = field(default_factory=KjsMethodConfig)
+    keyframes: KeyframesConfig = field(default_factory=KeyframesConfig)
+    batch: BatchMethodConfig = field(default_factory=BatchMethodConfig)
+    init_from: str | None = None  # batch: start from this earlier run folder's trajectory (same model, frames)
     name: str = "run"  # config name, used for the default out_dir
 
 
-METHODS = ("frame", "kjs", "css", "ss")
-_PATH_KEYS = {"data.asf", "data.amc", "observations.file", "out_dir"}
+METHODS = ("frame", "kjs", "css", "ss", "batch")
+_PATH_KEYS = {"data.asf", "data.amc", "observations.file", "out_dir", "keyframes.file", "init_from"}
 
 
 #: scalar annotation -> (what the error says it must be, accepted Python types); bools are never numbers
@@ -336,20 +378,47 @@ def validate(cfg: RunConfig) -> None:
     if k.samples < k.modes:
         raise InputError(f"config key 'kjs.samples' must be at least kjs.modes ({k.modes}), got {k.samples}")
     for key in ("scale", "tail_dof", "distinct_deg", "temperature", "prior_sigma", "floor_deg", "ceiling_deg",
-                "viterbi_sigma", "rest_sigma"):
+                "viterbi_sigma", "rest_sigma", "start_prior_scale"):
         if not getattr(k, key) > 0:
             raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(k, key)}")
+    for key in ("init_yaws", "init_fits"):
+        if getattr(k, key) < 1:
+            raise InputError(f"config key 'kjs.{key}' must be >= 1, got {getattr(k, key)}")
     if k.collision_weight < 0:
         raise InputError(f"config key 'kjs.collision_weight' must be >= 0, got {k.collision_weight}")
     if k.polish_iterations < 0 or k.refine_iterations < 0 or k.jumps_per_sample < 0:
         raise InputError("config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' "
                          "must be >= 0")
+    if k.motion_scale < 0:
+        raise InputError(f"config key 'kjs.motion_scale' must be >= 0, got {k.motion_scale}")
     if not 0 <= k.momentum <= 1:
         raise InputError(f"config key 'kjs.momentum' must be in [0, 1], got {k.momentum}")
     for key, allowed in (("tail", ("gaussian", "student", "cauchy")), ("limits_mode", ("prune", "project")),
                          ("polisher", ("lm", "lbfgs")), ("init", ("keyframe", "tree"))):
         if getattr(k, key) not in allowed:
             raise InputError(f"config key 'kjs.{key}' must be one of {', '.join(allowed)}, got {getattr(k, key)!r}")
+    kf = cfg.keyframes
+    if kf.every_s is not None and not kf.every_s > 0:
+        raise InputError(f"config key 'keyframes.every_s' must be positive or null, got {kf.every_s}")
+    if kf.noise_deg < 0:
+        raise InputError(f"config key 'keyframes.noise_deg' must be >= 0, got {kf.noise_deg}")
+    for key in ("sigma_deg", "sigma_m"):
+        if not getattr(kf, key) > 0:
+            raise InputError(f"config key 'keyframes.{key}' must be positive, got {getattr(kf, key)}")
+    b = cfg.batch
+    if b.iterations < 1 or b.upsample < 1:
+        raise InputError("config keys 'batch.iterations' and 'batch.upsample' must be >= 1")
+    for key in ("tol", "damping"):
+        if not getattr(b, key) > 0:
+            raise InputError(f"config key 'batch.{key}' must be positive, got {getattr(b, key)}")
+    for key in ("velocity_sigma", "accel_sigma", "velocity_sigma_m", "accel_sigma_m"):
+        if getattr(b, key) is not None and not getattr(b, key) > 0:
+            raise InputError(f"config key 'batch.{key}' must be positive or null, got {getattr(b, key)}")
+    if b.init not in ("frame", "keyframes"):
+        raise InputError(f"config key 'batch.init' must be 'frame' or 'keyframes', got {b.init!r}")
+    if b.upsample > 1 and cfg.data.stride % b.upsample:
+        raise InputError(f"config key 'batch.upsample' ({b.upsample}) must divide data.stride ({cfg.data.stride}): "
+                         f"the reconstruction is read at stride {cfg.data.stride}/{b.upsample}")
     if cfg.costs.sigma_px <= 0:
         raise InputError(f"config key 'costs.sigma_px' must be positive, got {cfg.costs.sigma_px}")
 

@@ -15,6 +15,7 @@ leaves nothing half-written at `out_dir`.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -38,7 +39,8 @@ from ptrack.estimators import ESTIMATORS
 from ptrack.export import write_bvh
 from ptrack.keypoints import make_keypoints
 from ptrack.observations import ChannelConfig, Observations, simulate_observations
-from ptrack.problem import Estimate, Keyframes, Problem
+from ptrack.keyframes import ground_truth_keyframes, read_keyframes
+from ptrack.problem import Estimate, Problem
 from ptrack.silhouette import capsule_radii, render_silhouettes
 from ptrack.skeleton import Motion, Skeleton, load_amc
 
@@ -76,13 +78,16 @@ def prepare(cfg: RunConfig) -> Prepared:
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
 
     motion = gt_q = gt_joints = None
+    upsample = cfg.batch.upsample if cfg.method == "batch" else 1  # batch: frames between the observed ones
+    if upsample > 1 and cfg.observations.file:
+        raise InputError("batch.upsample > 1 needs simulated observations (data.amc), not observations.file")
     if cfg.data.amc:
         motion = load_amc(cfg.data.amc, full)
         n = motion.q.shape[0]
         if cfg.data.start >= n:
             raise InputError(f"config key 'data.start' is {cfg.data.start} but {cfg.data.amc} has only {n} frames")
         stop = None if cfg.data.stop is None else min(cfg.data.stop, n)
-        motion = motion.slice(cfg.data.start, stop, cfg.data.stride)
+        motion = motion.slice(cfg.data.start, stop, cfg.data.stride // upsample)
         if motion.q.shape[0] < 3:
             raise InputError(f"the selected frames of {cfg.data.amc} (start {cfg.data.start}, stop {cfg.data.stop}, "
                              f"stride {cfg.data.stride}) give {motion.q.shape[0]} frames; at least 3 are needed")
@@ -114,14 +119,22 @@ def prepare(cfg: RunConfig) -> Prepared:
         obs, _ = simulate_observations(gt_joints, kps.index(), camera, times, channel, gen, kps.names,
                                        swap_pairs=kps.swap_pairs, masks=masks)
         frames = motion.frames
+        if upsample > 1:  # 2D on every upsample-th reconstructed frame only
+            seen = (torch.arange(obs.num_frames) % upsample == 0).to(obs.confidence)
+            obs = dataclasses.replace(obs, confidence=obs.confidence * seen[:, None])
     if tuple(obs.keypoint_names) != kps.names:
         raise InputError(f"observation keypoints {list(obs.keypoint_names)} differ from the model's keypoint set "
                          f"{list(kps.names)} (config model.keypoints)")
     obs = obs.to(device=device, dtype=dtype)
-    keyframes = None
-    if gt_q is not None:  # the clip's first pose plays the user's 3D keyframe
-        keyframes = Keyframes(frames=torch.zeros(1, dtype=torch.long), q=gt_q[:1].clone())
-    problem = Problem(skeleton=model, keypoints=kps, observations=obs, keyframes=keyframes)
+    keyframes = joint_keyframes = None
+    kc = cfg.keyframes
+    if kc.file:
+        keyframes, joint_keyframes = read_keyframes(kc.file, model, obs.num_frames, kc.sigma_deg, kc.sigma_m, dtype)
+    elif gt_q is not None:  # the clip's own poses play the user's 3D keyframes (frame 0 unless keyframes.* ask more)
+        keyframes = ground_truth_keyframes(gt_q, obs.times, model, kc.every_s, kc.last, kc.noise_deg, kc.sigma_deg,
+                                           kc.sigma_m, torch.Generator(device="cpu").manual_seed(cfg.seed + 2))
+    problem = Problem(skeleton=model, keypoints=kps, observations=obs, keyframes=keyframes,
+                      joint_keyframes=joint_keyframes)
     return Prepared(full=full, motion=motion, gt_q=gt_q, gt_joints=gt_joints, problem=problem,
                     frames=np.asarray(frames))
 
@@ -180,6 +193,13 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
             series["flip_error_rate"] = flips.nanmean(-1).double().cpu().numpy()
         if est.hypotheses is not None:
             put("best_of_k_mpjpe_mm", M.best_of_k_mpjpe(est.hypotheses.index_select(-2, idx), gt_kp, root=root))
+    if est.joint_std is not None:
+        put("joint_std_mean_m", est.joint_std.mean(-1))
+        series["joint_std_max_m"] = est.joint_std.amax(-1).detach().double().cpu().numpy()
+    if est.solver_cost is not None:
+        summary["solver_iterations"] = int(est.solver_cost.shape[0] - 1)
+        summary["solver_cost_start"], summary["solver_cost_final"] = (float(est.solver_cost[0]),
+                                                                      float(est.solver_cost[-1]))
     series["cost"] = est.cost.detach().double().cpu().numpy()
     for k, v in est.terms.items():
         series[f"cost_{k}"] = v.detach().double().cpu().numpy()
@@ -247,7 +267,10 @@ def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[s
     metres in the mocap world frame (Y up); joint_names (J,) (ASF bone names, "root" first); parents (J,);
     gt_joints (T, J, 3) when there is ground truth; keypoints_observed (T, K, 2), confidence (T, K),
     keypoint_names (K,), keypoints_reprojected (T, K, 2); camera_K/R/t, image_size; cost (T,);
-    hypotheses (T, N, J, 3), hypothesis_weights (T, N), hypothesis_costs (T, N) where the method has them."""
+    hypotheses (T, N, J, 3), hypothesis_weights (T, N), hypothesis_costs (T, N) where the method has them;
+    hypothesis_directions (T, N, J, 3) (each hypothesis's principal covariance direction as joint displacements),
+    jump_chains (C,) and jump_counts (T, C) (kinematic-jump leaves kept per chain and frame) from the trackers;
+    joint_std (T, J) metres and solver_cost (I+1,) (objective per solver iteration) from `method: batch`."""
     prob = prep.problem
     obs, sk = prob.observations, prob.skeleton
     cam = obs.camera
@@ -272,10 +295,14 @@ def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[s
     }
     if prep.gt_joints is not None:
         arrays["gt_joints"] = prep.gt_joints.detach().cpu().numpy()
-    for name in ("hypotheses", "hypothesis_weights", "hypothesis_costs"):
+    for name in ("hypotheses", "hypothesis_weights", "hypothesis_costs", "joint_std", "solver_cost",
+                 "hypothesis_directions"):
         v = getattr(est, name)
         if v is not None:
             arrays[name] = v.detach().cpu().numpy()
+    if est.jumps:
+        arrays["jump_chains"] = np.asarray(list(est.jumps))
+        arrays["jump_counts"] = torch.stack(list(est.jumps.values()), dim=-1).cpu().numpy()
     return arrays
 
 
@@ -304,7 +331,8 @@ def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, res
             camera=obs.camera.to(device="cpu"), observed=res["keypoints_observed"], confidence=res["confidence"],
             reprojected=res["keypoints_reprojected"], keypoint_names=prob.keypoints.names,
             hypotheses=res.get("hypotheses"), hypothesis_weights=res.get("hypothesis_weights"),
-            hypothesis_costs=res.get("hypothesis_costs"),
+            hypothesis_costs=res.get("hypothesis_costs"), hypothesis_directions=res.get("hypothesis_directions"),
+            jumps=dict(zip(res["jump_chains"].tolist(), res["jump_counts"].T)) if "jump_chains" in res else {},
             scalars=series, masks=obs.masks.cpu().numpy() if obs.masks is not None else None)
         write_recording(tmp / "run.rrd", rlog)
         if out.exists():

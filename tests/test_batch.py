@@ -1,0 +1,170 @@
+"""Tests for `method: batch` (ptrack.estimators.batch, ptrack.keyframes): recovery of a noise-free clip
+from keyframes, missing data and dropped frames, partial angle and joint-position keyframes, joint
+limits at the solution, the calibration of joint_std, warm starts, upsampling, accuracy on a CMU clip
+the method was not tuned on, and bad keyframe files / init_from folders through the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ptrack import metrics as M
+from ptrack.cli import main
+from ptrack.config import load_config
+from ptrack.estimators.batch import estimate_batch
+from ptrack.keyframes import read_keyframes
+from ptrack.run import prepare
+
+REPO = Path(__file__).resolve().parents[1]
+BATCH = REPO / "configs" / "batch.yaml"
+SHORT = ["data.stop=160", "progress=false", "batch.uncertainty=false"]  # 1.3 s, 40 frames at 30 fps
+
+
+def solve(*overrides: str):
+    cfg = load_config(BATCH, [*SHORT, *overrides])
+    prep = prepare(cfg)
+    est = estimate_batch(prep.problem, cfg, torch.Generator().manual_seed(0))
+    return cfg, prep, est
+
+
+def mpjpe_mm(prep, est) -> float:
+    idx = prep.problem.keypoints.index()
+    return float(M.mpjpe(est.joints.index_select(-2, idx), prep.gt_joints.to(est.joints).index_select(-2, idx),
+                         root=0).mean())
+
+
+def test_noise_free_clip_is_recovered_from_keyframes():
+    _, prep, est = solve("observations.noise_px=0", "observations.missing=0", "keyframes.every_s=0.5",
+                         "dtype=float64")
+    assert mpjpe_mm(prep, est) < 12.0
+    assert float(est.solver_cost[-1]) < 0.05 * float(est.solver_cost[0])
+
+
+def test_missing_keypoints_and_dropped_frames():
+    _, prep, est = solve("observations.missing=0.3", "observations.dropped_frames=0.15")
+    conf = prep.problem.observations.confidence
+    empty = (conf.sum(-1) == 0).nonzero().flatten()
+    assert empty.numel() > 0  # some frames have no 2D at all: the dynamics fill them
+    assert torch.isfinite(est.q).all()
+    idx = prep.problem.keypoints.index()
+    err = M.mpjpe(est.joints.index_select(-2, idx), prep.gt_joints.to(est.joints).index_select(-2, idx), root=0)
+    assert float(err.mean()) < 45.0 and float(err[empty].mean()) < 60.0
+
+
+def test_joint_limits_hold_at_the_solution():
+    _, prep, est = solve("observations.noise_px=4")
+    lower, upper = prep.problem.skeleton.limits(dtype=est.q.dtype)
+    assert bool(((est.q >= lower - 1e-6) & (est.q <= upper + 1e-6)).all())
+
+
+def test_partial_angle_and_joint_keyframes(tmp_path):
+    cfg = load_config(BATCH, [*SHORT, "keyframes.every_s=null"])
+    prep = prepare(cfg)
+    sk, gt_q, gt_j = prep.problem.skeleton, prep.gt_q, prep.gt_joints
+    lf = [i for i, n in enumerate(sk.dof_names) if n.startswith(("lfemur", "ltibia"))]
+    rhand = sk.joint_names.index("rwrist")
+    kf = {"units": "radians", "keyframes": [
+        {"frame": 0, "q": [float(v) for v in gt_q[0]]},
+        {"frame": 30, "dofs": {sk.dof_names[i]: float(gt_q[30, i]) for i in lf}, "sigma_deg": 0.5},
+        {"frame": 25, "joints": {"rwrist": [float(v) for v in gt_j[25, rhand]]}, "sigma_m": 0.005},
+    ]}
+    path = tmp_path / "keys.json"
+    path.write_text(json.dumps(kf))
+    angles, joints = read_keyframes(path, sk, prep.problem.observations.num_frames, 2.0, 0.02)
+    assert angles.mask[1].sum() == len(lf) and not angles.mask[1, 0]  # a partial keyframe: no root prior
+    assert joints.mask[0].sum() == 1
+    cfg = load_config(BATCH, [*SHORT, f"keyframes.file={path}", "batch.init=frame", "frame.iterations=10"])
+    prep = prepare(cfg)
+    est = estimate_batch(prep.problem, cfg, torch.Generator())
+    assert float((est.q[30, lf] - gt_q[30, lf].to(est.q)).abs().max()) < np.radians(3.0)
+    assert float((est.joints[25, rhand] - gt_j[25, rhand].to(est.q)).norm()) < 0.02
+
+
+def test_joint_std_is_calibrated_and_logged(tmp_path):
+    out = tmp_path / "run"
+    assert main(["run", str(BATCH), *SHORT[:2], "batch.uncertainty=true", f"out_dir={out}"]) == 0
+    with np.load(out / "result.npz") as z:
+        std, joints, gt = z["joint_std"], z["joints"], z["gt_joints"]
+        assert std.shape == joints.shape[:2] and np.isfinite(std).all() and (std > 0).all()
+        err = np.linalg.norm(joints - gt, axis=-1)
+        within = float((err <= 2 * std).mean())
+        # 2 sqrt(trace) holds 95-99% of a Gaussian's 3D errors (anisotropic .. isotropic)
+        assert 0.75 <= within <= 1.0, within
+        assert z["solver_cost"][-1] < z["solver_cost"][0]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["joint_std_mean_m"] > 0 and metrics["solver_iterations"] >= 1
+
+
+def test_warm_start_from_a_run_folder_and_upsampling(tmp_path):
+    out, few = tmp_path / "cold", ["data.stop=100", *SHORT[1:]]
+    assert main(["run", str(BATCH), *few, f"out_dir={out}"]) == 0
+    cold = json.loads((out / "metrics.json").read_text())
+    warm_dir = tmp_path / "warm"
+    assert main(["run", str(BATCH), *few, f"init_from={out}", f"out_dir={warm_dir}"]) == 0
+    warm = json.loads((warm_dir / "metrics.json").read_text())
+    # the warm start begins where the cold solve ended (not at the per-frame/keyframe start) and only improves
+    assert warm["solver_cost_start"] == pytest.approx(cold["solver_cost_final"], rel=1e-4)
+    assert warm["solver_cost_start"] < 0.9 * cold["solver_cost_start"]
+    assert warm["solver_cost_final"] <= warm["solver_cost_start"]
+    _, prep, est = solve("batch.upsample=2", "data.stop=80")
+    conf = prep.problem.observations.confidence
+    assert est.q.shape[0] == conf.shape[0] == 40 and bool((conf[1::2] == 0).all())
+    assert mpjpe_mm(prep, est) < 60.0  # measured 53.5 mm over all 40 frames (20 of them without 2D)
+
+
+def test_accuracy_on_a_clip_not_tuned_on(cmu_file):
+    """CMU 35_01 (walk; not a dev clip), 3 s at 30 fps, 2 px noise, 10% missing, keyframes every second.
+    Measured 2026-11-23: 42.4 mm MPJPE (the issue's target, 30 mm, is NOT met: see docs/results.md),
+    acceleration error 7.3 mm/f^2 against 46.2 for `method: frame` on the same observations."""
+    amc, asf = cmu_file("35_01.amc"), cmu_file("35.asf")
+    cfg = load_config(BATCH, [f"data.amc={amc}", f"data.asf={asf}", "data.stop=360", "progress=false",
+                              "batch.uncertainty=false", "keyframes.every_s=1"])
+    prep = prepare(cfg)
+    est = estimate_batch(prep.problem, cfg, torch.Generator())
+    idx = prep.problem.keypoints.index()
+    gt = prep.gt_joints.index_select(-2, idx).to(est.joints)
+    assert mpjpe_mm(prep, est) < 50.0
+    assert float(M.accel_error(est.joints.index_select(-2, idx), gt, root=0).mean()) < 15.0  # frame: 46
+
+
+# -- bad input: one error line naming the file and the problem, exit 2, nothing written ---------------
+
+
+def _fail(capsys, out: Path, argv: list[str], *fragments: str) -> None:
+    rc = main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("ptrack: error: "), err
+    for f in fragments:
+        assert f in err[0], (f, err[0])
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("text, suffix, fragments", [
+    ("keyframes:\n  - frame: 999\n    dofs: {lfemur.rx: 10}\n", ".yaml", ["frame 999", "outside the sequence"]),
+    ("keyframes:\n  - frame: 3\n    dofs: {lfemur.qq: 10}\n", ".yaml", ["unknown dof", "lfemur.qq"]),
+    ("keyframes:\n  - frame: 3\n    joints: {nose: [0, 1, 2]}\n", ".yaml", ["unknown joint", "nose"]),
+    ("keyframes:\n  - frame: 3\n    dofs: {lfemur.rx: 10}\n    sigma_deg: 0\n", ".yaml", ["sigma_deg", "> 0"]),
+    ("keyframes:\n  - frame: 3\n    joints: {lwrist: [0, 1, 2]}\n    sigma_m: -1\n", ".yaml", ["sigma_m"]),
+    ("keyframes: [ {frame: 3, dofs: {lfemur.rx: 1}\n", ".yaml", ["not valid YAML"]),
+    ('{"keyframes": [{"frame": 3,}]}', ".json", ["not valid JSON"]),
+])
+def test_bad_keyframe_files(tmp_path, capsys, text, suffix, fragments):
+    path = tmp_path / f"keys{suffix}"
+    path.write_text(text)
+    out = tmp_path / "out"
+    _fail(capsys, out, ["run", str(BATCH), *SHORT, f"keyframes.file={path}", f"out_dir={out}"], str(path), *fragments)
+
+
+def test_bad_init_from(tmp_path, capsys):
+    out = tmp_path / "out"
+    _fail(capsys, out, ["run", str(BATCH), *SHORT, f"init_from={tmp_path}", f"out_dir={out}"], str(tmp_path),
+          "not a run folder")
+    short = tmp_path / "short"
+    assert main(["run", str(BATCH), "data.stop=120", *SHORT[1:], f"out_dir={short}"]) == 0
+    _fail(capsys, out, ["run", str(BATCH), *SHORT, f"init_from={short}", f"out_dir={out}"], str(short), "frames")
+    _fail(capsys, out, ["run", str(BATCH), *SHORT, f"init_from={short}", "model.freeze=[]", f"out_dir={out}",
+                        "data.stop=120"], str(short), "dofs")
