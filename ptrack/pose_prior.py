@@ -1,0 +1,76 @@
+"""A per-dof Gaussian pose prior measured on real CMU motion, for fits that have no 3D input.
+
+A single monocular view leaves every limb's depth and the torso's lean ambiguous: many poses
+reproject onto the same 2D joints, and on a start without 3D input (`kjs.init: tree`) the only thing
+that ranks them is a prior over poses. An all-zero "rest" prior is a poor one for ASF skeletons,
+whose zero pose has the arms straight out sideways: the truth of a walking frame costs more under it
+than a wrong interpretation with the arms half raised in depth. This prior holds, for each dof, the
+circular mean and the standard deviation (about that mean, on the circle) of the angles real people
+take, from `ptrack/data/cmu_pose_prior.json`, made by `scripts/make_pose_prior.py` from CMU clips of
+subjects that are not in the development clips (`configs/clips/dev.txt`), so that the dev clips are
+held out of it.
+
+    mean, std, known = pose_prior(skeleton, lower, upper, angular)   # (D,), (D,), (D,) bool
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from ptrack.errors import InputError
+from ptrack.limits import wrap_to_limits
+
+if TYPE_CHECKING:
+    from ptrack.skeleton import Skeleton
+
+
+def pose_prior_path() -> Path:
+    """The shipped CMU pose prior file."""
+    return Path(str(resources.files("ptrack") / "data" / "cmu_pose_prior.json"))
+
+
+def read_pose_prior(path: str | Path | None = None) -> dict[str, tuple[float, float]]:
+    """{dof name: (mean, std) radians} from a pose prior JSON file.
+
+    Layout: {"prior_deg": {"lfemur.rx": [mean, std], ...}, ...provenance keys}."""
+    p = Path(path) if path is not None else pose_prior_path()
+    if not p.is_file():
+        raise FileNotFoundError(f"pose prior file not found: {p}")
+    try:
+        table = json.loads(p.read_text(encoding="utf-8"))["prior_deg"]
+        items = list(table.items())
+    except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as e:
+        raise InputError(f"pose prior file {p} must be JSON with a 'prior_deg' mapping ({e})") from None
+    out: dict[str, tuple[float, float]] = {}
+    for name, v in items:
+        if (not isinstance(v, list) or len(v) != 2 or not all(isinstance(x, (int, float)) for x in v)
+                or not all(math.isfinite(x) for x in v) or v[1] < 0):
+            raise InputError(f"pose prior file {p}: {name!r} must be [mean, std >= 0] degrees, got {v!r}")
+        out[name] = (math.radians(v[0]), math.radians(v[1]))
+    return out
+
+
+def pose_prior(sk: "Skeleton", lower: Tensor, upper: Tensor, angular: Tensor,
+               path: str | Path | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """The prior of `sk`'s dofs: -> mean (D,) radians (wrapped into the limits' windows), std (D,),
+    known (D,) bool (dofs the file names; the others get mean 0, std 0). dtype and device follow
+    `lower`. Root dofs are never in the file (a heading or a position has no prior)."""
+    table = read_pose_prior(path)
+    mean = torch.zeros_like(lower)
+    std = torch.zeros_like(lower)
+    known = torch.zeros(lower.shape, dtype=torch.bool, device=lower.device)
+    for i, name in enumerate(sk.dof_names):
+        if name in table:
+            mean[i], std[i] = table[name]
+            known[i] = True
+    return wrap_to_limits(mean, lower, upper, angular), std, known
+
+
+__all__ = ["pose_prior", "pose_prior_path", "read_pose_prior"]
