@@ -102,3 +102,14 @@ def test_pose_prior():
         PosePrior(mean, torch.tensor([1.0, -1.0, 1.0, 1.0]))
     with pytest.raises(InputError):
         PosePrior(mean, torch.ones(3))
+
+
+def test_pose_prior_per_hypothesis_sigma(scene):
+    """A std per hypothesis and dof (the trackers' motion-scaled dynamics): residuals and the closed-form
+    Jacobian match autograd."""
+    sk, q, kps, cam = scene
+    sigma = 0.05 + torch.rand(q.shape, generator=torch.Generator().manual_seed(3), dtype=q.dtype)
+    objective = Objective({"prior": PosePrior(q.flip(0), sigma)})
+    lin = objective_linearization(sk, objective, cam, kps)(q)
+    torch.testing.assert_close(lin.jacobian, _autograd(sk, kps, cam, objective, q), atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(objective.residuals(evaluate_pose(sk, cam, kps, q)), (q - q.flip(0)) / sigma)

@@ -310,8 +310,9 @@ class JointKeyframe(_LeastSquares):
 class PosePrior(_LeastSquares):
     """Gaussian prior around a predicted pose, one prediction per hypothesis (a tracker's dynamics).
 
-    mean (..., D) predicted poses (broadcast against ev.q (..., D)); sigma float or (D,) standard
-    deviations (radians / metres). residual (..., D) = (q - mean) / sigma, energy (...,).
+    mean (..., D) predicted poses (broadcast against ev.q (..., D)); sigma float, (D,) or (..., D)
+    standard deviations (radians / metres; per hypothesis too). residual (..., D) = (q - mean) / sigma,
+    energy (...,).
     """
 
     mean: Tensor
@@ -322,8 +323,8 @@ class PosePrior(_LeastSquares):
         if mean.ndim < 1 or not torch.isfinite(mean).all():
             raise InputError(f"PosePrior.mean must be finite with shape (..., D), got {_shape(mean)}")
         sigma = as_float_tensor(self.sigma, "sigma")
-        if sigma.ndim > 1 or (sigma.ndim == 1 and sigma.shape[0] != mean.shape[-1]):
-            raise InputError(f"PosePrior.sigma must be a float or shape ({mean.shape[-1]},), got {_shape(sigma)}")
+        if sigma.ndim >= 1 and sigma.shape[-1] != mean.shape[-1]:
+            raise InputError(f"PosePrior.sigma must be a float or shape (..., {mean.shape[-1]}), got {_shape(sigma)}")
         _positive("PosePrior.sigma", sigma)
         object.__setattr__(self, "mean", mean)
         object.__setattr__(self, "sigma", sigma)
@@ -337,5 +338,7 @@ class PosePrior(_LeastSquares):
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
         """(..., D) -> (..., D, D) = diag(1 / sigma)."""
         q = ev.q
-        inv = (1.0 / self.sigma.to(q)).expand(q.shape[-1:])
-        return torch.diag_embed(inv).expand(*q.shape, q.shape[-1])
+        inv = 1.0 / self.sigma.to(q)
+        if inv.ndim <= 1:
+            return torch.diag_embed(inv.expand(q.shape[-1:])).expand(*q.shape, q.shape[-1])
+        return torch.diag_embed(torch.broadcast_to(inv, torch.broadcast_shapes(inv.shape, q.shape)))
