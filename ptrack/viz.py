@@ -21,6 +21,8 @@ Entity layout (stable: tests and users rely on it):
     world/hypotheses/h{n}/bones         LineStrips3D per hypothesis n = 0..N-1, blue; label
                                         "h{n} w=... cost=..." per frame, radius and colour alpha
                                         scaled by the weight relative to the frame's best weight
+    world/hypotheses/h{n}/direction     Arrows3D from each joint of hypothesis n: its principal
+                                        covariance direction (1 std)      [if hypothesis_directions]
     world/hypotheses/h{n}/weight        Scalars (per frame)                    [if hypotheses]
     world/hypotheses/h{n}/cost          Scalars (per frame)                    [if costs given]
     world/camera                        Transform3D camera-to-world (translation = camera centre,
@@ -31,6 +33,7 @@ Entity layout (stable: tests and users rely on it):
     world/camera/image/reprojected      Points2D of the estimate's projected keypoints, magenta
     world/camera/image/silhouette       SegmentationImage, class 1 = silhouette  [if masks]
     metrics/<name>                      Scalars, one per frame with a finite value
+    jumps/<chain>                       Scalars: kinematic-jump leaves kept per frame for each chain
 
 Bones entities are omitted for a skeleton without (parent, child) pairs (a single joint).
 """
@@ -65,6 +68,8 @@ REPROJECTED_COLOR = (230, 60, 200)
 JOINT_RADIUS = 0.02  # metres
 BONE_RADIUS = 0.01  # metres
 HYPOTHESIS_RADIUS = 0.006  # metres, at the frame's best weight
+DIRECTION_COLOR = (160, 90, 255)
+DIRECTION_RADIUS = 0.004  # metres
 KEYPOINT_RADIUS = 3.0  # pixels
 
 
@@ -78,7 +83,9 @@ class RunLog:
     camera: a `ptrack.camera.Camera` (anything with K (3, 3), R (3, 3), t (3,), width, height).
     observed: (T, K, 2) pixels; confidence: (T, K), 0 = missing (not drawn);
     reprojected: (T, K, 2) pixels; keypoint_names: (K,).
-    hypotheses: (T, N, J, 3) or None; hypothesis_weights, hypothesis_costs: (T, N) or None.
+    hypotheses: (T, N, J, 3) or None; hypothesis_weights, hypothesis_costs: (T, N) or None;
+    hypothesis_directions: (T, N, J, 3) metres or None.
+    jumps: chain name -> (T,) kinematic-jump leaves kept per frame.
     scalars: name -> (T,) per-frame values, NaN = no value that frame.
     masks: (T, H, W) bool silhouettes with H, W the camera's height, width, or None.
 
@@ -99,13 +106,15 @@ class RunLog:
     hypotheses: np.ndarray | None = None
     hypothesis_weights: np.ndarray | None = None
     hypothesis_costs: np.ndarray | None = None
+    hypothesis_directions: np.ndarray | None = None
+    jumps: Mapping[str, np.ndarray] = field(default_factory=dict)
     scalars: Mapping[str, np.ndarray] = field(default_factory=dict)
     masks: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name in ("frames", "times", "estimate", "ground_truth", "observed", "confidence",
                      "reprojected", "hypotheses", "hypothesis_weights", "hypothesis_costs",
-                     "masks"):
+                     "hypothesis_directions", "masks"):
             value = getattr(self, name)
             if value is not None:
                 object.__setattr__(self, name, _as_numpy(value))
@@ -113,6 +122,7 @@ class RunLog:
         object.__setattr__(self, "parents", tuple(int(p) for p in self.parents))
         object.__setattr__(self, "keypoint_names", tuple(self.keypoint_names))
         object.__setattr__(self, "scalars", {str(k): _as_numpy(v) for k, v in self.scalars.items()})
+        object.__setattr__(self, "jumps", {str(k): _as_numpy(v) for k, v in self.jumps.items()})
         self._validate()
 
     def _validate(self) -> None:
@@ -139,8 +149,12 @@ class RunLog:
             for name in ("hypothesis_weights", "hypothesis_costs"):
                 if getattr(self, name) is not None:
                     _check_shape(name, getattr(self, name), (T, N))
-        elif self.hypothesis_weights is not None or self.hypothesis_costs is not None:
-            raise InputError("RunLog.hypothesis_weights/costs given without RunLog.hypotheses")
+            if self.hypothesis_directions is not None:
+                _check_shape("hypothesis_directions", self.hypothesis_directions, (T, N, J, 3))
+        elif any(x is not None for x in (self.hypothesis_weights, self.hypothesis_costs, self.hypothesis_directions)):
+            raise InputError("RunLog.hypothesis_weights/costs/directions given without RunLog.hypotheses")
+        for name, values in self.jumps.items():
+            _check_shape(f"jumps[{name!r}]", values, (T,))
         for name, values in self.scalars.items():
             if not name:
                 raise InputError("RunLog.scalars has an empty metric name")
@@ -188,6 +202,8 @@ def write_recording(path: str | Path, log: RunLog) -> None:
             _log_masks(rec, log.masks, index)
         for name, values in log.scalars.items():
             _log_scalar(rec, f"metrics/{name}", values, log)
+        for name, values in log.jumps.items():
+            _log_scalar(rec, f"jumps/{name}", values.astype(np.float64), log)
         rec.flush()
         logger.info("wrote rerun recording %s (%d frames)", path, T)
     finally:
@@ -274,6 +290,12 @@ def _log_hypotheses(rec: rr.RecordingStream, log: RunLog, bones: np.ndarray,
                 *strips.partition([len(bones)] * T),
                 *rr.LineStrips3D.columns(labels=labels, radii=radii[:, n], colors=colors[:, n]),
             ])
+        if log.hypothesis_directions is not None:
+            arrows = rr.Arrows3D.columns(origins=H[:, n].reshape(-1, 3),
+                                         vectors=log.hypothesis_directions[:, n].reshape(-1, 3))
+            rec.log(f"{entity}/direction", rr.Arrows3D.from_fields(colors=[DIRECTION_COLOR], radii=DIRECTION_RADIUS),
+                    static=True)
+            rec.send_columns(f"{entity}/direction", indexes=index, columns=arrows.partition([H.shape[2]] * T))
         _log_scalar(rec, f"{entity}/weight", weights[:, n], log)
         if costs is not None:
             _log_scalar(rec, f"{entity}/cost", costs[:, n], log)

@@ -59,6 +59,8 @@ def _run_log(full: bool = True, frames: int = T, joints: int = J) -> RunLog:
             hypotheses=hyp,
             hypothesis_weights=np.tile([0.6, 0.3, 0.1], (T_, 1)),
             hypothesis_costs=np.tile([1.0, 2.0, 3.5], (T_, 1)),
+            hypothesis_directions=0.02 * rng.standard_normal((T_, N, J_, 3)),
+            jumps={"larm": np.arange(T_), "rleg": np.zeros(T_, dtype=int)},
             masks=masks,
         )
     return RunLog(
@@ -125,7 +127,8 @@ def test_entity_layout(full):
         "world/estimate/joints", "world/estimate/bones",
         "world/camera/image/observed", "world/camera/image/reprojected",
         "world/camera/image/silhouette", "metrics/mpjpe", "metrics/cost",
-    } | {f"world/hypotheses/h{n}/{c}" for n in range(N) for c in ("bones", "weight", "cost")}
+    } | {f"world/hypotheses/h{n}/{c}" for n in range(N) for c in ("bones", "weight", "cost", "direction")} \
+      | {"jumps/larm", "jumps/rleg"}
     assert expected <= rec.entities
     assert not any(e.startswith("world/hypotheses/h3") for e in rec.entities)
     assert rec.static["world"]["ViewCoordinates:xyz"] == [
@@ -221,6 +224,18 @@ def test_hypotheses(full):
     assert alphas[0] == 255 and alphas[0] > alphas[1] > alphas[2]
 
 
+def test_covariance_directions_and_jumps(full):
+    log, rec = full
+    for n in range(N):
+        entity = f"world/hypotheses/h{n}/direction"
+        origins = np.array(rec.column(entity, "Arrows3D:origins"))
+        vectors = np.array(rec.column(entity, "Arrows3D:vectors"))
+        np.testing.assert_allclose(origins, log.hypotheses[:, n], atol=1e-6)
+        np.testing.assert_allclose(vectors, log.hypothesis_directions[:, n], atol=1e-6)
+    larm = [r["Scalars:scalars"][0] for r in rec.temporal["jumps/larm"]]
+    np.testing.assert_allclose(larm, np.arange(T))
+
+
 def test_silhouette(full):
     log, rec = full
     buffers = rec.column("world/camera/image/silhouette", "SegmentationImage:buffer")
@@ -278,6 +293,8 @@ def test_global_recording_untouched(tmp_path):
         (dict(parents=(-1, 0)), "parents"),
         (dict(masks=np.zeros((T, H + 1, W), dtype=bool)), "masks"),
         (dict(hypothesis_weights=np.ones((T, N + 1))), "hypothesis_weights"),
+        (dict(hypothesis_directions=np.ones((T, N, J, 2))), "hypothesis_directions"),
+        (dict(jumps={"larm": np.ones(T + 1)}), "larm"),
         (dict(scalars={"mpjpe": np.zeros(T - 1)}), "mpjpe"),
         (dict(frames=np.zeros(0, dtype=int)), "frames"),
     ],

@@ -45,6 +45,7 @@ from ptrack.jacobians import objective_linearization
 from ptrack.jumps import (Chain, check_independent, default_chains, interpretation_tree, interpretation_trees,
                           joint_observations, product)
 from ptrack.mixture import Modes, distinct_minima, posterior_weights, viterbi
+from ptrack.pose_prior import pose_prior
 from ptrack.problem import Estimate, Problem, first_keyframe, pose_eval_from_joints
 from ptrack.samplers import css_proposal, project_to_limits, scaled_covariance, spherical_proposal
 from ptrack.solvers import lbfgs, levenberg_marquardt
@@ -79,6 +80,7 @@ class Setup:
     plans: tuple[ChainIK, ...]
     chain_dofs: Tensor  # (C, D) bool: dofs each chain's IK sets
     root: Tensor  # (D,) bool: the root joint's rotation and translation dofs
+    prior: tuple[Tensor, Tensor, Tensor]  # CMU pose prior: mean (D,), std (D,), known (D,) bool
 
 
 def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
@@ -108,7 +110,8 @@ def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
         chain_dofs[c, list(plan.dofs)] = True
     root = torch.zeros(sk.num_dofs, dtype=torch.bool, device=device)
     root[[int(d) for d in (*sk.axis_dof[0], *sk.translation_dof) if d >= 0]] = True
-    return Setup(problem, cfg, lower, upper, angular, collision, chains, plans, chain_dofs, root)
+    prior = pose_prior(sk, lower, upper, angular)
+    return Setup(problem, cfg, lower, upper, angular, collision, chains, plans, chain_dofs, root, prior)
 
 
 # ---------------------------------------------------------------- the frame's objective
@@ -189,13 +192,15 @@ def _chain_votes(s: Setup, chol: Tensor) -> Tensor:
 
 
 def _jump(s: Setup, t: int, q: Tensor, parent: Tensor, modes: Modes, gen: torch.Generator,
-          per_sample: int) -> tuple[Tensor, Tensor]:
+          per_sample: int) -> tuple[Tensor, Tensor, Tensor]:
     """Kinematic jumps of samples q (S, D) on frame t: each flips `per_sample` chains chosen by its mode's
-    covariance vote. -> leaves q (L_all, D) (the samples' own leaf 0 included), parent mode (L_all,)."""
+    covariance vote. -> leaves q (L_all, D) (the samples' own leaf 0 included), parent mode (L_all,),
+    flipped leaves kept per chain (C,)."""
     prob = s.problem
     sk, obs = prob.skeleton, prob.observations
+    counts = torch.zeros(len(s.chains), dtype=torch.long, device=q.device)
     if per_sample == 0 or not s.chains:
-        return q, parent
+        return q, parent, counts
     px, conf = joint_observations(prob.keypoints, obs.keypoints[t], obs.confidence[t], sk.num_joints)
     probs = _chain_votes(s, modes.chol)[parent]  # (S, C)
     picks = torch.multinomial(probs.double().cpu(), min(per_sample, len(s.chains)), replacement=False,
@@ -213,7 +218,8 @@ def _jump(s: Setup, t: int, q: Tensor, parent: Tensor, modes: Modes, gen: torch.
         idx = keep.nonzero()
         out_q.append(ik.q[idx[:, 0], idx[:, 1]])
         out_parent.append(parent[rows][idx[:, 0]])
-    return torch.cat(out_q), torch.cat(out_parent)
+        counts[c] = idx.shape[0]
+    return torch.cat(out_q), torch.cat(out_parent), counts
 
 
 # ---------------------------------------------------------------- one tracking step
@@ -235,12 +241,14 @@ def _modes(s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, weight: Tensor, o
     return Modes(q=q, weight=weight, cost=cost, chol=_cholesky(s, hessian), velocity=q - origin)
 
 
-def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generator) -> Modes:
+def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generator) -> tuple[Modes, Tensor]:
+    """Frame t-1's modes -> frame t's, and the flipped leaves kept per chain (C,) (see the module docstring)."""
     k = s.cfg.kjs
     obs = s.problem.observations
     predicted = modes.q + k.momentum * modes.velocity  # (K, D): the dynamics' prediction of each mode
+    counts = torch.zeros(len(s.chains), dtype=torch.long, device=predicted.device)
     if not bool((obs.confidence[t] > 0).any()):  # nothing seen: the dynamics carry the modes
-        return modes._replace(q=predicted)
+        return modes._replace(q=predicted), counts
     centres = modes._replace(q=predicted)
     budget = k.samples - modes.q.shape[0]
     if strategy.jumps and s.chains and k.jumps_per_sample > 0:
@@ -251,20 +259,22 @@ def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generat
         n_diffuse = budget
     q, parent = _diffuse(s, centres, n_diffuse, strategy, gen)
     if strategy.jumps:
-        q, parent = _jump(s, t, q, parent, centres, gen, k.jumps_per_sample)
+        q, parent, counts = _jump(s, t, q, parent, centres, gen, k.jumps_per_sample)
         q, parent = q[:budget], parent[:budget]
     idx = torch.arange(modes.q.shape[0], device=q.device)
     q = torch.cat([predicted, q])
     parent = torch.cat([idx, parent])
+    # the dynamics' spread widens with each mode's own last motion: a fast limb may move as far again
+    sigma = torch.sqrt(k.prior_sigma ** 2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
     # polish everything briefly, then the most promising distinct minima to convergence
-    q, cost, hessian = _polish(s, t, q, predicted[parent], k.polish_iterations)
+    q, cost, hessian = _polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent])
     best, _ = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], 4 * k.modes)
     q, parent = q[best], parent[best]
-    q, cost, hessian = _polish(s, t, q, predicted[parent], k.refine_iterations)
+    q, cost, hessian = _polish(s, t, q, predicted[parent], k.refine_iterations, sigma[parent])
     keep, w = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], k.modes)
     if keep.numel() == 0:  # every hypothesis diverged (non-finite cost): the dynamics carry the modes
-        return modes._replace(q=predicted)
-    return _modes(s, q[keep], cost[keep], hessian[keep], w, modes.q[parent[keep]])
+        return modes._replace(q=predicted), counts
+    return _modes(s, q[keep], cost[keep], hessian[keep], w, modes.q[parent[keep]]), counts
 
 
 # ---------------------------------------------------------------- initialisation
@@ -274,41 +284,76 @@ def _init_keyframe(s: Setup) -> Tensor:
     return first_keyframe(s.problem, "kjs.init", s.lower, s.upper)[None]
 
 
-def _rest_prior(s: Setup, q: Tensor) -> tuple[Tensor, Tensor]:
-    """The prior of a start without 3D input: every angle near the rest pose (std `kjs.rest_sigma`), the
-    root's position near where the rigid fit of the body put it (std 0.1 m: monocular depth is otherwise
-    traded for limbs tilted in depth), its rotation free. q (N, D) -> mean (N, D), sigma (D,)."""
-    sk = s.problem.skeleton
+def _start_prior(s: Setup, q: Tensor) -> tuple[Tensor, Tensor]:
+    """The prior of a start without 3D input. Each angle the CMU pose prior names (`ptrack.pose_prior`)
+    is held near real people's mean angle with `kjs.start_prior_scale` times their spread; any other
+    angle near 0 with std `kjs.rest_sigma`; the root's position near where the rigid fit of the body put
+    it (std 0.1 m: monocular depth is otherwise traded for limbs tilted in depth); its rotation free.
+    q (N, D) -> mean (N, D), sigma (D,)."""
+    sk, k = s.problem.skeleton, s.cfg.kjs
     root = s.root
     trans = torch.zeros_like(root)
     trans[[int(d) for d in sk.translation_dof if d >= 0]] = True
-    mean = torch.where(root, q, torch.zeros_like(q))
-    sigma = torch.full_like(q[0], s.cfg.kjs.rest_sigma)
+    mean, std, known = s.prior
+    known = known & ~root
+    mean = torch.where(root, q, torch.where(known, mean, torch.zeros_like(mean)).expand_as(q))
+    floor = math.radians(k.floor_deg)
+    sigma = torch.where(known, k.start_prior_scale * std.clamp_min(floor), torch.full_like(std, k.rest_sigma))
     sigma = torch.where(root, torch.full_like(sigma, 1e3), sigma)
     sigma = torch.where(trans, torch.full_like(sigma, 0.1), sigma)
     return mean, sigma
 
 
+def _root_starts(s: Setup, q: Tensor, yaws: int, tilts: tuple[float, ...]) -> Tensor:
+    """Start poses for the rigid fit: q (D,) with its root turned to `yaws` headings about the world's up
+    axis (+Y) and leaned by each of `tilts` (radians) about the root's other horizontal axis. A pose
+    fitted from one heading keeps that heading's depth order of the torso (which shoulder and hip is
+    nearer the camera), so every heading is tried. -> (S, D); q[None] when the root cannot rotate."""
+    sk = s.problem.skeleton
+    driven = [k for k in range(3) if sk.axis_dof[0, k] >= 0]
+    if not driven:
+        return q[None]
+    world = sk.rest_rotation[0] @ sk.axes[0].T  # (3, 3): columns = the root's axes in the world
+    up = max(driven, key=lambda k: abs(world[1, k]))
+    side = [k for k in driven if k != up]
+    starts = []
+    for i in range(yaws):
+        for tilt in (tilts if side else (0.0,)):
+            x = q.clone()
+            x[int(sk.axis_dof[0, up])] += 2 * math.pi * i / yaws * (1.0 if world[1, up] >= 0 else -1.0)
+            if side:
+                x[int(sk.axis_dof[0, side[-1]])] += tilt
+            starts.append(x)
+    return torch.stack(starts)
+
+
 def _init_tree(s: Setup) -> Tensor:
-    """No 3D input: the rest pose in view, fitted to frame 0's 2D (root first, then every dof with the
-    rest prior), then every flip combination of the chains. -> candidates (N, D)."""
+    """No 3D input: the rest pose in view under every heading, each fitted rigidly to frame 0's 2D
+    (root dofs only), then in every dof with the rest prior; the distinct fits (by cost, at most
+    `kjs.init_fits`) are expanded by every flip combination of the chains. -> candidates (N, D)."""
     prob = s.problem
     sk, obs = prob.skeleton, prob.observations
-    q = torch.clamp(rest_pose_in_view(prob, s.lower.dtype), s.lower, s.upper)[None]
+    k = s.cfg.kjs
+    rest = torch.clamp(rest_pose_in_view(prob, s.lower.dtype), s.lower, s.upper)
+    q = project_to_limits(_root_starts(s, rest, k.init_yaws, (0.0, 0.5, -0.5)), s.lower, s.upper, s.angular,
+                          mode="reflect")
     lo = torch.where(s.root, s.lower, q[0])
     hi = torch.where(s.root, s.upper, q[0])
     q, _ = levenberg_marquardt(objective_linearization(sk, _objective(s, 0, None), obs.camera, prob.keypoints),
                                q, lo, hi, max_iter=30)
-    mean, sigma = _rest_prior(s, q)
-    q, _, _ = _polish(s, 0, q, mean, 30, sigma)
+    mean, sigma = _start_prior(s, q)
+    q, cost, _ = _polish(s, 0, q, mean, 30, sigma)
+    # distinct in 3D (no joint 5 cm apart): headings 2 pi apart, or the two Euler triples of one
+    # rotation, are one fit
+    fits = q[distinct_minima(sk.forward_kinematics(q).flatten(-2), cost, 0.05, limit=k.init_fits)]
     px, conf = joint_observations(prob.keypoints, obs.keypoints[0], obs.confidence[0], sk.num_joints)
-    trees = interpretation_trees(s.chains, sk.forward_kinematics(q), obs.camera, px, conf)
+    trees = interpretation_trees(s.chains, sk.forward_kinematics(fits), obs.camera, px, conf)
     prod = product(trees)
-    results = [chain_ik(plan, q, tree.positions, mode=s.cfg.kjs.limits_mode) for plan, tree in zip(s.plans, trees)]
-    ik = product_ik(q, results, prod)
-    keep = (ik.keep & prod.unique)[0]
-    keep[0] = False  # leaf 0 is the fit itself, kept below whatever its IK flags say
-    return torch.cat([q, ik.q[0][keep]])
+    results = [chain_ik(plan, fits, tree.positions, mode="project") for plan, tree in zip(s.plans, trees)]
+    ik = product_ik(fits, results, prod)
+    keep = ik.keep & prod.unique
+    keep[:, 0] = False  # leaf 0 is the fit itself, kept below whatever its IK flags say
+    return torch.cat([fits, ik.q[keep]])
 
 
 def _first_modes(s: Setup, strategy: Strategy) -> Modes:
@@ -317,9 +362,11 @@ def _first_modes(s: Setup, strategy: Strategy) -> Modes:
         q = _init_keyframe(s)
         q, cost, hessian = _polish(s, 0, q, q, 20, 0.01)
     else:
-        q = _init_tree(s)
-        mean, sigma = _rest_prior(s, q)
-        q, cost, hessian = _polish(s, 0, q, mean, 20, sigma)
+        q = _init_tree(s)  # many candidates: polish all briefly, the 4K most promising to convergence
+        mean, sigma = _start_prior(s, q)
+        q, cost, hessian = _polish(s, 0, q, mean, k.polish_iterations, sigma)
+        best, _ = _select(s, q, cost, hessian, torch.ones_like(cost), q, 4 * k.modes)
+        q, cost, hessian = _polish(s, 0, q[best], mean[best], 20, sigma)
     keep, w = _select(s, q, cost, hessian, torch.ones_like(cost), q, k.modes)
     if keep.numel() == 0:
         raise EstimationError(f"method {strategy.name!r}: no start pose with a finite cost on frame 0")
@@ -329,15 +376,30 @@ def _first_modes(s: Setup, strategy: Strategy) -> Modes:
 # ---------------------------------------------------------------- the estimator
 
 
-def _pad(modes: Modes, k: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Modes -> (K, D) q, (K,) weights, (K,) costs, padding with copies of the best at weight 0."""
+def _pad(modes: Modes, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Modes (M) -> (K, D) q, (K,) weights, (K,) costs, (K, D, D) covariance factors, padding with copies
+    of the best at weight 0."""
     m = modes.q.shape[0]
     if m >= k:
-        return modes.q, modes.weight, modes.cost
+        return modes.q, modes.weight, modes.cost, modes.chol
     fill = k - m
     return (torch.cat([modes.q, modes.q[:1].expand(fill, -1)]),
             torch.cat([modes.weight, modes.weight.new_zeros(fill)]),
-            torch.cat([modes.cost, modes.cost[:1].expand(fill)]))
+            torch.cat([modes.cost, modes.cost[:1].expand(fill)]),
+            torch.cat([modes.chol, modes.chol[:1].expand(fill, -1, -1)]))
+
+
+def principal_directions(sk, q: Tensor, chol: Tensor, scale: float) -> Tensor:
+    """Each mode's most uncertain direction, as 3D joint displacements: the top eigenvector of its
+    covariance (chol chol^T / scale: the inverse Gauss-Newton Hessian, regularised, without the
+    sampling scale), one standard deviation long, through forward kinematics. The sign is fixed so
+    that the eigenvector's largest entry is positive. q (..., D), chol (..., D, D) -> (..., J, 3) metres."""
+    cov = chol @ chol.transpose(-1, -2) / scale
+    val, vec = torch.linalg.eigh(cov)
+    v = vec[..., -1]  # (..., D)
+    sign = torch.sign(v.gather(-1, v.abs().argmax(-1, keepdim=True)))
+    dq = v * sign * val[..., -1:].clamp_min(0).sqrt()
+    return sk.forward_kinematics(q + dq) - sk.forward_kinematics(q)
 
 
 def track(problem: Problem, cfg, generator: torch.Generator, strategy: Strategy,
@@ -346,14 +408,16 @@ def track(problem: Problem, cfg, generator: torch.Generator, strategy: Strategy,
     s = _setup(problem, cfg, strategy)
     sk, obs = problem.skeleton, problem.observations
     k = cfg.kjs
-    qs, ws, cs = [], [], []
+    qs, ws, cs, ls, jumps = [], [], [], [], []
     modes = None
     for t in progress(range(obs.num_frames)):
-        modes = _first_modes(s, strategy) if modes is None else _step(s, t, modes, strategy, generator)
-        q, w, c = _pad(modes, k.modes)
-        qs.append(q)
-        ws.append(w)
-        cs.append(c)
+        if modes is None:
+            modes, counts = _first_modes(s, strategy), torch.zeros(len(s.chains), dtype=torch.long)
+        else:
+            modes, counts = _step(s, t, modes, strategy, generator)
+        for out, x in zip((qs, ws, cs, ls), _pad(modes, k.modes)):
+            out.append(x)
+        jumps.append(counts.to(modes.q.device))
     hq, hw, hc = torch.stack(qs), torch.stack(ws), torch.stack(cs)  # (T, K, D), (T, K), (T, K)
     unary = hc - torch.log(hw.clamp_min(torch.finfo(hw.dtype).tiny))
     path = viterbi(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), hq, k.viterbi_sigma)
@@ -362,8 +426,11 @@ def track(problem: Problem, cfg, generator: torch.Generator, strategy: Strategy,
     with torch.no_grad():
         hyp_joints = sk.forward_kinematics(hq)
         joints = hyp_joints[frames, path]
+        directions = principal_directions(sk, hq, torch.stack(ls), k.scale)
     return Estimate(q=q, joints=joints, cost=hc[frames, path], terms={"mode_cost": hc[frames, path]},
-                    hypotheses=hyp_joints, hypothesis_weights=hw, hypothesis_costs=hc)
+                    hypotheses=hyp_joints, hypothesis_weights=hw, hypothesis_costs=hc,
+                    hypothesis_directions=directions,
+                    jumps={c.name: x for c, x in zip(s.chains, torch.stack(jumps).T)} if strategy.jumps else None)
 
 
 def estimate_kjs(problem, cfg, generator, progress=lambda x: x) -> Estimate:
