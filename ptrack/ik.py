@@ -28,23 +28,30 @@ chain's forward kinematics for `mode="project"`. The chain's root must stay wher
 kinematics puts it; bone lengths are the model's (`sk.lengths`). Joints past the chain's end
 (hand, foot) follow through q's own angles below it.
 
-The iterative fallback ("iterative"): for chains
-with no closed form (URDF models, whose joints are 1-dof revolutes; ASF chains that are neither
-limb nor swing; `ik_plan(..., closed_form=False)` forces it) it minimises |FK(q)[chain joints] -
-positions|^2 over the plan's dofs -- those of the path joints (and of the chain root when its bone
-end is on its pivot, as URDF links are) that move the chain's joints -- with the shared batched
-Levenberg-Marquardt (`ptrack.solvers.levenberg_marquardt`) over hypotheses x leaves at once, from
-q's own angles, with the geometric Jacobian (`ptrack.jacobians`) restricted to the chain. "prune"
-solves unbounded and flags leaves whose angles (wrapped into the limits' windows) break the
-limits; "project" solves those leaves again within the limits (box constraints) from their
-clamped angles. `ik_plan` raises `ClosedFormUnavailable` only when no dof moves the chain.
-Closed-form leaves that miss their targets (`exact` False: numerical trouble, or targets that
-break the model's bone lengths) are refined by the same fit from the closed form's angles
-(`chain_ik(..., refine=True)`); when every leaf is exact this costs one host sync. Measured
-(scripts/bench_jumps.py workload, 4096 x 8 leaves, 1 thread): the all-exact closed-form path is
-unchanged (32.1 vs 31.5 ms float32, 42.5 vs 42.2 ms float64, interleaved medians). The fit lands
-every leaf of a 4-dof URDF arm's trees (4096 x 4 leaves, from the hypothesis's own angles) within
-2e-8 m in ~0.5 s (float64), and reproduces CMU limb leaves as the closed form does (within 1e-8 m).
+The iterative fallback ("iterative"): for chains with no closed form (URDF models, whose joints
+are 1-dof revolutes; ASF chains that are neither limb nor swing; `ik_plan(..., closed_form=False)`
+forces it) it minimises |FK(q)[chain joints] - positions|^2 over the plan's dofs -- those of the
+path joints (and of the chain root when its bone end is on its pivot, as URDF links are) that
+move the chain's joints -- with the shared batched Levenberg-Marquardt
+(`ptrack.solvers.levenberg_marquardt`) over hypotheses x leaves at once, from q's own angles,
+with the geometric Jacobian (`ptrack.jacobians`) restricted to the chain. "prune" solves
+unbounded and flags leaves whose angles (wrapped into the limits' windows) break the limits;
+"project" solves those leaves again within the limits (box constraints) from their clamped
+angles. `ik_plan` raises `ClosedFormUnavailable` only when no dof moves the chain. Closed-form
+leaves that miss their targets (`exact` False: numerical trouble, or targets that break the
+model's bone lengths) are refined by the same fit from the closed form's angles
+(`chain_ik(..., refine=True)`); when every leaf is exact this costs one host sync.
+
+Measured 2026-11-23 (1 torch thread, shared loaded 2-core CPU; interleaved medians): on the
+scripts/bench_jumps.py workload (4096 x 8 leaves, all exact) the closed-form path with refinement
+on takes what it took before the fallback existed (28.8 vs 27.0 ms float32, 45.1 vs 45.8 ms
+float64: noise). The fit lands every leaf of a 4-dof URDF arm's trees (tests/test_ik_iterative.py's
+arm, 4096 x 4 leaves, from each hypothesis's own angles) within 1e-7 m (median 5e-12) in float64
+and 6.6e-5 m (median 1.6e-7) in float32, in 0.4-1.0 s ("project": 0.9-1.7 s); from another random
+pose, 3 of 4096 float32 fits stall near the shoulder's gimbal lock at ~1.5e-4 m (flagged not
+`exact`). On CMU limbs it reaches the closed form's positions to within 1e-8 m. Most leaves converge
+in under 8 iterations and a few take ~30; `_fit` therefore runs the solver in rounds over the
+unconverged leaves only (400 vs 820 ms for one run over all of them, float64).
 
 Layout: the solvers work on struct-of-arrays tensors (`ptrack.jumps`), hypotheses last; inputs and
 outputs are ordinary batch-first tensors. Shapes: `N` hypotheses (any leading batch dims), `L`
@@ -813,7 +820,7 @@ def _result(q: Tensor, dofs: tuple[int, ...], theta: Tensor, pos: Tensor, residu
     def flags(f: Tensor) -> Tensor:
         return f.T.contiguous().reshape(lead)
 
-    return IKResult(angles=theta.permute(2, 1, 0).contiguous().reshape(*lead, -1), dofs=dofs, start=q,
+    return IKResult(angles=theta.permute(2, 1, 0).contiguous().reshape(*lead, theta.shape[0]), dofs=dofs, start=q,
                     positions=pos.permute(3, 2, 0, 1).contiguous().reshape(*lead, n1, 3),
                     residual=flags(residual), exact=flags(exact), in_limits=flags(in_limits),
                     keep=flags(keep), projected=flags(projected))

@@ -268,6 +268,11 @@ def test_batched_shapes(arm):
     for f in (res.residual, res.exact, res.in_limits, res.keep, res.projected):
         assert f.shape == (2, 3, 4)
     torch.testing.assert_close(res.angles.reshape(6, 4, 4), flat.angles)
+    # no hypotheses at all (a tracker's empty selection): empty results of the right shapes
+    for sk_plan in (plan, ik_plan(arm, make_chain(arm, ARM_CHAIN))):
+        for mode in ("prune", "project"):
+            empty = chain_ik(sk_plan, q[:0], tree.positions[:0], mode=mode)
+            assert empty.angles.shape == (0, 4, 4) and empty.q.shape == (0, 4, arm.num_dofs)
 
 
 # -- refining closed-form leaves that miss ----------------------------------------------------
