@@ -107,8 +107,13 @@ class KjsMethodConfig:
     # convergence, so this alone holds the weakly observed dofs: 0.05 measured better than 0.08 and 0.15
     # on 2 s of CMU 16_01 (42.4, 42.9, 63.6 mm)
     prior_sigma: float = 0.05
-    # per mode and dof, the prior's std is sqrt(prior_sigma^2 + (motion_scale * last displacement)^2)
+    # per mode and dof, the prior's std is sqrt(prior_sigma^2 + (motion_scale * last displacement)^2): a fast
+    # limb may move as far again. Dev clips, keyframe start: 1.0 gave 36.5 mm mean best trajectory against
+    # 41.2 at 0 (the run 09_06: 62 against 87 mm)
     motion_scale: float = 1.0
+    # weight of the CMU pose prior (`ptrack.pose_prior`) in every tracking step; on the dev clips (keyframe
+    # start) 0.1 measured 35.3 mm best trajectory against 36.5 at 0, and 0.3 lost the dance 05_02 (27.1 vs 20.8)
+    pose_prior_weight: float = 0.1
     collision_weight: float = 1.0  # body non-self-intersection term
     floor_deg: float = 0.5  # smallest sampling std per dof (unobservable directions)
     ceiling_deg: float = 30.0  # largest sampling std per dof
@@ -389,8 +394,9 @@ def validate(cfg: RunConfig) -> None:
     if k.polish_iterations < 0 or k.refine_iterations < 0 or k.jumps_per_sample < 0:
         raise InputError("config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' "
                          "must be >= 0")
-    if k.motion_scale < 0:
-        raise InputError(f"config key 'kjs.motion_scale' must be >= 0, got {k.motion_scale}")
+    for key in ("motion_scale", "pose_prior_weight"):
+        if getattr(k, key) < 0:
+            raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(k, key)}")
     if not 0 <= k.momentum <= 1:
         raise InputError(f"config key 'kjs.momentum' must be in [0, 1], got {k.momentum}")
     for key, allowed in (("tail", ("gaussian", "student", "cauchy")), ("limits_mode", ("prune", "project")),

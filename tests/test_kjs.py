@@ -156,3 +156,48 @@ def test_tree_init_when_every_flip_is_pruned(cmu_file):
     short = dataclasses.replace(obs, keypoints=obs.keypoints[:4], confidence=obs.confidence[:4], times=obs.times[:4])
     est = track(Problem(prep.problem.skeleton, prep.problem.keypoints, short), cfg, torch.Generator().manual_seed(0), KJS)
     assert torch.isfinite(est.hypotheses).all() and est.hypotheses.shape[:2] == (4, K)
+
+
+def test_tree_start_headings(kjs_run):
+    """The tree start turns the rest pose to 8 headings about the world's up axis (Y), each leaned
+    forward and back: the hip line sweeps the circle, the spine stays vertical at lean 0."""
+    from ptrack.estimators.kjs import _root_starts
+
+    prep, _ = kjs_run
+    cfg = load_config(KJS_YAML, [*EXACT, "kjs.init=tree"])
+    s = _setup(prep.problem, cfg, KJS)
+    sk = prep.problem.skeleton
+    q0 = torch.zeros(sk.num_dofs)
+    starts = _root_starts(s, q0, 8, (0.0, 0.5, -0.5))
+    assert starts.shape == (24, sk.num_dofs)
+    X = sk.forward_kinematics(starts)
+    lhip, rhip, thorax = (sk.joint_index(n) for n in ("lhipjoint", "rhipjoint", "thorax"))
+    hips = X[:, lhip] - X[:, rhip]
+    heading = torch.atan2(hips[:, 0], hips[:, 2])
+    turns = torch.remainder(heading[::3] - heading[0], 2 * torch.pi)
+    torch.testing.assert_close(turns.sort().values, torch.arange(8) * torch.pi / 4, atol=1e-4, rtol=0)
+    spine = X[::3, thorax] - X[::3, 0]  # a turn about Y keeps its height and its horizontal length
+    torch.testing.assert_close(spine[:, 1], spine[:1, 1].expand(8), atol=1e-5, rtol=0)
+    torch.testing.assert_close(spine[:, [0, 2]].norm(dim=-1), spine[:1, [0, 2]].norm(dim=-1).expand(8), atol=1e-5,
+                               rtol=0)
+    leaned = X[1::3, thorax] - X[1::3, 0]
+    assert float((leaned[:, [0, 2]].norm(dim=-1) - spine[:, [0, 2]].norm(dim=-1)).min()) > 0.1  # 0.5 rad of lean
+
+
+def test_principal_directions_follow_the_largest_variance(kjs_run):
+    from ptrack.estimators.kjs import principal_directions
+
+    prep, _ = kjs_run
+    sk = prep.problem.skeleton
+    q = prep.gt_q[:2].to(torch.float64)
+    D = sk.num_dofs
+    d = sk.dof_names.index("lfemur.rx")
+    chol = torch.eye(D, dtype=torch.float64).expand(2, D, D).clone() * 0.01
+    chol[:, d, d] = 0.2 * 2.0  # std 0.2 rad after dividing out the scale 4
+    got = principal_directions(sk, q, chol, 4.0)
+    step = torch.zeros(D, dtype=torch.float64)
+    step[d] = 0.2
+    want = sk.forward_kinematics(q + step) - sk.forward_kinematics(q)
+    torch.testing.assert_close(got, want, atol=1e-9, rtol=0)
+    assert float(got[:, sk.joint_index("ltibia")].norm(dim=-1).min()) > 0.05  # the knee swings
+    assert float(got[:, sk.joint_index("rtibia")].norm()) < 1e-9  # the other leg does not

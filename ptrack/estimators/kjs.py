@@ -117,9 +117,11 @@ def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
 # ---------------------------------------------------------------- the frame's objective
 
 
-def _objective(s: Setup, t: int, mean: Tensor | None, sigma: float | Tensor | None = None) -> Objective:
+def _objective(s: Setup, t: int, mean: Tensor | None, sigma: float | Tensor | None = None,
+               tracking: bool = False) -> Objective:
     """Robust reprojection on frame t + limits + collision (+ the prior around `mean` (N, D), std `sigma`,
-    by default the dynamics' `kjs.prior_sigma`)."""
+    by default the dynamics' `kjs.prior_sigma`; + with `tracking`, the CMU pose prior weighted by
+    `kjs.pose_prior_weight`)."""
     cc, k = s.cfg.costs, s.cfg.kjs
     obs = s.problem.observations
     terms = {"reprojection": Reprojection(obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss,
@@ -131,15 +133,21 @@ def _objective(s: Setup, t: int, mean: Tensor | None, sigma: float | Tensor | No
         weights["collision"] = k.collision_weight
     if mean is not None:
         terms["prior"] = PosePrior(mean, k.prior_sigma if sigma is None else sigma)
+    if tracking and k.pose_prior_weight > 0:
+        p_mean, p_std, known = s.prior
+        known = known & ~s.root
+        terms["pose_prior"] = PosePrior(p_mean, torch.where(known, p_std.clamp_min(math.radians(k.floor_deg)),
+                                                            torch.full_like(p_std, 1e6)))
+        weights["pose_prior"] = k.pose_prior_weight
     return Objective(terms, weights)
 
 
 def _polish(s: Setup, t: int, q: Tensor, mean: Tensor | None, iterations: int,
-            sigma: float | Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+            sigma: float | Tensor | None = None, tracking: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """Local optimisation of N hypotheses on frame t. q, mean: (N, D) -> q (N, D), cost (N,), hessian (N, D, D)."""
     prob = s.problem
     sk, cam, kps = prob.skeleton, prob.observations.camera, prob.keypoints
-    objective = _objective(s, t, mean, sigma)
+    objective = _objective(s, t, mean, sigma, tracking)
     linearize = objective_linearization(sk, objective, cam, kps)
     if s.cfg.kjs.polisher == "lbfgs" and iterations > 0:
         def energy(x: Tensor) -> Tensor:
@@ -267,10 +275,10 @@ def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generat
     # the dynamics' spread widens with each mode's own last motion: a fast limb may move as far again
     sigma = torch.sqrt(k.prior_sigma ** 2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
     # polish everything briefly, then the most promising distinct minima to convergence
-    q, cost, hessian = _polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent])
+    q, cost, hessian = _polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent], tracking=True)
     best, _ = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], 4 * k.modes)
     q, parent = q[best], parent[best]
-    q, cost, hessian = _polish(s, t, q, predicted[parent], k.refine_iterations, sigma[parent])
+    q, cost, hessian = _polish(s, t, q, predicted[parent], k.refine_iterations, sigma[parent], tracking=True)
     keep, w = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], k.modes)
     if keep.numel() == 0:  # every hypothesis diverged (non-finite cost): the dynamics carry the modes
         return modes._replace(q=predicted), counts
