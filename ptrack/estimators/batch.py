@@ -213,10 +213,10 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True
         return terms, None, None
 
     w = robust_loss_derivative(rp.loss)(s, rp.scale)  # (B, T, K) IRLS weights
-    jr = rp.jacobian(ev, jac).unflatten(-2, (t_len, k, 2))  # (B, T, K, 2, D)
-    jw = jr * w[..., None, None]
-    h = torch.einsum("btkcd,btkce->btde", jw, jr)
-    g = torch.einsum("btkcd,btkc->btd", jw, r)
+    jr = rp.jacobian(ev, jac).unflatten(-2, (t_len, 2 * k))  # (B, T, 2K, D), rows (keypoint, x|y)
+    jw = jr * w.repeat_interleave(2, dim=-1)[..., None]
+    h = jw.mT @ jr  # (B, T, D, D): one batched product per frame
+    g = (jw.mT @ r.flatten(-2)[..., None])[..., 0]
     outside = ((q < obj.lower) | (q > obj.upper)).to(q.dtype)
     diag = outside * obj.limits_scale ** 2
     g = g + lim * obj.limits_scale
