@@ -24,6 +24,16 @@ BATCH = REPO / "configs" / "batch.yaml"
 SHORT = ["data.stop=160", "progress=false", "batch.uncertainty=false"]  # 1.3 s, 40 frames at 30 fps
 
 
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """The runs around the solver (per-frame starts, metrics, recordings) on one thread too: on the
+    shared 2-core machine multithreaded small ops made this file 3x slower."""
+    from ptrack.banded import one_thread
+
+    with one_thread():
+        yield
+
+
 def solve(*overrides: str):
     cfg = load_config(BATCH, [*SHORT, *overrides])
     prep = prepare(cfg)

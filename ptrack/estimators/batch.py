@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ptrack.banded import BlockBanded, factorize, marginal_blocks
+from ptrack.banded import BlockBanded, factorize, marginal_blocks, one_thread
 from ptrack.costs import Reprojection, robust_loss, robust_loss_derivative
 from ptrack.errors import InputError
 from ptrack.jacobians import joint_jacobian, pose_eval_and_jacobian
@@ -314,7 +314,14 @@ def estimate_batch(problem: Problem, cfg, generator: torch.Generator,
     """The MAP trajectory (module docstring). Deterministic given its start (uses no randomness).
     Solved in float64 on the observations' device; the Estimate is in the observations' dtype.
 
-    callback(iteration, q (1, T, D), cost (1,)) is called after every solver iteration."""
+    callback(iteration, q (1, T, D), cost (1,)) is called after every solver iteration. Runs on one
+    intra-op thread (`ptrack.banded.one_thread`: small per-frame products, shared cores)."""
+    with one_thread():
+        return _estimate(problem, cfg, generator, progress, callback)
+
+
+def _estimate(problem: Problem, cfg, generator: torch.Generator, progress: Callable[[Iterable], Iterable],
+              callback: Callable[[int, Tensor, Tensor], None] | None) -> Estimate:
     bc = cfg.batch
     obs = problem.observations
     out_dtype, device = obs.keypoints.dtype, obs.keypoints.device
