@@ -333,7 +333,8 @@ def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, res
             hypotheses=res.get("hypotheses"), hypothesis_weights=res.get("hypothesis_weights"),
             hypothesis_costs=res.get("hypothesis_costs"), hypothesis_directions=res.get("hypothesis_directions"),
             jumps=dict(zip(res["jump_chains"].tolist(), res["jump_counts"].T)) if "jump_chains" in res else {},
-            scalars=series, masks=obs.masks.cpu().numpy() if obs.masks is not None else None)
+            scalars=series, masks=obs.masks.cpu().numpy() if obs.masks is not None else None,
+            joint_std=res.get("joint_std"), solver_cost=res.get("solver_cost"))
         write_recording(tmp / "run.rrd", rlog)
         if out.exists():
             out.rmdir()  # empty (checked before the run)

@@ -9,7 +9,8 @@ x_cam = R @ x_world + t.
 
 Timelines: every per-frame entity is logged on both
 - `frame`: sequence timeline of AMC frame numbers (`RunLog.frames`), and
-- `time`: duration timeline in seconds (`RunLog.times`).
+- `time`: duration timeline in seconds (`RunLog.times`);
+`solver/cost` alone is on `iteration` (solver iterations of a whole-sequence solve).
 
 Entity layout (stable: tests and users rely on it):
 
@@ -32,8 +33,13 @@ Entity layout (stable: tests and users rely on it):
                                         labels = keypoint names, yellow
     world/camera/image/reprojected      Points2D of the estimate's projected keypoints, magenta
     world/camera/image/silhouette       SegmentationImage, class 1 = silhouette  [if masks]
+    world/estimate/std                  Points3D at the estimate's joints, radius = that joint's 3D
+                                        standard deviation (metres), translucent  [if joint_std]
     metrics/<name>                      Scalars, one per frame with a finite value
     jumps/<chain>                       Scalars: kinematic-jump leaves kept per frame for each chain
+    solver/cost                         Scalars: the objective after each solver iteration, on its
+                                        own sequence timeline `iteration` (0 = the start)
+                                        [if solver_cost]
 
 Bones entities are omitted for a skeleton without (parent, child) pairs (a single joint).
 """
@@ -70,6 +76,7 @@ BONE_RADIUS = 0.01  # metres
 HYPOTHESIS_RADIUS = 0.006  # metres, at the frame's best weight
 DIRECTION_COLOR = (160, 90, 255)
 DIRECTION_RADIUS = 0.004  # metres
+STD_COLOR = (255, 140, 30, 70)  # the estimate's colour, translucent
 KEYPOINT_RADIUS = 3.0  # pixels
 
 
@@ -88,6 +95,8 @@ class RunLog:
     jumps: chain name -> (T,) kinematic-jump leaves kept per frame.
     scalars: name -> (T,) per-frame values, NaN = no value that frame.
     masks: (T, H, W) bool silhouettes with H, W the camera's height, width, or None.
+    joint_std: (T, J) metres, per-joint 3D standard deviation of the estimate, or None.
+    solver_cost: (I+1,) objective after each iteration of a whole-sequence solver, or None.
 
     Shapes are checked on construction; a mismatch raises `InputError` naming the field.
     """
@@ -110,11 +119,13 @@ class RunLog:
     jumps: Mapping[str, np.ndarray] = field(default_factory=dict)
     scalars: Mapping[str, np.ndarray] = field(default_factory=dict)
     masks: np.ndarray | None = None
+    joint_std: np.ndarray | None = None
+    solver_cost: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name in ("frames", "times", "estimate", "ground_truth", "observed", "confidence",
                      "reprojected", "hypotheses", "hypothesis_weights", "hypothesis_costs",
-                     "hypothesis_directions", "masks"):
+                     "hypothesis_directions", "masks", "joint_std", "solver_cost"):
             value = getattr(self, name)
             if value is not None:
                 object.__setattr__(self, name, _as_numpy(value))
@@ -162,6 +173,10 @@ class RunLog:
         if self.masks is not None:
             H, W = int(self.camera.height), int(self.camera.width)
             _check_shape("masks", self.masks, (T, H, W))
+        if self.joint_std is not None:
+            _check_shape("joint_std", self.joint_std, (T, J))
+        if self.solver_cost is not None and _check_shape("solver_cost", self.solver_cost, (None,))[0] == 0:
+            raise InputError("RunLog.solver_cost is empty")
 
     @property
     def num_frames(self) -> int:
@@ -194,6 +209,11 @@ def write_recording(path: str | Path, log: RunLog) -> None:
             _log_skeleton(rec, "world/ground_truth", log.ground_truth, bones,
                           GROUND_TRUTH_COLOR, index)
         _log_skeleton(rec, "world/estimate", log.estimate, bones, ESTIMATE_COLOR, index)
+        if log.joint_std is not None:
+            radii = np.nan_to_num(log.joint_std.astype(np.float64), nan=0.0, posinf=0.0).reshape(-1)
+            rec.log("world/estimate/std", rr.Points3D.from_fields(colors=[STD_COLOR]), static=True)
+            rec.send_columns("world/estimate/std", indexes=index, columns=rr.Points3D.columns(
+                positions=log.estimate.reshape(-1, 3), radii=radii).partition([log.estimate.shape[1]] * T))
         if log.hypotheses is not None:
             _log_hypotheses(rec, log, bones, index)
         _log_camera(rec, log.camera)
@@ -204,6 +224,10 @@ def write_recording(path: str | Path, log: RunLog) -> None:
             _log_scalar(rec, f"metrics/{name}", values, log)
         for name, values in log.jumps.items():
             _log_scalar(rec, f"jumps/{name}", values.astype(np.float64), log)
+        if log.solver_cost is not None:
+            cost = log.solver_cost.astype(np.float64)
+            rec.send_columns("solver/cost", indexes=[rr.TimeColumn("iteration", sequence=np.arange(len(cost)))],
+                             columns=rr.Scalars.columns(scalars=cost))
         rec.flush()
         logger.info("wrote rerun recording %s (%d frames)", path, T)
     finally:

@@ -100,7 +100,7 @@ class Rec:
                 row = {n: (c[i].value if n == "time" else c[i].as_py()) for n, c in cols.items()}
                 self.temporal[entity].append(row)
         for rows in self.temporal.values():
-            rows.sort(key=lambda r: r["frame"])
+            rows.sort(key=lambda r: r["frame"] if "frame" in r else r["iteration"])
 
     @property
     def entities(self) -> set[str]:
@@ -257,6 +257,29 @@ def test_optional_parts_absent(tmp_path):
     assert not any(e.startswith(("world/ground_truth", "world/hypotheses")) for e in rec.entities)
     assert "world/camera/image/silhouette" not in rec.entities
     assert len(rec.temporal["world/estimate/joints"]) == T
+
+
+def test_joint_std_and_solver_cost(tmp_path):
+    """A batch solve's uncertainty (per-joint std as point radii at the estimate) and its cost per
+    iteration on the `iteration` timeline."""
+    std = np.linspace(0.01, 0.05, T * J).reshape(T, J)
+    std[2, 1] = np.nan  # not finite: drawn with radius 0
+    cost = np.array([50.0, 20.0, 9.0, 8.5])
+    log = dataclasses.replace(_run_log(full=False), joint_std=std, solver_cost=cost)
+    path = tmp_path / "batch.rrd"
+    write_recording(path, log)
+    rec = Rec(path)
+    positions = np.array(rec.column("world/estimate/std", "Points3D:positions"))
+    radii = np.array(rec.column("world/estimate/std", "Points3D:radii"))
+    np.testing.assert_allclose(positions, log.estimate, atol=1e-6)
+    np.testing.assert_allclose(radii, np.nan_to_num(std), atol=1e-7)
+    rows = rec.temporal["solver/cost"]
+    assert [r["iteration"] for r in rows] == [0, 1, 2, 3] and all("frame" not in r for r in rows)
+    np.testing.assert_allclose([r["Scalars:scalars"][0] for r in rows], cost)
+    with pytest.raises(InputError, match="joint_std"):
+        dataclasses.replace(log, joint_std=np.ones((T, J + 1)))
+    with pytest.raises(InputError, match="solver_cost"):
+        dataclasses.replace(log, solver_cost=np.ones((2, 2)))
 
 
 def test_single_joint_and_uniform_weights_and_torch_inputs(tmp_path):
