@@ -2,6 +2,7 @@
 
     python scripts/bench_batch.py              # 300 frames, full CMU skeleton (62 dofs), 30 iterations, + scipy
     python scripts/bench_batch.py --memory     # peak memory of 3 iterations + joint_std at 1,000 and 10,000 frames
+    python scripts/bench_batch.py --warm       # only the warm start (init_from) against a cold re-solve
 
 Problem: the bundled CMU soccer kick (subject 10) at 120 fps, frames 0-299, default virtual camera,
 2 px noise, 10% missing, full skeleton (`model.freeze=[]`: 62 dofs), ground-truth keyframes every
@@ -39,9 +40,9 @@ from ptrack.solvers import banded_levenberg_marquardt  # noqa: E402
 CONFIG = REPO / "configs" / "batch.yaml"
 
 
-def problem(frames: int):
+def problem(frames: int, every_s: float = 1.0):
     cfg = load_config(CONFIG, ["data.stride=1", f"data.stop={frames}", "model.freeze=[]", "costs.loss=l2",
-                               "keyframes.every_s=1", "progress=false"])
+                               f"keyframes.every_s={every_s}", "progress=false"])
     prep = prepare(cfg)
     obj = trajectory_objective(prep.problem, cfg, torch.float64, torch.device("cpu"))
     q0 = interpolate_keyframes(prep.problem, obj.lower, obj.upper)
@@ -173,6 +174,52 @@ def speed(args) -> None:
     print(f"ptrack vs scipy least_squares: {scipy_time / ours:.1f}x faster to the same cost within 1%{bound}")
 
 
+def warm_start(args) -> None:
+    """The paper's interactive loop: solve, look at the result, add a keyframe, re-solve. After a
+    converged solve with keyframes every second, the ground-truth pose of the worst frame (largest
+    joint error, what one would spot in rerun) is added as a keyframe; the new objective is solved
+    cold (from its keyframes interpolated) and warm (from the first solution, what `init_from: RUN_DIR`
+    reads from result.npz), both to the config's tolerance (at most 100 iterations)."""
+    import dataclasses
+
+    torch.set_num_threads(1)
+    cfg, prep, obj, q0 = problem(300, 1.0)
+    solve = dict(max_iter=100, tol=cfg.batch.tol, gtol=cfg.batch.tol * 1e-2, damping=cfg.batch.damping)
+    first, info = banded_levenberg_marquardt(linearization(obj), q0[None], obj.lower, obj.upper, **solve)
+    p = prep.problem
+    err = (p.skeleton.forward_kinematics(first[0]) - prep.gt_joints.to(first)).norm(dim=-1).mean(-1)
+    worst = int(err.argmax())
+    kf = p.keyframes
+    kf2 = dataclasses.replace(kf, frames=torch.cat([kf.frames, torch.tensor([worst])]),
+                              q=torch.cat([kf.q, prep.gt_q[worst:worst + 1].to(kf.q)]),
+                              mask=None if kf.mask is None else torch.cat([kf.mask, kf.mask[:1]]),
+                              sigma=None if kf.sigma is None else torch.cat([kf.sigma, kf.sigma[:1]]))
+    obj2 = trajectory_objective(dataclasses.replace(p, keyframes=kf2), cfg, torch.float64, torch.device("cpu"))
+    q2 = interpolate_keyframes(dataclasses.replace(p, keyframes=kf2), obj2.lower, obj2.upper)
+    out = {}
+    for name, start in (("cold", q2[None]), ("warm", first)):
+        lin = linearization(obj2)
+        stamps = []
+        t0 = time.perf_counter()
+        q, info2 = banded_levenberg_marquardt(lin, start, obj2.lower, obj2.upper,
+                                             callback=lambda it, q, c: stamps.append(time.perf_counter() - t0), **solve)
+        out[name] = (time.perf_counter() - t0, int(info2.iterations[0]), info2.history[:, 0], stamps)
+    final = min(float(h[-1]) for _, _, h, _ in out.values())
+    print(f"first solve (keyframes every 1 s): {int(info.iterations[0])} iterations, cost {float(info.cost[0]):.2f}; "
+          f"worst frame {worst} ({1000 * float(err[worst]):.1f} mm mean joint error) gets a keyframe")
+    reach = {}
+    for name, (sec, it, hist, stamps) in out.items():
+        near = int(torch.nonzero(hist <= 1.001 * final)[0, 0])  # history[0] is the start
+        reach[name] = (near, 0.0 if near == 0 else stamps[near - 1])
+        print(f"re-solve with the added keyframe, {name} start: cost {float(hist[0]):.2f} -> {float(hist[-1]):.2f}; "
+              f"within 0.1% of the final cost after {near} iterations ({reach[name][1]:.2f} s), converged (tol "
+              f"{cfg.batch.tol:g}) after {it} iterations ({sec:.2f} s)")
+    ratio = reach["cold"][1] / max(reach["warm"][1], 1e-9)
+    print(f"warm start (init_from) vs cold re-solve: {ratio:.1f}x faster to within 0.1% of the final cost "
+          f"({reach['cold'][0]} -> {reach['warm'][0]} iterations); to the tolerance: "
+          f"{out['cold'][0] / out['warm'][0]:.1f}x ({out['cold'][1]} -> {out['warm'][1]} iterations)")
+
+
 def ping_pong(motion, frames: int):
     """The clip played forwards, backwards, forwards... to `frames` poses (continuous at the turns)."""
     from ptrack.skeleton import Motion
@@ -213,6 +260,7 @@ def memory(args) -> None:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--memory", action="store_true")
+    ap.add_argument("--warm", action="store_true", help="only the warm-start comparison")
     ap.add_argument("--memory-child", type=int, default=None)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--scipy-nfev", type=int, default=200)
@@ -222,5 +270,8 @@ if __name__ == "__main__":
         memory_one(a.memory_child)
     elif a.memory:
         memory(a)
+    elif a.warm:
+        warm_start(a)
     else:
         speed(a)
+        warm_start(a)
