@@ -101,7 +101,11 @@ class KjsMethodConfig:
     polish_iterations: int = 4  # Levenberg-Marquardt iterations of every hypothesis
     refine_iterations: int = 10  # further iterations of the 4K most promising distinct minima
     momentum: float = 0.0  # share of a mode's last velocity in its prediction (0: constant position)
-    distinct_deg: float = 3.0  # minima closer than this in every dof are one
+    # minima whose joints are all closer than this (mm, per coordinate) are one; 0: compare the dofs
+    # instead (distinct_deg). In 3D the K modes are different interpretations, not near-copies: on the dev
+    # clips 50 mm lowered the tree start's best-of-K on every clip measured (e.g. 10_01 37.0 -> 29.1 mm)
+    distinct_mm: float = 50.0
+    distinct_deg: float = 3.0  # with distinct_mm 0: minima closer than this in every dof are one
     temperature: float = 1.0  # weights ∝ prior * exp(-cost / temperature)
     # radians (or metres) per frame: the dynamics' velocity prior. Each hypothesis is polished to
     # convergence, so this alone holds the weakly observed dofs: 0.05 measured better than 0.08 and 0.15
@@ -394,7 +398,7 @@ def validate(cfg: RunConfig) -> None:
     if k.polish_iterations < 0 or k.refine_iterations < 0 or k.jumps_per_sample < 0:
         raise InputError("config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' "
                          "must be >= 0")
-    for key in ("motion_scale", "pose_prior_weight"):
+    for key in ("motion_scale", "pose_prior_weight", "distinct_mm"):
         if getattr(k, key) < 0:
             raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(k, key)}")
     if not 0 <= k.momentum <= 1:

@@ -17,13 +17,21 @@ from frame t-1's modes to frame t's:
    the same budget for kjs, css and ss) runs a batched Levenberg-Marquardt or L-BFGS
    (`ptrack.solvers`) on robust reprojection + joint limits + body non-self-intersection + the
    prior around its mode's prediction;
-5. distinct minima (no dof apart by more than `kjs.distinct_deg`), weights ∝ (weight of the mode they
-   came from) * exp(-cost / temperature), the K heaviest kept, each with the covariance
-   scale * (Gauss-Newton Hessian)^-1 for the next frame's diffusion.
+5. distinct minima (two hypotheses are one when no joint coordinate differs by more than
+   `kjs.distinct_mm`; with distinct_mm 0, when no dof differs by more than `kjs.distinct_deg`),
+   weights ∝ (weight of the mode they came from) * exp(-cost / temperature), the K heaviest kept,
+   each with the covariance scale * (Gauss-Newton Hessian)^-1 for the next frame's diffusion.
+
+The polishing objective holds robust reprojection, joint limits, body non-self-intersection, the
+dynamics (a Gaussian around each mode's prediction, std `kjs.prior_sigma` widened per dof by
+`kjs.motion_scale` times the mode's last motion) and a weak CMU pose prior (`kjs.pose_prior_weight`,
+`ptrack.pose_prior`).
 
 Frame 0 starts from a 3D keyframe (`kjs.init: keyframe`), or, with no 3D input (`init: tree`), from
-the rest pose placed in view and fitted to frame 0's 2D, followed by every flip combination of the
-chains (the product of their trees) and the K best distinct minima. A frame with no observed
+the rest pose placed in view under `kjs.init_yaws` headings (each also leaned forward and back),
+fitted to frame 0's 2D rigidly and then in every dof under the pose prior; the `kjs.init_fits` best
+fits that differ in 3D are expanded by every flip combination of the chains (the product of their
+trees) and the K best distinct minima kept. A frame with no observed
 keypoint is carried by the dynamics. The output's `hypotheses` are the K modes of each frame;
 `q`/`joints` are the best trajectory through them by Viterbi with a velocity prior.
 """
@@ -238,7 +246,10 @@ def _select(s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, prior_weight: Te
     """Distinct minima among polished hypotheses, the `count` heaviest first: -> indices (M,) and their
     normalised weights (M,). prior_weight (N,): weight of the mode each came from."""
     k = s.cfg.kjs
-    keep = distinct_minima(q, cost, math.radians(k.distinct_deg))
+    if k.distinct_mm > 0:  # apart in 3D: no joint coordinate closer than distinct_mm
+        keep = distinct_minima(s.problem.skeleton.forward_kinematics(q).flatten(-2), cost, k.distinct_mm / 1000)
+    else:  # apart in the parameters: no dof closer than distinct_deg
+        keep = distinct_minima(q, cost, math.radians(k.distinct_deg))
     w = posterior_weights(cost[keep] - cost[keep].min(), prior_weight[keep], k.temperature)
     order = torch.argsort(w, descending=True)[:count]
     return keep[order], w[order] / w[order].sum()
