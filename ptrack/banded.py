@@ -87,7 +87,7 @@ class BandedFactor(NamedTuple):
     B * u independent systems of 1 x 1 blocks, or None; batch: the leading dims; size: D."""
 
     dense: _Chol | None
-    scalar: "_Reduction | None"
+    scalar: _Reduction | None
     coupled: Tensor
     decoupled: Tensor
     batch: tuple
@@ -428,7 +428,7 @@ def marginal_blocks(f: BandedFactor) -> Tensor:
 
 def matvec(a: BlockBanded, x: Tensor) -> Tensor:
     """A x; x (..., T, D) -> (..., T, D)."""
-    t_len, w, d = _check(a, "matvec")
+    t_len, w, _ = _check(a, "matvec")
     pad = torch.nn.functional.pad
     out = (a.diagonal @ x[..., None])[..., 0]
     for k in range(1, min(w, t_len - 1) + 1):
