@@ -330,6 +330,7 @@ def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, res
             times=res["times"], estimate=res["joints"], ground_truth=res.get("gt_joints"),
             camera=obs.camera.to(device="cpu"), observed=res["keypoints_observed"], confidence=res["confidence"],
             reprojected=res["keypoints_reprojected"], keypoint_names=prob.keypoints.names,
+            keypoint_joints=prob.keypoints.joints,
             hypotheses=res.get("hypotheses"), hypothesis_weights=res.get("hypothesis_weights"),
             hypothesis_costs=res.get("hypothesis_costs"), hypothesis_directions=res.get("hypothesis_directions"),
             jumps=dict(zip(res["jump_chains"].tolist(), res["jump_counts"].T)) if "jump_chains" in res else {},

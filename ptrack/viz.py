@@ -20,19 +20,33 @@ Entity layout (stable: tests and users rely on it):
     world/estimate/joints               Points3D, orange
     world/estimate/bones                LineStrips3D
     world/hypotheses/h{n}/bones         LineStrips3D per hypothesis n = 0..N-1, blue; label
-                                        "h{n} w=... cost=..." per frame, radius and colour alpha
-                                        scaled by the weight relative to the frame's best weight
+                                        "h{n} w=... cost=..." per frame (shown on hover), radius and
+                                        colour alpha scaled by the weight relative to the frame's
+                                        best weight
     world/hypotheses/h{n}/direction     Arrows3D from each joint of hypothesis n: its principal
                                         covariance direction (1 std)      [if hypothesis_directions]
     world/hypotheses/h{n}/weight        Scalars (per frame)                    [if hypotheses]
     world/hypotheses/h{n}/cost          Scalars (per frame)                    [if costs given]
     world/camera                        Transform3D camera-to-world (translation = camera centre,
                                         mat3x3 = R^T) + Pinhole (image_from_camera = K,
-                                        resolution = [W, H], camera_xyz = RDF), both static
-    world/camera/image/observed         Points2D of confident keypoints (confidence > 0),
-                                        labels = keypoint names, yellow
-    world/camera/image/reprojected      Points2D of the estimate's projected keypoints, magenta
-    world/camera/image/silhouette       SegmentationImage, class 1 = silhouette  [if masks]
+                                        resolution = [W, H], camera_xyz = RDF,
+                                        image_plane_distance = IMAGE_PLANE_FRACTION x the distance
+                                        from the camera to the mean estimated joint), both static
+    world/legend                        Points3D above the motion, one per skeleton kind drawn, in
+                                        its colour, labelled "estimate", "ground truth",
+                                        "hypotheses" (static)
+    world/camera/image/border           LineStrips2D: the image rectangle [0, W] x [0, H] (static)
+    world/camera/image/observed         Points2D of confident keypoints (confidence > 0), large,
+                                        yellow; labels = keypoint names (shown on hover)
+    world/camera/image/observed_bones   LineStrips2D between observed keypoints whose keypoint
+                                        parent is observed too          [if keypoint_joints]
+    world/camera/image/reprojected      Points2D of the estimate's projected keypoints, small,
+                                        in the estimate's colour, drawn above the observed ones
+    world/camera/image/reprojected_bones  LineStrips2D between reprojected keypoints  [if keypoint_joints]
+    world/camera/image/legend           Points2D along the image's top edge labelled "observed" and
+                                        "reprojected estimate" (static)
+    world/camera/image/silhouette       SegmentationImage, class 1 = silhouette, class 0
+                                        transparent  [if masks]
     world/estimate/std                  Points3D at the estimate's joints, radius = that joint's 3D
                                         standard deviation (metres), translucent  [if joint_std]
     metrics/<name>                      Scalars, one per frame with a finite value
@@ -41,7 +55,17 @@ Entity layout (stable: tests and users rely on it):
                                         own sequence timeline `iteration` (0 = the start)
                                         [if solver_cost]
 
-Bones entities are omitted for a skeleton without (parent, child) pairs (a single joint).
+Bones entities are omitted for a skeleton without (parent, child) pairs (a single joint). A
+keypoint's parent is the nearest skeleton ancestor of its joint that is a keypoint too.
+
+Blueprint (the layout the viewer opens with): `blueprint(log)` is sent with every recording as its
+active and default blueprint (stored in the same .rrd as a blueprint store). On top, side by side:
+the 3D scene (`world`, seen from beside the line from the person to the camera, so that both are in
+view), a 3D close-up of the person that follows the estimate (the camera and legend left out), and
+the camera's 2D view; under them a grid of time-series plots, `plot_groups(log)`, in which every
+scalar entity is in exactly one plot.
+The time panel starts on `time`, so playback runs at the clip's real rate; `frame` (AMC frame
+numbers, 120 per second) stays available in the timeline menu.
 """
 
 from __future__ import annotations
@@ -56,13 +80,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 
 from ptrack.errors import InputError
 
 if TYPE_CHECKING:
     from ptrack.camera import Camera
 
-__all__ = ["RunLog", "write_recording", "open_viewer"]
+__all__ = ["RunLog", "blueprint", "open_viewer", "plot_groups", "write_recording"]
 
 logger = logging.getLogger(__name__)
 
@@ -70,14 +95,27 @@ GROUND_TRUTH_COLOR = (70, 200, 110)
 ESTIMATE_COLOR = (255, 140, 30)
 HYPOTHESIS_COLOR = (80, 140, 255)
 OBSERVED_COLOR = (255, 220, 0)
-REPROJECTED_COLOR = (230, 60, 200)
+REPROJECTED_COLOR = ESTIMATE_COLOR  # the estimate, seen through the camera
+BORDER_COLOR = (150, 150, 150)
 JOINT_RADIUS = 0.02  # metres
 BONE_RADIUS = 0.01  # metres
-HYPOTHESIS_RADIUS = 0.006  # metres, at the frame's best weight
+HYPOTHESIS_RADIUS = 0.008  # metres, at the frame's best weight
 DIRECTION_COLOR = (160, 90, 255)
 DIRECTION_RADIUS = 0.004  # metres
 STD_COLOR = (255, 140, 30, 70)  # the estimate's colour, translucent
-KEYPOINT_RADIUS = 3.0  # pixels
+KEYPOINT_RADIUS = 3.0  # pixels, reprojected keypoints
+OBSERVED_RADIUS = 6.0  # pixels: observed keypoints are drawn larger, under the reprojected ones
+KEYPOINT_BONE_RADIUS = 1.0  # pixels
+LEGEND_RADIUS = 0.05  # metres
+LEGEND_SPACING = 0.3  # metres between the 3D legend's entries
+IMAGE_PLANE_FRACTION = 0.3  # the camera's image plane in 3D, as a share of its distance to the person
+EYE_AZIMUTH_DEG = 75.0  # default 3D viewpoint: the person-to-camera direction turned about +Y by this,
+EYE_DISTANCE = 1.25  # ... scaled by this (of the person-camera distance),
+EYE_HEIGHT = 0.3  # ... raised by this (same unit), looking at
+EYE_TARGET = 0.5  # ... the point this share of the way from the person to the camera
+CLOSEUP_AZIMUTH_DEG = -60.0  # close-up viewpoint: the person-to-camera direction turned about +Y by this,
+CLOSEUP_DISTANCE_M = 2.8  # ... this far from the person,
+CLOSEUP_HEIGHT_M = 0.6  # ... and this much higher
 
 
 @dataclass(frozen=True, eq=False)
@@ -90,6 +128,7 @@ class RunLog:
     camera: a `ptrack.camera.Camera` (anything with K (3, 3), R (3, 3), t (3,), width, height).
     observed: (T, K, 2) pixels; confidence: (T, K), 0 = missing (not drawn);
     reprojected: (T, K, 2) pixels; keypoint_names: (K,).
+    keypoint_joints: (K,) skeleton joint index of each keypoint, or None (then no 2D bones).
     hypotheses: (T, N, J, 3) or None; hypothesis_weights, hypothesis_costs: (T, N) or None;
     hypothesis_directions: (T, N, J, 3) metres or None.
     jumps: chain name -> (T,) kinematic-jump leaves kept per frame.
@@ -112,6 +151,7 @@ class RunLog:
     confidence: np.ndarray
     reprojected: np.ndarray
     keypoint_names: tuple[str, ...]
+    keypoint_joints: tuple[int, ...] | None = None
     hypotheses: np.ndarray | None = None
     hypothesis_weights: np.ndarray | None = None
     hypothesis_costs: np.ndarray | None = None
@@ -132,6 +172,8 @@ class RunLog:
         object.__setattr__(self, "joint_names", tuple(self.joint_names))
         object.__setattr__(self, "parents", tuple(int(p) for p in self.parents))
         object.__setattr__(self, "keypoint_names", tuple(self.keypoint_names))
+        if self.keypoint_joints is not None:
+            object.__setattr__(self, "keypoint_joints", tuple(int(j) for j in self.keypoint_joints))
         object.__setattr__(self, "scalars", {str(k): _as_numpy(v) for k, v in self.scalars.items()})
         object.__setattr__(self, "jumps", {str(k): _as_numpy(v) for k, v in self.jumps.items()})
         self._validate()
@@ -155,6 +197,13 @@ class RunLog:
         _check_shape("observed", self.observed, (T, K, 2))
         _check_shape("confidence", self.confidence, (T, K))
         _check_shape("reprojected", self.reprojected, (T, K, 2))
+        if self.keypoint_joints is not None:
+            if len(self.keypoint_joints) != K:
+                raise InputError(f"RunLog.keypoint_joints has {len(self.keypoint_joints)} entries, "
+                                 f"expected K={K}")
+            if any(not 0 <= j < J for j in self.keypoint_joints):
+                raise InputError(f"RunLog.keypoint_joints {self.keypoint_joints} has an index outside "
+                                 f"0..{J - 1}")
         if self.hypotheses is not None:
             N = _check_shape("hypotheses", self.hypotheses, (T, None, J, 3))[1]
             for name in ("hypothesis_weights", "hypothesis_costs"):
@@ -198,6 +247,7 @@ def write_recording(path: str | Path, log: RunLog) -> None:
     rec = rr.RecordingStream(application_id="ptrack")
     rec.save(path)
     try:
+        rec.send_blueprint(blueprint(log), make_active=True, make_default=True)
         T = log.num_frames
         index = [
             rr.TimeColumn("frame", sequence=log.frames.astype(np.int64)),
@@ -216,7 +266,8 @@ def write_recording(path: str | Path, log: RunLog) -> None:
                 positions=log.estimate.reshape(-1, 3), radii=radii).partition([log.estimate.shape[1]] * T))
         if log.hypotheses is not None:
             _log_hypotheses(rec, log, bones, index)
-        _log_camera(rec, log.camera)
+        _log_camera(rec, log.camera, _center(log))
+        _log_legend(rec, log)
         _log_keypoints(rec, log, index)
         if log.masks is not None:
             _log_masks(rec, log.masks, index)
@@ -298,8 +349,8 @@ def _log_hypotheses(rec: rr.RecordingStream, log: RunLog, bones: np.ndarray,
     best = np.max(np.where(np.isfinite(weights), weights, -np.inf), axis=1, keepdims=True)
     relative = np.where(best > 0, weights / np.where(best > 0, best, 1.0), 1.0)
     relative = np.clip(np.nan_to_num(relative, nan=0.0), 0.0, 1.0)  # (T, N)
-    radii = HYPOTHESIS_RADIUS * (0.25 + 0.75 * relative)
-    alpha = np.round(40 + 215 * relative).astype(np.uint8)
+    radii = HYPOTHESIS_RADIUS * (0.4 + 0.6 * relative)
+    alpha = np.round(90 + 165 * relative).astype(np.uint8)  # the least likely still visible
     rgb = np.broadcast_to(np.asarray(HYPOTHESIS_COLOR, dtype=np.uint8), (T, N, 3))
     colors = np.concatenate([rgb, alpha[..., None]], axis=-1)  # (T, N, 4)
     costs = log.hypothesis_costs
@@ -310,6 +361,7 @@ def _log_hypotheses(rec: rr.RecordingStream, log: RunLog, bones: np.ndarray,
         entity = f"world/hypotheses/h{n}"
         if len(bones):
             strips = rr.LineStrips3D.columns(strips=_strips(H[:, n], bones))
+            rec.log(f"{entity}/bones", rr.LineStrips3D.from_fields(show_labels=False), static=True)
             rec.send_columns(f"{entity}/bones", indexes=index, columns=[
                 *strips.partition([len(bones)] * T),
                 *rr.LineStrips3D.columns(labels=labels, radii=radii[:, n], colors=colors[:, n]),
@@ -325,8 +377,9 @@ def _log_hypotheses(rec: rr.RecordingStream, log: RunLog, bones: np.ndarray,
             _log_scalar(rec, f"{entity}/cost", costs[:, n], log)
 
 
-def _log_camera(rec: rr.RecordingStream, camera: Camera) -> None:
-    """Static camera pose (camera-to-world) and pinhole intrinsics at `world/camera`."""
+def _log_camera(rec: rr.RecordingStream, camera: Camera, target: np.ndarray) -> None:
+    """Static camera pose (camera-to-world) and pinhole intrinsics at `world/camera`; the image
+    plane is drawn at IMAGE_PLANE_FRACTION of the distance to `target` (3,), the person."""
     K = _as_numpy(camera.K).astype(np.float64)
     R = _as_numpy(camera.R).astype(np.float64)
     t = _as_numpy(camera.t).astype(np.float64)
@@ -334,38 +387,216 @@ def _log_camera(rec: rr.RecordingStream, camera: Camera) -> None:
         raise InputError(f"RunLog.camera has K {K.shape}, R {R.shape}, t {t.shape}; "
                          "expected (3, 3), (3, 3), (3,)")
     center = -R.T @ t
+    W, H = int(camera.width), int(camera.height)
+    plane = IMAGE_PLANE_FRACTION * float(np.linalg.norm(target - center))
     rec.log("world/camera", rr.Transform3D(translation=center, mat3x3=R.T), static=True)
-    rec.log("world/camera", rr.Pinhole(image_from_camera=K,
-                                       resolution=[int(camera.width), int(camera.height)],
-                                       camera_xyz=rr.ViewCoordinates.RDF), static=True)
+    rec.log("world/camera", rr.Pinhole(image_from_camera=K, resolution=[W, H], camera_xyz=rr.ViewCoordinates.RDF,
+                                       image_plane_distance=plane if plane > 0 else None), static=True)
+    rec.log("world/camera/image/border", rr.LineStrips2D(
+        [[(0, 0), (W, 0), (W, H), (0, H), (0, 0)]], colors=[BORDER_COLOR], radii=KEYPOINT_BONE_RADIUS,
+        draw_order=5), static=True)
 
 
 def _log_keypoints(rec: rr.RecordingStream, log: RunLog, index: list[rr.TimeColumn]) -> None:
-    """Observed (confident only, labelled) and reprojected keypoints under `world/camera/image`."""
+    """Observed (confident only, labelled) and reprojected keypoints under `world/camera/image`,
+    with 2D bones between keypoints and their keypoint parents where `log.keypoint_joints` is given."""
     names = np.asarray(log.keypoint_names, dtype=object)
     seen = (log.confidence > 0) & np.isfinite(log.observed).all(axis=-1)  # (T, K)
-    rec.log("world/camera/image/observed",
-            rr.Points2D.from_fields(colors=[OBSERVED_COLOR], radii=KEYPOINT_RADIUS), static=True)
-    rec.send_columns("world/camera/image/observed", indexes=index, columns=rr.Points2D.columns(
+    finite = np.isfinite(log.reprojected).all(axis=-1)  # (T, K)
+    image = "world/camera/image"
+    rec.log(f"{image}/observed", rr.Points2D.from_fields(
+        colors=[OBSERVED_COLOR], radii=OBSERVED_RADIUS, show_labels=False, draw_order=20), static=True)
+    rec.send_columns(f"{image}/observed", indexes=index, columns=rr.Points2D.columns(
         positions=log.observed[seen].reshape(-1, 2),
         labels=names[np.nonzero(seen)[1]].tolist(),
     ).partition(seen.sum(axis=1)))
-    finite = np.isfinite(log.reprojected).all(axis=-1)
-    rec.log("world/camera/image/reprojected",
-            rr.Points2D.from_fields(colors=[REPROJECTED_COLOR], radii=KEYPOINT_RADIUS), static=True)
-    rec.send_columns("world/camera/image/reprojected", indexes=index, columns=rr.Points2D.columns(
-        positions=log.reprojected[finite].reshape(-1, 2)).partition(finite.sum(axis=1)))
+    rec.log(f"{image}/reprojected", rr.Points2D.from_fields(
+        colors=[REPROJECTED_COLOR], radii=KEYPOINT_RADIUS, show_labels=False, draw_order=40), static=True)
+    rec.send_columns(f"{image}/reprojected", indexes=index, columns=rr.Points2D.columns(
+        positions=log.reprojected[finite].reshape(-1, 2),
+        labels=names[np.nonzero(finite)[1]].tolist(),
+    ).partition(finite.sum(axis=1)))
+    if log.keypoint_joints is None:
+        return
+    pairs = _keypoint_bones(log.parents, log.keypoint_joints)  # (B, 2)
+    if not len(pairs):
+        return
+    for name, xy, ok, color, order in (("observed_bones", log.observed, seen, OBSERVED_COLOR, 10),
+                                       ("reprojected_bones", log.reprojected, finite, REPROJECTED_COLOR, 30)):
+        both = ok[:, pairs].all(axis=-1)  # (T, B)
+        rec.log(f"{image}/{name}", rr.LineStrips2D.from_fields(
+            colors=[color], radii=KEYPOINT_BONE_RADIUS, draw_order=order), static=True)
+        rec.send_columns(f"{image}/{name}", indexes=index, columns=rr.LineStrips2D.columns(
+            strips=xy[:, pairs][both]).partition(both.sum(axis=1)))
 
 
 def _log_masks(rec: rr.RecordingStream, masks: np.ndarray, index: list[rr.TimeColumn]) -> None:
     """masks: (T, H, W) bool -> SegmentationImage (class 1 = silhouette) on every frame."""
     T, H, W = masks.shape
     entity = "world/camera/image/silhouette"
-    rec.log(entity, rr.AnnotationContext([(1, "silhouette", (255, 255, 255))]), static=True)
+    rec.log(entity, rr.AnnotationContext([(0, "background", (0, 0, 0, 0)), (1, "silhouette", (255, 255, 255))]),
+            static=True)
     fmt = rr.components.ImageFormat(width=W, height=H, channel_datatype="U8")
     rec.log(entity, rr.SegmentationImage.from_fields(format=fmt, opacity=0.4), static=True)
     rec.send_columns(entity, indexes=index, columns=rr.SegmentationImage.columns(
         buffer=(masks != 0).astype(np.uint8).reshape(T, -1)))
+
+
+def _keypoint_bones(parents: Sequence[int], keypoint_joints: Sequence[int]) -> np.ndarray:
+    """(B, 2) (parent, child) keypoint index pairs: each keypoint joined to the nearest skeleton
+    ancestor of its joint that is a keypoint too."""
+    keypoint_of = {j: k for k, j in enumerate(keypoint_joints)}
+    pairs = []
+    for k, j in enumerate(keypoint_joints):
+        p = parents[j]
+        for _ in range(len(parents)):  # bounded: `parents` is not checked for cycles
+            if p < 0 or p in keypoint_of:
+                break
+            p = parents[p]
+        if p >= 0 and p in keypoint_of and keypoint_of[p] != k:
+            pairs.append((keypoint_of[p], k))
+    return np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+def _finite_joints(log: RunLog) -> np.ndarray:
+    """(M, 3) every finite estimated joint position of every frame, metres."""
+    X = log.estimate.reshape(-1, 3).astype(np.float64)
+    return X[np.isfinite(X).all(axis=-1)]
+
+
+def _center(log: RunLog) -> np.ndarray:
+    """(3,) the mean finite estimated joint, metres (the origin if there is none)."""
+    X = _finite_joints(log)
+    return X.mean(axis=0) if len(X) else np.zeros(3)
+
+
+def _turn_y(degrees: float) -> np.ndarray:
+    """(3, 3) rotation about the world's +Y (up) axis."""
+    c, s = np.cos(np.deg2rad(degrees)), np.sin(np.deg2rad(degrees))
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _camera_center(camera: Camera) -> np.ndarray:
+    """(3,) the camera centre in the world, metres."""
+    R = _as_numpy(camera.R).astype(np.float64)
+    return -R.T @ _as_numpy(camera.t).astype(np.float64)
+
+
+def _log_legend(rec: rr.RecordingStream, log: RunLog) -> None:
+    """Static `world/legend` (3D, above the motion) and `world/camera/image/legend` (2D, top edge)."""
+    kinds = [("estimate", ESTIMATE_COLOR)]
+    if log.ground_truth is not None:
+        kinds.append(("ground truth", GROUND_TRUTH_COLOR))
+    if log.hypotheses is not None:
+        kinds.append(("hypotheses", HYPOTHESIS_COLOR))
+    X = _finite_joints(log)
+    top = X[:, 1].max() if len(X) else 0.0
+    base = _center(log) * np.array([1.0, 0.0, 1.0])  # a column above the motion, read from any side
+    heights = top + LEGEND_SPACING * (1.5 + np.arange(len(kinds))[::-1])
+    rec.log("world/legend", rr.Points3D(
+        base + heights[:, None] * np.array([0.0, 1.0, 0.0]), colors=[c for _, c in kinds], radii=LEGEND_RADIUS,
+        labels=[name for name, _ in kinds], show_labels=True), static=True)
+    W, H = float(log.camera.width), float(log.camera.height)
+    y = max(H / 16, 4 * OBSERVED_RADIUS)  # labels are drawn centred under their points
+    rec.log("world/camera/image/legend", rr.Points2D(
+        [(0.15 * W, y), (0.45 * W, y)], colors=[OBSERVED_COLOR, REPROJECTED_COLOR],
+        radii=[OBSERVED_RADIUS, KEYPOINT_RADIUS], labels=["observed", "reprojected estimate"],
+        show_labels=True, draw_order=50), static=True)
+
+
+def _has_values(values: np.ndarray) -> bool:
+    """Whether `_log_scalar` logs anything for `values` (any finite value)."""
+    return bool(np.isfinite(values.astype(np.float64)).any())
+
+
+def _metric_plot(name: str) -> str:
+    """The plot title a per-frame metric `name` is drawn in (grouped by unit)."""
+    if name.startswith("accel"):
+        return "accel. error (mm/frame²)"
+    if name.endswith("_mm"):
+        return "joint position error (mm)"
+    if name.endswith("_px"):
+        return "reprojection error (px)"
+    if name.startswith("flip"):
+        return "flip error rate"
+    if name == "cost" or name.startswith("cost_"):
+        return "cost and its terms"
+    if name.endswith("_m"):
+        return "uncertainty (m)"
+    return "other metrics"
+
+
+def plot_groups(log: RunLog) -> list[tuple[str, list[str]]]:
+    """The time-series plots of `blueprint(log)`: (title, scalar entity paths), every scalar entity
+    `write_recording` logs in exactly one, none empty."""
+    groups: dict[str, list[str]] = {}
+    for name, values in log.scalars.items():
+        if _has_values(values):
+            groups.setdefault(_metric_plot(name), []).append(f"metrics/{name}")
+    if log.hypotheses is not None:
+        N = log.hypotheses.shape[1]
+        weights = log.hypothesis_weights
+        if weights is None or any(_has_values(weights[:, n]) for n in range(N)):
+            groups["hypothesis weights"] = [f"world/hypotheses/h{n}/weight" for n in range(N)
+                                            if weights is None or _has_values(weights[:, n])]
+        costs = log.hypothesis_costs
+        if costs is not None and any(_has_values(costs[:, n]) for n in range(N)):
+            groups["hypothesis costs"] = [f"world/hypotheses/h{n}/cost" for n in range(N)
+                                          if _has_values(costs[:, n])]
+    if log.jumps:
+        groups["kinematic jumps kept per chain"] = [f"jumps/{name}" for name in log.jumps]
+    if log.solver_cost is not None:
+        groups["solver cost (timeline: iteration)"] = ["solver/cost"]
+    return list(groups.items())
+
+
+def _eye(log: RunLog) -> rrb.EyeControls3D:
+    """A 3D viewpoint beside and above the line from the person to the camera, looking at a point
+    between them, so that both the person and the camera's frustum are in view."""
+    person, camera = _center(log), _camera_center(log.camera)
+    v = camera - person
+    v[1] = 0.0
+    distance = max(float(np.linalg.norm(v)), 1.0)
+    position = person + EYE_DISTANCE * (_turn_y(EYE_AZIMUTH_DEG) @ v) + np.array([0.0, EYE_HEIGHT * distance, 0.0])
+    target = person + EYE_TARGET * (camera - person)
+    return rrb.EyeControls3D(position=position, look_target=target, eye_up=[0.0, 1.0, 0.0])
+
+
+def _closeup_eye(log: RunLog) -> rrb.EyeControls3D:
+    """A 3D viewpoint near the person (the camera's side turned by CLOSEUP_AZIMUTH_DEG), following
+    the estimate's joints as they move."""
+    person, camera = _center(log), _camera_center(log.camera)
+    v = camera - person
+    v[1] = 0.0
+    v = v / max(float(np.linalg.norm(v)), 1e-9)
+    position = person + CLOSEUP_DISTANCE_M * (_turn_y(CLOSEUP_AZIMUTH_DEG) @ v) + np.array([0.0, CLOSEUP_HEIGHT_M, 0.0])
+    return rrb.EyeControls3D(position=position, look_target=person, eye_up=[0.0, 1.0, 0.0],
+                             tracking_entity="/world/estimate/joints")
+
+
+def blueprint(log: RunLog) -> rrb.Blueprint:
+    """The viewer layout for `log`'s recording: the 3D scene, a 3D close-up and the camera view side
+    by side, a grid of time-series plots (`plot_groups`) under them, the time panel on `time`."""
+    W, H = float(log.camera.width), float(log.camera.height)
+    margin = 0.03 * max(W, H)
+    scene = rrb.Spatial3DView(name="3D: scene and camera", origin="/world", contents="$origin/**",
+                              eye_controls=_eye(log))
+    closeup = rrb.Spatial3DView(
+        name="3D: close-up (follows the estimate)", origin="/world",
+        contents=["+ $origin/**", "- /world/camera/**", "- /world/legend"], eye_controls=_closeup_eye(log))
+    image = rrb.Spatial2DView(name="camera: observed and reprojected keypoints", origin="/world/camera",
+                              contents="$origin/**", visual_bounds=rrb.VisualBounds2D(
+                                  x_range=[-margin, W + margin], y_range=[-margin, H + margin]))
+    plots = [rrb.TimeSeriesView(name=title, origin="/", contents=[f"+ /{e}" for e in entities])
+             for title, entities in plot_groups(log)]
+    top = rrb.Horizontal(scene, closeup, image, column_shares=[4, 3, 3])
+    if plots:
+        columns = len(plots) if len(plots) <= 5 else -(-len(plots) // 2)
+        layout = rrb.Vertical(top, rrb.Grid(*plots, grid_columns=columns), row_shares=[3, 2])
+    else:
+        layout = top
+    return rrb.Blueprint(layout, rrb.SelectionPanel(state="collapsed"),
+                         rrb.TimePanel(timeline="time", state="collapsed"), auto_views=False)
 
 
 def _log_scalar(rec: rr.RecordingStream, entity: str, values: np.ndarray, log: RunLog) -> None:
