@@ -107,12 +107,11 @@ KEYPOINT_RADIUS = 3.0  # pixels, reprojected keypoints
 OBSERVED_RADIUS = 6.0  # pixels: observed keypoints are drawn larger, under the reprojected ones
 KEYPOINT_BONE_RADIUS = 1.0  # pixels
 LEGEND_RADIUS = 0.05  # metres
-LEGEND_SPACING = 0.3  # metres between the 3D legend's entries
+LEGEND_SPACING = 0.4  # metres between the 3D legend's entries
 IMAGE_PLANE_FRACTION = 0.3  # the camera's image plane in 3D, as a share of its distance to the person
-EYE_AZIMUTH_DEG = 75.0  # default 3D viewpoint: the person-to-camera direction turned about +Y by this,
-EYE_DISTANCE = 1.25  # ... scaled by this (of the person-camera distance),
-EYE_HEIGHT = 0.3  # ... raised by this (same unit), looking at
-EYE_TARGET = 0.5  # ... the point this share of the way from the person to the camera
+EYE_AZIMUTH_DEG = 75.0  # 3D scene viewpoint: from the person-to-camera direction turned about +Y by this,
+EYE_ELEVATION_DEG = 20.0  # ... and raised by this, far enough that a cone of half-angle
+EYE_HALF_FOV_DEG = 24.0  # ... this holds the sphere around the camera and the whole motion
 CLOSEUP_AZIMUTH_DEG = -60.0  # close-up viewpoint: the person-to-camera direction turned about +Y by this,
 CLOSEUP_DISTANCE_M = 2.8  # ... this far from the person,
 CLOSEUP_HEIGHT_M = 0.6  # ... and this much higher
@@ -551,14 +550,23 @@ def plot_groups(log: RunLog) -> list[tuple[str, list[str]]]:
 
 
 def _eye(log: RunLog) -> rrb.EyeControls3D:
-    """A 3D viewpoint beside and above the line from the person to the camera, looking at a point
-    between them, so that both the person and the camera's frustum are in view."""
+    """A 3D viewpoint beside and above the line from the person to the camera, looking at the centre
+    of the sphere that holds the camera and the motion's bounding box over the whole clip, from far
+    enough that the sphere fits in a cone of half-angle EYE_HALF_FOV_DEG: the camera's frustum and
+    the person are in view at every frame."""
     person, camera = _center(log), _camera_center(log.camera)
+    X = _finite_joints(log)
+    lo, hi = (X.min(axis=0), X.max(axis=0)) if len(X) else (person, person)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    points = np.vstack([corners, camera])
+    target = (points.min(axis=0) + points.max(axis=0)) / 2
+    radius = max(float(np.linalg.norm(points - target, axis=1).max()), 1.0)
     v = camera - person
     v[1] = 0.0
-    distance = max(float(np.linalg.norm(v)), 1.0)
-    position = person + EYE_DISTANCE * (_turn_y(EYE_AZIMUTH_DEG) @ v) + np.array([0.0, EYE_HEIGHT * distance, 0.0])
-    target = person + EYE_TARGET * (camera - person)
+    v = v / max(float(np.linalg.norm(v)), 1e-9)
+    up = np.deg2rad(EYE_ELEVATION_DEG)
+    direction = np.cos(up) * (_turn_y(EYE_AZIMUTH_DEG) @ v) + np.sin(up) * np.array([0.0, 1.0, 0.0])
+    position = target + radius / np.sin(np.deg2rad(EYE_HALF_FOV_DEG)) * direction
     return rrb.EyeControls3D(position=position, look_target=target, eye_up=[0.0, 1.0, 0.0])
 
 
