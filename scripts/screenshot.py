@@ -1,11 +1,12 @@
 """Render a run's rerun recording to a PNG, the way the viewer opens it (its blueprint included).
 
-    python scripts/screenshot.py RUN_DIR OUT.png [--time S] [--size 1600x1000] [--timeout 120]
+    python scripts/screenshot.py RUN_DIR OUT.png [--time S] [--size 1600x1000] [--colors N] [--timeout 120]
 
 RUN_DIR is a run folder (its `run.rrd` is read) or an .rrd file. The script starts the rerun
 viewer headless (`rerun --headless --window-size WxH --port P`, P a free port), opens the recording
 in it, pauses the `time` timeline at S seconds (default: the middle of the recording), and saves a
-screenshot of the whole viewer window. It talks to the viewer through the SDK's
+screenshot of the whole viewer window (`--colors N`: reduced to an N-colour palette, a third of the
+bytes at 256, for images kept in the repository). It talks to the viewer through the SDK's
 `rerun.experimental.ViewerClient` rather than `rerun --screenshot-to`, which cannot place the time
 cursor. Needs a Vulkan driver: on a machine without a GPU, Mesa's software one
 (`apt-get install mesa-vulkan-drivers`); no X server is needed.
@@ -60,9 +61,9 @@ def connect(port: int, viewer: subprocess.Popen, timeout: float):
 
 
 def screenshot(rrd: Path, out: Path, at_s: float | None = None, size: str = "1600x1000",
-               timeout: float = 120.0) -> Path:
+               timeout: float = 120.0, colors: int = 0) -> Path:
     """Render `rrd` in a headless viewer of `size` (logical points) at `time` = `at_s` seconds (None:
-    the middle) and write the PNG to `out`. Returns `out`."""
+    the middle) and write the PNG to `out`, with a palette of `colors` colours if > 0. Returns `out`."""
     exe = shutil.which("rerun")
     if exe is None:
         raise RuntimeError("the `rerun` executable is not on PATH (pip install rerun-sdk)")
@@ -97,6 +98,11 @@ def screenshot(rrd: Path, out: Path, at_s: float | None = None, size: str = "160
             png = client.take_screenshot()
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_bytes(png)
+            if colors:
+                from PIL import Image
+
+                with Image.open(out) as image:
+                    image.convert("RGB").quantize(colors).save(out, optimize=True)
         except BaseException:
             log.seek(0)
             sys.stderr.write(log.read().decode(errors="replace")[-4000:])
@@ -118,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", type=Path, help="PNG to write")
     parser.add_argument("--time", type=float, default=None, help="seconds on the `time` timeline (default: middle)")
     parser.add_argument("--size", default="1600x1000", help="viewer window size in logical points, WxH")
+    parser.add_argument("--colors", type=int, default=0, help="reduce to a palette of N colours (0: keep all)")
     parser.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the viewer")
     args = parser.parse_args(argv)
     try:
@@ -126,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"screenshot: error: {e}", file=sys.stderr)
         return 2
     try:
-        screenshot(rrd, args.out, args.time, args.size, args.timeout)
+        screenshot(rrd, args.out, args.time, args.size, args.timeout, args.colors)
     except Exception as e:  # the viewer's own output is on stderr already
         print(f"screenshot: error: {e}", file=sys.stderr)
         return 1
