@@ -101,10 +101,11 @@ class KjsMethodConfig:
     polish_iterations: int = 4  # Levenberg-Marquardt iterations of every hypothesis
     refine_iterations: int = 10  # further iterations of the 4K most promising distinct minima
     momentum: float = 0.0  # share of a mode's last velocity in its prediction (0: constant position)
-    # minima whose joints are all closer than this (mm, per coordinate) are one; 0: compare the dofs
-    # instead (distinct_deg). In 3D the K modes are different interpretations, not near-copies: on the dev
-    # clips 50 mm lowered the tree start's best-of-K on every clip measured (e.g. 10_01 37.0 -> 29.1 mm)
-    distinct_mm: float = 50.0
+    # minima whose joints are all closer than this (mm, per coordinate) are one; 0 (default): compare the
+    # dofs instead (distinct_deg). Measured on the dev clips: 50 mm makes the K modes different
+    # interpretations and lowers the tree start's best-of-K (mean 48.8 -> 44.1 mm), but Viterbi then picks
+    # flipped modes more often after a keyframe start (05_02: 28.4 against 20.8 mm best trajectory)
+    distinct_mm: float = 0.0
     distinct_deg: float = 3.0  # with distinct_mm 0: minima closer than this in every dof are one
     temperature: float = 1.0  # weights ∝ prior * exp(-cost / temperature)
     # radians (or metres) per frame: the dynamics' velocity prior. Each hypothesis is polished to
