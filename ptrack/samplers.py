@@ -31,6 +31,7 @@ import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -260,10 +261,10 @@ def _positive(name: str, value: float | Tensor, batch: torch.Size, device: torch
     if isinstance(value, bool) or not isinstance(value, (int, float, Tensor)):
         raise InputError(f"{name} must be a number or a tensor, got {type(value).__name__}")
     t = torch.as_tensor(value).to(device=device, dtype=dtype)
-    try:
-        if torch.broadcast_shapes(t.shape, batch) != batch:
-            raise RuntimeError
-    except RuntimeError:
+    try:  # numpy's shape arithmetic: torch.broadcast_shapes costs milliseconds per call here
+        if np.broadcast_shapes(tuple(t.shape), tuple(batch)) != tuple(batch):
+            raise ValueError
+    except ValueError:
         raise InputError(f"{name} must broadcast to the batch dims {tuple(batch)}, got {tuple(t.shape)}") from None
     if not bool((torch.isfinite(t) & (t > 0)).all()):
         raise InputError(f"{name} must be finite and > 0, got {value!r}")

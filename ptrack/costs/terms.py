@@ -341,4 +341,4 @@ class PosePrior(_LeastSquares):
         inv = 1.0 / self.sigma.to(q)
         if inv.ndim <= 1:
             return torch.diag_embed(inv.expand(q.shape[-1:])).expand(*q.shape, q.shape[-1])
-        return torch.diag_embed(torch.broadcast_to(inv, torch.broadcast_shapes(inv.shape, q.shape)))
+        return torch.diag_embed(inv.expand(q.shape))  # a std per hypothesis: (..., D) like q
