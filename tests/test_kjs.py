@@ -61,7 +61,7 @@ def test_outputs(kjs_run):
 
 def test_keyframe_accuracy(kjs_run):
     """Issue target: best-of-K under 20 mm at 1 px, nothing missing, keyframe start (measured on frames
-    0-116 of 10_02: best-of-K 7.6 mm, best trajectory 7.6 mm)."""
+    0-116 of 10_02: best-of-K 7.1 mm, best trajectory 7.3 mm)."""
     traj, best = _errors(*kjs_run)
     assert best < 20.0, f"best-of-K {best:.1f} mm"
     assert traj < 25.0, f"best trajectory {traj:.1f} mm"
@@ -76,20 +76,20 @@ def test_deterministic_per_seed():
 
 
 def test_tree_init_needs_no_3d():
-    """init: tree fits the rest pose in view and enumerates every flip: no keyframe used (measured:
-    best-of-K and best trajectory 23.1 mm on frames 0-116 of 10_02; the threshold leaves room for the
-    shorter clip here)."""
+    """init: tree fits the rest pose in view and enumerates every flip: no keyframe used. The issue's
+    target, best-of-K under 30 mm (measured here, frames 0-76 of 10_02: best-of-K 20.6 mm, best trajectory
+    28.7 mm; frames 0-116: 18.5 and 25.6 mm)."""
     cfg = load_config(KJS_YAML, [*EXACT, "kjs.init=tree", "data.stop=80"])
     prep = prepare(cfg)
     bare = Problem(prep.problem.skeleton, prep.problem.keypoints, prep.problem.observations)  # no keyframes
     est = track(bare, cfg, torch.Generator().manual_seed(1), KJS)
     traj, best = _errors(prep, est)
-    assert best < 40.0, f"best-of-K {best:.1f} mm"
+    assert best < 30.0, f"best-of-K {best:.1f} mm"
 
 
 @pytest.mark.parametrize("method", ["css", "ss"])
 def test_sampling_baselines_run_at_the_same_budget(method):
-    """css/ss: no jumps, same hypothesis budget (measured best-of-K on these 10 frames: 6.0 mm each)."""
+    """css/ss: no jumps, same hypothesis budget (measured best-of-K on these 10 frames: 5.2 and 5.3 mm)."""
     prep, est = _run(f"method={method}", "data.stop=40")
     _, best = _errors(prep, est)
     assert est.hypotheses.shape[1] == K and best < 25.0
