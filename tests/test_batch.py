@@ -51,7 +51,7 @@ def test_noise_free_clip_is_recovered_from_keyframes():
     _, prep, est = solve("observations.noise_px=0", "observations.missing=0", "keyframes.every_s=0.5",
                          "dtype=float64")
     assert mpjpe_mm(prep, est) < 12.0
-    assert float(est.solver_cost[-1]) < 0.05 * float(est.solver_cost[0])
+    assert float(est.solver_cost[-1]) < 0.1 * float(est.solver_cost[0])  # the smoothing prior keeps ~5%
 
 
 def test_missing_keypoints_and_dropped_frames():
@@ -128,8 +128,10 @@ def test_warm_start_from_a_run_folder_and_upsampling(tmp_path):
 
 def test_accuracy_on_a_clip_not_tuned_on(cmu_file):
     """CMU 35_01 (walk; not a dev clip), 3 s at 30 fps, 2 px noise, 10% missing, keyframes every second.
-    Measured 2026-11-23: 42.4 mm MPJPE (the issue's target, 30 mm, is NOT met: see docs/results.md),
-    acceleration error 7.3 mm/f^2 against 46.2 for `method: frame` on the same observations."""
+    Measured 2026-11-23 with the smoothing chosen on the dev clips (velocity 3 rad/s, acceleration
+    8 rad/s^2): 40.6 mm MPJPE from the interpolated keyframes, 36.4 mm from per-frame fits (the issue's
+    target, 30 mm, is NOT met on this clip: see docs/results.md; 135_04 is at 20.0 / 25.0 mm),
+    acceleration error 4.6 mm/f^2 against 46.2 for `method: frame` on the same observations."""
     amc, asf = cmu_file("35_01.amc"), cmu_file("35.asf")
     cfg = load_config(BATCH, [f"data.amc={amc}", f"data.asf={asf}", "data.stop=360", "progress=false",
                               "batch.uncertainty=false", "keyframes.every_s=1"])
@@ -138,7 +140,7 @@ def test_accuracy_on_a_clip_not_tuned_on(cmu_file):
     idx = prep.problem.keypoints.index()
     gt = prep.gt_joints.index_select(-2, idx).to(est.joints)
     assert mpjpe_mm(prep, est) < 50.0
-    assert float(M.accel_error(est.joints.index_select(-2, idx), gt, root=0).mean()) < 15.0  # frame: 46
+    assert float(M.accel_error(est.joints.index_select(-2, idx), gt, root=0).mean()) < 10.0  # frame: 46
 
 
 # -- bad input: one error line naming the file and the problem, exit 2, nothing written ---------------
