@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -40,6 +41,31 @@ def recording_path(run: Path) -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"no rerun recording at {path}")
     return path
+
+
+def stop(viewer: subprocess.Popen) -> None:
+    """Stop the viewer's process group (the launcher and the viewer it started): SIGTERM, then
+    SIGKILL after 10 s."""
+    try:
+        os.killpg(viewer.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return
+    try:
+        viewer.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        pass
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(viewer.pid, 0)  # anyone left in the group?
+        except ProcessLookupError:
+            return
+        time.sleep(0.1)
+    try:
+        os.killpg(viewer.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    viewer.wait()
 
 
 def connect(port: int, viewer: subprocess.Popen, timeout: float):
@@ -72,9 +98,11 @@ def screenshot(rrd: Path, out: Path, at_s: float | None = None, size: str = "160
     runtime = tempfile.mkdtemp(prefix="ptrack-rerun-")  # the viewer wants an XDG runtime folder
     env.setdefault("XDG_RUNTIME_DIR", runtime)
     with tempfile.TemporaryFile() as log:
+        # its own process group: `rerun` may be a launcher (pip's rerun-sdk) that starts the viewer
+        # binary as a child, which must be stopped too
         viewer = subprocess.Popen([exe, "--headless", "--port", str(port), "--window-size", size,
                                    "--hide-welcome-screen", "--memory-limit", "2GB"],
-                                  stdout=log, stderr=subprocess.STDOUT, env=env)
+                                  stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
         try:
             client = connect(port, viewer, timeout)
             client.open(str(rrd.resolve()))
@@ -108,12 +136,7 @@ def screenshot(rrd: Path, out: Path, at_s: float | None = None, size: str = "160
             sys.stderr.write(log.read().decode(errors="replace")[-4000:])
             raise
         finally:
-            if viewer.poll() is None:
-                viewer.terminate()
-                try:
-                    viewer.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    viewer.kill()
+            stop(viewer)
             shutil.rmtree(runtime, ignore_errors=True)
     return out
 

@@ -295,16 +295,19 @@ def test_screenshot_script_renders_the_view(tmp_path):
     write_recording(tmp_path / "run.rrd", _log(full=True))
     out = tmp_path / "shot.png"
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "screenshot.py"), str(tmp_path), str(out),
-                           "--time", "0.1", "--size", "960x600", "--timeout", "90"],
+                           "--time", "0.1", "--size", "962x601", "--timeout", "90"],
                           check=False, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stderr[-2000:]
     from PIL import Image
 
     image = np.asarray(Image.open(out).convert("RGB")).astype(int)
-    assert image.shape[:2] == (600, 960)
+    assert image.shape[:2] == (601, 962)
+    # the viewer is gone with the script (`rerun` may be a launcher with the viewer as its child)
+    ps = subprocess.run(["ps", "-eo", "args"], check=True, capture_output=True, text=True).stdout
+    assert not [line for line in ps.splitlines() if "--headless" in line and "962x601" in line]
     def share(color, region):  # share of pixels within 40 of `color` in a region of the window
         return float((np.abs(region - np.asarray(color)).sum(-1) < 40).mean())
-    top = image[: int(0.55 * 600)]
+    top = image[: int(0.55 * 601)]
     # the estimate's orange and the observed keypoints' yellow are drawn in the top row's views
     assert share((255, 140, 30), top) > 1e-4
     assert share((255, 220, 0), top) > 1e-5
