@@ -102,9 +102,9 @@ class KjsMethodConfig:
     refine_iterations: int = 10  # further iterations of the 4K most promising distinct minima
     momentum: float = 0.0  # share of a mode's last velocity in its prediction (0: constant position)
     # minima whose joints are all closer than this (mm, per coordinate) are one; 0 (default): compare the
-    # dofs instead (distinct_deg). Measured on the dev clips: 50 mm makes the K modes different
-    # interpretations and lowers the tree start's best-of-K (mean 48.8 -> 44.1 mm), but Viterbi then picks
-    # flipped modes more often after a keyframe start (05_02: 28.4 against 20.8 mm best trajectory)
+    # dofs instead (distinct_deg). Measured on the dev clips: 50 mm gave the tree start the same mean
+    # best-of-K (44.1 against 44.6 mm), and after a keyframe start Viterbi picked flipped modes more often
+    # (05_02: 28.4 against 20.7 mm best trajectory)
     distinct_mm: float = 0.0
     distinct_deg: float = 3.0  # with distinct_mm 0: minima closer than this in every dof are one
     temperature: float = 1.0  # weights ∝ prior * exp(-cost / temperature)
