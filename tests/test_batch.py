@@ -87,7 +87,7 @@ def test_partial_angle_and_joint_keyframes(tmp_path):
     angles, joints = read_keyframes(path, sk, prep.problem.observations.num_frames, 2.0, 0.02)
     assert angles.mask[1].sum() == len(lf) and not angles.mask[1, 0]  # a partial keyframe: no root prior
     assert joints.mask[0].sum() == 1
-    cfg = load_config(BATCH, [*SHORT, f"keyframes.file={path}", "batch.init=frame", "frame.iterations=10"])
+    cfg = load_config(BATCH, [*SHORT, f"keyframes.file={path}", "batch.init=keyframes"])
     prep = prepare(cfg)
     est = estimate_batch(prep.problem, cfg, torch.Generator())
     assert float((est.q[30, lf] - gt_q[30, lf].to(est.q)).abs().max()) < np.radians(3.0)
