@@ -36,8 +36,22 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """Parse argv; flags and `key=value` overrides may come in any order (after the config)."""
+    parser = _parser()
+    args, extra = parser.parse_known_args(argv)
+    # argparse hands the positional `overrides` only the run of them right after the config; later
+    # ones (after a flag) come back as unknown arguments, in order
+    unknown = [a for a in extra if a.startswith("-") or not hasattr(args, "overrides")]
+    if unknown:
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+    if extra:
+        args.overrides = [*args.overrides, *extra]
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    args = parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="ptrack: %(levelname)s: %(message)s")
     try:
         if args.command == "run":

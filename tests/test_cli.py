@@ -7,6 +7,7 @@ import json
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -277,3 +278,38 @@ def test_estimator_failure_is_one_line_and_exit_1(tmp_path, capsys, monkeypatch)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("ptrack: error: method 'frame' returned non-finite poses in 12 of 12")
     assert not out.exists()
+
+
+# ---------------------------------------------------------------- argument order (through the command line)
+
+
+def _cli(*argv: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ptrack.cli", *argv], capture_output=True, text=True, timeout=300,
+                          cwd=cwd)
+
+
+def test_flags_and_overrides_in_any_order(tmp_path):
+    # every override is read wherever it stands: the last one names a missing AMC, so the run stops
+    # at loading it (exit 2, one line) instead of at argparse's "unrecognized arguments"
+    out = tmp_path / "o"
+    proc = _cli("run", str(DEMO), "seed=3", "--quiet", *FAST, f"out_dir={out}", "data.amc=gone.amc", cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [f"ptrack: error: AMC file not found: {tmp_path / 'gone.amc'}"]
+    proc = _cli("evaluate", str(DEMO), "--clips", str(AMC), "--out", str(out), "data.stop=40", "--quiet",
+                "camera.fov=60", cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ptrack: error: unknown config key 'camera.fov'"), proc.stderr
+    assert not out.exists()
+
+
+def test_unknown_flag_after_overrides_is_a_usage_error(tmp_path):
+    proc = _cli("run", str(DEMO), "seed=3", "--bogus", cwd=tmp_path)
+    assert proc.returncode == 2 and "unrecognized arguments: --bogus" in proc.stderr
+    proc = _cli("replay", str(tmp_path), "extra", cwd=tmp_path)
+    assert proc.returncode == 2 and "unrecognized arguments: extra" in proc.stderr
+
+
+def test_overrides_after_a_flag_keep_their_order(tmp_path, capsys):
+    # data.stride=4 (in FAST) before the flag, data.stride=0 after it: the later one is applied
+    _fail(capsys, tmp_path / "o", [*_run_argv(tmp_path / "o"), "--quiet", "data.stride=0"], "data.stride")
