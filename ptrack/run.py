@@ -234,11 +234,28 @@ def default_out_dir(cfg: RunConfig, root: str | Path = "logs") -> Path:
     return Path(root) / f"{cfg.name}-{datetime.now().strftime('%Y%m%d-%H%M%S-%f')}"
 
 
+def check_out_dir(out: Path) -> None:
+    """Raise InputError unless `out` is a new or empty folder that can be made and written, before any work:
+    creates and removes a hidden folder where the run's folder will be assembled."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"out_dir {out} is an existing file, not a folder; choose another out_dir")
+    if out.is_dir() and any(out.iterdir()):
+        raise InputError(f"out_dir {out} already exists and is not empty; choose another out_dir")
+    parent = out.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"out_dir {out} cannot be made: {parent} is a file, not a folder")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".probe", dir=parent))
+    except OSError as e:
+        raise InputError(f"out_dir {out} cannot be made: cannot write in {parent} ({e.strerror})") from None
+
+
 def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
     """Run `cfg` end to end and write its folder; returns the folder's path."""
     out = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError(f"out_dir {out} already exists and is not empty; choose another out_dir")
+    check_out_dir(out)
     t0 = time.perf_counter()
     prep = prepare(cfg)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)

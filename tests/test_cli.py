@@ -313,3 +313,13 @@ def test_unknown_flag_after_overrides_is_a_usage_error(tmp_path):
 def test_overrides_after_a_flag_keep_their_order(tmp_path, capsys):
     # data.stride=4 (in FAST) before the flag, data.stride=0 after it: the later one is applied
     _fail(capsys, tmp_path / "o", [*_run_argv(tmp_path / "o"), "--quiet", "data.stride=0"], "data.stride")
+
+
+def test_unwritable_out_dir_is_one_line_before_the_run(tmp_path):
+    (tmp_path / "file").write_text("x")
+    out = tmp_path / "file" / "run"
+    proc = _cli("run", str(DEMO), *FAST, f"out_dir={out}", cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        f"ptrack: error: out_dir {out} cannot be made: {tmp_path / 'file'} is a file, not a folder"]
+    assert proc.stdout == "" and sorted(p.name for p in tmp_path.iterdir()) == ["file"]

@@ -15,6 +15,7 @@ import pytest
 import rerun.chunk
 import torch
 
+import ptrack.run
 import ptrack.viz
 from ptrack.config import load_config, to_dict
 from ptrack import metrics as M
@@ -257,9 +258,29 @@ def test_existing_non_empty_out_dir_is_refused(tmp_path):
 def test_out_dir_that_is_a_file_is_refused(tmp_path):
     out = tmp_path / "file"
     out.write_text("x")
-    with pytest.raises(InputError, match="out_dir"):
+    with pytest.raises(InputError, match="out_dir .* is an existing file, not a folder"):
         execute(_cfg(out, fast=QUICK))
     assert out.read_text() == "x"
+
+
+def test_out_dir_under_a_file_fails_before_any_work(tmp_path, monkeypatch):
+    (tmp_path / "file").write_text("x")
+    out = tmp_path / "file" / "runs" / "a"
+
+    def no_work(cfg):
+        raise AssertionError("the run started before out_dir was checked")
+
+    monkeypatch.setattr(ptrack.run, "prepare", no_work)
+    with pytest.raises(InputError, match=f"out_dir .* cannot be made: {tmp_path / 'file'} is a file"):
+        execute(_cfg(out, fast=QUICK))
+    assert _leftovers(tmp_path) == ["file"]
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc (no folder can be made in it)")
+def test_unwritable_out_dir_fails_before_any_work(tmp_path, monkeypatch):
+    monkeypatch.setattr(ptrack.run, "prepare", lambda cfg: pytest.fail("the run started before out_dir was checked"))
+    with pytest.raises(InputError, match="out_dir /proc/ptrack-run cannot be made: cannot write in /proc"):
+        execute(_cfg(Path("/proc/ptrack-run"), fast=QUICK))
 
 
 def test_existing_empty_out_dir_is_used(tmp_path):
