@@ -256,6 +256,7 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
     """Run `cfg` end to end and write its folder; returns the folder's path."""
     out = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
     check_out_dir(out)
+    cfg = dataclasses.replace(cfg, out_dir=str(out.resolve()))  # config.yaml records the folder used
     t0 = time.perf_counter()
     prep = prepare(cfg)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)

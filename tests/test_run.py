@@ -300,6 +300,8 @@ def test_default_out_dir(tmp_path, monkeypatch):
     assert re.fullmatch(r"demo-\d{8}-\d{6}(-\d+)?", out.name), out.name
     assert [p.name for p in (tmp_path / "logs").iterdir()] == [out.name]
     assert sorted(os.listdir(tmp_path / out)) == OUTPUTS
+    # config.yaml records the folder actually used, not `out_dir: null`
+    assert load_config(tmp_path / out / "config.yaml").out_dir == str((tmp_path / out).resolve())
 
 
 def test_bvh_output_matches_result(run_dir):
