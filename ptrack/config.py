@@ -319,6 +319,10 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         p = Path(path)
         if not p.exists():
             raise FileNotFoundError(f"config file not found: {p}")
+        if p.is_dir():
+            found = sorted(p.glob("*.yaml"))
+            raise InputError(f"config {p} is a folder; give a YAML file" +
+                             (f", e.g. {found[0]}" if found else ""))
         try:
             loaded = yaml.safe_load(p.read_text(encoding="utf-8"))
         except (yaml.YAMLError, UnicodeDecodeError) as e:
@@ -348,6 +352,8 @@ def validate(cfg: RunConfig) -> None:
     """Value checks beyond types (InputError naming the key)."""
     if cfg.method not in METHODS:
         raise InputError(f"config key 'method' must be one of {', '.join(METHODS)}, got {cfg.method!r}")
+    if not -2**63 <= cfg.seed < 2**63:
+        raise InputError(f"config key 'seed' must be between -2**63 and 2**63 - 1, got {cfg.seed}")
     if not cfg.data.asf:
         raise InputError("config key 'data.asf' is required (path to the ASF file)")
     if not cfg.data.amc and not cfg.observations.file:

@@ -74,6 +74,9 @@ def prepare(cfg: RunConfig) -> Prepared:
     dtype, device = DTYPES[cfg.dtype], _device(cfg)
     full = Skeleton.from_asf(cfg.data.asf).with_limits(cfg.model.limits)
     model = full.freeze(list(cfg.model.freeze)) if cfg.model.freeze else full
+    if model.num_dofs == 0:
+        raise InputError(f"config key 'model.freeze' {list(cfg.model.freeze)} freezes every dof of {cfg.data.asf}; "
+                         f"nothing is left to estimate")
     kps = make_keypoints(model, cfg.model.keypoints)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
 

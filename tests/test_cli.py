@@ -323,3 +323,24 @@ def test_unwritable_out_dir_is_one_line_before_the_run(tmp_path):
     assert proc.stderr.strip().splitlines() == [
         f"ptrack: error: out_dir {out} cannot be made: {tmp_path / 'file'} is a file, not a folder"]
     assert proc.stdout == "" and sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+@pytest.mark.parametrize("args, line", [
+    (['model.freeze=["*"]'], "ptrack: error: config key 'model.freeze' ['*'] freezes every dof of " + str(ASF)
+     + "; nothing is left to estimate"),
+    (["seed=99999999999999999999999"],
+     "ptrack: error: config key 'seed' must be between -2**63 and 2**63 - 1, got 99999999999999999999999"),
+])
+def test_former_tracebacks_are_one_line(tmp_path, args, line):
+    out = tmp_path / "o"
+    proc = _cli("run", str(DEMO), *FAST, *args, f"out_dir={out}", cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [line]
+    assert proc.stdout == "" and not out.exists()
+
+
+def test_config_that_is_a_folder(tmp_path):
+    proc = _cli("run", "configs/", cwd=REPO)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ptrack: error: config configs is a folder; give a YAML file"), lines
