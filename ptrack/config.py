@@ -372,13 +372,12 @@ def validate(cfg: RunConfig) -> None:
     for k in ("width", "height"):
         if getattr(c, k) <= 0:
             raise InputError(f"config key 'camera.{k}' must be positive, got {getattr(c, k)}")
-    o = cfg.observations
-    if o.noise_px < 0:
-        raise InputError(f"config key 'observations.noise_px' must be >= 0, got {o.noise_px}")
-    for k in ("missing", "outliers", "swap_fraction", "dropped_frames"):
-        v = getattr(o, k)
-        if not 0.0 <= v <= 1.0:
-            raise InputError(f"config key 'observations.{k}' must be in [0, 1], got {v}")
+    from ptrack.observations import CHANNEL_RANGES, channel_range_error
+
+    for k in CHANNEL_RANGES:  # the channel's own intervals, named by the config key
+        error = channel_range_error(k, getattr(cfg.observations, k))
+        if error:
+            raise InputError(f"config key 'observations.{k}' {error}")
     from ptrack.limits import SOURCES as LIMIT_SOURCES
 
     if cfg.model.limits not in LIMIT_SOURCES:

@@ -177,7 +177,9 @@ class Observations:
         try:
             data = np.load(path, allow_pickle=False)
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-            raise InputError(f"{path}: cannot read as an .npz archive without pickles ({e})") from e
+            if isinstance(e, ValueError) and "pickle" in str(e):  # numpy's guess for bytes it does not know
+                raise InputError(f"{path}: not an .npz archive (numpy cannot read it)") from e
+            raise InputError(f"{path}: not an .npz archive ({e})") from e
         if not isinstance(data, np.lib.npyio.NpzFile):
             raise InputError(f"{path}: not an .npz archive (a single .npy array?)")
         with data:
@@ -259,6 +261,29 @@ def _camera_from_arrays(arrays: dict[str, np.ndarray], path: Path) -> Camera:
         raise InputError(f"{path}: {e}") from None
 
 
+#: the lossy channel's numeric settings: (lowest, highest, whether the highest is excluded); checked by
+#: `ChannelConfig` and, under the same intervals, by the run config's `observations.*` keys
+CHANNEL_RANGES: dict[str, tuple[float, float, bool]] = {
+    "noise_px": (0.0, math.inf, True),
+    "missing": (0.0, 1.0, True),
+    "occlusion_bursts": (0.0, math.inf, True),
+    "dropped_frames": (0.0, 1.0, True),
+    "outliers": (0.0, 1.0, False),
+    "outlier_px": (0.0, math.inf, True),
+    "swap_fraction": (0.0, 1.0, False),
+}
+
+
+def channel_range_error(name: str, value: object) -> str | None:
+    """None when `value` suits the channel setting `name` (see CHANNEL_RANGES), else what it must be."""
+    lo, hi, hi_open = CHANNEL_RANGES[name]
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and lo <= value and (value < hi if hi_open else value <= hi)
+    if ok:
+        return None
+    return f"must be a number in [{lo:g}, {hi:g}{')' if hi_open else ']'}, got {value!r}"
+
+
 @dataclass(frozen=True)
 class ChannelConfig:
     """Parameters of the lossy channel (noise, projection, deletion, outliers). Rates are per
@@ -276,23 +301,10 @@ class ChannelConfig:
     swap_fraction: float = 0.5
 
     def __post_init__(self) -> None:
-        def number(name: str, lo: float, hi: float, hi_open: bool = False) -> None:
-            v = getattr(self, name)
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-            ok = ok and lo <= v and (v < hi if hi_open else v <= hi)
-            if not ok:
-                bracket = ")" if hi_open else "]"
-                raise InputError(
-                    f"ChannelConfig.{name} must be a number in [{lo}, {hi}{bracket}, got {v!r}"
-                )
-
-        number("noise_px", 0.0, math.inf, hi_open=True)
-        number("missing", 0.0, 1.0, hi_open=True)
-        number("occlusion_bursts", 0.0, math.inf, hi_open=True)
-        number("dropped_frames", 0.0, 1.0, hi_open=True)
-        number("outliers", 0.0, 1.0)
-        number("outlier_px", 0.0, math.inf, hi_open=True)
-        number("swap_fraction", 0.0, 1.0)
+        for name in CHANNEL_RANGES:
+            error = channel_range_error(name, getattr(self, name))
+            if error:
+                raise InputError(f"ChannelConfig.{name} {error}")
         b = self.burst_frames
         if (
             isinstance(b, str)

@@ -128,6 +128,12 @@ def prepare(cfg: RunConfig) -> Prepared:
     if tuple(obs.keypoint_names) != kps.names:
         raise InputError(f"observation keypoints {list(obs.keypoint_names)} differ from the model's keypoint set "
                          f"{list(kps.names)} (config model.keypoints)")
+    if cfg.observations.file:  # the file is usable: say which settings it makes moot
+        ignored = [f"observations.{f.name}" for f in dataclasses.fields(cfg.observations)
+                   if f.name != "file" and getattr(cfg.observations, f.name) != f.default]
+        if ignored:
+            log.warning("observations.file is given, so %s (for simulated observations) %s ignored",
+                        ", ".join(ignored), "is" if len(ignored) == 1 else "are")
     obs = obs.to(device=device, dtype=dtype)
     keyframes = joint_keyframes = None
     kc = cfg.keyframes

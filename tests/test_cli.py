@@ -344,3 +344,30 @@ def test_config_that_is_a_folder(tmp_path):
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("ptrack: error: config configs is a folder; give a YAML file"), lines
+
+
+def test_garbage_observation_file_is_not_an_npz(tmp_path):
+    garbage = tmp_path / "obs.npz"
+    garbage.write_bytes(bytes(range(256)) * 4)
+    proc = _cli("run", str(DEMO), *FAST, f"observations.file={garbage}", f"out_dir={tmp_path / 'o'}", cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [f"ptrack: error: {garbage}: not an .npz archive (numpy cannot read it)"]
+
+
+@pytest.mark.parametrize("key", ["missing", "dropped_frames"])
+def test_channel_rate_of_one_names_the_config_key(tmp_path, capsys, key):
+    # the config accepts what the channel accepts: one interval, one message, naming the config key
+    line = _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.{key}=1.0"),
+                 f"config key 'observations.{key}' must be a number in [0, 1), got 1.0")
+    assert "ChannelConfig" not in line
+
+
+def test_observation_file_warns_about_ignored_channel_settings(tmp_path, obs_arrays):
+    path = _save(tmp_path / "obs.npz", obs_arrays)
+    out = tmp_path / "o"
+    proc = _cli("run", str(DEMO), *FAST, "frame.iterations=3", "frame.first_iterations=5", "observations.missing=0",
+                "observations.noise_px=5", f"observations.file={path}", f"out_dir={out}", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        "ptrack: WARNING: observations.file is given, so observations.noise_px (for simulated observations) is ignored"]
+    assert out.is_dir()
