@@ -8,6 +8,7 @@ relative to the working directory. Both are stored resolved (absolute) in the ru
 from __future__ import annotations
 
 import dataclasses
+import logging
 import types
 import typing
 from dataclasses import dataclass, field
@@ -18,6 +19,7 @@ import yaml
 
 from ptrack.errors import InputError
 
+log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class DataConfig:
@@ -309,6 +311,16 @@ def _one_line(e: Exception) -> str:
     return " ".join(str(e).split())
 
 
+def skeleton_beside(amc: str | Path) -> Path | None:
+    """The skeleton of an AMC clip: `<subject>.asf` in its folder, else the only .asf there, else None."""
+    amc = Path(amc)
+    cand = amc.parent / f"{amc.stem.split('_')[0]}.asf"
+    if cand.is_file():
+        return cand
+    found = sorted(amc.parent.glob("*.asf"))
+    return found[0] if len(found) == 1 else None
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
                 cwd: str | Path | None = None) -> RunConfig:
     """Read a YAML run config (or only defaults when `path` is None) and apply overrides."""
@@ -338,11 +350,24 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             if isinstance(v, str) and v:
                 _set_dotted(raw, key, str((p.resolve().parent / v).resolve()))
     raw.setdefault("name", name)
+    over_keys = set()
     for text in overrides:
         key, value = parse_override(text)
         if key in _PATH_KEYS and isinstance(value, str) and value:
             value = str((base / value).resolve())
         _set_dotted(raw, key, value)
+        over_keys.add(key)
+    amc = _get_dotted(raw, "data.amc")
+    if "data.amc" in over_keys and "data.asf" not in over_keys and isinstance(amc, str) and Path(amc).is_file():
+        # another clip, maybe of another subject: its own skeleton, not the config's bone lengths
+        asf, beside = _get_dotted(raw, "data.asf"), skeleton_beside(amc)
+        if beside is None:
+            log.warning("data.amc is %s but no skeleton is beside it: keeping data.asf %s (set data.asf to choose)",
+                        amc, asf)
+        elif not (isinstance(asf, str) and asf and Path(asf).resolve() == beside.resolve()):
+            log.warning("data.amc is %s: using the skeleton beside it, %s (set data.asf to choose another)",
+                        amc, beside)
+            _set_dotted(raw, "data.asf", str(beside.resolve()))
     cfg = _build(RunConfig, raw)
     validate(cfg)
     return cfg

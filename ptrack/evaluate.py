@@ -13,7 +13,7 @@ import math
 from datetime import datetime
 from pathlib import Path
 
-from ptrack.config import load_config
+from ptrack.config import load_config, skeleton_beside
 from ptrack.errors import EstimationError, InputError
 from ptrack.run import execute, json_safe
 
@@ -59,14 +59,11 @@ def parse_clips(spec: str, cwd: Path | None = None) -> list[Path]:
 
 def asf_for(amc: Path) -> Path:
     """The skeleton of an AMC clip: `<subject>.asf` beside it, or the only .asf there."""
-    subject = amc.stem.split("_")[0]
-    cand = amc.parent / f"{subject}.asf"
-    if cand.exists():
-        return cand
-    found = sorted(amc.parent.glob("*.asf"))
-    if len(found) == 1:
-        return found[0]
-    raise InputError(f"cannot tell which ASF skeleton belongs to {amc}: expected {cand.name} in its folder")
+    found = skeleton_beside(amc)
+    if found is None:
+        raise InputError(f"cannot tell which ASF skeleton belongs to {amc}: expected "
+                         f"{amc.stem.split('_')[0]}.asf in its folder")
+    return found
 
 
 def evaluate(config: str | Path, clips: str, overrides: list[str] | tuple[str, ...] = (),

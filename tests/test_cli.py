@@ -371,3 +371,17 @@ def test_observation_file_warns_about_ignored_channel_settings(tmp_path, obs_arr
     assert proc.stderr.strip().splitlines() == [
         "ptrack: WARNING: observations.file is given, so observations.noise_px (for simulated observations) is ignored"]
     assert out.is_dir()
+
+
+def test_amc_override_runs_with_the_skeleton_beside_it(tmp_path):
+    sub = tmp_path / "subjects" / "10"
+    sub.mkdir(parents=True)
+    for f in (ASF, AMC):
+        (sub / f.name).write_bytes(f.read_bytes())
+    out = tmp_path / "o"
+    proc = _cli("run", str(DEMO), *FAST, "frame.iterations=3", "frame.first_iterations=5",
+                f"data.amc={sub / AMC.name}", f"out_dir={out}", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.strip().splitlines() == [f"ptrack: WARNING: data.amc is {sub / AMC.name}: using the skeleton "
+                                                f"beside it, {sub / ASF.name} (set data.asf to choose another)"]
+    assert load_config(out / "config.yaml").data.asf == str(sub / ASF.name)

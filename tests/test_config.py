@@ -325,3 +325,29 @@ def test_configs_are_frozen():
         cfg.seed = 3  # type: ignore[misc]
     with pytest.raises(dataclasses.FrozenInstanceError):
         cfg.data.stride = 1  # type: ignore[misc]
+
+
+def test_amc_override_takes_the_skeleton_beside_it(tmp_path, caplog):
+    sub = tmp_path / "subjects" / "10"
+    sub.mkdir(parents=True)
+    for f in ("10.asf", "10_02.amc"):
+        (sub / f).write_bytes((REPO / "ptrack" / "data" / f).read_bytes())
+    cfg = load_config(REPO / "configs" / "demo.yaml", [f"data.amc={sub / '10_02.amc'}"])
+    assert cfg.data.asf == str(sub / "10.asf") and cfg.data.amc == str(sub / "10_02.amc")
+    assert [r.getMessage() for r in caplog.records] == [
+        f"data.amc is {sub / '10_02.amc'}: using the skeleton beside it, {sub / '10.asf'} "
+        "(set data.asf to choose another)"]
+    caplog.clear()  # both given: as given, silently
+    cfg = load_config(REPO / "configs" / "demo.yaml", [f"data.amc={sub / '10_02.amc'}", f"data.asf={ASF}"])
+    assert cfg.data.asf == str(ASF) and caplog.records == []
+    cfg = load_config(REPO / "configs" / "demo.yaml", [f"data.amc={ASF.parent / '10_02.amc'}"])
+    assert cfg.data.asf == str(ASF) and caplog.records == []  # the config's own skeleton is the one beside
+
+
+def test_amc_override_without_a_skeleton_beside_it_keeps_the_config_one(tmp_path, caplog):
+    (tmp_path / "10_02.amc").write_bytes((REPO / "ptrack" / "data" / "10_02.amc").read_bytes())
+    cfg = load_config(REPO / "configs" / "demo.yaml", [f"data.amc={tmp_path / '10_02.amc'}"])
+    assert cfg.data.asf == str(ASF)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"data.amc is {tmp_path / '10_02.amc'} but no skeleton is beside it: keeping data.asf {ASF} "
+        "(set data.asf to choose)"]
