@@ -29,6 +29,7 @@ COLUMNS = (
     ("accel_error_abs_mm_per_frame2", "abs accel mm/f²", "{:.1f}"),
     ("flip_error_rate", "flip rate", "{:.3f}"),
     ("reprojection_error_px", "reproj px", "{:.2f}"),
+    ("visible_fraction", "visible", "{:.2f}"),
     ("joint_limit_violation_fraction", "limit viol.", "{:.3f}"),
     ("gt_joint_limit_violation_fraction", "GT limit viol.", "{:.3f}"),
     ("best_of_k_mpjpe_mm", "best-of-K mm", "{:.1f}"),

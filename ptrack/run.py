@@ -60,6 +60,8 @@ class Prepared:
     gt_joints: torch.Tensor | None  # (T, J, 3) ground truth from the full model
     problem: Problem
     frames: np.ndarray  # (T,) AMC frame numbers (or observation indices)
+    # (T, K) keypoints the camera sees (simulated: in front and in the image; a file: confidence > 0)
+    visible: torch.Tensor | None = None
 
 
 def _device(cfg: RunConfig) -> torch.device:
@@ -104,6 +106,7 @@ def prepare(cfg: RunConfig) -> Prepared:
             raise InputError(f"{cfg.observations.file} has {obs.num_frames} frames but the selected AMC frames are "
                              f"{motion.q.shape[0]} (check data.start/stop/stride)")
         frames = motion.frames if motion is not None else np.arange(obs.num_frames)
+        visible = obs.confidence > 0
     else:
         c = cfg.camera
         camera = camera_for_motion(gt_joints, c.distance_m, c.azimuth_deg, c.elevation_deg, c.focal_px,
@@ -119,8 +122,9 @@ def prepare(cfg: RunConfig) -> Prepared:
             radii = capsule_radii(names, torch.as_tensor(full.lengths[bones[:, 1]], dtype=dtype))
             masks = render_silhouettes(gt_joints, bones, radii, camera)
         times = torch.as_tensor(motion.times, dtype=dtype)
-        obs, _ = simulate_observations(gt_joints, kps.index(), camera, times, channel, gen, kps.names,
-                                       swap_pairs=kps.swap_pairs, masks=masks)
+        obs, info = simulate_observations(gt_joints, kps.index(), camera, times, channel, gen, kps.names,
+                                          swap_pairs=kps.swap_pairs, masks=masks)
+        visible = info.visible
         frames = motion.frames
         if upsample > 1:  # 2D on every upsample-th reconstructed frame only
             seen = (torch.arange(obs.num_frames) % upsample == 0).to(obs.confidence)
@@ -134,6 +138,7 @@ def prepare(cfg: RunConfig) -> Prepared:
         if ignored:
             log.warning("observations.file is given, so %s (for simulated observations) %s ignored",
                         ", ".join(ignored), "is" if len(ignored) == 1 else "are")
+    check_visibility(visible)
     obs = obs.to(device=device, dtype=dtype)
     keyframes = joint_keyframes = None
     kc = cfg.keyframes
@@ -145,7 +150,25 @@ def prepare(cfg: RunConfig) -> Prepared:
     problem = Problem(skeleton=model, keypoints=kps, observations=obs, keyframes=keyframes,
                       joint_keyframes=joint_keyframes)
     return Prepared(full=full, motion=motion, gt_q=gt_q, gt_joints=gt_joints, problem=problem,
-                    frames=np.asarray(frames))
+                    frames=np.asarray(frames), visible=visible.cpu())
+
+
+#: a frame counts as seen when at least this share of its keypoints is visible; a run needs MIN_SEEN_FRAMES
+SEEN_FRAME_SHARE, MIN_SEEN_FRAMES = 1 / 3, 3
+
+
+def check_visibility(visible: torch.Tensor) -> None:
+    """Refuse (InputError) observations where fewer than MIN_SEEN_FRAMES frames have at least a third of their
+    keypoints visible; warn when under half of all keypoints are. visible: (T, K) bool."""
+    per_frame = visible.float().mean(-1)
+    seen, fraction = int((per_frame >= SEEN_FRAME_SHARE).sum()), float(per_frame.mean())
+    if seen < MIN_SEEN_FRAMES:
+        raise InputError(f"the camera sees too little: {seen} of {visible.shape[0]} frames have at least a third of "
+                         f"the keypoints visible ({MIN_SEEN_FRAMES} are needed; visible_fraction {fraction:.3f}); "
+                         f"check camera.* or the observations")
+    if fraction < 0.5:
+        log.warning("the camera sees only %.0f%% of the keypoints (visible_fraction %.3f): the estimate rests on "
+                    "few observations", 100 * fraction, fraction)
 
 
 def reprojected_keypoints(prep: Prepared, est: Estimate) -> torch.Tensor:
@@ -172,6 +195,8 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
         summary[name] = float(np.nanmean(v)) if np.isfinite(v).any() else None
 
     put("reprojection_error_px", M.reprojection_error_px(reproj, obs.keypoints, obs.confidence))
+    if prep.visible is not None:  # a small reprojection error means little when the camera sees little
+        summary["visible_fraction"] = float(prep.visible.float().mean())
     lower, upper = sk.limits(dtype=est.q.dtype, device=est.q.device)
     angular = torch.as_tensor(sk.angular_dofs(), device=est.q.device)
     report = M.joint_limit_violations(est.q.detach(), lower, upper, angular=angular)

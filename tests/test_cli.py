@@ -385,3 +385,21 @@ def test_amc_override_runs_with_the_skeleton_beside_it(tmp_path):
     assert proc.stderr.strip().splitlines() == [f"ptrack: WARNING: data.amc is {sub / AMC.name}: using the skeleton "
                                                 f"beside it, {sub / ASF.name} (set data.asf to choose another)"]
     assert load_config(out / "config.yaml").data.asf == str(sub / ASF.name)
+
+
+def test_camera_that_sees_little_warns_and_too_little_is_refused(tmp_path):
+    out = tmp_path / "o"
+    quick = [*FAST, "frame.iterations=3", "frame.first_iterations=5"]
+    proc = _cli("run", str(DEMO), *quick, "camera.focal_px=4500", f"out_dir={out}", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        "ptrack: WARNING: the camera sees only 41% of the keypoints (visible_fraction 0.412): the estimate rests on "
+        "few observations"]
+    assert json.loads((out / "metrics.json").read_text())["visible_fraction"] == pytest.approx(7 / 17)
+    out = tmp_path / "o2"
+    proc = _cli("run", str(DEMO), *quick, "camera.focal_px=6000", f"out_dir={out}", cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        "ptrack: error: the camera sees too little: 0 of 12 frames have at least a third of the keypoints visible "
+        "(3 are needed; visible_fraction 0.294); check camera.* or the observations"]
+    assert not out.exists()

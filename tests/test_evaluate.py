@@ -226,3 +226,11 @@ def test_estimator_failure_is_reported_per_clip(tmp_path, monkeypatch):
     assert [r[0] for r in rows] == ["10_02", "10_77", "**mean (1 clips)**"]
     assert rows[1][1].startswith("failed:") and "nonfinite_frames=1" in rows[1][1]
     assert sorted(p.name for p in out.iterdir()) == ["10_02", "results.json", "results.md"]
+
+
+def test_markdown_table_shows_the_visible_fraction():
+    rows = [("a", {"frames": 10, "reprojection_error_px": 0.5, "visible_fraction": 0.25}),
+            ("b", {"frames": 10, "reprojection_error_px": 1.5, "visible_fraction": 1.0})]
+    table = _table(markdown_table("cfg", "frame", rows))
+    assert table[0] == ["clip", "frames", "reproj px", "visible"]
+    assert table[2] == ["a", "10", "0.50", "0.25"] and table[4] == ["**mean (2 clips)**", "10.0", "1.00", "0.62"]

@@ -387,3 +387,24 @@ def test_metrics_json_writes_null_for_undefined_metrics(tmp_path, monkeypatch):
     m = json.loads(text, parse_constant=lambda c: pytest.fail(f"metrics.json holds {c}"))
     assert m["accel_error_mm_per_frame2"] is None and m["accel_error_abs_mm_per_frame2"] is None
     assert isinstance(m["mpjpe_mm"], float)
+
+
+def test_metrics_record_the_visible_fraction(run_dir):
+    m = json.loads((run_dir / "metrics.json").read_text())
+    assert m["visible_fraction"] == 1.0  # the demo camera sees every keypoint of these frames
+
+
+def test_visibility_check_needs_three_frames_a_third_seen(caplog):
+    from ptrack.run import check_visibility
+
+    visible = torch.zeros(10, 6, dtype=torch.bool)
+    visible[:2, :2] = True  # two frames with a third of the keypoints: refused
+    with pytest.raises(InputError, match="2 of 10 frames have at least a third"):
+        check_visibility(visible)
+    visible[2, :2] = True  # three: runs, with a warning (6 of 60 visible)
+    check_visibility(visible)
+    assert [r.levelname for r in caplog.records] == ["WARNING"]
+    assert "visible_fraction 0.100" in caplog.records[0].getMessage()
+    caplog.clear()
+    check_visibility(torch.ones(10, 6, dtype=torch.bool))
+    assert caplog.records == []
