@@ -1,6 +1,10 @@
 """Command line: `ptrack run CONFIG [key=value ...]`, `ptrack evaluate CONFIG --clips LIST`,
 `ptrack replay RUN_DIR`.
 
+stdout carries only what a script reads: the run folder's path (the table's for `evaluate`), or with
+`--json` the metrics (`results.json` for `evaluate`); messages and progress go to stderr, progress bars
+only on a terminal. A closed stdout (`| head`) ends the command quietly with status 141, as SIGPIPE would.
+
 The only module that reads argv. User errors (`InputError`, missing files, bad YAML) print one
 line `ptrack: error: ...` and exit 2; an estimator failure (`EstimationError`, e.g. non-finite
 poses) prints one such line and exits 1; anything else is a bug and keeps its traceback.
@@ -10,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -23,6 +28,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("config", help="YAML run config, e.g. configs/demo.yaml")
     r.add_argument("overrides", nargs="*", help="dotted.key=value overrides, e.g. seed=3 data.stride=2")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--json", action="store_true", help="print metrics.json on stdout instead of the run folder's path")
     e = sub.add_parser("evaluate", help="run a config over several clips and write a markdown table")
     e.add_argument("config")
     e.add_argument("overrides", nargs="*", help="dotted.key=value overrides applied to every clip")
@@ -30,7 +36,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="AMC files: a comma-separated list, or a text file with one path per line "
                         "(relative to that file); each clip's ASF is the .asf in the AMC's folder")
     e.add_argument("--out", default=None, help="output folder (default logs/eval-<config>-<time>)")
-    e.add_argument("--quiet", action="store_true")
+    e.add_argument("--quiet", action="store_true", help="no progress (bar on a terminal, one line per clip elsewhere)")
+    e.add_argument("--json", action="store_true", help="print results.json on stdout instead of the table's path")
     v = sub.add_parser("replay", help="open a run's recording in the rerun viewer")
     v.add_argument("run_dir")
     return p
@@ -53,6 +60,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="ptrack: %(levelname)s: %(message)s")
+    logging.getLogger("ptrack.evaluate").setLevel(logging.INFO)  # its one line per clip off a terminal
     try:
         if args.command == "run":
             from ptrack.config import load_config
@@ -60,15 +68,14 @@ def main(argv: list[str] | None = None) -> int:
 
             cfg = load_config(args.config, args.overrides)
             out = execute(cfg, progress=False if args.quiet else None)
-            print(f"ptrack: wrote {out}")
-            print((out / "metrics.json").read_text(), end="")
+            print((out / "metrics.json").read_text() if args.json else out, end="" if args.json else "\n", flush=True)
         elif args.command == "evaluate":
             from ptrack.evaluate import evaluate
 
             table = evaluate(args.config, args.clips, args.overrides, out=args.out,
                              progress=False if args.quiet else None)
-            print(f"ptrack: wrote {table}")
-            print(table.read_text(), end="")
+            json_path = table.with_name("results.json")
+            print(json_path.read_text() if args.json else table, end="" if args.json else "\n", flush=True)
         elif args.command == "replay":
             from ptrack.viz import open_viewer
 
@@ -83,6 +90,9 @@ def main(argv: list[str] | None = None) -> int:
     except EstimationError as e:
         print(f"ptrack: error: {e}", file=sys.stderr)
         return 1
+    except BrokenPipeError:  # the reader of stdout has gone (`| head -0`): no traceback, no flush error at exit
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except KeyboardInterrupt:
         print("ptrack: interrupted", file=sys.stderr)
         return 130

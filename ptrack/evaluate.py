@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import sys
 from datetime import datetime
 from pathlib import Path
 
@@ -79,11 +80,14 @@ def evaluate(config: str | Path, clips: str, overrides: list[str] | tuple[str, .
         raise InputError(f"evaluation folder {out_dir} already exists and is not empty")
     rows: list[tuple[str, dict | str]] = []
     show = base.progress if progress is None else progress
-    if show:
+    on_terminal = sys.stderr.isatty()
+    if show and on_terminal:
         from tqdm.auto import tqdm
 
         paths = tqdm(paths, desc="clips", unit="clip")
-    for amc in paths:
+    for i, amc in enumerate(paths):
+        if show and not on_terminal:  # a file or CI log: one short line per clip, no bar
+            log.info("clip %d of %d: %s", i + 1, len(paths), amc.stem)
         clip_over = [*overrides, f"data.amc={amc}", f"data.asf={asf_for(amc)}",
                      f"out_dir={(out_dir / amc.stem).resolve()}"]
         try:

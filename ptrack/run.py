@@ -21,6 +21,7 @@ import logging
 import math
 import os
 import shutil
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -307,7 +308,8 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
 
 
 def _progress(show: bool, desc: str) -> Callable[[Iterable], Iterable]:
-    if not show:
+    """A progress bar on stderr, drawn only on a terminal (in a file or CI log each update would be a line)."""
+    if not show or not sys.stderr.isatty():
         return lambda it: it
     from tqdm.auto import tqdm
 

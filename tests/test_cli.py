@@ -68,11 +68,9 @@ def _save(path: Path, arrays: dict[str, np.ndarray], **changes: np.ndarray) -> P
 
 def test_run_success(tmp_path, capsys):
     out = tmp_path / "ok"
-    assert main([*_run_argv(out), "--quiet"]) == 0
+    assert main([*_run_argv(out), "--quiet", "--json"]) == 0
     captured = capsys.readouterr()
-    first, _, rest = captured.out.partition("\n")
-    assert first == f"ptrack: wrote {out}"
-    metrics = json.loads(rest)
+    metrics = json.loads(captured.out)  # stdout: only the metrics (--json)
     assert metrics == json.loads((out / "metrics.json").read_text())
     assert metrics["frames"] == 12 and metrics["mpjpe_mm"] > 0
     assert "Traceback" not in captured.err and "error" not in captured.err
@@ -83,7 +81,7 @@ def test_run_from_observation_file(tmp_path, capsys, obs_arrays):
     path = _save(tmp_path / "obs.npz", obs_arrays)
     out = tmp_path / "from_file"
     assert main(_run_argv(out, f"observations.file={path}", "frame.iterations=3", "frame.first_iterations=5")) == 0
-    assert capsys.readouterr().out.startswith(f"ptrack: wrote {out}\n")
+    assert capsys.readouterr().out == f"{out}\n"  # stdout: only the run folder's path
 
 
 # ---------------------------------------------------------------- user errors: exit 2, one line
@@ -403,3 +401,32 @@ def test_camera_that_sees_little_warns_and_too_little_is_refused(tmp_path):
         "ptrack: error: the camera sees too little: 0 of 12 frames have at least a third of the keypoints visible "
         "(3 are needed; visible_fraction 0.294); check camera.* or the observations"]
     assert not out.exists()
+
+
+# ---------------------------------------------------------------- stdout for scripts, messages on stderr
+
+
+def test_stdout_is_the_run_folder_or_the_json_and_progress_only_on_a_terminal(tmp_path):
+    quick = [a for a in FAST if a != "progress=false"] + ["frame.iterations=3", "frame.first_iterations=5"]
+    out = tmp_path / "o"
+    proc = _cli("run", str(DEMO), *quick, f"out_dir={out}", cwd=tmp_path)  # progress on, stderr not a terminal
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == f"{out}\n" and proc.stderr == ""
+    proc = _cli("run", str(DEMO), *quick, f"out_dir={tmp_path / 'j'}", "--json", cwd=tmp_path)
+    assert proc.returncode == 0 and proc.stderr == ""
+    assert json.loads(proc.stdout) == json.loads((tmp_path / "j" / "metrics.json").read_text())
+    proc = _cli("evaluate", str(DEMO), *quick, "--clips", str(AMC), "--out", str(tmp_path / "e"), "--json",
+                cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert list(json.loads(proc.stdout)) == ["10_02"]
+    assert proc.stderr.splitlines() == ["ptrack: INFO: clip 1 of 1: 10_02"]  # one short line per clip, no bar
+
+
+def test_closed_stdout_is_not_a_traceback(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-m", "ptrack.cli", "run", str(DEMO), *FAST, "frame.iterations=3",
+                             "frame.first_iterations=5", f"out_dir={tmp_path / 'o'}", "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+    proc.stdout.close()  # the reader has gone before the run prints
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=300) == 141, err
+    assert err == "" and (tmp_path / "o" / "metrics.json").is_file()
