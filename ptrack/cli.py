@@ -18,11 +18,13 @@ import os
 import sys
 from pathlib import Path
 
-from ptrack.errors import EstimationError, InputError
+from ptrack import __version__
+from ptrack.errors import EstimationError, InputError  # light: torch is imported only by the commands
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ptrack", description="3D human motion from a single camera.")
+    p.add_argument("--version", action="version", version=f"ptrack {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="run a config: writes config.yaml, metrics.json, result.npz, result.bvh, run.rrd")
     r.add_argument("config", help="YAML run config, e.g. configs/demo.yaml")
@@ -30,7 +32,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--json", action="store_true", help="print metrics.json on stdout instead of the run folder's path")
     e = sub.add_parser("evaluate", help="run a config over several clips and write a markdown table")
-    e.add_argument("config")
+    e.add_argument("config", help="YAML run config, e.g. configs/eval_frame.yaml")
     e.add_argument("overrides", nargs="*", help="dotted.key=value overrides applied to every clip")
     e.add_argument("--clips", required=True,
                    help="AMC files: a comma-separated list, or a text file with one path per line "
@@ -39,7 +41,7 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--quiet", action="store_true", help="no progress (bar on a terminal, one line per clip elsewhere)")
     e.add_argument("--json", action="store_true", help="print results.json on stdout instead of the table's path")
     v = sub.add_parser("replay", help="open a run's recording in the rerun viewer")
-    v.add_argument("run_dir")
+    v.add_argument("run_dir", help="a run folder (holding run.rrd) or an .rrd file")
     return p
 
 

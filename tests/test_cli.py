@@ -3,6 +3,7 @@ installed `ptrack` command. User errors exit 2 with one `ptrack: error:` line an
 
 from __future__ import annotations
 
+import argparse
 import json
 import re
 import shutil
@@ -430,3 +431,31 @@ def test_closed_stdout_is_not_a_traceback(tmp_path):
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=300) == 141, err
     assert err == "" and (tmp_path / "o" / "metrics.json").is_file()
+
+
+# ---------------------------------------------------------------- fast help
+
+
+def test_help_and_version_do_not_load_torch(tmp_path):
+    code = ("import sys\nfrom ptrack.cli import main\n"
+            "for argv in (['--help'], ['--version'], ['run', '--help'], ['evaluate', '--help'], ['replay', '--help']):\n"
+            "    try:\n        main(argv)\n    except SystemExit as e:\n        assert e.code == 0, (argv, e.code)\n"
+            "import ptrack\nprint(sorted(m for m in ('torch', 'numpy', 'yaml', 'rerun') if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[-1] == "[]"
+    assert f"ptrack {__import__('ptrack').__version__}" in proc.stdout
+    # the package's names still come on first use
+    proc = subprocess.run([sys.executable, "-c", "import ptrack; print(ptrack.Skeleton.__module__, ptrack.InputError)"],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.stdout.split()[0] == "ptrack.skeleton", proc.stderr
+
+
+def test_every_argument_has_help():
+    from ptrack.cli import _parser
+
+    parser = _parser()
+    subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, sub in subparsers.choices.items():
+        for action in sub._actions:
+            assert action.help, f"ptrack {name}: {action.dest} has no help text"
