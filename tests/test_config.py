@@ -351,3 +351,44 @@ def test_amc_override_without_a_skeleton_beside_it_keeps_the_config_one(tmp_path
     assert [r.getMessage() for r in caplog.records] == [
         f"data.amc is {tmp_path / '10_02.amc'} but no skeleton is beside it: keeping data.asf {ASF} "
         "(set data.asf to choose)"]
+
+
+def _readme_config_keys() -> set[str]:
+    """Dotted keys (or `section.prefix*` patterns) the README's config table documents."""
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    table = text.split("### Configs", 1)[1].split("\n### ", 1)[0]
+    keys: set[str] = set()
+    for row in table.splitlines():
+        if not row.startswith("| `"):
+            continue
+        first, meaning = row.split("|")[1:3]
+        names = [t for t in first.split("`")[1::2]]
+        if names[0].endswith(".*"):  # `section.*`: its keys are named in the meaning column
+            section = names[0][:-2]
+            keys.update(f"{section}.{t}" for t in meaning.split("`")[1::2])
+            continue
+        section = ""
+        for name in names:
+            if "." in name:
+                section = name.rsplit(".", 1)[0] + "."
+                keys.add(name)
+            else:
+                keys.add(section + name)
+    return keys
+
+
+def test_readme_config_table_names_every_key():
+    documented = _readme_config_keys()
+    # the kjs row names its main settings and points to ptrack/config.py for the rest
+    missing = [key for key in _leaves(RunConfig) if not key.startswith("kjs.")
+               and key not in documented
+               and not any(d.endswith("*") and key.startswith(d[:-1]) for d in documented)]
+    assert missing == [], f"config keys missing from the README's config table: {missing}"
+
+
+def _leaves(cls, prefix: str = "") -> list[str]:
+    out = []
+    for f in dataclasses.fields(cls):
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        out += _leaves(type(default), f"{prefix}{f.name}.") if dataclasses.is_dataclass(default) else [prefix + f.name]
+    return out
