@@ -137,12 +137,14 @@ class Skeleton:
         return _from_asf(parse_asf(path))
 
     @staticmethod
-    def from_urdf(path: str | Path, floating_base: bool = True) -> "Skeleton":
+    def from_urdf(path: str | Path, floating_base: bool | None = None) -> "Skeleton":
         """Any URDF articulated model, parsed by pytorch-kinematics.
 
         Revolute and continuous joints become dofs (revolute limits kept); fixed joints become
         joints with no dof. With `floating_base`, the base link gets a free translation and
-        rotation (dofs "root.tx" ... "root.rz"), as a tracked human's pelvis has.
+        rotation (dofs "root.tx" ... "root.rz"), as a tracked human's pelvis has. None (default):
+        a floating base unless the URDF moves its base itself with prismatic joints, as `to_urdf`
+        writes them, so that `Skeleton.from_urdf(sk.to_urdf())` gives `sk` back.
         """
         from ptrack.urdf import skeleton_from_urdf
 

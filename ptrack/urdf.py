@@ -108,7 +108,7 @@ def _frame_with_z(z: np.ndarray) -> np.ndarray:
     return np.stack([z, y, x])
 
 
-def skeleton_from_urdf(path: str | Path, floating_base: bool = True) -> Skeleton:
+def skeleton_from_urdf(path: str | Path, floating_base: bool | None = None) -> Skeleton:
     """Build a Skeleton from a URDF file (see `Skeleton.from_urdf`)."""
     import pytorch_kinematics as pk
 
@@ -128,6 +128,13 @@ def skeleton_from_urdf(path: str | Path, floating_base: bool = True) -> Skeleton
     upper: list[float] = []
 
     root = chain._root
+    if floating_base is None:  # a base the file already moves (prismatic joints, as to_urdf writes) floats as it is
+        frames, prismatic = list(root.children), False
+        while frames and not prismatic:
+            f = frames.pop()
+            prismatic = f.joint.joint_type == "prismatic"
+            frames.extend(f.children)
+        floating_base = not prismatic
     names.append(root.link.name)
     parents.append(-1)
     rest.append(np.eye(3))

@@ -292,3 +292,18 @@ def test_reduced_model_roundtrip(tmp_path, sk, amc_64_01):
     jb = back.forward_kinematics(q[:, [r.dof_names.index(n) for n in back.dof_names]])
     ja = r.forward_kinematics(q)
     torch.testing.assert_close(jb[:, [back.joint_names.index(n) for n in r.joint_names]], ja, rtol=0, atol=1e-6)
+
+
+def test_roundtrip_with_the_default_arguments(tmp_path, sk, amc_64_01):
+    p = tmp_path / "64.urdf"
+    p.write_text(sk.to_urdf())
+    back = Skeleton.from_urdf(p)  # the file moves its own base: no second floating base
+    assert sorted(back.dof_names) == sorted(sk.dof_names)
+    q = sk.load_amc(amc_64_01).q[::60]
+    jb = back.forward_kinematics(q[:, [sk.dof_names.index(n) for n in back.dof_names]])
+    torch.testing.assert_close(jb[:, [back.joint_names.index(n) for n in sk.joint_names]], sk.forward_kinematics(q),
+                               rtol=0, atol=1e-6)
+
+
+def test_default_is_a_floating_base_for_a_fixed_arm(arm_path):
+    assert Skeleton.from_urdf(arm_path).dof_names == Skeleton.from_urdf(arm_path, floating_base=True).dof_names
