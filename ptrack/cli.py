@@ -42,6 +42,9 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="print results.json on stdout instead of the table's path")
     v = sub.add_parser("replay", help="open a run's recording in the rerun viewer")
     v.add_argument("run_dir", help="a run folder (holding run.rrd) or an .rrd file")
+    v.add_argument("--web", action="store_true",
+                   help="serve rerun's web viewer instead (no display needed) and print the address to open")
+    v.add_argument("--bind", default="127.0.0.1", help="with --web: the address to listen on (default 127.0.0.1)")
     return p
 
 
@@ -85,6 +88,15 @@ def main(argv: list[str] | None = None) -> int:
             rrd = path / "run.rrd" if path.is_dir() else path
             if not rrd.exists():
                 raise FileNotFoundError(f"no recording at {rrd} (give a run folder holding run.rrd)")
+            if args.web:
+                import subprocess
+
+                from ptrack.viz import web_viewer_command
+
+                cmd, url = web_viewer_command(rrd, args.bind)
+                print(url, flush=True)
+                print(f"ptrack: serving {rrd} to the web viewer at {url} (Ctrl-C stops)", file=sys.stderr, flush=True)
+                return subprocess.run(cmd, env={**os.environ, "RUST_LOG": "warn"}).returncode
             return open_viewer(rrd) or 0
     except (InputError, FileNotFoundError, IsADirectoryError, NotADirectoryError) as e:
         print(f"ptrack: error: {e}", file=sys.stderr)

@@ -71,12 +71,15 @@ numbers, 120 per second) stays available in the timeline menu.
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import subprocess
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+from urllib.parse import quote
 
 import numpy as np
 import rerun as rr
@@ -284,16 +287,50 @@ def write_recording(path: str | Path, log: RunLog) -> None:
         rec.disconnect()
 
 
+def has_display() -> bool:
+    """Whether a native window can open here: on Linux and other X11/Wayland systems, DISPLAY or
+    WAYLAND_DISPLAY is set; macOS and Windows always have one."""
+    if sys.platform in ("darwin", "win32"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 def open_viewer(path: str | Path, wait: bool = True) -> int | None:
-    """Launch the rerun viewer (`python -m rerun PATH`) on the saved recording `path`.
+    """Launch the rerun viewer (`python -m rerun PATH`) on the saved recording `path`; its listener binds to
+    127.0.0.1. Without a display (a server, a container) raise InputError saying how to view the run instead.
 
     wait: block until the viewer closes and return its exit status; False: return at once (None).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"rerun recording {path} does not exist")
-    proc = subprocess.Popen([sys.executable, "-m", "rerun", str(path)])
+    if not has_display():
+        raise InputError(f"no display here (DISPLAY and WAYLAND_DISPLAY are unset) to open {path} in: serve it with "
+                         f"`ptrack replay {path} --web` (rerun's web viewer on 127.0.0.1), or copy it to a machine "
+                         f"with a display and run `rerun {path.name}` there")
+    proc = subprocess.Popen([sys.executable, "-m", "rerun", str(path), "--bind", "127.0.0.1", "--port", "auto"])
     return proc.wait() if wait else None
+
+
+def _free_port(host: str) -> int:
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def web_viewer_command(path: str | Path, bind: str = "127.0.0.1") -> tuple[list[str], str]:
+    """The command serving recording `path` to rerun's web viewer, bound to `bind`, and the address to open:
+    (argv, url). Both servers (the viewer's HTTP and rerun's gRPC) take free ports."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"rerun recording {path} does not exist")
+    web, grpc = _free_port(bind), _free_port(bind)
+    host = f"[{bind}]" if ":" in bind else bind
+    shown = "127.0.0.1" if bind in ("0.0.0.0", "::") else host
+    url = f"http://{shown}:{web}?url=" + quote(f"rerun+http://{shown}:{grpc}/proxy", safe="")
+    argv = [sys.executable, "-m", "rerun", str(path), "--serve-web", "--bind", bind, "--web-viewer-port", str(web),
+            "--port", str(grpc)]
+    return argv, url
 
 
 def _as_numpy(x: Any) -> np.ndarray:

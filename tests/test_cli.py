@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -459,3 +460,58 @@ def test_every_argument_has_help():
     for name, sub in subparsers.choices.items():
         for action in sub._actions:
             assert action.help, f"ptrack {name}: {action.dest} has no help text"
+
+
+# ---------------------------------------------------------------- replay without a display, --web
+
+
+@pytest.mark.skipif(sys.platform in ("darwin", "win32"), reason="X11/Wayland systems only")
+def test_replay_without_a_display_says_how_to_view_the_run(tmp_path):
+    run_dir = tmp_path / "a_run"
+    run_dir.mkdir()
+    (run_dir / "run.rrd").write_bytes(b"")
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    proc = subprocess.run([sys.executable, "-m", "ptrack.cli", "replay", str(run_dir)], capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path, env=env)
+    assert proc.returncode == 2 and proc.stdout == ""
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ptrack: error: no display here"), proc.stderr
+    assert f"ptrack replay {run_dir / 'run.rrd'} --web" in lines[0] and "copy it" in lines[0]
+
+
+def test_replay_web_serves_on_localhost_and_prints_the_address(tmp_path, capsys, monkeypatch):
+    run_dir = tmp_path / "a_run"
+    run_dir.mkdir()
+    (run_dir / "run.rrd").write_bytes(b"")
+    calls = []
+
+    def fake_run(cmd, env=None):
+        calls.append((cmd, env))
+        return subprocess.CompletedProcess(cmd, 0)
+
+    monkeypatch.setattr(subprocess, "run", fake_run)
+    assert main(["replay", str(run_dir), "--web"]) == 0
+    (cmd, env), = calls
+    assert cmd[cmd.index("--bind") + 1] == "127.0.0.1" and "--serve-web" in cmd and str(run_dir / "run.rrd") in cmd
+    assert env["RUST_LOG"] == "warn"  # no rerun banner
+    out = capsys.readouterr().out
+    web = cmd[cmd.index("--web-viewer-port") + 1]
+    assert out.startswith(f"http://127.0.0.1:{web}?url=") and out.count("\n") == 1
+
+
+def test_native_viewer_listens_on_localhost(tmp_path, monkeypatch):
+    rrd = tmp_path / "run.rrd"
+    rrd.write_bytes(b"")
+    argvs = []
+
+    class FakePopen:
+        def __init__(self, argv):
+            argvs.append(argv)
+
+        def wait(self):
+            return 0
+
+    monkeypatch.setattr(ptrack.viz, "has_display", lambda: True)
+    monkeypatch.setattr(ptrack.viz.subprocess, "Popen", FakePopen)
+    assert ptrack.viz.open_viewer(rrd) == 0
+    assert argvs[0][argvs[0].index("--bind") + 1] == "127.0.0.1"
