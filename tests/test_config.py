@@ -379,9 +379,7 @@ def _readme_config_keys() -> set[str]:
 
 def test_readme_config_table_names_every_key():
     documented = _readme_config_keys()
-    # the kjs row names its main settings and points to ptrack/config.py for the rest
-    missing = [key for key in _leaves(RunConfig) if not key.startswith("kjs.")
-               and key not in documented
+    missing = [key for key in _leaves(RunConfig) if key not in documented
                and not any(d.endswith("*") and key.startswith(d[:-1]) for d in documented)]
     assert missing == [], f"config keys missing from the README's config table: {missing}"
 
