@@ -440,18 +440,15 @@ def _log_keypoints(rec: rr.RecordingStream, log: RunLog, index: list[rr.TimeColu
     seen = (log.confidence > 0) & np.isfinite(log.observed).all(axis=-1)  # (T, K)
     finite = np.isfinite(log.reprojected).all(axis=-1)  # (T, K)
     image = "world/camera/image"
-    rec.log(f"{image}/observed", rr.Points2D.from_fields(
-        colors=[OBSERVED_COLOR], radii=OBSERVED_RADIUS, show_labels=False, draw_order=20), static=True)
-    rec.send_columns(f"{image}/observed", indexes=index, columns=rr.Points2D.columns(
-        positions=log.observed[seen].reshape(-1, 2),
-        labels=names[np.nonzero(seen)[1]].tolist(),
-    ).partition(seen.sum(axis=1)))
-    rec.log(f"{image}/reprojected", rr.Points2D.from_fields(
-        colors=[REPROJECTED_COLOR], radii=KEYPOINT_RADIUS, show_labels=False, draw_order=40), static=True)
-    rec.send_columns(f"{image}/reprojected", indexes=index, columns=rr.Points2D.columns(
-        positions=log.reprojected[finite].reshape(-1, 2),
-        labels=names[np.nonzero(finite)[1]].tolist(),
-    ).partition(finite.sum(axis=1)))
+    for name, points, keep, color, radius, order in (
+            ("observed", log.observed, seen, OBSERVED_COLOR, OBSERVED_RADIUS, 20),
+            ("reprojected", log.reprojected, finite, REPROJECTED_COLOR, KEYPOINT_RADIUS, 40)):
+        rec.log(f"{image}/{name}", rr.Points2D.from_fields(
+            colors=[color], radii=radius, show_labels=False, draw_order=order), static=True)
+        rec.send_columns(f"{image}/{name}", indexes=index, columns=rr.Points2D.columns(
+            positions=points[keep].reshape(-1, 2),
+            labels=names[np.nonzero(keep)[1]].tolist(),
+        ).partition(keep.sum(axis=1)))
     if log.keypoint_joints is None:
         return
     pairs = _keypoint_bones(log.parents, log.keypoint_joints)  # (B, 2)
