@@ -88,7 +88,8 @@ class Setup:
     plans: tuple[ChainIK, ...]
     chain_dofs: Tensor  # (C, D) bool: dofs each chain's IK sets
     root: Tensor  # (D,) bool: the root joint's rotation and translation dofs
-    prior: tuple[Tensor, Tensor, Tensor]  # CMU pose prior: mean (D,), std (D,), known (D,) bool
+    prior: tuple[Tensor, Tensor, Tensor]  # CMU pose prior: mean (D,), std (D,), known (D,) bool (never the root)
+    prior_sigma: Tensor  # (D,) the tracking term's std: the prior's spread (>= floor_deg), 1e6 where unknown
 
 
 def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
@@ -118,8 +119,11 @@ def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
         chain_dofs[c, list(plan.dofs)] = True
     root = torch.zeros(sk.num_dofs, dtype=torch.bool, device=device)
     root[[int(d) for d in (*sk.axis_dof[0], *sk.translation_dof) if d >= 0]] = True
-    prior = pose_prior(sk, lower, upper, angular)
-    return Setup(problem, cfg, lower, upper, angular, collision, chains, plans, chain_dofs, root, prior)
+    mean, std, known = pose_prior(sk, lower, upper, angular)
+    known = known & ~root
+    prior_sigma = torch.where(known, std.clamp_min(math.radians(k.floor_deg)), torch.full_like(std, 1e6))
+    return Setup(problem, cfg, lower, upper, angular, collision, chains, plans, chain_dofs, root,
+                 (mean, std, known), prior_sigma)
 
 
 # ---------------------------------------------------------------- the frame's objective
@@ -142,10 +146,7 @@ def _objective(s: Setup, t: int, mean: Tensor | None, sigma: float | Tensor | No
     if mean is not None:
         terms["prior"] = PosePrior(mean, k.prior_sigma if sigma is None else sigma)
     if tracking and k.pose_prior_weight > 0:
-        p_mean, p_std, known = s.prior
-        known = known & ~s.root
-        terms["pose_prior"] = PosePrior(p_mean, torch.where(known, p_std.clamp_min(math.radians(k.floor_deg)),
-                                                            torch.full_like(p_std, 1e6)))
+        terms["pose_prior"] = PosePrior(s.prior[0], s.prior_sigma)
         weights["pose_prior"] = k.pose_prior_weight
     return Objective(terms, weights)
 
@@ -314,7 +315,6 @@ def _start_prior(s: Setup, q: Tensor) -> tuple[Tensor, Tensor]:
     trans = torch.zeros_like(root)
     trans[[int(d) for d in sk.translation_dof if d >= 0]] = True
     mean, std, known = s.prior
-    known = known & ~root
     mean = torch.where(root, q, torch.where(known, mean, torch.zeros_like(mean)).expand_as(q))
     floor = math.radians(k.floor_deg)
     sigma = torch.where(known, k.start_prior_scale * std.clamp_min(floor), torch.full_like(std, k.rest_sigma))
@@ -364,9 +364,11 @@ def _init_tree(s: Setup) -> Tensor:
     q, cost, _ = _polish(s, 0, q, mean, 30, sigma)
     # distinct in 3D (no joint 5 cm apart): headings 2 pi apart, or the two Euler triples of one
     # rotation, are one fit
-    fits = q[distinct_minima(sk.forward_kinematics(q).flatten(-2), cost, 0.05, limit=k.init_fits)]
+    joints = sk.forward_kinematics(q)
+    pick = distinct_minima(joints.flatten(-2), cost, 0.05, limit=k.init_fits)
+    fits = q[pick]
     px, conf = joint_observations(prob.keypoints, obs.keypoints[0], obs.confidence[0], sk.num_joints)
-    trees = interpretation_trees(s.chains, sk.forward_kinematics(fits), obs.camera, px, conf)
+    trees = interpretation_trees(s.chains, joints[pick], obs.camera, px, conf)
     prod = product(trees)
     results = [chain_ik(plan, fits, tree.positions, mode="project") for plan, tree in zip(s.plans, trees)]
     ik = product_ik(fits, results, prod)
