@@ -422,7 +422,7 @@ def _log_camera(rec: rr.RecordingStream, camera: Camera, target: np.ndarray) -> 
     if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
         raise InputError(f"RunLog.camera has K {K.shape}, R {R.shape}, t {t.shape}; "
                          "expected (3, 3), (3, 3), (3,)")
-    center = -R.T @ t
+    center = _camera_center(camera)
     W, H = int(camera.width), int(camera.height)
     plane = IMAGE_PLANE_FRACTION * float(np.linalg.norm(target - center))
     rec.log("world/camera", rr.Transform3D(translation=center, mat3x3=R.T), static=True)
@@ -515,6 +515,15 @@ def _camera_center(camera: Camera) -> np.ndarray:
     return -R.T @ _as_numpy(camera.t).astype(np.float64)
 
 
+def _toward_camera(log: RunLog) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The person's centre (3,), the camera centre (3,), and the horizontal unit vector (3,) from the
+    person towards the camera, metres."""
+    person, camera = _center(log), _camera_center(log.camera)
+    v = camera - person
+    v[1] = 0.0
+    return person, camera, v / max(float(np.linalg.norm(v)), 1e-9)
+
+
 def _log_legend(rec: rr.RecordingStream, log: RunLog) -> None:
     """Static `world/legend` (3D, above the motion) and `world/camera/image/legend` (2D, top edge)."""
     kinds = [("estimate", ESTIMATE_COLOR)]
@@ -588,16 +597,13 @@ def _eye(log: RunLog) -> rrb.EyeControls3D:
     of the sphere that holds the camera and the motion's bounding box over the whole clip, from far
     enough that the sphere fits in a cone of half-angle EYE_HALF_FOV_DEG: the camera's frustum and
     the person are in view at every frame."""
-    person, camera = _center(log), _camera_center(log.camera)
+    person, camera, v = _toward_camera(log)
     X = _finite_joints(log)
     lo, hi = (X.min(axis=0), X.max(axis=0)) if len(X) else (person, person)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     points = np.vstack([corners, camera])
     target = (points.min(axis=0) + points.max(axis=0)) / 2
     radius = max(float(np.linalg.norm(points - target, axis=1).max()), 1.0)
-    v = camera - person
-    v[1] = 0.0
-    v = v / max(float(np.linalg.norm(v)), 1e-9)
     up = np.deg2rad(EYE_ELEVATION_DEG)
     direction = np.cos(up) * (_turn_y(EYE_AZIMUTH_DEG) @ v) + np.sin(up) * np.array([0.0, 1.0, 0.0])
     position = target + radius / np.sin(np.deg2rad(EYE_HALF_FOV_DEG)) * direction
@@ -607,10 +613,7 @@ def _eye(log: RunLog) -> rrb.EyeControls3D:
 def _closeup_eye(log: RunLog) -> rrb.EyeControls3D:
     """A 3D viewpoint near the person (the camera's side turned by CLOSEUP_AZIMUTH_DEG), following
     the estimate's joints as they move."""
-    person, camera = _center(log), _camera_center(log.camera)
-    v = camera - person
-    v[1] = 0.0
-    v = v / max(float(np.linalg.norm(v)), 1e-9)
+    person, _, v = _toward_camera(log)
     position = person + CLOSEUP_DISTANCE_M * (_turn_y(CLOSEUP_AZIMUTH_DEG) @ v) + np.array([0.0, CLOSEUP_HEIGHT_M, 0.0])
     return rrb.EyeControls3D(position=position, look_target=person, eye_up=[0.0, 1.0, 0.0],
                              tracking_entity="/world/estimate/joints")
