@@ -168,6 +168,35 @@ class BatchMethodConfig:
     uncertainty: bool = True  # marginal covariances -> joint_std (T, J) in result.npz
 
 
+#: the golf swing's key postures (Urtasun, Fleet & Fua 2004, fig. 2), rules of `ptrack.key_postures`
+GOLF_KEY_POSTURES = {
+    "start": "rest before top",  # start of upswing: the hands still, before the upswing's fastest motion
+    "top": "first max height",  # top of upswing: the hands' first high point
+    "hit": "first min height after top",  # ball hit: the hands' low point of the downswing
+    "end": "first max height after hit",  # end of downswing: the hands' high point of the follow-through
+}
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """`ptrack fit-motion`: a time-warped PCA motion model of one motion type (`ptrack.motion_model`)."""
+
+    # training clips: AMC files, or one text file listing them (one per line, relative to that file);
+    # each clip's skeleton is the .asf beside it (<subject>.asf)
+    clips: tuple[str, ...] = ()
+    joints: tuple[str, ...] = ("lradius", "rradius")  # tracked point of the key postures: their mean (wrists)
+    # name -> rule, in temporal order (grammar in ptrack/key_postures.py); the default is the golf swing's
+    key_postures: dict[str, str] = field(default_factory=lambda: dict(GOLF_KEY_POSTURES))
+    smooth_s: float = 0.02  # Gaussian smoothing (std, seconds) of the tracked point before the rules
+    prominence: float = 0.02  # first/last extrema: least prominence, as a fraction of the signal's range
+    rest_fraction: float = 0.05  # rest: slower than this fraction of the clip's top speed
+    samples: int = 200  # N: normalised times per swing
+    components: int = 4  # m: eigen-motions kept (at most the number of clips - 1)
+    # where fit-motion writes the model and the pca tracker reads it; null = ~/.cache/ptrack/motion/<name>.npz
+    # ($XDG_CACHE_HOME/ptrack/... when set)
+    model_file: str | None = None
+
+
 @dataclass(frozen=True)
 class RunConfig:
     method: str = "frame"
@@ -185,12 +214,14 @@ class RunConfig:
     kjs: KjsMethodConfig = field(default_factory=KjsMethodConfig)
     keyframes: KeyframesConfig = field(default_factory=KeyframesConfig)
     batch: BatchMethodConfig = field(default_factory=BatchMethodConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
     init_from: str | None = None  # batch: start from this earlier run folder's trajectory (same model, frames)
     name: str = "run"  # config name, used for the default out_dir
 
 
 METHODS = ("frame", "kjs", "css", "ss", "batch")
-_PATH_KEYS = {"data.asf", "data.amc", "observations.file", "out_dir", "keyframes.file", "init_from"}
+_PATH_KEYS = {"data.asf", "data.amc", "observations.file", "out_dir", "keyframes.file", "init_from", "motion.model_file"}
+_PATH_LIST_KEYS = {"motion.clips"}  # a path or a list of paths
 
 
 #: scalar annotation -> (what the error says it must be, accepted Python types); bools are never numbers
@@ -321,9 +352,18 @@ def skeleton_beside(amc: str | Path) -> Path | None:
     return found[0] if len(found) == 1 else None
 
 
+def _resolve_paths(value: str | list, base: Path) -> str | list:
+    """A path or a list of paths (non-strings left for the type check) resolved against `base`."""
+    if isinstance(value, str):
+        return str((base / value).resolve()) if value else value
+    return [str((base / v).resolve()) if isinstance(v, str) and v else v for v in value]
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
-                cwd: str | Path | None = None) -> RunConfig:
-    """Read a YAML run config (or only defaults when `path` is None) and apply overrides."""
+                cwd: str | Path | None = None, run: bool = True) -> RunConfig:
+    """Read a YAML run config (or only defaults when `path` is None) and apply overrides.
+
+    run=False (`ptrack fit-motion`) does not require the data of a run (data.asf, data.amc)."""
     raw: dict = {}
     base = Path(cwd or Path.cwd())
     name = "run"
@@ -349,12 +389,18 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             v = _get_dotted(raw, key)
             if isinstance(v, str) and v:
                 _set_dotted(raw, key, str((p.resolve().parent / v).resolve()))
+        for key in _PATH_LIST_KEYS:
+            v = _get_dotted(raw, key)
+            if isinstance(v, (str, list)):
+                _set_dotted(raw, key, _resolve_paths(v, p.resolve().parent))
     raw.setdefault("name", name)
     over_keys = set()
     for text in overrides:
         key, value = parse_override(text)
         if key in _PATH_KEYS and isinstance(value, str) and value:
             value = str((base / value).resolve())
+        if key in _PATH_LIST_KEYS and isinstance(value, (str, list)):
+            value = _resolve_paths(value, base)
         _set_dotted(raw, key, value)
         over_keys.add(key)
     amc = _get_dotted(raw, "data.amc")
@@ -369,16 +415,19 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
                         amc, beside)
             _set_dotted(raw, "data.asf", str(beside.resolve()))
     cfg = _build(RunConfig, raw)
-    validate(cfg)
+    validate(cfg, run=run)
     return cfg
 
 
-def validate(cfg: RunConfig) -> None:
-    """Value checks beyond types (InputError naming the key)."""
+def validate(cfg: RunConfig, run: bool = True) -> None:
+    """Value checks beyond types (InputError naming the key); run=False: no data.asf/amc needed."""
     if cfg.method not in METHODS:
         raise InputError(f"config key 'method' must be one of {', '.join(METHODS)}, got {cfg.method!r}")
     if not -2**63 <= cfg.seed < 2**63:
         raise InputError(f"config key 'seed' must be between -2**63 and 2**63 - 1, got {cfg.seed}")
+    validate_motion(cfg.motion)
+    if not run:
+        return
     if not cfg.data.asf:
         raise InputError("config key 'data.asf' is required (path to the ASF file)")
     if not cfg.data.amc and not cfg.observations.file:
@@ -464,6 +513,25 @@ def validate(cfg: RunConfig) -> None:
                          f"the reconstruction is read at stride {cfg.data.stride}/{b.upsample}")
     if cfg.costs.sigma_px <= 0:
         raise InputError(f"config key 'costs.sigma_px' must be positive, got {cfg.costs.sigma_px}")
+
+
+def validate_motion(m: MotionConfig) -> None:
+    """Value checks of the `motion:` section (the clip count is checked when fitting)."""
+    from ptrack.key_postures import parse_rules
+
+    if m.samples < 2:
+        raise InputError(f"config key 'motion.samples' must be >= 2, got {m.samples}")
+    if m.components < 1:
+        raise InputError(f"config key 'motion.components' must be >= 1, got {m.components}")
+    if not m.joints:
+        raise InputError("config key 'motion.joints' must name at least one joint")
+    if m.smooth_s < 0:
+        raise InputError(f"config key 'motion.smooth_s' must be >= 0, got {m.smooth_s}")
+    if not 0 <= m.prominence < 1:
+        raise InputError(f"config key 'motion.prominence' must be in [0, 1), got {m.prominence}")
+    if not 0 < m.rest_fraction < 1:
+        raise InputError(f"config key 'motion.rest_fraction' must be in (0, 1), got {m.rest_fraction}")
+    parse_rules(m.key_postures)
 
 
 def to_dict(cfg) -> dict:
