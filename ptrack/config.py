@@ -185,6 +185,9 @@ class MotionConfig:
     # each clip's skeleton is the .asf beside it (<subject>.asf)
     clips: tuple[str, ...] = ()
     joints: tuple[str, ...] = ("lradius", "rradius")  # tracked point of the key postures: their mean (wrists)
+    # dofs left out of the model besides the root's (shell patterns on joint or dof names, as model.freeze):
+    # the CMU thumbs jump by whole turns and the tracker holds these at zero anyway
+    exclude: tuple[str, ...] = ("*fingers", "*thumb", "*hand", "*toes")
     # name -> rule, in temporal order (grammar in ptrack/key_postures.py); the default is the golf swing's
     key_postures: dict[str, str] = field(default_factory=lambda: dict(GOLF_KEY_POSTURES))
     smooth_s: float = 0.02  # Gaussian smoothing (std, seconds) of the tracked point before the rules
