@@ -45,12 +45,19 @@ class Linearization(NamedTuple):
     solver lowers (None = 0.5 |r|^2, allowed only without weights). With robust weights the step
     solves (J^T W J + lambda I) dq = -J^T W r, whose right side is minus the gradient of the
     robust energy, and steps are accepted on that energy.
+
+    Rows whose Jacobian is diagonal (one row per dof: joint limits, priors) may be folded in instead
+    of stacked: diag_h (N, D) their sum of squared derivatives, added to the diagonal of J^T W J, and
+    diag_g (N, D) their J^T r, added to the gradient (both None when there are none). Their energy is
+    in `energy`. The normal equations are the same; forming them skips D x D zeros per folded term.
     """
 
     residuals: Tensor
     jacobian: Tensor
     weights: Tensor | None = None
     energy: Tensor | None = None
+    diag_h: Tensor | None = None
+    diag_g: Tensor | None = None
 
 
 class LMInfo(NamedTuple):
@@ -142,7 +149,7 @@ def _where(mask: Tensor, a: Tensor, b: Tensor) -> Tensor:
 
 def _linearize(fn: LinearizeFn, q: Tensor, weights_fn, energy_fn) -> Linearization:
     out = fn(q)
-    if not isinstance(out, tuple) or not 2 <= len(out) <= 4:
+    if not isinstance(out, tuple) or not 2 <= len(out) <= 6:
         raise InputError("levenberg_marquardt: linearize must return (residuals, jacobian) or a "
                          f"Linearization, got {type(out).__name__}")
     lin = Linearization(*out)
@@ -163,14 +170,21 @@ def _linearize(fn: LinearizeFn, q: Tensor, weights_fn, energy_fn) -> Linearizati
                          f"got {tuple(w.shape)}")
     if e.shape != (n,):
         raise InputError(f"levenberg_marquardt: energy must have shape ({n},), got {tuple(e.shape)}")
-    return Linearization(r, jac, w, e)
+    if (lin.diag_h is None) != (lin.diag_g is None) or any(
+            x is not None and x.shape != (n, d) for x in (lin.diag_h, lin.diag_g)):
+        raise InputError(f"levenberg_marquardt: diag_h and diag_g must both be given with shape ({n}, {d}) "
+                         "or both be None")
+    return Linearization(r, jac, w, e, lin.diag_h, lin.diag_g)
 
 
 def _normal_equations(lin: Linearization) -> tuple[Tensor, Tensor]:
-    """-> H = J^T W J (N, D, D), g = J^T W r (N, D)."""
+    """-> H = J^T W J (N, D, D), g = J^T W r (N, D), folded diagonal rows included."""
     jw = lin.jacobian if lin.weights is None else lin.jacobian * lin.weights[..., None]
     h = jw.mT @ lin.jacobian
     g = (jw.mT @ lin.residuals[..., None])[..., 0]
+    if lin.diag_h is not None:
+        h = h + torch.diag_embed(lin.diag_h)
+        g = g + lin.diag_g
     return h, g
 
 

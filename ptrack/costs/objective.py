@@ -83,8 +83,12 @@ class Objective:
         """ev, jac (its fields' derivatives w.r.t. q, D last) -> (..., M_total, D): the Jacobian of
         `residuals`. Terms with a `jacobian` method give theirs in closed form; the others are
         differentiated by forward-mode autograd through their residual alone (no kinematics)."""
+        return self._jacobian_of(list(self.terms), ev, jac)
+
+    def _jacobian_of(self, names: list[str], ev: PoseEval, jac: PoseJacobian) -> Tensor:
         parts = []
-        for name, term in self.terms.items():
+        for name in names:
+            term = self.terms[name]
             closed = getattr(term, "jacobian", None)
             j = None
             if closed is not None:
@@ -97,12 +101,32 @@ class Objective:
             parts.append(math.sqrt(self.weights[name]) * j)
         return torch.cat(parts, dim=-2)
 
-    def linearize(self, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def linearize(self, ev: PoseEval, jac: PoseJacobian, fold_diagonal: bool = False) -> tuple[Tensor, ...]:
         """`residuals`, `jacobian`, `robust_weights` and the total energy at once, each least-squares
-        term's residual computed once: -> (..., M), (..., M, D), (..., M), (...,)."""
-        rs, ws, es = [], [], []
+        term's residual computed once: -> (..., M), (..., M, D), (..., M), (...,).
+
+        With `fold_diagonal`, least-squares terms whose Jacobian is diagonal (a `diagonal_jacobian`
+        method: joint limits, pose priors) are not stacked: their share of the Gauss-Newton normal
+        equations comes back as two more outputs, diag_h (..., D) = sum w j^2 and diag_g (..., D) =
+        sum w j r (`ptrack.solvers.Linearization`), and the stacked rows hold only the other terms."""
+        rs, ws, es, js = [], [], [], []
+        diag_h = diag_g = None
         for name, term in self.terms.items():
             w = self.weights[name]
+            diagonal = getattr(term, "diagonal_jacobian", None) if fold_diagonal else None
+            if diagonal is not None and isinstance(term, _LeastSquares):
+                try:
+                    jd = diagonal(ev)
+                except NotImplementedError:
+                    jd = None
+                if jd is not None:
+                    r = term.residual(ev)
+                    es.append(0.5 * w * r.square().sum(-1))
+                    h_part, g_part = w * jd.square(), w * jd * r
+                    diag_h = h_part if diag_h is None else diag_h + h_part
+                    diag_g = g_part if diag_g is None else diag_g + g_part
+                    continue
+            js.append(name)
             if isinstance(term, _LeastSquares):
                 r = term.residual(ev)
                 rs.append(math.sqrt(w) * r)
@@ -112,8 +136,15 @@ class Objective:
                 rs.append(math.sqrt(w) * term.residual(ev))
                 ws.append(term.robust_weights(ev))
                 es.append(w * term.energy(ev))
-        _same_batch("residuals", {name: r.shape[:-1] for name, r in zip(self.terms, rs)})
-        return torch.cat(rs, -1), self.jacobian(ev, jac), torch.cat(ws, -1), torch.stack(es).sum(0)
+        _same_batch("residuals", {name: r.shape[:-1] for name, r in zip(js, rs)})
+        energy = torch.stack(es).sum(0)
+        if not fold_diagonal:
+            return torch.cat(rs, -1), self.jacobian(ev, jac), torch.cat(ws, -1), energy
+        if not rs:  # every term folded: no stacked rows at all
+            empty = ev.q.new_zeros(*ev.q.shape[:-1], 0)
+            return empty, empty[..., None].expand(*empty.shape, ev.q.shape[-1]), empty, energy, diag_h, diag_g
+        jacobian = self._jacobian_of(js, ev, jac)
+        return torch.cat(rs, -1), jacobian, torch.cat(ws, -1), energy, diag_h, diag_g
 
     def robust_weights(self, ev: PoseEval) -> Tensor:
         """ev -> (..., M_total) IRLS weights rho'(s) aligned with `residuals` (1 for l2 terms)."""

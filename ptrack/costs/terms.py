@@ -127,8 +127,16 @@ class JointLimits(_LeastSquares):
         if self.time_axis:
             raise NotImplementedError("JointLimits.jacobian with time_axis")
         q = ev.q
+        return torch.diag_embed(self.diagonal_jacobian(ev))
+
+    def diagonal_jacobian(self, ev: PoseEval) -> Tensor:
+        """(..., D) -> (..., D): the Jacobian's diagonal (it has no other entries), 1/sigma outside the
+        limits, 0 inside."""
+        if self.time_axis:
+            raise NotImplementedError("JointLimits.diagonal_jacobian with time_axis")
+        q = ev.q
         outside = (q < self.lower.to(q)) | (q > self.upper.to(q))
-        return torch.diag_embed(outside.to(q) / self.sigma.to(q).expand(q.shape[-1:]))
+        return outside.to(q) / self.sigma.to(q).expand(q.shape[-1:])
 
 
 @dataclass(frozen=True, eq=False)
@@ -342,3 +350,7 @@ class PosePrior(_LeastSquares):
         if inv.ndim <= 1:
             return torch.diag_embed(inv.expand(q.shape[-1:])).expand(*q.shape, q.shape[-1])
         return torch.diag_embed(inv.expand(q.shape))  # a std per hypothesis: (..., D) like q
+
+    def diagonal_jacobian(self, ev: PoseEval) -> Tensor:
+        """(..., D) -> (..., D): the Jacobian's diagonal, 1 / sigma (it has no other entries)."""
+        return (1.0 / self.sigma.to(ev.q)).expand(ev.q.shape)

@@ -157,7 +157,7 @@ def _polish(s: Setup, t: int, q: Tensor, mean: Tensor | None, iterations: int,
     prob = s.problem
     sk, cam, kps = prob.skeleton, prob.observations.camera, prob.keypoints
     objective = _objective(s, t, mean, sigma, tracking)
-    linearize = objective_linearization(sk, objective, cam, kps)
+    linearize = objective_linearization(sk, objective, cam, kps, fold_diagonal=True)
     if s.cfg.kjs.polisher == "lbfgs" and iterations > 0:
         def energy(x: Tensor) -> Tensor:
             return objective(pose_eval_from_joints(cam, kps, x, sk.forward_kinematics(x))).total
@@ -358,7 +358,7 @@ def _init_tree(s: Setup) -> Tensor:
                           mode="reflect")
     lo = torch.where(s.root, s.lower, q[0])
     hi = torch.where(s.root, s.upper, q[0])
-    q, _ = levenberg_marquardt(objective_linearization(sk, _objective(s, 0, None), obs.camera, prob.keypoints),
+    q, _ = levenberg_marquardt(objective_linearization(sk, _objective(s, 0, None), obs.camera, prob.keypoints, True),
                                q, lo, hi, max_iter=30)
     mean, sigma = _start_prior(s, q)
     q, cost, _ = _polish(s, 0, q, mean, 30, sigma)
