@@ -1,5 +1,5 @@
 """Command line: `ptrack run CONFIG [key=value ...]`, `ptrack evaluate CONFIG --clips LIST`,
-`ptrack replay RUN_DIR`.
+`ptrack fit-motion CONFIG [--out FILE]`, `ptrack replay RUN_DIR`.
 
 stdout carries only what a script reads: the run folder's path (the table's for `evaluate`), or with
 `--json` the metrics (`results.json` for `evaluate`); messages and progress go to stderr, progress bars
@@ -40,6 +40,11 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--out", default=None, help="output folder (default logs/eval-<config>-<time>)")
     e.add_argument("--quiet", action="store_true", help="no progress (bar on a terminal, one line per clip elsewhere)")
     e.add_argument("--json", action="store_true", help="print results.json on stdout instead of the table's path")
+    f = sub.add_parser("fit-motion", help="fit a PCA motion model to the config's motion.clips and write it")
+    f.add_argument("config", help="YAML config with a motion: section, e.g. configs/golf_motion.yaml")
+    f.add_argument("overrides", nargs="*", help="dotted.key=value overrides, e.g. motion.components=3")
+    f.add_argument("--out", default=None,
+                   help="model file to write (default: motion.model_file, else ~/.cache/ptrack/motion/<config>.npz)")
     v = sub.add_parser("replay", help="open a run's recording in the rerun viewer")
     v.add_argument("run_dir", help="a run folder (holding run.rrd) or an .rrd file")
     v.add_argument("--web", action="store_true",
@@ -81,6 +86,23 @@ def main(argv: list[str] | None = None) -> int:
                              progress=False if args.quiet else None)
             json_path = table.with_name("results.json")
             print(json_path.read_text() if args.json else table, end="" if args.json else "\n", flush=True)
+        elif args.command == "fit-motion":
+            import time
+
+            from ptrack.config import load_config
+            from ptrack.motion_model import check_writable, fit_from_config, model_path, save_motion_model
+
+            cfg = load_config(args.config, args.overrides, run=False)
+            out = check_writable(Path(args.out) if args.out else model_path(cfg))
+            start = time.perf_counter()
+            model = fit_from_config(cfg)
+            seconds = time.perf_counter() - start
+            save_motion_model(model, out)
+            shares = ", ".join(f"{100 * float(e):.1f}%" for e in model.explained)
+            print(f"ptrack: {len(model.info['clips'])} clips, {model.num_components} components explain {shares} "
+                  f"of the variance ({100 * float(model.explained.sum()):.1f}% in all); fitted in {seconds:.1f} s",
+                  file=sys.stderr)
+            print(out, flush=True)
         elif args.command == "replay":
             from ptrack.viz import open_viewer
 

@@ -351,3 +351,25 @@ def load_motion_model(path: str | Path, skeleton: Skeleton | None = None) -> Mot
             raise InputError(f"motion model {path} was fitted on another skeleton: dofs differ from "
                              f"{skeleton.name!r}'s ({len(diff)} differ, e.g. {diff[0]!r})")
     return model
+
+
+def fit_from_config(cfg) -> MotionModel:
+    """Load `cfg.motion.clips` and fit their model (`ptrack fit-motion`). cfg: a `RunConfig`."""
+    if not cfg.motion.clips:
+        raise InputError("config key 'motion.clips' is required (AMC files or a clip-list file)")
+    return fit_motion_model(read_clips(clip_paths(cfg.motion.clips)), cfg.motion)
+
+
+def check_writable(path: str | Path) -> Path:
+    """InputError if a model could not be written at `path` (a folder, or under a file)."""
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"motion model output {path} is a folder; give a file name (e.g. {path / 'model.npz'})")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(f"motion model output {path}: {parent} is a file, not a folder")
+            if not os.access(parent, os.W_OK):
+                raise InputError(f"motion model output {path}: cannot write in {parent}")
+            break
+    return path
