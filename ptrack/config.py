@@ -173,7 +173,7 @@ GOLF_KEY_POSTURES = {
     "start": "rest before top",  # start of upswing: the hands still, before the upswing's fastest motion
     "top": "first max height",  # top of upswing: the hands' first high point
     "hit": "first min height after top",  # ball hit: the hands' low point of the downswing
-    "end": "first max height after hit",  # end of downswing: the hands' high point of the follow-through
+    "end": "min speed after hit within 0.8 s",  # end of downswing: the hands' slowest, at the finish
 }
 
 
@@ -188,9 +188,10 @@ class MotionConfig:
     # dofs left out of the model besides the root's (shell patterns on joint or dof names, as model.freeze):
     # the CMU thumbs jump by whole turns and the tracker holds these at zero anyway
     exclude: tuple[str, ...] = ("*fingers", "*thumb", "*hand", "*toes")
-    # name -> rule, in temporal order (grammar in ptrack/key_postures.py); the default is the golf swing's
+    # name -> rule, in temporal order (grammar in ptrack/key_postures.py); the default is the golf swing's.
+    # An override of one posture (motion.key_postures.end=...) replaces the whole mapping: give them all
     key_postures: dict[str, str] = field(default_factory=lambda: dict(GOLF_KEY_POSTURES))
-    smooth_s: float = 0.02  # Gaussian smoothing (std, seconds) of the tracked point before the rules
+    smooth_s: float = 0.05  # Gaussian smoothing (std, seconds) of the tracked point before the rules
     prominence: float = 0.02  # first/last extrema: least prominence, as a fraction of the signal's range
     rest_fraction: float = 0.05  # rest: slower than this fraction of the clip's top speed
     samples: int = 200  # N: normalised times per swing

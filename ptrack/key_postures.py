@@ -6,11 +6,11 @@ the PCA tracker starts from the same postures found in the image (their section 
 from one tracked point, the mean of a few joints (the wrists for golf), by rules written in the config
 (`motion.key_postures`, a mapping name -> rule, in temporal order):
 
-    RULE := [first | last] (max | min) (height | speed) [(before | after) KEY]
-          | rest (before | after) KEY
+    RULE  := [first | last] (max | min) (height | speed) [RANGE]  |  rest RANGE
+    RANGE := (before | after) KEY [within SECONDS s]
 
 - `max height`: the frame where the point is highest, over the clip, or over the frames before / after
-  the frame of another key posture KEY.
+  the frame of another key posture KEY (and, with `within`, at most SECONDS from it).
 - `first max height ...` / `last ...`: the first / last local extremum in that range whose prominence
   is at least `motion.prominence` times the signal's range over the clip (ignores small wiggles).
 - `rest before KEY`: the last frame before the fastest motion preceding KEY at which the point moves
@@ -48,17 +48,29 @@ class Rule:
     which: str  # "global", "first" or "last"
     side: str | None  # "before", "after" or None (whole clip)
     ref: str | None  # the key posture the range is relative to
+    within_s: float | None = None  # the range ends this many seconds from `ref`
 
 
 def parse_rule(text: str, key: str = "motion.key_postures") -> Rule:
     """`"first max height after top"` -> Rule; InputError naming the config key if malformed."""
     words = str(text).split()
-    bad = InputError(f"config key {key!r}: cannot read rule {text!r}; expected "
-                     "'[first|last] max|min height|speed [before|after KEY]' or 'rest before|after KEY'")
+    bad = InputError(f"config key {key!r}: cannot read rule {text!r}; expected '[first|last] max|min "
+                     "height|speed [before|after KEY [within SECONDS s]]' or 'rest before|after KEY [within SECONDS s]'")
+    within = None
+    if len(words) >= 2 and words[-1] == "s":
+        words = words[:-1]
+    if len(words) >= 2 and words[-2] == "within":
+        try:
+            within = float(words[-1].removesuffix("s"))
+        except ValueError:
+            raise bad from None
+        if not within > 0 or len(words) < 4 or words[-4] not in ("before", "after"):
+            raise bad
+        words = words[:-2]
     if words and words[0] == "rest":
         if len(words) != 3 or words[1] not in ("before", "after"):
             raise bad
-        return Rule("rest", "speed", "global", words[1], words[2])
+        return Rule("rest", "speed", "global", words[1], words[2], within)
     which = "global"
     if words and words[0] in ("first", "last"):
         which, words = words[0], words[1:]
@@ -69,7 +81,7 @@ def parse_rule(text: str, key: str = "motion.key_postures") -> Rule:
         if words[2] not in ("before", "after"):
             raise bad
         side, ref = words[2], words[3]
-    return Rule(words[0], words[1], which, side, ref)
+    return Rule(words[0], words[1], which, side, ref, within)
 
 
 def parse_rules(rules: Mapping[str, str], key: str = "motion.key_postures") -> dict[str, Rule]:
@@ -108,9 +120,9 @@ def signals(points: np.ndarray, fps: float, smooth_s: float, up_sign: float = 1.
     return height, speed
 
 
-def find_frames(height: np.ndarray, speed: np.ndarray, rules: Mapping[str, str], prominence: float,
+def find_frames(height: np.ndarray, speed: np.ndarray, fps: float, rules: Mapping[str, str], prominence: float,
                 rest_fraction: float, clip: str = "clip") -> np.ndarray:
-    """Apply the rules to the signals (T,): key-posture frames (P,) int64 in the rules' order.
+    """Apply the rules to the signals (T,) at `fps`: key-posture frames (P,) int64 in the rules' order.
 
     Raises InputError naming `clip` and the posture when a rule finds no frame or the frames are not
     strictly increasing in the rules' order.
@@ -121,10 +133,13 @@ def find_frames(height: np.ndarray, speed: np.ndarray, rules: Mapping[str, str],
     for name in _resolution_order(parsed):
         r = parsed[name]
         lo, hi = 0, t
+        span = t if r.within_s is None else int(round(r.within_s * fps))
         if r.side == "before":
             hi = found[r.ref]
+            lo = max(0, hi - span)
         elif r.side == "after":
             lo = found[r.ref] + 1
+            hi = min(t, found[r.ref] + 1 + span)
         frame = _apply(r, height, speed, lo, hi, prominence, rest_fraction)
         if frame is None:
             raise InputError(f"{clip}: key posture {name!r} ({rules[name]}) not found")
@@ -184,7 +199,7 @@ def detect_key_postures(joints_3d: Tensor, joint_names, fps: float, cfg, clip: s
         raise InputError(f"{clip}: joints must have shape (T, {len(names)}, 3), got {tuple(x.shape)}")
     point = x[:, [names.index(j) for j in cfg.joints]].mean(axis=1)
     height, speed = signals(point, fps, cfg.smooth_s, up_sign=1.0)
-    frames = find_frames(height, speed, cfg.key_postures, cfg.prominence, cfg.rest_fraction, clip)
+    frames = find_frames(height, speed, fps, cfg.key_postures, cfg.prominence, cfg.rest_fraction, clip)
     return torch.from_numpy(frames)
 
 
@@ -224,7 +239,7 @@ def detect_key_postures_2d(wrist_uv: Tensor, fps: float, cfg, valid: Tensor | No
     frames = np.arange(len(point))
     point = np.stack([np.interp(frames, frames[seen], point[seen, k]) for k in range(2)], axis=1)
     height, speed = signals(point, fps, cfg.smooth_s, up_sign=-1.0)
-    return torch.from_numpy(find_frames(height, speed, cfg.key_postures, cfg.prominence, cfg.rest_fraction, clip))
+    return torch.from_numpy(find_frames(height, speed, fps, cfg.key_postures, cfg.prominence, cfg.rest_fraction, clip))
 
 
 def initial_times(key_frames: Sequence[int] | Tensor, key_times: Tensor, num_frames: int) -> Tensor:
