@@ -211,8 +211,8 @@ def detect_key_postures_2d(wrist_uv: Tensor, fps: float, cfg, valid: Tensor | No
         wrist_uv: (T, 2) one point per frame, or (T, K, 2) several (e.g. both wrists), averaged.
         fps: frames per second of the track.
         cfg: a `MotionConfig` (key_postures, smooth_s, prominence, rest_fraction; `joints` unused).
-        valid: optional (T,) or (T, K) bool, False where a point is missing; missing points are left
-            out of the mean and frames with none are filled by linear interpolation in time.
+        valid: optional (T,) or (T, K) bool, False where a point is missing (as are non-finite points);
+            each point's track is filled by linear interpolation in time before the points are averaged.
         clip: name used in error messages.
 
     Returns:
@@ -231,13 +231,13 @@ def detect_key_postures_2d(wrist_uv: Tensor, fps: float, cfg, valid: Tensor | No
         if v.shape != ok.shape:
             raise InputError(f"{clip}: valid mask must have shape {ok.shape} or ({ok.shape[0]},), got {v.shape}")
         ok &= v
-    count = ok.sum(1)
-    point = np.where(ok[..., None], np.nan_to_num(uv), 0.0).sum(1) / np.maximum(count, 1)[:, None]
-    seen = count > 0
-    if seen.sum() < 2:
-        raise InputError(f"{clip}: the wrists are seen in {int(seen.sum())} frames; key postures need at least 2")
-    frames = np.arange(len(point))
-    point = np.stack([np.interp(frames, frames[seen], point[seen, k]) for k in range(2)], axis=1)
+    tracks = [k for k in range(uv.shape[1]) if ok[:, k].sum() >= 2]  # each point filled in time, then averaged
+    if not tracks:
+        raise InputError(f"{clip}: the wrists are seen in {int(ok.any(1).sum())} frames; key postures need "
+                         "one seen in at least 2")
+    frames = np.arange(len(uv))
+    point = np.mean([np.stack([np.interp(frames, frames[ok[:, k]], uv[ok[:, k], k, c]) for c in range(2)], axis=1)
+                     for k in tracks], axis=0)
     height, speed = signals(point, fps, cfg.smooth_s, up_sign=-1.0)
     return torch.from_numpy(find_frames(height, speed, fps, cfg.key_postures, cfg.prominence, cfg.rest_fraction, clip))
 
