@@ -171,21 +171,22 @@ def residual_jacobian(sk: Skeleton, residual_fn: ResidualFn, q: Tensor,
 
 
 def objective_linearization(sk: Skeleton, objective: Objective, camera: Camera,
-                            keypoints: KeypointSet, fold_diagonal: bool = False) -> Callable[[Tensor], Linearization]:
+                            keypoints: KeypointSet, fold: bool = False) -> Callable[[Tensor], Linearization]:
     """The one-frame objective as the solvers read it: q (N, D) -> Linearization(residuals (N, M),
     jacobian (N, M, D), weights (N, M) IRLS, energy (N,) the robust total), one FK per call.
 
     The objective's terms must read only q, joints and keypoint pixels/depth (Reprojection,
-    JointLimits, JointKeyframe on one frame, ...), not joint_pixels. With `fold_diagonal` the terms
-    with a diagonal Jacobian (limits, priors) come as `Linearization.diag_h`/`diag_g` instead of
-    stacked rows (`Objective.linearize`): the same steps, cheaper normal equations.
+    JointLimits, JointKeyframe on one frame, ...), not joint_pixels. With `fold` the terms whose
+    Jacobian is mostly zeros (limits, priors, body collision) come folded into
+    `Linearization.fold_h`/`fold_g` instead of stacked rows (`Objective.linearize`): the same steps,
+    cheaper normal equations.
     """
     if camera is None or keypoints is None:
         raise InputError("objective_linearization needs a camera and a keypoint set")
 
     def linearize(q: Tensor) -> Linearization:
         ev, jac = pose_eval_and_jacobian(sk, camera, keypoints, q)
-        return Linearization(*objective.linearize(ev, jac, fold_diagonal))
+        return Linearization(*objective.linearize(ev, jac, fold))
 
     return linearize
 

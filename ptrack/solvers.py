@@ -46,18 +46,18 @@ class Linearization(NamedTuple):
     solves (J^T W J + lambda I) dq = -J^T W r, whose right side is minus the gradient of the
     robust energy, and steps are accepted on that energy.
 
-    Rows whose Jacobian is diagonal (one row per dof: joint limits, priors) may be folded in instead
-    of stacked: diag_h (N, D) their sum of squared derivatives, added to the diagonal of J^T W J, and
-    diag_g (N, D) their J^T r, added to the gradient (both None when there are none). Their energy is
-    in `energy`. The normal equations are the same; forming them skips D x D zeros per folded term.
+    Least-squares terms may be folded in instead of stacked as rows: fold_h (N, D, D) their J^T J,
+    added to J^T W J, and fold_g (N, D) their J^T r, added to the gradient (both None when nothing is
+    folded); their energy is in `energy`. The normal equations are the same; folding pays where a
+    term's Jacobian is mostly zeros (diagonal rows of limits and priors, body-collision pairs apart).
     """
 
     residuals: Tensor
     jacobian: Tensor
     weights: Tensor | None = None
     energy: Tensor | None = None
-    diag_h: Tensor | None = None
-    diag_g: Tensor | None = None
+    fold_h: Tensor | None = None
+    fold_g: Tensor | None = None
 
 
 class LMInfo(NamedTuple):
@@ -170,11 +170,11 @@ def _linearize(fn: LinearizeFn, q: Tensor, weights_fn, energy_fn) -> Linearizati
                          f"got {tuple(w.shape)}")
     if e.shape != (n,):
         raise InputError(f"levenberg_marquardt: energy must have shape ({n},), got {tuple(e.shape)}")
-    if (lin.diag_h is None) != (lin.diag_g is None) or any(
-            x is not None and x.shape != (n, d) for x in (lin.diag_h, lin.diag_g)):
-        raise InputError(f"levenberg_marquardt: diag_h and diag_g must both be given with shape ({n}, {d}) "
-                         "or both be None")
-    return Linearization(r, jac, w, e, lin.diag_h, lin.diag_g)
+    if (lin.fold_h is None) != (lin.fold_g is None) or (lin.fold_h is not None and (
+            lin.fold_h.shape != (n, d, d) or lin.fold_g.shape != (n, d))):
+        raise InputError(f"levenberg_marquardt: fold_h ({n}, {d}, {d}) and fold_g ({n}, {d}) must both be "
+                         "given or both be None")
+    return Linearization(r, jac, w, e, lin.fold_h, lin.fold_g)
 
 
 def _normal_equations(lin: Linearization) -> tuple[Tensor, Tensor]:
@@ -182,9 +182,9 @@ def _normal_equations(lin: Linearization) -> tuple[Tensor, Tensor]:
     jw = lin.jacobian if lin.weights is None else lin.jacobian * lin.weights[..., None]
     h = jw.mT @ lin.jacobian
     g = (jw.mT @ lin.residuals[..., None])[..., 0]
-    if lin.diag_h is not None:
-        h = h + torch.diag_embed(lin.diag_h)
-        g = g + lin.diag_g
+    if lin.fold_h is not None:
+        h = h + lin.fold_h
+        g = g + lin.fold_g
     return h, g
 
 
@@ -465,6 +465,10 @@ def _band_select(mask: Tensor, a, b):
     """Per-trajectory select of two BlockBanded (mask (B,)); couplings shared by all (leading 1) stay."""
     from ptrack.banded import BlockBanded
 
+    if bool(mask.all()):  # one host sync per iteration saves two passes over (B, T, D, D)
+        return a
+    if not bool(mask.any()):
+        return b
     lower = a.lower if a.lower is b.lower else _where(mask, a.lower, b.lower)
     return BlockBanded(_where(mask, a.diagonal, b.diagonal), lower)
 
@@ -473,10 +477,11 @@ def _band_damped(h, free: Tensor, lam: Tensor):
     """H + lambda I restricted to the free dofs (B, T, D) (other rows/columns: identity)."""
     from ptrack.banded import BlockBanded
 
-    d = free.shape[-1]
-    eye = torch.eye(d, dtype=h.diagonal.dtype, device=h.diagonal.device)
-    both = free[..., :, None] & free[..., None, :]
-    diag = torch.where(both, h.diagonal + lam[:, None, None, None] * eye, eye)
+    if bool(free.all()):  # no dof held at a bound: one copy of the blocks
+        diag = h.diagonal.clone()
+    else:
+        diag = h.diagonal * (free[..., :, None] & free[..., None, :])
+    diag.diagonal(dim1=-2, dim2=-1).add_(torch.where(free, lam[:, None, None], 1.0))  # held dofs: identity rows
     w = h.lower.shape[-2] if h.coupling_is_diagonal else h.lower.shape[-3]
     f = free.to(h.diagonal.dtype)
     t_len = f.shape[1]

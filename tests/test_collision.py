@@ -191,6 +191,25 @@ def test_batched_shapes_match_per_element(sk10, joints_10_02):
     assert term.robust_weights(ev(j)).shape == (4, 6, p)
 
 
+def test_gauss_newton_share_skips_far_pairs_only(sk10, joints_10_02):
+    """`gauss_newton` (what the trackers fold into their normal equations) equals stacking `residual`
+    and `jacobian`, though its cheap bound leaves out most pairs; on fat capsules that penetrate."""
+    from ptrack.costs.base import PoseJacobian
+
+    term = SelfIntersection.for_skeleton(sk10, radius_scale=1.5)
+    x = joints_10_02[::100].clone()  # (6, J, 3); the joints themselves as 3 * J "dofs"
+    jx = torch.eye(x.shape[-2] * 3, dtype=D64).reshape(x.shape[-2], 3, -1).expand(x.shape[0], -1, -1, -1)
+    e, jac = ev(x), PoseJacobian(joints=jx, pixels=None, depth=None)
+    r, rows = term.residual(e), term.jacobian(e, jac)
+    assert (r > 0).sum() > 10
+    ends = x.index_select(-2, term._ends).unflatten(-2, (4, -1)).movedim((-3, -1), (0, 1))
+    assert term._near(ends).numel() < term.pairs.shape[0] // 2
+    energy, h, g = term.gauss_newton(e, jac)
+    torch.testing.assert_close(energy, term.energy(e))
+    torch.testing.assert_close(h, rows.mT @ rows)
+    torch.testing.assert_close(g, (rows.mT @ r[..., None])[..., 0])
+
+
 def test_in_objective(sk10, joints_10_02):
     obj = Objective({"self": SelfIntersection.for_skeleton(sk10)}, {"self": 2.0})
     assert obj(ev(joints_10_02[:3])).total.shape == (3,)

@@ -70,9 +70,9 @@ def test_objective_jacobian_matches_autograd(scene):
     lin = objective_linearization(sk, objective, cam, kps)(x)
     torch.testing.assert_close(lin.jacobian, _autograd(sk, kps, cam, objective, x), atol=1e-8, rtol=1e-7)
     torch.testing.assert_close(lin.residuals, objective.residuals(evaluate_pose(sk, cam, kps, x)))
-    # the limit and prior rows folded into the normal equations: the same H, g and energy, fewer rows
-    folded = objective_linearization(sk, objective, cam, kps, fold_diagonal=True)(x)
-    assert folded.residuals.shape[-1] == lin.residuals.shape[-1] - 2 * sk.num_dofs
+    # limits, prior and collision folded into the normal equations: the same H, g and energy, fewer rows
+    folded = objective_linearization(sk, objective, cam, kps, fold=True)(x)
+    assert folded.residuals.shape[-1] == lin.residuals.shape[-1] - 2 * sk.num_dofs - collision.pairs.shape[0]
     for a, b in zip(_normal_equations(folded), _normal_equations(lin)):
         torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-9)
     torch.testing.assert_close(folded.energy, lin.energy)

@@ -255,6 +255,53 @@ class SelfIntersection(_LeastSquares):
         rows = torch.einsum("...ep,...pc,...epcd->...pd", coef.index_select(-1, hit), n.index_select(-2, hit), dx)
         return out.index_copy(-2, hit, rows)
 
+    def _near(self, ends: Tensor) -> Tensor:
+        """ends (4, 3, ..., P) (capsule a's start, end, b's start, end; coordinates second) -> (H,)
+        the pairs that may penetrate in some pose of the batch. The segments are at least as far apart
+        as their midpoints less both half-lengths, so the others surely do not (residual exactly 0)."""
+        p0, p1, q0, q1 = ends
+        mid = 0.5 * ((p0 + p1) - (q0 + q1))
+        half = 0.5 * ((p1 - p0).square().sum(0).sqrt() + (q1 - q0).square().sum(0).sqrt())
+        bound = mid.square().sum(0).sqrt() - half  # (..., P) <= d_ab
+        maybe = bound < self._reach.to(bound) - self.margin
+        return (maybe.flatten(0, -2).any(0) if maybe.ndim > 1 else maybe).nonzero()[:, 0]
+
+    def gauss_newton(self, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor, Tensor]:
+        """This term's share of the Gauss-Newton normal equations, from the pairs that can penetrate
+        only (`_near`; the rows of the others are zero): jac.joints (..., J, 3, D) -> energy (...,),
+        J^T J (..., D, D), J^T r (..., D). The same values as stacking `residual` and `jacobian`."""
+        joints = ev.joints
+        if joints.ndim < 2 or joints.shape[-1] != 3 or joints.shape[-2] < self._joints_needed:
+            self.penetration(joints)  # raises the shape error
+        d = jac.joints.shape[-1]
+        ends = joints.index_select(-2, self._ends.to(joints.device)).unflatten(-2, (4, -1))
+        ends = ends.movedim((-3, -1), (0, 1))  # (4, 3, ..., P)
+        near = self._near(ends)
+        if near.numel() == 0:  # nothing close anywhere in the batch (the usual case)
+            return (joints.new_zeros(joints.shape[:-2]), joints.new_zeros(*joints.shape[:-2], d, d),
+                    joints.new_zeros(*joints.shape[:-2], d))
+        batch = joints.shape[:-2]
+        p0, p1, q0, q1 = ends.index_select(-1, near).flatten(2, -2)  # (3, B, H) each, B poses
+        u, v, w = p1 - p0, q1 - q0, p0 - q0
+        with torch.no_grad():
+            s, t = _closest_parameters(u, v, w)
+        gap = w + s * u - t * v
+        dist = torch.sqrt((gap * gap).sum(0) + self.eps * self.eps)
+        r = (self._reach.to(joints)[near] - dist - self.margin).clamp(min=0.0) / self.sigma  # (B, H)
+        h = joints.new_zeros(r.shape[0], d, d)
+        g = joints.new_zeros(r.shape[0], d)
+        b, k = (r > 0).nonzero(as_tuple=True)  # the A penetrating (pose, pair) entries
+        if b.numel():
+            n = (gap[:, b, k] / dist[b, k]).T * (-1.0 / self.sigma)  # (A, 3) d r / d gap
+            coef = torch.stack([1 - s[b, k], s[b, k], t[b, k] - 1, -t[b, k]], dim=-1)  # (A, 4)
+            idx = self._ends.to(joints.device).view(4, -1)[:, near][:, k].T  # (A, 4) joints of the ends
+            dx = jac.joints.flatten(0, -4)[b[:, None], idx]  # (A, 4, 3, D)
+            rows = ((coef[..., None] * n[:, None, :])[..., None] * dx).sum((1, 2))  # (A, D)
+            h.index_add_(0, b, rows[:, :, None] * rows[:, None, :])
+            g.index_add_(0, b, rows * r[b, k, None])
+        energy = 0.5 * r.square().sum(-1)
+        return energy.reshape(batch), h.reshape(*batch, d, d), g.reshape(*batch, d)
+
     @staticmethod
     def for_skeleton(sk: "Skeleton", radii: Tensor | Mapping[str, float] | None = None,
                      min_hops: int = 2, sigma: float = 0.01, margin: float = 0.0,

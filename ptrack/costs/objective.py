@@ -101,32 +101,33 @@ class Objective:
             parts.append(math.sqrt(self.weights[name]) * j)
         return torch.cat(parts, dim=-2)
 
-    def linearize(self, ev: PoseEval, jac: PoseJacobian, fold_diagonal: bool = False) -> tuple[Tensor, ...]:
+    def linearize(self, ev: PoseEval, jac: PoseJacobian, fold: bool = False) -> tuple[Tensor, ...]:
         """`residuals`, `jacobian`, `robust_weights` and the total energy at once, each least-squares
         term's residual computed once: -> (..., M), (..., M, D), (..., M), (...,).
 
-        With `fold_diagonal`, least-squares terms whose Jacobian is diagonal (a `diagonal_jacobian`
-        method: joint limits, pose priors) are not stacked: their share of the Gauss-Newton normal
-        equations comes back as two more outputs, diag_h (..., D) = sum w j^2 and diag_g (..., D) =
-        sum w j r (`ptrack.solvers.Linearization`), and the stacked rows hold only the other terms."""
-        rs, ws, es, js = [], [], [], []
-        diag_h = diag_g = None
+        With `fold`, least-squares terms whose Jacobian is mostly zeros are not stacked as rows but
+        folded into the Gauss-Newton normal equations (`ptrack.solvers.Linearization`): terms with a
+        `diagonal_jacobian` (joint limits, pose priors: one row per dof) and terms with a
+        `gauss_newton(ev, jac) -> (energy, J^T J, J^T r)` (body collision: pairs apart give nothing).
+        Their share comes back as two more outputs, fold_h (..., D, D) and fold_g (..., D); the
+        stacked rows hold the other terms only."""
+        rs, ws, es, stacked = [], [], [], []
+        diag_h = diag_g = fold_h = fold_g = None
         for name, term in self.terms.items():
             w = self.weights[name]
-            diagonal = getattr(term, "diagonal_jacobian", None) if fold_diagonal else None
-            if diagonal is not None and isinstance(term, _LeastSquares):
-                try:
-                    jd = diagonal(ev)
-                except NotImplementedError:
-                    jd = None
-                if jd is not None:
-                    r = term.residual(ev)
-                    es.append(0.5 * w * r.square().sum(-1))
-                    h_part, g_part = w * jd.square(), w * jd * r
-                    diag_h = h_part if diag_h is None else diag_h + h_part
-                    diag_g = g_part if diag_g is None else diag_g + g_part
+            if fold and isinstance(term, _LeastSquares):
+                part = _folded(term, ev, jac)
+                if part is not None:
+                    energy, h, g, diagonal = part
+                    es.append(w * energy)
+                    if diagonal:
+                        diag_h = w * h if diag_h is None else diag_h + w * h
+                        diag_g = w * g if diag_g is None else diag_g + w * g
+                    else:
+                        fold_h = w * h if fold_h is None else fold_h + w * h
+                        fold_g = w * g if fold_g is None else fold_g + w * g
                     continue
-            js.append(name)
+            stacked.append(name)
             if isinstance(term, _LeastSquares):
                 r = term.residual(ev)
                 rs.append(math.sqrt(w) * r)
@@ -136,21 +137,43 @@ class Objective:
                 rs.append(math.sqrt(w) * term.residual(ev))
                 ws.append(term.robust_weights(ev))
                 es.append(w * term.energy(ev))
-        _same_batch("residuals", {name: r.shape[:-1] for name, r in zip(js, rs)})
+        _same_batch("residuals", {name: r.shape[:-1] for name, r in zip(stacked, rs)})
         energy = torch.stack(es).sum(0)
-        if not fold_diagonal:
+        if not fold:
             return torch.cat(rs, -1), self.jacobian(ev, jac), torch.cat(ws, -1), energy
+        if diag_h is not None:
+            diag = torch.diag_embed(diag_h)
+            fold_h = diag if fold_h is None else fold_h + diag
+            fold_g = diag_g if fold_g is None else fold_g + diag_g
         if not rs:  # every term folded: no stacked rows at all
             empty = ev.q.new_zeros(*ev.q.shape[:-1], 0)
-            return empty, empty[..., None].expand(*empty.shape, ev.q.shape[-1]), empty, energy, diag_h, diag_g
-        jacobian = self._jacobian_of(js, ev, jac)
-        return torch.cat(rs, -1), jacobian, torch.cat(ws, -1), energy, diag_h, diag_g
+            return empty, empty[..., None].expand(*empty.shape, ev.q.shape[-1]), empty, energy, fold_h, fold_g
+        return torch.cat(rs, -1), self._jacobian_of(stacked, ev, jac), torch.cat(ws, -1), energy, fold_h, fold_g
 
     def robust_weights(self, ev: PoseEval) -> Tensor:
         """ev -> (..., M_total) IRLS weights rho'(s) aligned with `residuals` (1 for l2 terms)."""
         parts = {name: term.robust_weights(ev) for name, term in self.terms.items()}
         _same_batch("robust weights", {name: w.shape[:-1] for name, w in parts.items()})
         return torch.cat(list(parts.values()), dim=-1)
+
+
+def _folded(term, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor, Tensor, bool] | None:
+    """A least-squares term's share of the normal equations, if it can give it without stacking rows:
+    -> (energy (...,), h, g (..., D), diagonal) with h (..., D) (the diagonal of J^T J) when `diagonal`,
+    else (..., D, D); None when the term must be stacked."""
+    diagonal = getattr(term, "diagonal_jacobian", None)
+    if diagonal is not None:
+        try:
+            jd = diagonal(ev)
+        except NotImplementedError:
+            jd = None
+        if jd is not None:
+            r = term.residual(ev)
+            return 0.5 * r.square().sum(-1), jd.square(), jd * r, True
+    gauss_newton = getattr(term, "gauss_newton", None)
+    if gauss_newton is not None:
+        return (*gauss_newton(ev, jac), False)
+    return None
 
 
 def _forward_jacobian(term: CostTerm, ev: PoseEval, jac: PoseJacobian) -> Tensor:

@@ -157,7 +157,7 @@ def _polish(s: Setup, t: int, q: Tensor, mean: Tensor | None, iterations: int,
     prob = s.problem
     sk, cam, kps = prob.skeleton, prob.observations.camera, prob.keypoints
     objective = _objective(s, t, mean, sigma, tracking)
-    linearize = objective_linearization(sk, objective, cam, kps, fold_diagonal=True)
+    linearize = objective_linearization(sk, objective, cam, kps, fold=True)
     if s.cfg.kjs.polisher == "lbfgs" and iterations > 0:
         def energy(x: Tensor) -> Tensor:
             return objective(pose_eval_from_joints(cam, kps, x, sk.forward_kinematics(x))).total
