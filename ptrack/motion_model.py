@@ -239,12 +239,8 @@ def fit_motion_model(clips: Sequence[Clip], cfg) -> MotionModel:
     InputError: fewer than 2 clips, clips of different skeletons, key postures not found (naming the
     clip), more components than clips - 1.
     """
-    if len(clips) < 2:
-        raise InputError(f"a motion model needs at least 2 training clips, got {len(clips)}")
+    _check_counts(len(clips), cfg.components)
     m = cfg.components
-    if m > len(clips) - 1:
-        raise InputError(f"config key 'motion.components' ({m}) must be at most the number of training "
-                         f"clips minus one ({len(clips) - 1})")
     sk0 = clips[0].skeleton
     for c in clips[1:]:
         if c.skeleton.dof_names != sk0.dof_names:
@@ -357,7 +353,17 @@ def fit_from_config(cfg) -> MotionModel:
     """Load `cfg.motion.clips` and fit their model (`ptrack fit-motion`). cfg: a `RunConfig`."""
     if not cfg.motion.clips:
         raise InputError("config key 'motion.clips' is required (AMC files or a clip-list file)")
-    return fit_motion_model(read_clips(clip_paths(cfg.motion.clips)), cfg.motion)
+    paths = clip_paths(cfg.motion.clips)
+    _check_counts(len(paths), cfg.motion.components)  # before reading any clip
+    return fit_motion_model(read_clips(paths), cfg.motion)
+
+
+def _check_counts(clips: int, components: int) -> None:
+    if clips < 2:
+        raise InputError(f"a motion model needs at least 2 training clips, got {clips}")
+    if components > clips - 1:
+        raise InputError(f"config key 'motion.components' ({components}) must be at most the number of training "
+                         f"clips minus one ({clips - 1})")
 
 
 def check_writable(path: str | Path) -> Path:
