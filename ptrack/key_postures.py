@@ -24,8 +24,8 @@ after Gaussian smoothing over `motion.smooth_s` seconds.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 import torch

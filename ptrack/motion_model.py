@@ -31,9 +31,9 @@ import logging
 import math
 import os
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -132,7 +132,7 @@ def dof_index(model: MotionModel, skeleton: Skeleton) -> Tensor:
 def modelled_dofs(skeleton: Skeleton, exclude: Sequence[str] = ()) -> list[int]:
     """Indices of the dofs a motion model holds: every dof not driving the root joint nor matching an
     `exclude` pattern (shell-style, on the dof name or its joint's name, as `Skeleton.freeze`)."""
-    root = set(int(i) for i in skeleton.axis_dof[0] if i >= 0) | set(int(i) for i in skeleton.translation_dof if i >= 0)
+    root = {int(i) for i in skeleton.axis_dof[0] if i >= 0} | {int(i) for i in skeleton.translation_dof if i >= 0}
     return [i for i, name in enumerate(skeleton.dof_names) if i not in root and not any(
         fnmatch.fnmatchcase(name, pat) or fnmatch.fnmatchcase(name.rsplit(".", 1)[0], pat) for pat in exclude)]
 
