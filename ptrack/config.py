@@ -149,6 +149,38 @@ class KeyframesConfig:
 
 
 @dataclass(frozen=True)
+class PcaMethodConfig:
+    """`method: pca`, the golf-swing tracker over a PCA motion model (Urtasun, Fleet & Fua 2004): per sliding
+    window, the PCA weights (shared), a normalised time per frame and the root pose per frame (eq. 5), fitted by
+    Levenberg-Marquardt to the tracked joints and the silhouettes (eq. 7). The model is `motion.model_file`
+    (fitted from `motion.clips` on first use and cached there)."""
+
+    window: int = 3  # f: frames per window; the window slides one frame at a time
+    iterations: int = 10  # Levenberg-Marquardt iterations per window; 0 = the initialisation alone (mean motion)
+    # tracked keypoints (names of the keypoint set, `model.keypoints`): the paper's knees, ankles, wrists, head
+    joints: tuple[str, ...] = ("l_knee", "r_knee", "l_ankle", "r_ankle", "l_wrist", "r_wrist", "head")
+    joint_weight: float = 1.0  # w of the joint projections (pixels / costs.sigma_px, robust by costs.loss)
+    silhouette_weight: float = 1.0  # w of the foreground term (section 4.1); 0 = joints only
+    silhouette_sigma_m: float = 0.02  # a ray this far (metres) from the model counts as one sigma
+    silhouette_samples: int = 96  # foreground samples per frame (a regular grid, evenly thinned)
+    silhouette_step_px: int = 4  # grid step of the samples, pixels
+    # prediction terms (eq. 7, E_D): stds around the previous window's trajectory continued at its speed
+    root_sigma_m: float = 0.02  # root position, metres per frame
+    root_sigma_deg: float = 3.0  # root orientation, degrees per frame
+    time_sigma: float = 0.01  # normalised time per frame
+    # std of a prior holding each frame's normalised time near its start value (the key postures found in the
+    # 2D wrist track, interpolated); null = none (the paper's eq. 7 has only the prediction)
+    timing_sigma: float | None = 0.03
+    alpha_sigma: float = 0.1  # PCA weights, in units of the model's per-component std (motion model sigma)
+    alpha_prior_weight: float = 1.0  # weight of the prior alpha ~ N(0, sigma^2) of the training swings
+    init_yaws: int = 8  # headings of the first frame's root placement tried (section 5.1)
+    # Gaussian smoothing (std, seconds) of the 2D wrist track before the key-posture rules (motion.key_postures):
+    # 2D detections are noisier than motion capture (the golf swings at 2 px noise: 0.02 s misses the start,
+    # 0.05 s finds the 3D ground truth's frames within one)
+    key_smooth_s: float = 0.05
+
+
+@dataclass(frozen=True)
 class BatchMethodConfig:
     """`method: batch`, the MAP trajectory of the whole sequence (DiFranco, Cham & Rehg 2001)."""
 
@@ -218,12 +250,13 @@ class RunConfig:
     kjs: KjsMethodConfig = field(default_factory=KjsMethodConfig)
     keyframes: KeyframesConfig = field(default_factory=KeyframesConfig)
     batch: BatchMethodConfig = field(default_factory=BatchMethodConfig)
+    pca: PcaMethodConfig = field(default_factory=PcaMethodConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
     init_from: str | None = None  # batch: start from this earlier run folder's trajectory (same model, frames)
     name: str = "run"  # config name, used for the default out_dir
 
 
-METHODS = ("frame", "kjs", "css", "ss", "batch")
+METHODS = ("frame", "kjs", "css", "ss", "batch", "pca")
 _PATH_KEYS = {"data.asf", "data.amc", "observations.file", "out_dir", "keyframes.file", "init_from", "motion.model_file"}
 _PATH_LIST_KEYS = {"motion.clips"}  # a path or a list of paths
 
@@ -517,6 +550,37 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
                          f"the reconstruction is read at stride {cfg.data.stride}/{b.upsample}")
     if cfg.costs.sigma_px <= 0:
         raise InputError(f"config key 'costs.sigma_px' must be positive, got {cfg.costs.sigma_px}")
+    validate_pca(cfg.pca, cfg.model.keypoints, names=cfg.method == "pca")
+
+
+def validate_pca(p: PcaMethodConfig, keypoints: dict[str, str] | None = None, names: bool = True) -> None:
+    """Value checks of the `pca:` section; with `names` (method pca), the tracked joints must be names of the
+    keypoint set `keypoints` (None: the default H36M-17 set)."""
+    from ptrack.keypoints import H36M17
+
+    if p.window < 1:
+        raise InputError(f"config key 'pca.window' must be >= 1, got {p.window}")
+    if p.iterations < 0:
+        raise InputError(f"config key 'pca.iterations' must be >= 0, got {p.iterations}")
+    for key in ("silhouette_samples", "silhouette_step_px", "init_yaws"):
+        if getattr(p, key) < 1:
+            raise InputError(f"config key 'pca.{key}' must be >= 1, got {getattr(p, key)}")
+    for key in ("joint_weight", "silhouette_weight", "alpha_prior_weight"):
+        if not getattr(p, key) >= 0:
+            raise InputError(f"config key 'pca.{key}' must be >= 0, got {getattr(p, key)}")
+    if p.timing_sigma is not None and not p.timing_sigma > 0:
+        raise InputError(f"config key 'pca.timing_sigma' must be positive or null, got {p.timing_sigma}")
+    if p.key_smooth_s < 0:
+        raise InputError(f"config key 'pca.key_smooth_s' must be >= 0, got {p.key_smooth_s}")
+    for key in ("silhouette_sigma_m", "root_sigma_m", "root_sigma_deg", "time_sigma", "alpha_sigma"):
+        if not getattr(p, key) > 0:
+            raise InputError(f"config key 'pca.{key}' must be positive, got {getattr(p, key)}")
+    if not p.joints:
+        raise InputError("config key 'pca.joints' must name at least one tracked keypoint")
+    known = tuple(keypoints) if keypoints is not None else H36M17
+    for j in p.joints if names else ():
+        if j not in known:
+            raise InputError(f"config key 'pca.joints': unknown keypoint {j!r} (keypoints: {', '.join(known)})")
 
 
 def validate_motion(m: MotionConfig) -> None:

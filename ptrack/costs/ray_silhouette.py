@@ -81,13 +81,11 @@ def ray_capsule_distance(origin: Tensor, directions: Tensor, a: Tensor, b: Tenso
     and the distance's gradient w.r.t. that bone's two ends (zero where the ray meets the model).
     Not differentiable through autograd by design: the gradients are returned in closed form.
     """
-    d = directions[..., :, None, :]  # (..., S, 1, 3)
-    a0 = (a - origin)[..., None, :, :]  # (..., 1, B, 3): w = origin - a = -a0
-    e = (b - a)[..., None, :, :]
-    ee = (e * e).sum(-1)
-    de = (d * e).sum(-1)
-    da = (d * a0).sum(-1)  # -w.d
-    ea = (e * a0).sum(-1)  # -w.e
+    a0 = a - origin  # (..., B, 3): the segment start seen from the camera centre
+    e = b - a
+    ee, ea, aa = (e * e).sum(-1)[..., None, :], (e * a0).sum(-1)[..., None, :], (a0 * a0).sum(-1)[..., None, :]
+    de = directions @ e.mT  # (..., S, B)
+    da = directions @ a0.mT
     tiny = torch.finfo(a.dtype).tiny
     # candidates (s, u): interior of the (s >= 0, 0 <= u <= 1) domain, and its three edges
     den = ee - de * de
@@ -96,21 +94,24 @@ def ray_capsule_distance(origin: Tensor, directions: Tensor, a: Tensor, b: Tenso
     s_in = da + u_in * de
     ok = ok & (u_in >= 0) & (u_in <= 1) & (s_in >= 0)
     shape = u_in.shape  # (..., S, B)
+    zero, one = torch.zeros(shape, dtype=a.dtype, device=a.device), torch.ones(shape, dtype=a.dtype, device=a.device)
     u_edge = (-ea / ee.clamp_min(tiny)).clamp(0, 1).expand(shape)  # s = 0: nearest to the camera centre
-    cands_u = torch.stack([u_in, torch.zeros(shape, dtype=a.dtype, device=a.device),
-                           torch.ones(shape, dtype=a.dtype, device=a.device), u_edge], dim=-1)
-    cands_s = torch.stack([s_in, da.clamp_min(0).expand(shape), (da + de).clamp_min(0),
-                           torch.zeros(shape, dtype=a.dtype, device=a.device)], dim=-1)
-    # the vector from the segment's point to the ray's, |s d - a0 - u e|, for each candidate
-    diff = cands_s[..., None] * d[..., None, :] - a0[..., None, :] - cands_u[..., None] * e[..., None, :]
-    sq = diff.square().sum(-1).masked_fill(torch.stack([~ok] + [torch.zeros_like(ok)] * 3, dim=-1), math.inf)
+    cands_u = torch.stack([u_in, zero, one, u_edge], dim=-1)
+    cands_s = torch.stack([s_in, da.clamp_min(0).expand(shape), (da + de).clamp_min(0), zero], dim=-1)
+    # |s d - a0 - u e|^2 = s^2 + |a0|^2 + u^2 |e|^2 - 2 s d.a0 + 2 u e.a0 - 2 s u d.e for each candidate
+    cs, cu = cands_s, cands_u
+    sq = cs * (cs - 2 * da[..., None] - 2 * cu * de[..., None]) + aa[..., None] \
+        + cu * (cu * ee[..., None] + 2 * ea[..., None])
+    sq = torch.cat([torch.where(ok, sq[..., 0], math.inf)[..., None], sq[..., 1:]], dim=-1)  # interior if inside
     best_sq, which = sq.min(-1)  # (..., S, B)
     dist, bone = (best_sq.clamp_min(0).sqrt() - radii.to(a)).min(-1)  # (..., S)
-    u_best = cands_u.gather(-1, which[..., None])[..., 0]  # (..., S, B)
-    n_best = diff.gather(-2, which[..., None, None].expand(*shape, 1, 3))[..., 0, :]  # (..., S, B, 3)
-    u = u_best.gather(-1, bone[..., None])[..., 0]
-    n = n_best.gather(-2, bone[..., None, None].expand(*bone.shape, 1, 3))[..., 0, :]
-    n = n / n.norm(dim=-1, keepdim=True).clamp_min(tiny)  # unit, from the segment towards the ray
+    pick = which.gather(-1, bone[..., None])  # (..., S, 1): the candidate of the nearest bone
+    u = cands_u.gather(-2, bone[..., None, None].expand(*bone.shape, 1, 4))[..., 0, :].gather(-1, pick)[..., 0]
+    s_ = cands_s.gather(-2, bone[..., None, None].expand(*bone.shape, 1, 4))[..., 0, :].gather(-1, pick)[..., 0]
+    a_n = a0.gather(-2, bone[..., None].expand(*bone.shape, 3)) if a.ndim > 2 else a0[bone]
+    e_n = e.gather(-2, bone[..., None].expand(*bone.shape, 3)) if a.ndim > 2 else e[bone]
+    n = s_[..., None] * directions - a_n - u[..., None] * e_n  # (..., S, 3) from the segment to the ray
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(tiny)
     hit = dist <= 0
     n = torch.where(hit[..., None], torch.zeros_like(n), n)
     return RayDistance(distance=dist.clamp_min(0), bone=bone, grad_a=-(1 - u)[..., None] * n, grad_b=-u[..., None] * n)
@@ -168,8 +169,12 @@ class RaySilhouette(_LeastSquares):
 
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.joints (..., *O, J, 3) -> (..., |O|*S): ray-to-model distance / sigma_m, 0 on padding."""
-        r = self._distance(ev.joints).distance * self.valid.to(ev.joints.device) / self.sigma_m
+        r = self.residual_per_frame(ev.joints)
         return r.flatten(r.ndim - self.valid.ndim)
+
+    def residual_per_frame(self, joints: Tensor) -> Tensor:
+        """joints (..., *O, J, 3) -> (..., *O, S): the residuals with the sample axis kept apart."""
+        return self._distance(joints).distance * self.valid.to(joints) / self.sigma_m
 
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
         """jac.joints (..., *O, J, 3, D) -> (..., |O|*S, D), rows as in `residual`."""
