@@ -114,6 +114,11 @@ class KjsMethodConfig:
     # convergence, so this alone holds the weakly observed dofs: 0.05 measured better than 0.08 and 0.15
     # on 2 s of CMU 16_01 (42.4, 42.9, 63.6 mm)
     prior_sigma: float = 0.05
+    # tails of that prior in tracking steps: gaussian, or a robust loss (cauchy, huber, geman_mcclure)
+    # beyond prior_tail_scale standard deviations, so that a limb flipped far from the prediction
+    # stays a competing mode (the paper's long-tailed mixture components)
+    prior_tail: str = "gaussian"
+    prior_tail_scale: float = 3.0
     # per mode and dof, the prior's std is sqrt(prior_sigma^2 + (motion_scale * last displacement)^2): a fast
     # limb may move as far again. Dev clips, keyframe start: 1.0 gave 36.5 mm mean best trajectory against
     # 41.2 at 0 (the run 09_06: 62 against 87 mm)
@@ -506,7 +511,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     if k.samples < k.modes:
         raise InputError(f"config key 'kjs.samples' must be at least kjs.modes ({k.modes}), got {k.samples}")
     for key in ("scale", "tail_dof", "distinct_deg", "temperature", "prior_sigma", "floor_deg", "ceiling_deg",
-                "viterbi_sigma", "rest_sigma", "start_prior_scale"):
+                "viterbi_sigma", "rest_sigma", "start_prior_scale", "prior_tail_scale"):
         if not getattr(k, key) > 0:
             raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(k, key)}")
     for key in ("init_yaws", "init_fits"):
@@ -523,7 +528,8 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     if not 0 <= k.momentum <= 1:
         raise InputError(f"config key 'kjs.momentum' must be in [0, 1], got {k.momentum}")
     for key, allowed in (("tail", ("gaussian", "student", "cauchy")), ("limits_mode", ("prune", "project")),
-                         ("polisher", ("lm", "lbfgs")), ("init", ("keyframe", "tree"))):
+                         ("polisher", ("lm", "lbfgs")), ("init", ("keyframe", "tree")),
+                         ("prior_tail", ("gaussian", "cauchy", "huber", "geman_mcclure"))):
         if getattr(k, key) not in allowed:
             raise InputError(f"config key 'kjs.{key}' must be one of {', '.join(allowed)}, got {getattr(k, key)!r}")
     kf = cfg.keyframes

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from ptrack.camera import camera_for_motion
-from ptrack.costs import JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
+from ptrack.costs import HeavyTailedPrior, JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
 from ptrack.errors import InputError
 from ptrack.jacobians import objective_linearization
 from ptrack.keypoints import make_keypoints
@@ -120,3 +120,31 @@ def test_pose_prior_per_hypothesis_sigma(scene):
     lin = objective_linearization(sk, objective, cam, kps)(q)
     torch.testing.assert_close(lin.jacobian, _autograd(sk, kps, cam, objective, q), atol=1e-9, rtol=1e-9)
     torch.testing.assert_close(objective.residuals(evaluate_pose(sk, cam, kps, q)), (q - q.flip(0)) / sigma)
+
+
+def test_heavy_tailed_prior(scene):
+    """Gaussian near the mean, logarithmic far from it (cauchy); its Jacobian matches autograd, and
+    folded into the normal equations it gives the stacked rows' IRLS H, g and energy."""
+    sk, q, kps, cam = scene
+    sigma = torch.full(q.shape[-1:], 0.05, dtype=q.dtype)
+    far = q.clone()
+    far[:, sk.dof_names.index("lhumerus.rz")] += 1.0  # an arm 20 sigma off: a flip-sized jump
+    heavy, gauss = HeavyTailedPrior(q, sigma, loss="cauchy", scale=3.0), PosePrior(q, sigma)
+    near = q + 0.01
+    for x, ratio in ((near, (0.9, 1.0)), (far, (0.0, 0.1))):
+        ev = evaluate_pose(sk, cam, kps, x)
+        r = heavy.energy(ev) / gauss.energy(ev)
+        assert ((r > ratio[0]) & (r <= ratio[1] + 1e-12)).all(), r
+    observed = cam.project(sk.forward_kinematics(q[0]).index_select(-2, kps.index())).pixels  # (K, 2)
+    objective = Objective({"prior": heavy, "reprojection": Reprojection(
+        observed, torch.ones(observed.shape[0], dtype=q.dtype), loss="cauchy", scale=3.0)})
+    lin = objective_linearization(sk, objective, cam, kps)(far)
+    torch.testing.assert_close(lin.jacobian, _autograd(sk, kps, cam, objective, far), atol=1e-9, rtol=1e-9)
+    folded = objective_linearization(sk, objective, cam, kps, fold=True)(far)
+    for a, b in zip(_normal_equations(folded), _normal_equations(lin)):
+        torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(folded.energy, lin.energy)
+    with pytest.raises(InputError):
+        HeavyTailedPrior(q, sigma, loss="nope")
+    with pytest.raises(InputError):
+        HeavyTailedPrior(q, -sigma)

@@ -19,10 +19,11 @@ from ptrack.costs.base import (CostTerm, PoseEval, cauchy, geman_mcclure, huber,
 from ptrack.costs.collision import SelfIntersection
 from ptrack.costs.objective import Objective, ObjectiveValue
 from ptrack.costs.silhouette import Silhouette, distance_transform
-from ptrack.costs.terms import JointKeyframe, JointLimits, Keyframe, PosePrior, Reprojection, Smoothness
+from ptrack.costs.terms import (HeavyTailedPrior, JointKeyframe, JointLimits, Keyframe, PosePrior, Reprojection,
+                                Smoothness)
 
 __all__ = [
-    "CostTerm", "JointKeyframe", "JointLimits", "Keyframe", "Objective", "ObjectiveValue", "PosePrior", "PoseEval",
+    "CostTerm", "HeavyTailedPrior", "JointKeyframe", "JointLimits", "Keyframe", "Objective", "ObjectiveValue", "PosePrior", "PoseEval",
     "Reprojection", "SelfIntersection", "Silhouette", "Smoothness", "cauchy", "distance_transform", "geman_mcclure", "huber",
     "l2", "robust_loss", "robust_loss_derivative",
 ]

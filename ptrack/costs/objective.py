@@ -115,7 +115,7 @@ class Objective:
         diag_h = diag_g = fold_h = fold_g = None
         for name, term in self.terms.items():
             w = self.weights[name]
-            if fold and isinstance(term, _LeastSquares):
+            if fold:
                 part = _folded(term, ev, jac)
                 if part is not None:
                     energy, h, g, diagonal = part
@@ -158,9 +158,10 @@ class Objective:
 
 
 def _folded(term, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor, Tensor, bool] | None:
-    """A least-squares term's share of the normal equations, if it can give it without stacking rows:
-    -> (energy (...,), h, g (..., D), diagonal) with h (..., D) (the diagonal of J^T J) when `diagonal`,
-    else (..., D, D); None when the term must be stacked."""
+    """A term's share of the (IRLS) normal equations, if it can give it without stacking rows:
+    -> (energy (...,), h, g (..., D), diagonal) with h (..., D) (the diagonal of J^T W J) when
+    `diagonal`, else (..., D, D); None when the term must be stacked."""
+    least_squares = isinstance(term, _LeastSquares)
     diagonal = getattr(term, "diagonal_jacobian", None)
     if diagonal is not None:
         try:
@@ -169,9 +170,12 @@ def _folded(term, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor, Tens
             jd = None
         if jd is not None:
             r = term.residual(ev)
-            return 0.5 * r.square().sum(-1), jd.square(), jd * r, True
+            if least_squares:
+                return 0.5 * r.square().sum(-1), jd.square(), jd * r, True
+            w = term.robust_weights(ev)
+            return term.energy(ev), w * jd.square(), w * jd * r, True
     gauss_newton = getattr(term, "gauss_newton", None)
-    if gauss_newton is not None:
+    if gauss_newton is not None and least_squares:
         return (*gauss_newton(ev, jac), False)
     return None
 

@@ -354,3 +354,44 @@ class PosePrior(_LeastSquares):
     def diagonal_jacobian(self, ev: PoseEval) -> Tensor:
         """(..., D) -> (..., D): the Jacobian's diagonal, 1 / sigma (it has no other entries)."""
         return (1.0 / self.sigma.to(ev.q)).expand(ev.q.shape)
+
+
+@dataclass(frozen=True, eq=False)
+class HeavyTailedPrior(_Robust):
+    """A prior around predicted poses with heavy tails (the long-tailed mixture components of
+    Sminchisescu & Triggs 2003): Gaussian within about `scale` standard deviations of the mean, then
+    growing only like the robust `loss` (cauchy: logarithmically), per dof. A tracker's dynamics
+    held this way still pin the weakly observed dofs near the prediction, yet a kinematic jump far
+    from it (a limb flipped in depth) stays a local minimum of comparable cost instead of being
+    dragged back.
+
+    mean (..., D); sigma float, (D,) or (..., D); loss a robust loss name; scale in sigmas.
+    residual (..., D) = (q - mean) / sigma, energy (...,) = 0.5 sum rho(r^2, scale).
+    """
+
+    mean: Tensor
+    sigma: float | Tensor = 0.15
+    loss: str = "cauchy"
+    scale: float = 3.0
+    _group: ClassVar[int] = 1
+
+    def __post_init__(self) -> None:
+        prior = PosePrior(self.mean, self.sigma)  # the same checks on mean and sigma
+        robust_loss(self.loss)
+        _positive("HeavyTailedPrior.scale", self.scale)
+        object.__setattr__(self, "mean", prior.mean)
+        object.__setattr__(self, "sigma", prior.sigma)
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """ev.q (..., D) -> (..., D)."""
+        if ev.q.shape[-1] != self.mean.shape[-1]:
+            raise InputError(f"HeavyTailedPrior: ev.q {_shape(ev.q)} must end in D={self.mean.shape[-1]}")
+        return (ev.q - self.mean.to(ev.q)) / self.sigma.to(ev.q)
+
+    def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
+        """(..., D) -> (..., D, D) = diag(1 / sigma)."""
+        return torch.diag_embed(self.diagonal_jacobian(ev))
+
+    def diagonal_jacobian(self, ev: PoseEval) -> Tensor:
+        """(..., D) -> (..., D): the Jacobian's diagonal, 1 / sigma (it has no other entries)."""
+        return (1.0 / self.sigma.to(ev.q)).expand(ev.q.shape)

@@ -45,7 +45,7 @@ from typing import Callable, Iterable
 import torch
 from torch import Tensor
 
-from ptrack.costs import JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
+from ptrack.costs import HeavyTailedPrior, JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators.frame import rest_pose_in_view
 from ptrack.ik import ChainIK, ClosedFormUnavailable, chain_ik, ik_plan, product_ik
@@ -144,7 +144,11 @@ def _objective(s: Setup, t: int, mean: Tensor | None, sigma: float | Tensor | No
         terms["collision"] = s.collision
         weights["collision"] = k.collision_weight
     if mean is not None:
-        terms["prior"] = PosePrior(mean, k.prior_sigma if sigma is None else sigma)
+        sigma = k.prior_sigma if sigma is None else sigma
+        if tracking and k.prior_tail != "gaussian":
+            terms["prior"] = HeavyTailedPrior(mean, sigma, loss=k.prior_tail, scale=k.prior_tail_scale)
+        else:
+            terms["prior"] = PosePrior(mean, sigma)
     if tracking and k.pose_prior_weight > 0:
         terms["pose_prior"] = PosePrior(s.prior[0], s.prior_sigma)
         weights["pose_prior"] = k.pose_prior_weight
