@@ -225,9 +225,9 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True
     g = g.index_add(1, obj.kf_frames, kf_r * obj.kf_weight)
     if obj.jk_frames.numel():
         gj = jac.joints[:, obj.jk_frames] * obj.jk_weight[..., None, None]  # (B, G, J, 3, D)
-        h = h.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjce->bgde", gj, gj))
+        h.index_add_(1, obj.jk_frames, torch.einsum("bgjcd,bgjce->bgde", gj, gj))
         g = g.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjc->bgd", gj, jk_r))
-    h = h + torch.diag_embed(diag)
+    h.diagonal(dim1=-2, dim2=-1).add_(diag)  # in place: a diag_embed would write T D^2 zeros
     g = g + _band_matvec(obj.band, q)
     return terms, h, g
 
@@ -239,7 +239,7 @@ def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
 
     def linearize(q: Tensor) -> BandedLinearization:
         terms, h, g = evaluate(obj, q)
-        h = h + torch.diag_embed(band[:, 0])
+        h.diagonal(dim1=-2, dim2=-1).add_(band[:, 0])
         energy = torch.stack(list(terms.values())).sum(0).sum(-1)
         return BandedLinearization(BlockBanded(h, lower.to(q)), g, energy)
 
