@@ -200,6 +200,9 @@ class BatchMethodConfig:
     accel_sigma: float | None = 8.0
     velocity_sigma_m: float | None = 1.0
     accel_sigma_m: float | None = 2.0
+    # per-dof scales by dof name, replacing the sigmas above for the dofs it names: "cmu" (fitted to the
+    # dev clips' motion, ptrack/data/cmu_smoothing.json, scripts/make_smoothing_prior.py), null = none
+    prior: str | None = "cmu"
     upsample: int = 1  # reconstruct N frames per observed frame (data.stride must be divisible by N)
     init: str = "frame"  # start: "frame" (per-frame fits, `frame.*` settings) or "keyframes" (interpolated)
     uncertainty: bool = True  # marginal covariances -> joint_std (T, J) in result.npz

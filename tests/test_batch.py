@@ -51,7 +51,9 @@ def test_noise_free_clip_is_recovered_from_keyframes():
     _, prep, est = solve("observations.noise_px=0", "observations.missing=0", "keyframes.every_s=0.5",
                          "dtype=float64")
     assert mpjpe_mm(prep, est) < 12.0
-    assert float(est.solver_cost[-1]) < 0.1 * float(est.solver_cost[0])  # the smoothing prior keeps ~5%
+    # what is left is the smoothing prior's energy of the clip's own motion: ~18% of the start's with the
+    # per-dof scales of real motion (batch.prior: cmu), ~5% with one scale for all dofs
+    assert float(est.solver_cost[-1]) < 0.25 * float(est.solver_cost[0])
 
 
 def test_missing_keypoints_and_dropped_frames():

@@ -8,8 +8,11 @@ For the trajectory Q = (q_0 .. q_{T-1}), q_t (D,), the energy is
          + 1/2 sum_f |(q_{t_f} - f_f) / sigma_f|^2 over the given dofs       angle keyframes (eq. 4)
          + 1/2 sum_g |(X_j(q_{t_g}) - x_g) / sigma_g|^2 over the given joints joint-position keyframes
 
-with a_1 = 1 / (dt sigma_velocity), a_2 = 1 / (dt^2 sigma_acceleration) per dof (angles and the root
-position have their own sigmas). Missing keypoints (confidence 0) and frames without any 2D add
+with a_1 = 1 / (dt sigma_velocity), a_2 = 1 / (dt^2 sigma_acceleration) per dof: by default
+(`batch.prior: cmu`) each CMU dof's own scale, the RMS velocity and acceleration of real motion
+(`ptrack/data/cmu_smoothing.json`, fitted to the dev clips by `scripts/make_smoothing_prior.py`:
+a knee accelerates at ~27 rad/s^2, the head at ~7), else `batch.velocity_sigma` / `accel_sigma`
+for angles and `*_sigma_m` for the root position. Missing keypoints (confidence 0) and frames without any 2D add
 nothing: the dynamics fill them, which is how `batch.upsample` reconstructs frames between the
 observed ones. The per-frame terms give the diagonal blocks J_t^T W J_t of the Gauss-Newton Hessian
 (J_t from the geometric joint Jacobian, one FK pass batched over all frames); the smoothing prior is
@@ -29,9 +32,11 @@ the keyframes interpolated (`batch.init: keyframes`).
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -76,6 +81,19 @@ class Trajectory:
     jk_frames: Tensor
     jk_target: Tensor
     jk_weight: Tensor
+
+
+def smoothing_prior(name: str | None) -> dict[str, dict[str, float]]:
+    """Per-dof smoothing scales by dof name: {"velocity": {dof: rad/s or m/s}, "accel": {dof: rad/s^2 or
+    m/s^2}}. "cmu": `ptrack/data/cmu_smoothing.json` (fitted to the dev clips by
+    `scripts/make_smoothing_prior.py`); None: none (the config's scalar sigmas for every dof)."""
+    if name is None:
+        return {}
+    if name != "cmu":
+        raise InputError(f"config key 'batch.prior' must be 'cmu' or null, got {name!r}")
+    with resources.files("ptrack").joinpath("data", "cmu_smoothing.json").open() as f:
+        doc = json.load(f)
+    return {"velocity": doc["velocity"], "accel": doc["accel"]}
 
 
 def smoothing_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Tensor) -> Tensor:
@@ -124,16 +142,21 @@ def trajectory_objective(problem: Problem, cfg, dtype: torch.dtype, device: torc
     trans[[i for i in sk.translation_dof.tolist() if i >= 0]] = True
     angular = torch.as_tensor(sk.angular_dofs(), device=device)
 
-    def weights(sigma_angle: float | None, sigma_m: float | None, n: int) -> Tensor | None:
+    table = smoothing_prior(bc.prior)
+
+    def weights(sigma_angle: float | None, sigma_m: float | None, n: int, per_dof: dict) -> Tensor | None:
         if sigma_angle is None and sigma_m is None:
             return None
-        inv = lambda s: 0.0 if s is None else 1.0 / (dt ** n * s)  # noqa: E731
-        return torch.where(trans, inv(sigma_m), inv(sigma_angle)).to(dtype)
+        sigma = [(sigma_m if is_t else sigma_angle) for is_t in trans.tolist()]
+        # the prior's scale replaces the scalar of the dofs it names, in the terms that are on
+        sigma = [per_dof.get(name, s) if s is not None else None for name, s in zip(sk.dof_names, sigma)]
+        return torch.tensor([0.0 if s is None else 1.0 / (dt ** n * s) for s in sigma], dtype=dtype, device=device)
 
     smooth = []
     if smoothing:
-        for n, sa, sm in ((1, bc.velocity_sigma, bc.velocity_sigma_m), (2, bc.accel_sigma, bc.accel_sigma_m)):
-            a = weights(sa, sm, n)
+        for n, sa, sm, key in ((1, bc.velocity_sigma, bc.velocity_sigma_m, "velocity"),
+                               (2, bc.accel_sigma, bc.accel_sigma_m, "accel")):
+            a = weights(sa, sm, n, table.get(key, {}))
             if a is not None:
                 smooth.append((n, a))
     like = torch.zeros(d, dtype=dtype, device=device)
