@@ -162,8 +162,9 @@ class PcaMethodConfig:
     Levenberg-Marquardt to the tracked joints and the silhouettes (eq. 7). The model is `motion.model_file`
     (fitted from `motion.clips` on first use and cached there)."""
 
-    window: int = 3  # f: frames per window; the window slides one frame at a time
-    iterations: int = 10  # Levenberg-Marquardt iterations per window; 0 = the initialisation alone (mean motion)
+    window: int = 3  # f: frames per window
+    step: int = 1  # frames the window slides by (at most the window; 1: every frame is fitted f times)
+    iterations: int = 3  # Levenberg-Marquardt iterations per window; 0 = the initialisation alone (mean motion)
     # tracked keypoints (names of the keypoint set, `model.keypoints`): the paper's knees, ankles, wrists, head
     joints: tuple[str, ...] = ("l_knee", "r_knee", "l_ankle", "r_ankle", "l_wrist", "r_wrist", "head")
     joint_weight: float = 1.0  # w of the joint projections (pixels / costs.sigma_px, robust by costs.loss)
@@ -180,6 +181,7 @@ class PcaMethodConfig:
     timing_sigma: float | None = 0.03
     alpha_sigma: float = 0.1  # PCA weights, in units of the model's per-component std (motion model sigma)
     alpha_prior_weight: float = 1.0  # weight of the prior alpha ~ N(0, sigma^2) of the training swings
+    alpha_bound: float = 3.0  # |alpha_i| at most this many training stds (a box in the solver)
     init_yaws: int = 8  # headings of the first frame's root placement tried (section 5.1)
     # Gaussian smoothing (std, seconds) of the 2D wrist track before the key-posture rules (motion.key_postures):
     # 2D detections are noisier than motion capture (the golf swings at 2 px noise: 0.02 s misses the start,
@@ -573,7 +575,7 @@ def validate_pca(p: PcaMethodConfig, keypoints: dict[str, str] | None = None, na
         raise InputError(f"config key 'pca.window' must be >= 1, got {p.window}")
     if p.iterations < 0:
         raise InputError(f"config key 'pca.iterations' must be >= 0, got {p.iterations}")
-    for key in ("silhouette_samples", "silhouette_step_px", "init_yaws"):
+    for key in ("step", "silhouette_samples", "silhouette_step_px", "init_yaws"):
         if getattr(p, key) < 1:
             raise InputError(f"config key 'pca.{key}' must be >= 1, got {getattr(p, key)}")
     for key in ("joint_weight", "silhouette_weight", "alpha_prior_weight"):
@@ -583,7 +585,7 @@ def validate_pca(p: PcaMethodConfig, keypoints: dict[str, str] | None = None, na
         raise InputError(f"config key 'pca.timing_sigma' must be positive or null, got {p.timing_sigma}")
     if p.key_smooth_s < 0:
         raise InputError(f"config key 'pca.key_smooth_s' must be >= 0, got {p.key_smooth_s}")
-    for key in ("silhouette_sigma_m", "root_sigma_m", "root_sigma_deg", "time_sigma", "alpha_sigma"):
+    for key in ("silhouette_sigma_m", "root_sigma_m", "root_sigma_deg", "time_sigma", "alpha_sigma", "alpha_bound"):
         if not getattr(p, key) > 0:
             raise InputError(f"config key 'pca.{key}' must be positive, got {getattr(p, key)}")
     if not p.joints:

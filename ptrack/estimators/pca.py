@@ -354,11 +354,14 @@ def _state(alpha: Tensor, mu: Tensor, trans: Tensor) -> Tensor:
 
 def _bounds(s: Setup, f: int, like: Tensor, alpha: Tensor | None = None,
             mu: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Box of a window's state: mu in [0, 1]; alpha and mu held (lower = upper) where given."""
+    """Box of a window's state: mu in [0, 1], alpha within pca.alpha_bound training stds; alpha and mu held
+    (lower = upper) where given."""
     m = s.m
     lo = torch.full((m + 7 * f,), -math.inf, dtype=like.dtype, device=like.device)
     hi = torch.full_like(lo, math.inf)
     lo[m:m + f], hi[m:m + f] = 0.0, 1.0
+    bound = s.cfg.pca.alpha_bound * s.alpha_sigma
+    lo[:m], hi[:m] = -bound, bound
     if alpha is not None:
         lo[:m], hi[:m] = alpha, alpha
     if mu is not None:
@@ -447,17 +450,23 @@ def estimate_pca(problem: Problem, cfg, generator: torch.Generator,
     if p.iterations > 0:
         a_prev = torch.zeros(m, dtype=dtype, device=device)
         lo, hi = _bounds(s, f, mu)
-        for start in progress(range(t_count - f + 1)):
+        step = min(p.step, f)
+        starts = list(range(0, t_count - f + 1, step))
+        if starts[-1] != t_count - f:
+            starts.append(t_count - f)
+        known = 0  # frames [0, known) have been in a window
+        for start in progress(starts):
             frames = torch.arange(start, start + f, device=device)
+            for t in range(max(known, 1), start + f):  # frames new to this window: the trajectory continued
+                if t >= 2:  # at the speed of the two frames before (each new frame from the ones predicted before it)
+                    mu[t] = (2 * mu[t - 1] - mu[t - 2]).clamp(0, 1)
+                    trans[t] = 2 * trans[t - 1] - trans[t - 2]
+                    rot[t] = _orthonormal(rot[t - 1] @ rot[t - 2].mT @ rot[t - 1])
+                else:
+                    mu[t], rot[t], trans[t] = mu[t - 1], rot[t - 1], trans[t - 1]
+            known = start + f
             mu_hat, rot_hat, trans_hat = mu[frames].clone(), rot[frames].clone(), trans[frames].clone()
-            t = start + f - 1  # the frame new to this window: the last one's trajectory continued at its speed
-            if start > 0 and t >= 2:
-                mu_hat[-1] = (2 * mu[t - 1] - mu[t - 2]).clamp(0, 1)
-                trans_hat[-1] = 2 * trans[t - 1] - trans[t - 2]
-                rot_hat[-1] = _orthonormal(rot[t - 1] @ rot[t - 2].mT @ rot[t - 1])
-            elif start > 0:
-                mu_hat[-1], rot_hat[-1], trans_hat[-1] = mu[t - 1], rot[t - 1], trans[t - 1]
-            if start > 0:  # time runs forward: no frame of the window before the frame that left it
+            if start > 0:  # time runs forward: no frame of the window before the frame that left it last
                 lo[m:m + f] = mu[start - 1]
                 mu_hat = torch.maximum(mu_hat, mu[start - 1])
             pred = Prediction(a_prev, mu_hat, trans_hat, timing=mu_init[frames])

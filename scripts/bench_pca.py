@@ -1,0 +1,72 @@
+"""Speed of the golf tracker (`method: pca`, full: joints + silhouettes) against `method: frame` on the same
+observations, measured in the same run.
+
+One held-out swing (default 64_01, with a motion model fitted on the other dev swings unless --model is
+given) at 30 fps, 2 px noise, capsule silhouettes; the data, observations and silhouettes are made once
+(`prepare`, timed apart), then each estimator runs `--repeats` times on the same problem and its median
+time is kept. Prints frames per second of each and the ratio (how many times faster pca is).
+
+    OMP_NUM_THREADS=1 python scripts/bench_pca.py [--swing 64_01] [--repeats 3] [--model FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from ptrack.config import load_config  # noqa: E402
+from ptrack.estimators import ESTIMATORS  # noqa: E402
+from ptrack.evaluate import parse_clips  # noqa: E402
+from ptrack.motion_model import fit_motion_model, read_clips, save_motion_model  # noqa: E402
+from ptrack.run import prepare  # noqa: E402
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--swing", default="64_01")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--model", default=None, help="motion model file (default: fitted on the other dev swings)")
+    args = ap.parse_args()
+    swings = parse_clips(str(REPO / "configs" / "clips" / "golf.txt"))
+    swing = next(s for s in swings if s.stem == args.swing)
+    model = args.model
+    if model is None:
+        cfg = load_config(REPO / "configs" / "golf.yaml", run=False)
+        t = time.perf_counter()
+        fitted = fit_motion_model(read_clips([s for s in swings if s != swing]), cfg.motion)
+        model = str(save_motion_model(fitted, Path(tempfile.mkdtemp()) / "golf.npz"))
+        print(f"motion model of the {len(swings) - 1} other swings: {time.perf_counter() - t:.1f} s (not counted)")
+    base = [f"data.amc={swing}", f"data.asf={swing.parent / '64.asf'}", f"motion.model_file={model}", "progress=false"]
+    cfg = load_config(REPO / "configs" / "golf.yaml", base)
+    t = time.perf_counter()
+    prep = prepare(cfg)
+    print(f"{swing.stem}: {prep.problem.observations.num_frames} frames; data, observations and silhouettes: "
+          f"{time.perf_counter() - t:.2f} s (not counted); torch threads {torch.get_num_threads()}")
+    results = {}
+    for name, over in (("pca (joints + silhouettes)", []), ("pca joints only", ["pca.silhouette_weight=0"]),
+                       ("frame (per-frame L-BFGS)", ["method=frame"])):
+        c = load_config(REPO / "configs" / "golf.yaml", [*base, *over])
+        times = []
+        for _ in range(args.repeats):
+            t = time.perf_counter()
+            est = ESTIMATORS[c.method](prep.problem, c, torch.Generator().manual_seed(1), lambda x: x)
+            times.append(time.perf_counter() - t)
+        sec = statistics.median(times)
+        results[name] = est.q.shape[0] / sec
+        print(f"  {name:28s} {sec:6.2f} s  {results[name]:6.1f} fps  (runs: {', '.join(f'{x:.2f}' for x in times)})")
+    full, frame = results["pca (joints + silhouettes)"], results["frame (per-frame L-BFGS)"]
+    print(f"pca (full) vs frame: {full / frame:.1f}x")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

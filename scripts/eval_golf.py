@@ -1,0 +1,203 @@
+"""Leave-one-swing-out evaluation of the golf tracker (`method: pca`) and its baselines.
+
+For each of the dev swings (configs/clips/golf.txt), a motion model is fitted on the other swings
+(<out>/models/wo_<swing>.npz) and the swing is tracked with it:
+
+    pca         the full tracker (configs/eval_golf.yaml): joints + silhouettes
+    joints      the same without the silhouette term (pca.silhouette_weight=0; the paper's fig. 7 point)
+    mean        the mean motion with the initial timing (pca.iterations=0; fig. 8)
+    frame, kjs, batch   the other methods on the same observations (configs/eval_golf_<method>.yaml;
+                these get frame 0 as a 3D keyframe, the pca tracker no 3D input at all)
+
+Every run goes to <out>/<variant>/<swing>/ (a run folder; existing ones are reused, so an interrupted
+evaluation resumes). Metrics are taken twice: over the whole clip (metrics.json) and over the swing, the
+frames up to the end of the follow-through plus 0.5 s (the end found in the ground-truth 3D wrists by the
+motion model's key-posture rules), since the clips go on for up to 2 s after the swing, where the golfer
+does what no training swing does. The tables go to <out>/results.md; --plot SWING draws that swing's full
+tracker run seen from the camera and from above into docs/golf_swing.png.
+
+    OMP_NUM_THREADS=1 python scripts/eval_golf.py [--out logs/eval_golf] [--variants pca,joints,...]
+        [--plot 64_01]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # run from a checkout without installing
+
+from ptrack import metrics as M  # noqa: E402
+from ptrack.config import load_config  # noqa: E402
+from ptrack.evaluate import asf_for, parse_clips  # noqa: E402
+from ptrack.key_postures import detect_key_postures  # noqa: E402
+from ptrack.keypoints import make_keypoints  # noqa: E402
+from ptrack.motion_model import fit_motion_model, read_clips, save_motion_model  # noqa: E402
+from ptrack.run import execute  # noqa: E402
+from ptrack.skeleton import Skeleton, load_amc  # noqa: E402
+
+log = logging.getLogger("eval_golf")
+PCA_VARIANTS = {"pca": [], "joints": ["pca.silhouette_weight=0"], "mean": ["pca.iterations=0"]}
+BASELINES = ("frame", "kjs", "batch")
+TAIL_S = 0.5  # seconds after the end of the follow-through kept in the swing span
+
+
+def model_for(swing: Path, swings: list[Path], out: Path) -> Path:
+    path = out / "models" / f"wo_{swing.stem}.npz"
+    if not path.is_file():
+        cfg = load_config(REPO / "configs" / "eval_golf.yaml", run=False)
+        model = fit_motion_model(read_clips([s for s in swings if s != swing]), cfg.motion)
+        save_motion_model(model, path)
+        log.info("fitted %s on %d swings", path, len(swings) - 1)
+    return path
+
+
+def run(variant: str, swing: Path, model: Path, out: Path) -> Path:
+    folder = out / variant / swing.stem
+    if (folder / "metrics.json").is_file():
+        return folder
+    if variant in PCA_VARIANTS:
+        config, extra = REPO / "configs" / "eval_golf.yaml", [f"motion.model_file={model}", *PCA_VARIANTS[variant]]
+    else:
+        config, extra = REPO / "configs" / f"eval_golf_{variant}.yaml", []
+    cfg = load_config(config, [f"data.amc={swing}", f"data.asf={asf_for(swing)}", f"out_dir={folder}",
+                               "progress=false", *extra])
+    log.info("%s %s", variant, swing.stem)
+    return execute(cfg, progress=False)
+
+
+def swing_end(swing: Path, stride: int) -> int:
+    """Index (at the run's stride) of the last frame of the swing span: end of follow-through + TAIL_S."""
+    sk = Skeleton.from_asf(asf_for(swing))
+    motion = load_amc(swing, sk)
+    cfg = load_config(REPO / "configs" / "eval_golf.yaml", run=False)
+    with torch.no_grad():
+        keys = detect_key_postures(sk.forward_kinematics(motion.q.double()), sk, motion.fps, cfg.motion, clip=swing.stem)
+    return int((int(keys[-1]) + TAIL_S * motion.fps) // stride)
+
+
+def span_metrics(folder: Path, stop: int) -> dict:
+    """MPJPE, PA-MPJPE (17 keypoints, pelvis-aligned) and flip rate over frames [0, stop] of a run."""
+    with np.load(folder / "result.npz") as z:
+        est, gt = torch.from_numpy(z["joints"][:stop + 1]).double(), torch.from_numpy(z["gt_joints"][:stop + 1]).double()
+        R, t = torch.from_numpy(z["camera_R"]).double(), torch.from_numpy(z["camera_t"]).double()
+    sk = Skeleton.from_asf(load_config(folder / "config.yaml").data.asf)
+    kps = make_keypoints(sk)
+    idx = kps.index()
+    e, g = est[:, idx], gt[:, idx]
+    flips = M.limb_flip_errors(e, g, kps.limbs, R, t)
+    return {"mpjpe_mm": float(M.mpjpe(e, g, root=0).mean()), "pa_mpjpe_mm": float(M.pa_mpjpe(e, g).mean()),
+            "flip_error_rate": float(flips.nanmean()), "frames": int(est.shape[0])}
+
+
+def table(rows: dict[str, dict[str, dict]], variants: list[str], title: str) -> str:
+    head = "| swing | " + " | ".join(f"{v} MPJPE / PA / flip" for v in variants) + " |"
+    lines = [title, "", head, "|---" * (len(variants) + 1) + "|"]
+    for swing, per in rows.items():
+        cells = [f"{per[v]['mpjpe_mm']:.1f} / {per[v]['pa_mpjpe_mm']:.1f} / {per[v]['flip_error_rate']:.3f}"
+                 if v in per else "–" for v in variants]
+        lines.append(f"| {swing} | " + " | ".join(cells) + " |")
+    means = []
+    for v in variants:
+        vals = [per[v] for per in rows.values() if v in per]
+        means.append(" / ".join(f"{np.mean([x[k] for x in vals]):{f}}" for k, f in
+                                (("mpjpe_mm", ".1f"), ("pa_mpjpe_mm", ".1f"), ("flip_error_rate", ".3f"))) if vals else "–")
+    lines.append(f"| **mean** | " + " | ".join(f"**{m}**" for m in means) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(folder: Path, path: Path, n: int = 8) -> None:
+    """The estimate (orange) and the ground truth (green) at n frames of the swing: projected into the camera
+    (top row) and seen from above (bottom row, world X-Z, Y up)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with np.load(folder / "result.npz") as z:
+        est, gt, parents = z["joints"], z["gt_joints"], z["parents"]
+        K, R, t, size = z["camera_K"], z["camera_R"], z["camera_t"], z["image_size"]
+    stop = min(swing_end(Path(load_config(folder / "config.yaml").data.amc), 4), len(est) - 1)
+    frames = np.linspace(0, stop, n).round().astype(int)
+
+    def project(x):
+        c = x @ R.T + t
+        return (c[..., :2] / c[..., 2:]) @ K[:2, :2].T + K[:2, 2]
+
+    fig, axes = plt.subplots(2, n, figsize=(1.6 * n, 3.6), dpi=80)
+    for col, f in enumerate(frames):
+        for row, fn in ((0, project), (1, lambda x: x[..., [0, 2]])):
+            ax = axes[row, col]
+            for x, colour in ((gt[f], "tab:green"), (est[f], "tab:orange")):
+                p = fn(x)
+                for j, par in enumerate(parents):
+                    if par >= 0:
+                        ax.plot(p[[par, j], 0], p[[par, j], 1], color=colour, lw=1.2)
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if row == 0:
+                ax.set_xlim(0, size[0])
+                ax.set_ylim(size[1], 0)
+                ax.set_title(f"frame {f}", fontsize=8)
+            else:
+                c = gt[f, 0, [0, 2]]
+                ax.set_xlim(c[0] - 1.0, c[0] + 1.0)
+                ax.set_ylim(c[1] - 1.0, c[1] + 1.0)
+    axes[0, 0].set_ylabel("camera", fontsize=8)
+    axes[1, 0].set_ylabel("above (X-Z)", fontsize=8)
+    fig.suptitle(f"{folder.name}: pca tracker (orange) vs ground truth (green), model without this swing", fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    log.info("wrote %s", path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="logs/eval_golf")
+    ap.add_argument("--swings", default=str(REPO / "configs" / "clips" / "golf.txt"))
+    ap.add_argument("--variants", default=",".join([*PCA_VARIANTS, *BASELINES]))
+    ap.add_argument("--plot", default=None, help="swing (e.g. 64_01) whose pca run to draw into docs/golf_swing.png")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    out = Path(args.out)
+    swings = parse_clips(args.swings)
+    variants = [v for v in args.variants.split(",") if v]
+    whole: dict[str, dict[str, dict]] = {}
+    span: dict[str, dict[str, dict]] = {}
+    fps: dict[str, list[float]] = {v: [] for v in variants}
+    for swing in swings:
+        model = model_for(swing, swings, out)
+        stop = swing_end(swing, 4)
+        for v in variants:
+            folder = run(v, swing, model, out)
+            m = json.loads((folder / "metrics.json").read_text())
+            whole.setdefault(swing.stem, {})[v] = m
+            span.setdefault(swing.stem, {})[v] = span_metrics(folder, stop)
+            fps[v].append(m["fps"])
+    frames = {s: f"{whole[s][variants[0]]['frames']} / {span[s][variants[0]]['frames']}" for s in whole}
+    text = (table(span, variants, "Over the swing (to the end of the follow-through + 0.5 s):") + "\n"
+            + table(whole, variants, "Over the whole clip:") + "\n"
+            + "Frames (whole clip / swing): " + ", ".join(f"{s} {f}" for s, f in frames.items()) + "\n\n"
+            + "Mean fps (whole run, `seconds` of metrics.json): "
+            + ", ".join(f"{v} {np.mean(x):.1f}" for v, x in fps.items() if x) + "\n")
+    (out / "results.md").write_text(text, encoding="utf-8")
+    (out / "results.json").write_text(json.dumps({"span": span, "whole": {s: {v: {k: m[k] for k in (
+        "mpjpe_mm", "pa_mpjpe_mm", "flip_error_rate", "fps", "frames")} for v, m in per.items()}
+        for s, per in whole.items()}}, indent=1) + "\n")
+    print(text)
+    if args.plot:
+        plot(out / "pca" / args.plot, REPO / "docs" / "golf_swing.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
