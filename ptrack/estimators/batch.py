@@ -25,8 +25,8 @@ recursion of `ptrack.banded.marginal_blocks`) are the per-frame marginal covaria
 through the joint Jacobian G_t (J, 3, D) each joint's position covariance is G Sigma_t G^T, and
 `joint_std` (T, J) is the square root of its trace (metres: the RMS 3D error it predicts).
 
-The start is the per-frame fit (`method: frame`), or an earlier run's trajectory (`init_from`), or
-the keyframes interpolated (`batch.init: keyframes`).
+The start is the per-frame fit (`method: frame`), or an earlier run's trajectory (`init_from`, warped
+onto the keyframes: `warp_to_keyframes`), or the keyframes interpolated (`batch.init: keyframes`).
 """
 
 from __future__ import annotations
@@ -331,6 +331,32 @@ def interpolate_keyframes(problem: Problem, lower: Tensor, upper: Tensor) -> Ten
     return torch.minimum(torch.maximum(out, lower), upper)
 
 
+def warp_to_keyframes(q: Tensor, obj: Trajectory) -> Tensor:
+    """Motion warping of a start (Witkin & Popovic 1995): per dof, the offsets that bring q (T, D) onto
+    each angle keyframe giving that dof, linearly interpolated in time between those keyframes (held
+    beyond the first and last), added to q; keyframe dofs already met within their std count as
+    offset 0 (anchors). -> (T, D). A start from an earlier solution (`init_from`)
+    already meets the keyframes it was solved with (offsets ~0 there), so a keyframe added since is
+    met at once and its change fades out towards its neighbours: the solver refines that stretch
+    instead of first dragging it there."""
+    if obj.kf_frames.numel() == 0:
+        return q
+    diff = _wrapped(obj.kf_target - q[obj.kf_frames], obj.angular)  # (F, D)
+    given = (obj.kf_weight > 0).cpu().numpy()
+    frames = obj.kf_frames.cpu().numpy()
+    # a dof the start already meets within its keyframe's std is an anchor: offset 0 there
+    delta = torch.where(diff.abs() * obj.kf_weight > 1, diff, 0.0).detach().cpu().double().numpy()
+    order = np.argsort(frames, kind="stable")
+    frames, delta, given = frames[order], delta[order], given[order]
+    t = np.arange(q.shape[0], dtype=np.float64)
+    offset = np.zeros(tuple(q.shape))
+    for d in range(q.shape[1]):
+        sel = given[:, d]
+        if sel.any():
+            offset[:, d] = np.interp(t, frames[sel].astype(np.float64), delta[sel, d])
+    return q + torch.as_tensor(offset, dtype=q.dtype, device=q.device)
+
+
 def estimate_batch(problem: Problem, cfg, generator: torch.Generator,
                    progress: Callable[[Iterable], Iterable] = lambda x: x,
                    callback: Callable[[int, Tensor, Tensor], None] | None = None) -> Estimate:
@@ -352,7 +378,7 @@ def _estimate(problem: Problem, cfg, generator: torch.Generator, progress: Calla
     obj = trajectory_objective(problem, cfg, dtype, device)
     lower, upper = obj.lower, obj.upper
     if cfg.init_from:
-        q0 = load_init(cfg.init_from, problem, dtype, device)
+        q0 = warp_to_keyframes(load_init(cfg.init_from, problem, dtype, device), obj)
     elif bc.init == "keyframes":
         q0 = interpolate_keyframes(problem, lower, upper)
     else:
