@@ -1,0 +1,140 @@
+"""`method: pca` (ptrack/estimators/pca.py): the decoder's closed-form derivatives, the root's rotation
+round trip, the window linearization against finite differences, a held-out golf swing tracked to
+MPJPE < 40 mm, and bad input (model files, pca.* values) as one `ptrack: error:` line, exit 2."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ptrack.cli import main
+from ptrack.config import load_config
+from ptrack.estimators import pca as P
+from ptrack.motion_model import MotionModel, decode, fit_motion_model, read_clips, save_motion_model
+from ptrack.run import prepare
+
+REPO = Path(__file__).resolve().parents[1]
+GOLF = REPO / "configs" / "golf.yaml"
+SWINGS = ("01", "02", "04", "05", "06", "08", "09")
+HELD_OUT = "01"
+
+
+@pytest.fixture(scope="module")
+def heldout_model(cmu_file, tmp_path_factory) -> Path:
+    """A motion model of the 6 dev swings other than 64_01 (the test's held-out swing)."""
+    clips = read_clips([cmu_file(f"64_{c}.amc") for c in SWINGS if c != HELD_OUT])
+    cfg = load_config(GOLF, ["pca.iterations=0"])
+    return save_motion_model(fit_motion_model(clips, cfg.motion), tmp_path_factory.mktemp("model") / "golf_wo01.npz")
+
+
+def _setup(cmu_file, model: Path, *extra: str):
+    cfg = load_config(GOLF, [f"data.amc={cmu_file(f'64_{HELD_OUT}.amc')}", f"data.asf={cmu_file('64.asf')}",
+                             f"motion.model_file={model}", "dtype=float64", *extra])
+    prep = prepare(cfg)
+    return cfg, prep, P._setup(prep.problem, cfg)
+
+
+def test_decode_jacobian_matches_decode(heldout_model):
+    from ptrack.motion_model import load_motion_model
+
+    model = load_motion_model(heldout_model)
+    g = torch.Generator().manual_seed(0)
+    alpha = torch.randn(2, model.num_components, generator=g, dtype=torch.float64)
+    mu = torch.tensor([[0.1, 0.4371, 0.9], [0.0, 0.5, 1.0]], dtype=torch.float64)
+    q, dq_da, dq_dmu = P._decode_jacobian(model, alpha, mu)
+    assert torch.allclose(q, decode(model, alpha[:, None], mu))
+    eps = 1e-6
+    for k in range(model.num_components):
+        da = torch.zeros_like(alpha)
+        da[:, k] = eps
+        fd = (decode(model, (alpha + da)[:, None], mu) - q) / eps
+        assert torch.allclose(fd, dq_da[..., k], atol=1e-6)
+    inner = mu[0:1]  # inside a sample interval: the slope of the interpolation
+    fd = (decode(model, alpha[:1, None], inner + eps) - decode(model, alpha[:1, None], inner)) / eps
+    assert torch.allclose(fd, dq_dmu[:1], atol=1e-4)
+
+
+def test_root_rotation_round_trip_and_window_jacobian(cmu_file, heldout_model):
+    cfg, prep, s = _setup(cmu_file, heldout_model)
+    gt = prep.gt_q[:4]
+    rot = P._rotation_of(s, gt[:, s.root_dofs[3:]])
+    assert torch.allclose(P._rotation_of(s, P.root_angles(s, rot)), rot, atol=1e-12)
+    # the world joints of a state equal forward kinematics of its poses
+    m, f = s.m, 3
+    frames = torch.arange(40, 43)
+    _, mu = P.initial_timing(s)
+    g = torch.Generator().manual_seed(1)
+    x = torch.cat([0.3 * torch.randn(m, generator=g, dtype=torch.float64), mu[frames],
+                   (0.05 * torch.randn(f, 6, generator=g, dtype=torch.float64) + torch.tensor(
+                       [-0.3, 1.0, 0.1, 0, 0, 0], dtype=torch.float64)).flatten()])[None]
+    ref = rot[:3][None]
+    pred = P.Prediction(torch.zeros(m, dtype=torch.float64), mu[frames], torch.zeros(f, 3, dtype=torch.float64),
+                        timing=mu[frames])
+    lin = P._window_linearization(s, frames, ref, pred, P._silhouette(s, frames))
+    out = lin(x)
+    assert out.residuals.shape[0] == 1 and out.jacobian.shape == (1, out.residuals.shape[1], m + 7 * f)
+    g6 = x[0, m + f:].reshape(f, 6)
+    q = P.poses_of(s, x[0, :m].expand(f, m), x[0, m:m + f], P._exp(g6[:, 3:])[0] @ ref[0], g6[:, :3])
+    proj = prep.problem.observations.camera.project(prep.problem.skeleton.forward_kinematics(q)[:, s.tracked])
+    r = (proj.pixels - s.observed[frames]) * s.weight[frames][..., None]
+    assert torch.allclose(out.residuals[0, :r.numel()], r.flatten(), atol=1e-8)
+    eps = 1e-6
+    fd = torch.stack([(lin(x + eps * torch.eye(x.shape[1], dtype=x.dtype)[k]).residuals - out.residuals)[0] / eps
+                      for k in range(x.shape[1])], -1)
+    scale = out.jacobian.abs().amax()
+    assert float((fd - out.jacobian[0]).abs().amax()) < 1e-4 * scale
+
+
+def test_heldout_swing_tracked_under_40mm(cmu_file, heldout_model, tmp_path, capsys):
+    """The issue's check: a swing the model never saw, noise_px 2, no keyframes, silhouettes on."""
+    out = tmp_path / "run"
+    rc = main(["run", str(GOLF), f"data.amc={cmu_file(f'64_{HELD_OUT}.amc')}", f"data.asf={cmu_file('64.asf')}",
+               f"motion.model_file={heldout_model}", "observations.noise_px=2", "seed=0", "progress=false",
+               f"out_dir={out}"])
+    assert rc == 0, capsys.readouterr().err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["method"] == "pca" and metrics["frames"] > 90
+    assert metrics["mpjpe_mm"] < 40, metrics["mpjpe_mm"]
+    assert metrics["reprojection_error_px"] < 5
+
+
+def _fail(capsys, out: Path, argv: list[str], *fragments: str) -> None:
+    rc = main(argv)
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("ptrack: error: "), err
+    for frag in fragments:
+        assert frag in lines[0], (frag, lines[0])
+    assert not out.exists()
+    if out.parent.exists():
+        assert not any(".partial" in p.name for p in out.parent.iterdir())
+
+
+@pytest.mark.parametrize("override,key", [("pca.window=0", "pca.window"), ("pca.joint_weight=-1", "pca.joint_weight"),
+                                          ("pca.silhouette_weight=-0.5", "pca.silhouette_weight"),
+                                          ("pca.joints=[l_knee,elbow]", "pca.joints"),
+                                          ("pca.timing_sigma=0", "pca.timing_sigma")])
+def test_bad_pca_values(tmp_path, capsys, override, key):
+    out = tmp_path / "run"
+    _fail(capsys, out, ["run", str(GOLF), override, f"out_dir={out}"], key)
+
+
+def test_model_file_of_another_skeleton_or_corrupt(cmu_file, heldout_model, tmp_path, capsys):
+    from ptrack.motion_model import load_motion_model
+
+    model = load_motion_model(heldout_model)
+    other = MotionModel(dof_names=model.dof_names, skeleton_dof_names=model.skeleton_dof_names[:-3] + ("a", "b", "c"),
+                        mean=model.mean, components=model.components, explained=model.explained,
+                        key_names=model.key_names, key_times=model.key_times, sigma=model.sigma)
+    bad_skeleton = save_motion_model(other, tmp_path / "other.npz")
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(b"PK\x03\x04 this is not a motion model")
+    base = ["run", str(GOLF), f"data.amc={cmu_file('64_02.amc')}", f"data.asf={cmu_file('64.asf')}", "data.stop=200"]
+    out = tmp_path / "run"
+    _fail(capsys, out, [*base, f"motion.model_file={bad_skeleton}", f"out_dir={out}"], "another skeleton")
+    _fail(capsys, out, [*base, f"motion.model_file={corrupt}", f"out_dir={out}"], "corrupt", str(corrupt))
+    assert np.load(heldout_model)["mean"].shape[1] == len(model.dof_names)  # the good file is untouched
