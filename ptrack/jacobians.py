@@ -61,6 +61,9 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
     c = sk._cache.get(key)
     if c is not None:
         return c
+    if sk.has_slides_or_mimics:
+        raise InputError(f"skeleton {sk.name!r} has prismatic joints below its root or mimic joints, which the "
+                         "geometric Jacobian does not handle yet (forward_kinematics and its autograd gradient do)")
     j = sk.num_joints
     anc = torch.zeros(j, j, dtype=torch.bool)  # anc[y, i]: i is y or an ancestor of y
     for y in range(j):

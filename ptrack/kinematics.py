@@ -39,8 +39,8 @@ class _Plan:
 
     closed_form: bool
     dof_index: Tensor  # (J*3,) long, clamped q index per axis slot
-    dof_mask: Tensor  # (J, 3) 1 where the slot is driven by q
-    frozen: Tensor  # (J, 3) constant angle of undriven slots
+    dof_mask: Tensor  # (J, 3) angle per unit of q: 1 where the slot is driven, a mimic joint's multiplier, else 0
+    frozen: Tensor  # (J, 3) constant angle of each slot (undriven slots, mimic offsets)
     d: Tensor | None  # (J, 3, 3) closed form: C_parent^T C
     f: Tensor | None  # (J, 3, 3) closed form: C^T E C, None if identity
     k1: Tensor | None  # (J, 3, 3, 3) Rodrigues path: skew(axis) per slot
@@ -49,6 +49,8 @@ class _Plan:
     c_t: Tensor | None  # (J, 3, 3) C^T, None if identity
     u: Tensor | None  # (J, 3) offset fixed in the parent frame, None if all zero
     w: Tensor | None  # (J, 3) offset turning with the joint, None if all zero
+    slide: Tensor | None  # (J, 3) prismatic displacement per unit of q, in H's frame; None without prismatic joints
+    slide_index: Tensor | None  # (J,) long clamped q index of each prismatic joint
     lengths: Tensor  # (J,)
     level_index: Tensor  # (J,) joint index of each level-order position
     order: Tensor  # (J,) level-order position of each joint
@@ -105,6 +107,7 @@ def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool 
     w = np.einsum("jba,jb->ja", c_lv, sk.offset_local[lv])
     e = sk.rest_rotation[lv]
     driven = sk.axis_dof[lv] >= 0
+    slide = np.einsum("jba,jb->ja", c_lv, sk.slide_axis[lv] * (sk.slide_dof[lv] >= 0)[:, None])
     d_ = f_ = k1 = k2 = rest = None
     if c is not None:
         f = np.einsum("jba,jbc,jcd->jad", c_lv, e, c_lv)
@@ -115,12 +118,14 @@ def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool 
     plan = _Plan(
         closed_form=c is not None,
         dof_index=torch.as_tensor(np.clip(sk.axis_dof[lv], 0, None).reshape(-1), device=device),
-        dof_mask=t(driven.astype(np.float64)),
-        frozen=t(np.where(driven, 0.0, sk.frozen_axes[lv])),
+        dof_mask=t(driven * sk.axis_scale[lv]),
+        frozen=t(sk.frozen_axes[lv]),
         d=d_, f=f_, k1=k1, k2=k2, rest=rest,
         c_t=t_or_none(np.swapaxes(c_lv, -1, -2), c is None),
         u=t_or_none(u, not np.any(u)),
         w=t_or_none(w, not np.any(w)),
+        slide=t_or_none(slide, not np.any(slide)),
+        slide_index=torch.as_tensor(np.clip(sk.slide_dof[lv], 0, None), device=device),
         lengths=t(sk.lengths[lv]),
         level_index=torch.as_tensor(lv, device=device),
         order=torch.as_tensor(order, device=device),
@@ -161,6 +166,12 @@ def euler_zyx(theta: Tensor) -> Tensor:
     return m.unflatten(-1, (3, 3))
 
 
+def _with_a_dof(q: Tensor) -> Tensor:
+    """q (..., 0) of a model without dofs -> (..., 1) zeros, so the plan's clamped indices select
+    something (masked out); q with dofs is returned as it is."""
+    return q if q.shape[-1] else torch.cat([q, q.new_zeros(*q.shape[:-1], 1)], dim=-1)
+
+
 def _angles(p: _Plan, q: Tensor) -> Tensor:
     """Angle of every axis slot, level order: q (..., D) -> (..., J, 3) (frozen slots at their value)."""
     j = p.dof_mask.shape[0]
@@ -174,7 +185,7 @@ def _root_translation(p: _Plan, q: Tensor) -> Tensor:
 
 def root_positions(sk: Skeleton, q: Tensor) -> Tensor:
     """Where the root's rotation turns (its rest position moved by the translation dofs): (..., D) -> (..., 3)."""
-    return _root_translation(_plan(sk, q.dtype, q.device), q)
+    return _root_translation(_plan(sk, q.dtype, q.device), _with_a_dof(q))
 
 
 def _local(p: _Plan, q: Tensor) -> Tensor:
@@ -215,6 +226,7 @@ def forward_kinematics(sk: Skeleton, q: Tensor, lengths: Tensor | None = None, r
         raise InputError(f"pose q has {q.shape[-1]} dofs in its last dim (shape {tuple(q.shape)}); "
                          f"skeleton {sk.name!r} has {sk.num_dofs}")
     p = _plan(sk, q.dtype, q.device, generic)
+    q = _with_a_dof(q)
     if lengths is None:
         lens = p.lengths
     else:
@@ -261,6 +273,9 @@ def _compose(p: _Plan, q: Tensor, lens: Tensor) -> tuple[Tensor, Tensor, Tensor]
             h = _mm(hp, loc)
             pivot = pp if p.u is None else pp + ln * _mv(hp, p.u[off:off + n])
         pos = pivot if p.w is None else pivot + ln * _mv(h, p.w[off:off + n])
+        if p.slide is not None:  # prismatic joints (no rotation of their own) slide their frame
+            s = q.index_select(-1, p.slide_index[off:off + n])[..., None] * p.slide[off:off + n]
+            pos = pos + _mv(h, s)
         hs.append(h)
         ps.append(pos)
         os_.append(pivot)
@@ -331,11 +346,13 @@ def _pose_gradient(p: _Plan, q: Tensor, h: Tensor, pos: Tensor, pivot: Tensor, g
     contrib = torch.stack([w2, cz * w1 - sz * w0, cy * (cz * w0 + sz * w1) - sy * w2], dim=-1) * p.dof_mask
     grad_q = torch.zeros_like(q).index_add_(-1, p.dof_index, contrib.flatten(-2))
     grad_q.index_add_(-1, p.trans_index, gs[..., 0, :] * p.trans_mask)
+    if p.slide is not None:  # a prismatic joint moves its subtree along H_i slide_i
+        grad_q.index_add_(-1, p.slide_index, (_mv(h, p.slide) * gs).sum(-1))
     return grad_q
 
 
 def local_rotations(sk: Skeleton, q: Tensor) -> Tensor:
     """Each joint's rotation relative to its parent, G_parent^T G_i: q (..., D) -> (..., J, 3, 3)."""
     p = _plan(sk, q.dtype, q.device, generic=True)
-    local = _local(p, q)
+    local = _local(p, _with_a_dof(q))
     return local if p.identity_order else local.index_select(-3, p.order)

@@ -4,14 +4,16 @@ A `Skeleton` is a tree of J joints (root first, parents before children). Joint 
 rotation G_i and a position p_i:
 
     G_i = G_parent @ Rot(a_i1, th_i1) @ Rot(a_i2, th_i2) @ Rot(a_i3, th_i3) @ E_i
-    p_i = p_parent + length_i * (G_parent @ u_i + G_i @ w_i)
+    p_i = p_parent + length_i * (G_parent @ u_i + G_i @ w_i) + G_i @ s_i * q[slide_dof_i]
 
 with up to three rotation axes a_ik (fixed, unit) per joint, each driven by one entry of q
 (or none), a constant rotation E_i, and the offset split into a part fixed in the parent's frame
 (u_i, URDF-style joint origins) and a part that turns with the joint (w_i, the Acclaim bone vector).
+A slot's angle is th_ik = scale_ik * q[dof_ik] + frozen_ik (scale 1 and frozen 0 but for URDF mimic
+joints and frozen slots). A URDF prismatic joint slides its frame along s_i by one entry of q.
 The root adds a translation from q to its rest position. This one form covers Acclaim ASF
 skeletons (a joint per bone, placed at the bone's end: "every bone's end point plus the root")
-and URDF trees (through pytorch-kinematics), so every estimator works on both.
+and URDF trees (`ptrack.urdf`), so every estimator works on both.
 
 Units: metres and radians. The CMU world frame is Y up.
 """
@@ -55,8 +57,13 @@ class Skeleton:
         translation_dof: (3,) int, q indices of the root translation (x, y, z), -1 for none.
         dof_names: (D,) e.g. "root.tx", "lfemur.rx".
         lower, upper: (D,) joint limits (metres for translations, radians for angles; +-inf = none).
-        frozen_axes: (J, 3) angle held by axes whose dof was removed by `freeze`.
+        frozen_axes: (J, 3) constant angle added to each slot: the whole angle of slots whose dof was
+            removed by `freeze`, a URDF mimic joint's offset, else 0.
         amc_layout: for ASF models, how AMC values map to dofs (None for URDF models).
+        axis_scale: (J, 3) angle per unit of the driving dof (a URDF mimic joint's multiplier, else 1).
+        slide_axis: (J, 3) displacement per unit of `slide_dof` in the joint's frame (URDF prismatic
+            joints: the axis, times the multiplier for mimic joints); zeros for none.
+        slide_dof: (J,) int, q index driving the joint's slide, -1 for none.
     """
 
     name: str
@@ -76,6 +83,9 @@ class Skeleton:
     frozen_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (J, 3) angle of frozen axes
     frozen: tuple[tuple[str, float], ...] = ()  # (dof name, value) removed by `freeze`
     amc_layout: "AmcLayout | None" = None
+    axis_scale: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (J, 3), ones by default
+    slide_axis: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (J, 3), zeros by default
+    slide_dof: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # (J,), -1 by default
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -88,6 +98,12 @@ class Skeleton:
             raise InputError(f"skeleton {self.name!r}: joint names are not unique")
         if self.frozen_axes.shape != (j, 3):
             object.__setattr__(self, "frozen_axes", np.zeros((j, 3)))
+        if self.axis_scale.shape != (j, 3):
+            object.__setattr__(self, "axis_scale", np.ones((j, 3)))
+        if self.slide_axis.shape != (j, 3):
+            object.__setattr__(self, "slide_axis", np.zeros((j, 3)))
+        if self.slide_dof.shape != (j,):
+            object.__setattr__(self, "slide_dof", -np.ones(j, dtype=np.int64))
 
     # ---------------------------------------------------------------- sizes and names
     @property
@@ -126,6 +142,16 @@ class Skeleton:
         mask[self.axis_dof[self.axis_dof >= 0]] = True
         return mask
 
+    @property
+    def has_slides_or_mimics(self) -> bool:
+        """True if a URDF prismatic joint below the root or a mimic joint (a dof driving several
+        slots, or a slot with a multiplier or offset) is in the model: FK handles them, code that
+        works on `axes`/`axis_dof` alone does not."""
+        driven = self.axis_dof[self.axis_dof >= 0]
+        return bool(np.any(self.slide_dof >= 0) or len(set(driven.tolist())) < len(driven)
+                    or np.any((self.axis_scale != 1.0) & (self.axis_dof >= 0))
+                    or np.any((self.frozen_axes != 0.0) & (self.axis_dof >= 0)))
+
     def length_tensor(self, dtype=torch.float32, device=None) -> Tensor:
         """Bone lengths (J,) in metres, e.g. as a starting point for differentiable lengths."""
         return torch.as_tensor(self.lengths, dtype=dtype, device=device)
@@ -138,20 +164,25 @@ class Skeleton:
 
     @staticmethod
     def from_urdf(path: str | Path, floating_base: bool | None = None) -> "Skeleton":
-        """Any URDF articulated model, parsed by pytorch-kinematics.
+        """Any URDF articulated model (ptrack's own reader of the kinematic elements: `ptrack.urdf`).
 
-        Revolute and continuous joints become dofs (revolute limits kept); fixed joints become
-        joints with no dof. With `floating_base`, the base link gets a free translation and
-        rotation (dofs "root.tx" ... "root.rz"), as a tracked human's pelvis has. None (default):
-        a floating base unless the URDF moves its base itself with prismatic joints, as `to_urdf`
-        writes them, so that `Skeleton.from_urdf(sk.to_urdf())` gives `sk` back.
+        One joint per link, at the link's frame, in depth-first order from the root link. Revolute
+        and continuous joints become rotation dofs, prismatic joints sliding dofs (anywhere in the
+        tree), both named after the URDF joint (in the file's joint order) and with its limits
+        (continuous joints, and pybullet's lower > upper, are unlimited); fixed joints carry no
+        dof; a mimic joint follows its leader's dof (multiplier * q + offset). With
+        `floating_base`, the base link gets a free translation and rotation (dofs "root.tx" ...
+        "root.rz"), as a tracked human's pelvis has.
+        None (default): a floating base unless the file moves its base itself (written by
+        `to_urdf`, or three prismatic joints translating the root link), so that
+        `Skeleton.from_urdf(sk.to_urdf())` gives `sk` back.
         """
         from ptrack.urdf import skeleton_from_urdf
 
         return skeleton_from_urdf(path, floating_base=floating_base)
 
     def to_urdf(self) -> str:
-        """A URDF string of this model (root translation as prismatic joints), for other tools."""
+        """A URDF string of this model (root translation as prismatic joints, see `ptrack.urdf`)."""
         from ptrack.urdf import skeleton_to_urdf
 
         return skeleton_to_urdf(self)
@@ -175,10 +206,18 @@ class Skeleton:
         remap[keep] = np.arange(len(keep))
         axis_dof = remap[self.axis_dof]
         frozen_axes = self.frozen_axes.copy()
-        frozen_axes[(self.axis_dof >= 0) & (axis_dof < 0)] = value
+        gone = (self.axis_dof >= 0) & (axis_dof < 0)
+        frozen_axes[gone] += self.axis_scale[gone] * value
         trans = remap[self.translation_dof]
         root_position = self.root_position.copy()
         root_position[(self.translation_dof >= 0) & (trans < 0)] += value
+        slide_dof = remap[self.slide_dof]
+        offset = self.lengths[:, None] * self.offset_parent
+        held = (self.slide_dof >= 0) & (slide_dof < 0)  # a frozen slide becomes part of the joint's origin
+        offset[held] += value * np.einsum("jab,jb->ja", self.rest_rotation[held], self.slide_axis[held])
+        lengths = np.linalg.norm(offset, axis=1) if held.any() else self.lengths
+        offset_parent = (np.divide(offset, lengths[:, None], out=np.zeros_like(offset), where=lengths[:, None] > 0)
+                         if held.any() else self.offset_parent)
         return replace(
             self,
             frozen=self.frozen + tuple((self.dof_names[i], float(value)) for i in sorted(drop)),
@@ -186,6 +225,9 @@ class Skeleton:
             translation_dof=trans,
             root_position=root_position,
             frozen_axes=frozen_axes,
+            slide_dof=slide_dof,
+            lengths=lengths,
+            offset_parent=offset_parent,
             dof_names=tuple(self.dof_names[i] for i in keep),
             lower=self.lower[keep],
             upper=self.upper[keep],
