@@ -1,14 +1,25 @@
-"""URDF <-> `Skeleton`, through pytorch-kinematics.
+"""URDF <-> `Skeleton`: ptrack's own reader of a URDF file's kinematics, and a writer.
 
-`skeleton_from_urdf` makes any URDF articulated model trackable: each URDF joint becomes a ptrack
-joint (revolute/continuous joints become dofs, fixed joints carry no dof). `skeleton_to_urdf`
-writes a ptrack model as URDF (root translation as three prismatic joints, each rotation axis as a
-revolute joint), which is also how ptrack's FK is checked against pytorch-kinematics.
+`parse_urdf` reads only what moves a model: links, joints (type, parent, child, origin, axis,
+limits, mimic). Visual, collision, inertial, material, transmission, gazebo and any other elements
+are skipped unread, so files other URDF readers accept (urdfdom, yourdfpy, pybullet) load here too:
+an XML declaration after a comment, any `version`, several geometry children, unknown tags.
+
+`skeleton_from_urdf` makes any URDF tree trackable: each link becomes a ptrack joint at the link's
+frame; revolute and continuous joints become a rotation dof, prismatic joints a sliding dof (at any
+depth), fixed joints no dof, and mimic joints follow their leader (multiplier * q + offset) without
+a dof of their own. Floating and planar joints are refused. `skeleton_to_urdf` writes a ptrack
+model as URDF (root translation as three prismatic joints, each rotation axis as a revolute or
+continuous joint, mimic joints as `<mimic>`), read back the same by both.
 """
 
 from __future__ import annotations
 
+import logging
 import math
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
@@ -16,86 +27,155 @@ import numpy as np
 import torch
 
 from ptrack.errors import InputError
-from ptrack.rotations import axis_angle_matrix, matrix_to_euler_np
+from ptrack.rotations import axis_angle_matrix, euler_matrix_np, matrix_to_euler_np
 from ptrack.skeleton import Skeleton
 
+_log = logging.getLogger(__name__)
 
-def _fmt(v) -> str:
-    return " ".join(f"{float(x):.17g}" for x in v)
-
-
-
-def skeleton_to_urdf(sk: Skeleton) -> str:
-    """URDF text of `sk`. Link `sk.joint_names[i]` is joint i's frame (position p_i, rotation G_i);
-    URDF joint names are the dof names, so pytorch-kinematics' joint order maps back by name."""
-    out = [f'<?xml version="1.0"?>\n<robot name={quoteattr(sk.name or "ptrack")}>', '  <link name="world"/>']
-    counter = [0]
-
-    def link(name: str) -> None:
-        out.append(f"  <link name={quoteattr(name)}/>")
-
-    def joint(name, kind, parent, child, xyz=(0, 0, 0), rpy=(0, 0, 0), axis=None, lim=None):
-        s = [f"  <joint name={quoteattr(name)} type=\"{kind}\">",
-             f"    <parent link={quoteattr(parent)}/>", f"    <child link={quoteattr(child)}/>",
-             f'    <origin xyz="{_fmt(xyz)}" rpy="{_fmt(rpy)}"/>']
-        if axis is not None:
-            s.append(f'    <axis xyz="{_fmt(axis)}"/>')
-        if lim is not None:
-            lo, hi = lim
-            s.append(f'    <limit lower="{max(lo, -1e6):.17g}" upper="{min(hi, 1e6):.17g}" effort="1" velocity="1"/>')
-        s.append("  </joint>")
-        out.append("\n".join(s))
-
-    def tmp(base: str) -> str:
-        counter[0] += 1
-        name = f"{base}__{counter[0]}"
-        link(name)
-        return name
-
-    for i, name in enumerate(sk.joint_names):
-        if i == 0:
-            prev = tmp(name)
-            joint(f"{name}__origin", "fixed", "world", prev, xyz=sk.root_position)
-            for k, ax in enumerate("xyz"):
-                d = int(sk.translation_dof[k])
-                if d >= 0:
-                    nxt = tmp(name)
-                    joint(sk.dof_names[d], "prismatic", prev, nxt, axis=np.eye(3)[k], lim=(-1e6, 1e6))
-                    prev = nxt
-        else:
-            prev = tmp(name)
-            parent = sk.joint_names[sk.parents[i]]
-            joint(f"{name}__offset", "fixed", parent, prev, xyz=sk.lengths[i] * sk.offset_parent[i])
-        for k in range(3):
-            d = int(sk.axis_dof[i, k])
-            ax = sk.axes[i, k]
-            if d >= 0:
-                nxt = tmp(name)
-                lim = (sk.lower[d], sk.upper[d])
-                kind = "continuous" if not np.all(np.isfinite(lim)) else "revolute"
-                joint(sk.dof_names[d], kind, prev, nxt, axis=ax, lim=None if kind == "continuous" else lim)
-                prev = nxt
-            elif sk.frozen_axes[i, k] != 0.0:
-                nxt = tmp(name)
-                r = axis_angle_matrix(torch.as_tensor(ax), torch.tensor(float(sk.frozen_axes[i, k]),
-                                                                         dtype=torch.float64)).numpy()
-                joint(f"{name}__frozen{k}", "fixed", prev, nxt, rpy=matrix_to_euler_np(r))
-                prev = nxt
-        e = sk.rest_rotation[i]
-        link(name)
-        joint(f"{name}__end", "fixed", prev, name, xyz=sk.lengths[i] * (e @ sk.offset_local[i]),
-              rpy=matrix_to_euler_np(e))
-    out.append("</robot>\n")
-    return "\n".join(out)
+#: joint types ptrack reads; floating and planar joints (and pybullet's spherical) are refused
+JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed")
+#: what `skeleton_to_urdf` writes as the limits of an unlimited prismatic joint (URDF has no such thing)
+UNLIMITED_PRISMATIC = 1e6
+#: attribute of <robot> by which `skeleton_to_urdf` records that the file moves its own base
+_BASE_MARK = "ptrack_floating_base"
 
 
-def _nearest_rotation(m: np.ndarray) -> np.ndarray:
-    """The rotation closest to m (3, 3) in Frobenius norm."""
-    u, _, vt = np.linalg.svd(m)
-    r = u @ vt
-    if np.linalg.det(r) < 0:
-        r = u @ np.diag([1.0, 1.0, -1.0]) @ vt
-    return r
+@dataclass(frozen=True)
+class UrdfJoint:
+    """One URDF joint's kinematics. Limits are +-inf where the joint has none (continuous joints,
+    lower > upper as pybullet writes for 'unlimited', no <limit> element)."""
+
+    name: str
+    type: str
+    parent: str
+    child: str
+    xyz: tuple[float, float, float]
+    rpy: tuple[float, float, float]
+    axis: tuple[float, float, float]  # unit
+    lower: float
+    upper: float
+    mimic: tuple[str, float, float] | None  # (leader joint, multiplier, offset)
+
+
+@dataclass(frozen=True)
+class UrdfModel:
+    """The kinematic tree of a URDF file: `links` in file order, `root` the one link no joint moves."""
+
+    name: str
+    links: tuple[str, ...]
+    joints: tuple[UrdfJoint, ...]
+    root: str
+    floating_base: bool | None  # as recorded by `skeleton_to_urdf`, None for other files
+
+
+def _vector(text: str | None, default, what: str, where: str) -> tuple[float, float, float]:
+    if text is None:
+        return default
+    parts = text.split()
+    try:
+        v = tuple(float(x) for x in parts)
+    except ValueError:
+        v = ()
+    if len(v) != 3 or not all(math.isfinite(x) for x in v):
+        raise InputError(f"{where}: {what}={text!r} is not three numbers")
+    return v  # type: ignore[return-value]
+
+
+def _number(el: ET.Element, key: str, default: float, where: str) -> float:
+    text = el.get(key)
+    if text is None:
+        return default
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(f"{where}: {key}={text!r} is not a number") from None
+
+
+_XML_DECLARATION = re.compile(r"<\?xml\s[^>]*\?>")
+
+
+def parse_urdf(text: str, source: str = "<string>") -> UrdfModel:
+    """The kinematic tree of URDF `text` (see the module docstring); `source` names it in errors."""
+    text = _XML_DECLARATION.sub("", text.lstrip("\ufeff"))  # tolerated anywhere, as urdfdom does
+    try:
+        robot = ET.fromstring(text)
+    except ET.ParseError as e:
+        raise InputError(f"{source}: not a readable URDF (XML: {e})") from None
+    if robot.tag != "robot":
+        raise InputError(f"{source}: not a URDF: the top element is <{robot.tag}>, not <robot>")
+    links: list[str] = []
+    for el in robot.findall("link"):
+        name = el.get("name")
+        if not name:
+            raise InputError(f"{source}: a <link> has no name")
+        if name in links:
+            raise InputError(f"{source}: link {name!r} is not unique")
+        links.append(name)
+    if not links:
+        raise InputError(f"{source}: no <link> in <robot>")
+    joints: list[UrdfJoint] = []
+    child_of: dict[str, str] = {}
+    for el in robot.findall("joint"):
+        name = el.get("name")
+        if not name:
+            raise InputError(f"{source}: a <joint> has no name")
+        where = f"{source}: joint {name!r}"
+        if any(j.name == name for j in joints):
+            raise InputError(f"{where} is not unique")
+        kind = el.get("type")
+        if kind not in JOINT_TYPES:
+            extra = " (a free base: from_urdf(..., floating_base=True) on the file without it)" \
+                if kind == "floating" else ""
+            raise InputError(f"{where} is of type {kind!r}; ptrack supports {', '.join(JOINT_TYPES)} joints{extra}")
+        ends = []
+        for tag in ("parent", "child"):
+            e = el.find(tag)
+            link = e.get("link") if e is not None else None
+            if not link:
+                raise InputError(f"{where} has no <{tag} link=...>")
+            if link not in links:
+                raise InputError(f"{where}: its {tag} link {link!r} is not a <link> of the file")
+            ends.append(link)
+        parent, child = ends
+        if child in child_of:
+            raise InputError(f"{source}: link {child!r} is the child of two joints ({child_of[child]!r}, {name!r})")
+        child_of[child] = name
+        origin = el.find("origin")
+        xyz = _vector(origin.get("xyz") if origin is not None else None, (0.0, 0.0, 0.0), "origin xyz", where)
+        rpy = _vector(origin.get("rpy") if origin is not None else None, (0.0, 0.0, 0.0), "origin rpy", where)
+        axis_el = el.find("axis")
+        axis = _vector(axis_el.get("xyz") if axis_el is not None else None, (1.0, 0.0, 0.0), "axis xyz", where)
+        lower, upper = -math.inf, math.inf
+        if kind in ("revolute", "prismatic"):
+            n = math.sqrt(sum(a * a for a in axis))
+            if n == 0.0:
+                raise InputError(f"{where}: its axis is zero")
+            axis = tuple(a / n for a in axis)
+            lim = el.find("limit")
+            if lim is not None:
+                lower, upper = _number(lim, "lower", 0.0, where), _number(lim, "upper", 0.0, where)
+                if lower > upper:  # pybullet's way of writing an unlimited joint
+                    lower, upper = -math.inf, math.inf
+        elif kind == "continuous":
+            n = math.sqrt(sum(a * a for a in axis))
+            if n == 0.0:
+                raise InputError(f"{where}: its axis is zero")
+            axis = tuple(a / n for a in axis)
+        mimic = None
+        m = el.find("mimic")
+        if m is not None and kind != "fixed":
+            leader = m.get("joint")
+            if not leader:
+                raise InputError(f"{where}: <mimic> names no joint")
+            mimic = (leader, _number(m, "multiplier", 1.0, where), _number(m, "offset", 0.0, where))
+        joints.append(UrdfJoint(name, kind, parent, child, xyz, rpy, axis, lower, upper, mimic))
+    roots = [ln for ln in links if ln not in child_of]
+    if len(roots) != 1:
+        raise InputError(f"{source}: the links must form one tree, found {len(roots)} root links "
+                         f"(links no joint moves): {roots[:5]}")
+    mark = robot.get(_BASE_MARK)
+    return UrdfModel(name=robot.get("name", ""), links=tuple(links), joints=tuple(joints), root=roots[0],
+                     floating_base=None if mark is None else mark.strip().lower() == "true")
 
 
 def _frame_with_z(z: np.ndarray) -> np.ndarray:
@@ -108,121 +188,288 @@ def _frame_with_z(z: np.ndarray) -> np.ndarray:
     return np.stack([z, y, x])
 
 
+def _mimic_source(model: UrdfModel, source: str) -> dict[str, tuple[str | None, float, float]]:
+    """joint -> (independent joint, multiplier, offset) for every moving joint (chains of mimics
+    resolved); a mimic of a joint the file does not have is held at its offset (leader None), as
+    yourdfpy does, with a warning."""
+    by_name = {j.name: j for j in model.joints}
+    out: dict[str, tuple[str | None, float, float]] = {}
+    for j in model.joints:
+        if j.type == "fixed":
+            continue
+        name, mult, off, seen = j.name, 1.0, 0.0, [j.name]
+        while by_name[name].mimic is not None:
+            leader, m, o = by_name[name].mimic  # q_name = m q_leader + o
+            if leader not in by_name:
+                _log.warning("%s: joint %r mimics %r, which is not a joint of the file: held at its offset %g",
+                             source, name, leader, o)
+                off, mult, name = mult * o + off, 0.0, None
+                break
+            if by_name[leader].type == "fixed":
+                raise InputError(f"{source}: joint {name!r} mimics {leader!r}, a fixed joint")
+            if leader in seen:
+                raise InputError(f"{source}: mimic joints form a loop: {' -> '.join(seen + [leader])}")
+            mult, off = mult * m, mult * o + off
+            name = leader
+            seen.append(name)
+        out[j.name] = (name, mult, off)
+    return out
+
+
+def _moves_its_base(model: UrdfModel, children: dict[str, list[UrdfJoint]]) -> bool:
+    """True if prismatic joints reached from the root through fixed and prismatic joints translate
+    the root freely (along three independent directions), as `skeleton_to_urdf` writes a root's
+    translation."""
+    dirs = []
+    stack = [(model.root, np.eye(3))]
+    while stack:
+        link, rot = stack.pop()
+        for j in children.get(link, []):
+            if j.type in ("fixed", "prismatic"):
+                r = rot @ euler_matrix_np(j.rpy, "XYZ")
+                if j.type == "prismatic" and j.mimic is None:
+                    dirs.append(r @ np.asarray(j.axis))
+                stack.append((j.child, r))
+    return len(dirs) >= 3 and np.linalg.matrix_rank(np.asarray(dirs), tol=1e-6) == 3
+
+
 def skeleton_from_urdf(path: str | Path, floating_base: bool | None = None) -> Skeleton:
     """Build a Skeleton from a URDF file (see `Skeleton.from_urdf`)."""
-    import pytorch_kinematics as pk
-
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"URDF file not found: {p}")
+    if p.is_dir():
+        raise InputError(f"{p}: is a folder, not a URDF file")
     try:
-        chain = pk.build_chain_from_urdf(p.read_bytes())
-    except Exception as e:  # the URDF parser raises assorted exception types on bad XML
-        raise InputError(f"{p}: not a readable URDF ({type(e).__name__}: {e})") from None
+        text = p.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(f"{p}: not a readable URDF (not UTF-8 text: {e})") from None
+    return skeleton_from_model(parse_urdf(text, str(p)), floating_base=floating_base, name=p.stem, source=str(p))
 
-    names: list[str] = []
-    parents: list[int] = []
-    axes, axis_dof, rest, off_dir, lengths = [], [], [], [], []
+
+def skeleton_from_model(model: UrdfModel, floating_base: bool | None = None, name: str | None = None,
+                        source: str = "<urdf>") -> Skeleton:
+    """Build a Skeleton from a parsed URDF (see `Skeleton.from_urdf`)."""
+    children: dict[str, list[UrdfJoint]] = {}
+    for j in model.joints:
+        children.setdefault(j.parent, []).append(j)
+    if floating_base is None:
+        floating_base = model.floating_base if model.floating_base is not None \
+            else not _moves_its_base(model, children)
+
+    # links depth-first from the root, children in file order: parents precede children
+    order: list[tuple[str, UrdfJoint | None]] = []
+    stack: list[tuple[str, UrdfJoint | None]] = [(model.root, None)]
+    while stack:
+        link, joint = stack.pop()
+        order.append((link, joint))
+        stack.extend((j.child, j) for j in reversed(children.get(link, [])))
+    if len(order) != len(model.links):
+        missing = sorted(set(model.links) - {ln for ln, _ in order})
+        raise InputError(f"{source}: links not connected to the root link {model.root!r}: {missing[:5]}")
+    index = {ln: i for i, (ln, _) in enumerate(order)}
+
+    j_count = len(order)
+    axes = np.zeros((j_count, 3, 3))
+    axes[:] = np.eye(3)[::-1]  # slots (z, y, x) of the identity frame
+    axis_dof = -np.ones((j_count, 3), dtype=np.int64)
+    axis_scale = np.ones((j_count, 3))
+    frozen = np.zeros((j_count, 3))
+    rest = np.broadcast_to(np.eye(3), (j_count, 3, 3)).copy()
+    offset = np.zeros((j_count, 3))
+    slide_axis = np.zeros((j_count, 3))
+    slide_dof = -np.ones(j_count, dtype=np.int64)
     dof_names: list[str] = []
     lower: list[float] = []
     upper: list[float] = []
-
-    root = chain._root
-    if floating_base is None:  # a base the file already moves (prismatic joints, as to_urdf writes) floats as it is
-        frames, prismatic = list(root.children), False
-        while frames and not prismatic:
-            f = frames.pop()
-            prismatic = f.joint.joint_type == "prismatic"
-            frames.extend(f.children)
-        floating_base = not prismatic
-    names.append(root.link.name)
-    parents.append(-1)
-    rest.append(np.eye(3))
-    off_dir.append(np.zeros(3))
-    lengths.append(0.0)
-    root_axes = np.eye(3)[::-1].copy()  # slots (z, y, x)
-    root_dof = -np.ones(3, dtype=np.int64)
     trans = -np.ones(3, dtype=np.int64)
     if floating_base:
         for k, a in enumerate("xyz"):
             trans[k] = len(dof_names)
             dof_names.append(f"root.t{a}")
-            lower.append(-math.inf)
-            upper.append(math.inf)
         for k in range(3):  # G_root = Rz Ry Rx
-            root_dof[k] = len(dof_names) + 2 - k
-        for a in "xyz":
-            dof_names.append(f"root.r{a}")
-            lower.append(-math.inf)
-            upper.append(math.inf)
-    axes.append(root_axes)
-    axis_dof.append(root_dof)
+            axis_dof[0, k] = len(dof_names) + 2 - k
+        dof_names.extend(f"root.r{a}" for a in "xyz")
+        lower.extend([-math.inf] * 6)
+        upper.extend([math.inf] * 6)
+        clash = sorted(set(dof_names) & {j.name for j in model.joints})
+        if clash:
+            raise InputError(f"{source}: joint names {clash} are the floating base's dof names; "
+                             "use floating_base=False or rename them")
 
-    world_rot = {0: np.eye(3)}  # rest world rotation of each joint made so far
-    base_chain = {0}  # joints reached from the base through fixed/prismatic joints only
-    stack = [(c, 0) for c in reversed(root.children)]
-    while stack:
-        frame, parent = stack.pop()
-        j = frame.joint
-        m = j.offset.get_matrix()[0].double().numpy() if j.offset is not None else np.eye(4)
-        r0, t0 = _nearest_rotation(m[:3, :3]), m[:3, 3]  # pytorch-kinematics parses in float32
-        lo = frame.link.offset
-        if lo is not None and not np.allclose(lo.get_matrix()[0].double().numpy(), np.eye(4)):
-            raise InputError(f"{p}: link {frame.link.name!r} has a non-identity link offset, which ptrack does not support")
-        idx = len(names)
-        names.append(frame.link.name)
-        parents.append(parent)
-        rest.append(r0)
-        n = float(np.linalg.norm(t0))
-        off_dir.append(t0 / n if n > 0 else np.zeros(3))
-        lengths.append(n)
-        world_rot[idx] = world_rot[parent] @ r0
-        a = np.eye(3)[::-1].copy()  # slots (z, y, x) of the identity frame
-        d = -np.ones(3, dtype=np.int64)
-        if j.joint_type in ("fixed", "prismatic") and parent in base_chain:
-            base_chain.add(idx)
-        if j.joint_type == "prismatic":
-            # only as a root translation: at the base, along a world axis
-            ax = world_rot[parent] @ r0 @ np.asarray(j.axis.double().numpy(), dtype=np.float64)
-            k = int(np.argmax(np.abs(ax)))
-            if floating_base:
-                raise InputError(f"{p}: prismatic joint {j.name!r} moves the base, which floating_base=True "
-                                 "already does; use floating_base=False for this model")
-            if parent not in base_chain or not np.allclose(ax, np.eye(3)[k], atol=1e-9) or trans[k] >= 0:
-                raise InputError(f"{p}: prismatic joint {j.name!r} is not a base translation along +x, +y or +z; "
-                                 "ptrack supports prismatic joints only as the root's translation")
-            trans[k] = len(dof_names)
+    source_of = _mimic_source(model, source)
+    dof_of: dict[str, int] = {}
+    for j in model.joints:  # independent moving joints get dofs in file order
+        if j.type != "fixed" and j.mimic is None:
+            dof_of[j.name] = len(dof_names)
             dof_names.append(j.name)
-            lower.append(-math.inf)
-            upper.append(math.inf)
-        elif j.joint_type == "revolute":
-            ax = np.asarray(j.axis.double().numpy(), dtype=np.float64)
-            a[:] = _frame_with_z(r0 @ (ax / np.linalg.norm(ax)))  # R0 Rot(ax) = Rot(R0 ax) R0
-            d[0] = len(dof_names)
-            dof_names.append(j.name)
-            lim = getattr(j, "limits", None)
-            lo_, hi_ = (lim if lim is not None else (-math.inf, math.inf))
-            lower.append(float(lo_) if lo_ is not None else -math.inf)
-            upper.append(float(hi_) if hi_ is not None else math.inf)
-        elif j.joint_type not in ("fixed", "prismatic"):
-            raise InputError(f"{p}: joint {j.name!r} is {j.joint_type}; ptrack supports revolute, continuous and fixed joints")
-        axes.append(a)
-        axis_dof.append(d)
-        stack.extend((c, idx) for c in reversed(frame.children))
-
+            lower.append(j.lower)
+            upper.append(j.upper)
+    for i, (_, j) in enumerate(order[1:], start=1):
+        r0 = euler_matrix_np(j.rpy, "XYZ")
+        t0 = np.asarray(j.xyz, dtype=np.float64)
+        rest[i] = r0
+        ax = np.asarray(j.axis, dtype=np.float64)
+        if j.type != "fixed" and source_of[j.name][0] is None:  # held at its offset
+            off = source_of[j.name][2]
+            if j.type == "prismatic":
+                t0 = t0 + off * (r0 @ ax)
+            else:
+                rest[i] = r0 @ axis_angle_matrix(torch.as_tensor(ax), torch.tensor(off, dtype=torch.float64)).numpy()
+        elif j.type != "fixed":
+            leader, mult, off = source_of[j.name]
+            d = dof_of[leader]
+            if j.type == "prismatic":
+                slide_dof[i] = d
+                slide_axis[i] = mult * ax
+                t0 = t0 + off * (r0 @ ax)  # a mimic offset is a constant slide: part of the origin
+            else:  # R0 Rot(ax, th) = Rot(R0 ax, th) R0
+                axes[i] = _frame_with_z(r0 @ ax)
+                axis_dof[i, 0] = d
+                axis_scale[i, 0] = mult
+                frozen[i, 0] = off
+        offset[i] = t0
+    lengths = np.linalg.norm(offset, axis=1)
     return Skeleton(
-        name=p.stem,
-        joint_names=tuple(names),
-        parents=tuple(parents),
-        axes=np.asarray(axes),
-        axis_dof=np.asarray(axis_dof),
-        rest_rotation=np.asarray(rest),
-        offset_parent=np.asarray(off_dir),
-        offset_local=np.zeros((len(names), 3)),
-        lengths=np.asarray(lengths),
+        name=name if name is not None else (model.name or "urdf"),
+        joint_names=tuple(ln for ln, _ in order),
+        parents=tuple(-1 if j is None else index[j.parent] for _, j in order),
+        axes=axes,
+        axis_dof=axis_dof,
+        rest_rotation=rest,
+        offset_parent=np.divide(offset, lengths[:, None], out=np.zeros_like(offset), where=lengths[:, None] > 0),
+        offset_local=np.zeros((j_count, 3)),
+        lengths=lengths,
         root_position=np.zeros(3),
         translation_dof=trans,
         dof_names=tuple(dof_names),
-        lower=np.asarray(lower),
-        upper=np.asarray(upper),
+        lower=np.asarray(lower, dtype=np.float64),
+        upper=np.asarray(upper, dtype=np.float64),
+        frozen_axes=frozen,
+        axis_scale=axis_scale,
+        slide_axis=slide_axis,
+        slide_dof=slide_dof,
     )
+
+
+# ---------------------------------------------------------------- export
+
+
+def _fmt(v) -> str:
+    return " ".join(f"{float(x):.17g}" for x in v)
+
+
+def _limit(v: float) -> float:
+    return float(np.clip(v, -UNLIMITED_PRISMATIC, UNLIMITED_PRISMATIC))
+
+
+def skeleton_to_urdf(sk: Skeleton) -> str:
+    """URDF text of `sk`. Link `sk.joint_names[i]` is joint i's frame (position p_i, rotation G_i);
+    URDF joints that move are named after the dofs. A dof driving several slots (a mimic joint of an
+    imported URDF) is written once as the joint that slot has with multiplier 1 and offset 0, and
+    `<mimic>` joints for the others. The base link is "world" (another name if the model uses it)."""
+    used = set(sk.joint_names) | set(sk.dof_names)
+    fresh_names: set[str] = set()
+
+    def fresh(base: str) -> str:
+        k, name = 0, base
+        while name in used or name in fresh_names:
+            k += 1
+            name = f"{base}__{k}"
+        fresh_names.add(name)
+        return name
+
+    # the slot (joint, k) or slide (joint, -1) that owns each dof; the others mimic it
+    owner: dict[int, tuple[int, int]] = {}
+    for i in range(sk.num_joints):
+        if sk.slide_dof[i] >= 0 and np.isclose(np.linalg.norm(sk.slide_axis[i]), 1.0, rtol=0, atol=1e-12):
+            owner.setdefault(int(sk.slide_dof[i]), (i, -1))
+        for k in range(3):
+            d = int(sk.axis_dof[i, k])
+            if d >= 0 and sk.axis_scale[i, k] == 1.0 and sk.frozen_axes[i, k] == 0.0:
+                owner.setdefault(d, (i, k))
+    for d in sorted({int(x) for x in sk.axis_dof[sk.axis_dof >= 0]} | {int(x) for x in sk.slide_dof[sk.slide_dof >= 0]}):
+        if d not in owner:
+            raise InputError(f"skeleton {sk.name!r}: dof {sk.dof_names[d]!r} drives no joint directly "
+                             "(only through a multiplier or offset), which URDF cannot write")
+
+    world = fresh("world")
+    links = [f"  <link name={quoteattr(world)}/>"]
+    joints: list[tuple[int | None, str]] = []  # (dof of a joint that owns one, text)
+
+    def link(name: str) -> None:
+        links.append(f"  <link name={quoteattr(name)}/>")
+
+    def joint(name, kind, parent, child, xyz=(0, 0, 0), rpy=(0, 0, 0), axis=None, lim=None, mimic=None):
+        s = [f"  <joint name={quoteattr(name)} type=\"{kind}\">",
+             f"    <parent link={quoteattr(parent)}/>", f"    <child link={quoteattr(child)}/>",
+             f'    <origin xyz="{_fmt(xyz)}" rpy="{_fmt(rpy)}"/>']
+        if axis is not None:
+            s.append(f'    <axis xyz="{_fmt(axis)}"/>')
+        if lim is not None:
+            s.append(f'    <limit lower="{_limit(lim[0]):.17g}" upper="{_limit(lim[1]):.17g}" effort="1" velocity="1"/>')
+        if mimic is not None:
+            leader, mult, off = mimic
+            s.append(f"    <mimic joint={quoteattr(leader)} multiplier=\"{mult:.17g}\" offset=\"{off:.17g}\"/>")
+        s.append("  </joint>")
+        joints.append((sk.dof_names.index(name) if mimic is None and kind != "fixed" else None, "\n".join(s)))
+
+    def moving(d: int, here: tuple[int, int], scale: float, off: float) -> tuple[str, tuple | None]:
+        """Name and <mimic> of the URDF joint of dof d at slot `here`."""
+        if owner[d] == here:
+            return sk.dof_names[d], None
+        return fresh(f"{sk.dof_names[d]}__mimic"), (sk.dof_names[d], scale, off)
+
+    def lim_of(d: int, kind: str, here: tuple[int, int]):
+        if owner[d] != here:  # a mimic joint's range follows its leader's
+            return (-UNLIMITED_PRISMATIC, UNLIMITED_PRISMATIC) if kind == "prismatic" else None
+        return sk.lower[d], sk.upper[d]
+
+    # joint i as a chain: origin (fixed: the offset u and the rest rotation E), then each slot about
+    # E^T a (G_parent E Rot(E^T a) = G_parent Rot(a) E), the slide, the offset w; the last link is `name`
+    for i, name in enumerate(sk.joint_names):
+        e = sk.rest_rotation[i]
+        steps: list[tuple] = []  # (joint name, kind, keyword arguments)
+        if i == 0:
+            steps.append((fresh(f"{name}__origin"), "fixed", world, dict(xyz=sk.root_position, rpy=matrix_to_euler_np(e))))
+            for k in range(3):
+                d = int(sk.translation_dof[k])
+                if d >= 0:
+                    steps.append((sk.dof_names[d], "prismatic", None, dict(axis=e.T @ np.eye(3)[k],
+                                                                         lim=(sk.lower[d], sk.upper[d]))))
+        else:
+            steps.append((fresh(f"{name}__offset"), "fixed", sk.joint_names[sk.parents[i]],
+                          dict(xyz=sk.lengths[i] * sk.offset_parent[i], rpy=matrix_to_euler_np(e))))
+        for k in range(3):
+            d = int(sk.axis_dof[i, k])
+            ax = e.T @ sk.axes[i, k]
+            if d >= 0:
+                jname, mimic = moving(d, (i, k), float(sk.axis_scale[i, k]), float(sk.frozen_axes[i, k]))
+                lim = lim_of(d, "revolute", (i, k))
+                kind = "revolute" if lim is not None and np.all(np.isfinite(lim)) else "continuous"
+                steps.append((jname, kind, None, dict(axis=ax, lim=lim if kind == "revolute" else None, mimic=mimic)))
+            elif sk.frozen_axes[i, k] != 0.0:
+                r = axis_angle_matrix(torch.as_tensor(ax), torch.tensor(float(sk.frozen_axes[i, k]),
+                                                                         dtype=torch.float64)).numpy()
+                steps.append((fresh(f"{name}__frozen{k}"), "fixed", None, dict(rpy=matrix_to_euler_np(r))))
+        d = int(sk.slide_dof[i])
+        if d >= 0:  # along G_i s
+            s = sk.slide_axis[i]
+            n = float(np.linalg.norm(s))
+            jname, mimic = moving(d, (i, -1), n, 0.0)
+            steps.append((jname, "prismatic", None, dict(axis=s / n if n > 0 else np.eye(3)[0],
+                                                         lim=lim_of(d, "prismatic", (i, -1)), mimic=mimic)))
+        if np.any(sk.offset_local[i]) and sk.lengths[i] != 0.0:
+            steps.append((fresh(f"{name}__end"), "fixed", None, dict(xyz=sk.lengths[i] * sk.offset_local[i])))
+        prev = steps[0][2]
+        for n_step, (jname, kind, parent, kw) in enumerate(steps):
+            child = name if n_step == len(steps) - 1 else fresh(f"{name}__link")
+            link(child)
+            joint(jname, kind, parent if parent is not None else prev, child, **kw)
+            prev = child
+    # the joints that own a dof in dof order (readers number dofs in file order), the others in place
+    slots = [k for k, (d, _) in enumerate(joints) if d is not None]
+    for k, jt in zip(slots, sorted((joints[k] for k in slots), key=lambda jt: jt[0])):
+        joints[k] = jt
+    head = f'<?xml version="1.0"?>\n<robot name={quoteattr(sk.name or "ptrack")} {_BASE_MARK}="false">'
+    return "\n".join([head, *links, *(text for _, text in joints), "</robot>\n"])
