@@ -73,6 +73,16 @@ def run(variant: str, swing: Path, model: Path, out: Path) -> Path:
     return execute(cfg, progress=False)
 
 
+def swing_keys(swing: Path, stride: int) -> list[int]:
+    """The key-posture frames (at the run's stride) found in the swing's ground-truth 3D wrists."""
+    sk = Skeleton.from_asf(asf_for(swing))
+    motion = load_amc(swing, sk)
+    cfg = load_config(REPO / "configs" / "eval_golf.yaml", run=False)
+    with torch.no_grad():
+        keys = detect_key_postures(sk.forward_kinematics(motion.q.double()), sk, motion.fps, cfg.motion, clip=swing.stem)
+    return [int(k) // stride for k in keys]
+
+
 def swing_end(swing: Path, stride: int) -> int:
     """Index (at the run's stride) of the last frame of the swing span: end of follow-through + TAIL_S."""
     sk = Skeleton.from_asf(asf_for(swing))
@@ -124,14 +134,16 @@ def plot(folder: Path, path: Path, n: int = 8) -> None:
     with np.load(folder / "result.npz") as z:
         est, gt, parents = z["joints"], z["gt_joints"], z["parents"]
         K, R, t, size = z["camera_K"], z["camera_R"], z["camera_t"], z["image_size"]
-    stop = min(swing_end(Path(load_config(folder / "config.yaml").data.amc), 4), len(est) - 1)
-    frames = np.linspace(0, stop, n).round().astype(int)
+    keys = swing_keys(Path(load_config(folder / "config.yaml").data.amc), 4)
+    frames = np.linspace(max(keys[0] - 4, 0), min(keys[-1] + 4, len(est) - 1), n).round().astype(int)
 
     def project(x):
         c = x @ R.T + t
         return (c[..., :2] / c[..., 2:]) @ K[:2, :2].T + K[:2, 2]
 
-    fig, axes = plt.subplots(2, n, figsize=(1.6 * n, 3.6), dpi=80)
+    seen = np.concatenate([project(est[frames]), project(gt[frames])], axis=1).reshape(-1, 2)
+    lo, hi = seen.min(0) - 20, seen.max(0) + 20  # the camera view cropped to the golfer
+    fig, axes = plt.subplots(2, n, figsize=(1.5 * n, 4.4), dpi=80)
     for col, f in enumerate(frames):
         for row, fn in ((0, project), (1, lambda x: x[..., [0, 2]])):
             ax = axes[row, col]
@@ -144,13 +156,13 @@ def plot(folder: Path, path: Path, n: int = 8) -> None:
             ax.set_xticks([])
             ax.set_yticks([])
             if row == 0:
-                ax.set_xlim(0, size[0])
-                ax.set_ylim(size[1], 0)
+                ax.set_xlim(lo[0], hi[0])
+                ax.set_ylim(hi[1], lo[1])
                 ax.set_title(f"frame {f}", fontsize=8)
             else:
                 c = gt[f, 0, [0, 2]]
-                ax.set_xlim(c[0] - 1.0, c[0] + 1.0)
-                ax.set_ylim(c[1] - 1.0, c[1] + 1.0)
+                ax.set_xlim(c[0] - 0.7, c[0] + 0.7)
+                ax.set_ylim(c[1] - 0.7, c[1] + 0.7)
     axes[0, 0].set_ylabel("camera", fontsize=8)
     axes[1, 0].set_ylabel("above (X-Z)", fontsize=8)
     fig.suptitle(f"{folder.name}: pca tracker (orange) vs ground truth (green), model without this swing", fontsize=9)
