@@ -81,14 +81,18 @@ def _vector(text: str | None, default, what: str, where: str) -> tuple[float, fl
     return v  # type: ignore[return-value]
 
 
-def _number(el: ET.Element, key: str, default: float, where: str) -> float:
+def _number(el: ET.Element, key: str, default: float, where: str, infinite: bool = False) -> float:
+    """Attribute `key` of `el` as a float (`default` if absent); +-inf only if `infinite`, never NaN."""
     text = el.get(key)
     if text is None:
         return default
     try:
-        return float(text)
+        v = float(text)
     except ValueError:
-        raise InputError(f"{where}: {key}={text!r} is not a number") from None
+        v = math.nan
+    if math.isnan(v) or (math.isinf(v) and not infinite):
+        raise InputError(f"{where}: {key}={text!r} is not a {'' if infinite else 'finite '}number")
+    return v
 
 
 _XML_DECLARATION = re.compile(r"<\?xml\s[^>]*\?>")
@@ -153,7 +157,7 @@ def parse_urdf(text: str, source: str = "<string>") -> UrdfModel:
             axis = tuple(a / n for a in axis)
             lim = el.find("limit")
             if lim is not None:
-                lower, upper = _number(lim, "lower", 0.0, where), _number(lim, "upper", 0.0, where)
+                lower, upper = _number(lim, "lower", 0.0, where, True), _number(lim, "upper", 0.0, where, True)
                 if lower > upper:  # pybullet's way of writing an unlimited joint
                     lower, upper = -math.inf, math.inf
         elif kind == "continuous":
@@ -431,15 +435,16 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
         e = sk.rest_rotation[i]
         steps: list[tuple] = []  # (joint name, kind, keyword arguments)
         if i == 0:
-            steps.append((fresh(f"{name}__origin"), "fixed", world, dict(xyz=sk.root_position, rpy=matrix_to_euler_np(e))))
+            steps.append((fresh(f"{name}__origin"), "fixed", world,
+                          {"xyz": sk.root_position, "rpy": matrix_to_euler_np(e)}))
             for k in range(3):
                 d = int(sk.translation_dof[k])
                 if d >= 0:
-                    steps.append((sk.dof_names[d], "prismatic", None, dict(axis=e.T @ np.eye(3)[k],
-                                                                         lim=(sk.lower[d], sk.upper[d]))))
+                    steps.append((sk.dof_names[d], "prismatic", None,
+                                  {"axis": e.T @ np.eye(3)[k], "lim": (sk.lower[d], sk.upper[d])}))
         else:
             steps.append((fresh(f"{name}__offset"), "fixed", sk.joint_names[sk.parents[i]],
-                          dict(xyz=sk.lengths[i] * sk.offset_parent[i], rpy=matrix_to_euler_np(e))))
+                          {"xyz": sk.lengths[i] * sk.offset_parent[i], "rpy": matrix_to_euler_np(e)}))
         for k in range(3):
             d = int(sk.axis_dof[i, k])
             ax = e.T @ sk.axes[i, k]
@@ -447,20 +452,20 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
                 jname, mimic = moving(d, (i, k), float(sk.axis_scale[i, k]), float(sk.frozen_axes[i, k]))
                 lim = lim_of(d, "revolute", (i, k))
                 kind = "revolute" if lim is not None and np.all(np.isfinite(lim)) else "continuous"
-                steps.append((jname, kind, None, dict(axis=ax, lim=lim if kind == "revolute" else None, mimic=mimic)))
+                steps.append((jname, kind, None, {"axis": ax, "lim": lim if kind == "revolute" else None, "mimic": mimic}))
             elif sk.frozen_axes[i, k] != 0.0:
                 r = axis_angle_matrix(torch.as_tensor(ax), torch.tensor(float(sk.frozen_axes[i, k]),
                                                                          dtype=torch.float64)).numpy()
-                steps.append((fresh(f"{name}__frozen{k}"), "fixed", None, dict(rpy=matrix_to_euler_np(r))))
+                steps.append((fresh(f"{name}__frozen{k}"), "fixed", None, {"rpy": matrix_to_euler_np(r)}))
         d = int(sk.slide_dof[i])
         if d >= 0:  # along G_i s
             s = sk.slide_axis[i]
             n = float(np.linalg.norm(s))
             jname, mimic = moving(d, (i, -1), n, 0.0)
-            steps.append((jname, "prismatic", None, dict(axis=s / n if n > 0 else np.eye(3)[0],
-                                                         lim=lim_of(d, "prismatic", (i, -1)), mimic=mimic)))
+            steps.append((jname, "prismatic", None, {"axis": s / n if n > 0 else np.eye(3)[0],
+                                                     "lim": lim_of(d, "prismatic", (i, -1)), "mimic": mimic}))
         if np.any(sk.offset_local[i]) and sk.lengths[i] != 0.0:
-            steps.append((fresh(f"{name}__end"), "fixed", None, dict(xyz=sk.lengths[i] * sk.offset_local[i])))
+            steps.append((fresh(f"{name}__end"), "fixed", None, {"xyz": sk.lengths[i] * sk.offset_local[i]}))
         prev = steps[0][2]
         for n_step, (jname, kind, parent, kw) in enumerate(steps):
             child = name if n_step == len(steps) - 1 else fresh(f"{name}__link")

@@ -16,9 +16,14 @@ import torch
 
 from ptrack.errors import InputError
 from ptrack.kinematics import forward_kinematics
-from ptrack.skeleton import Skeleton
 from ptrack.rotations import euler_matrix_np
-from ptrack.urdf import UNLIMITED_PRISMATIC, parse_urdf, skeleton_from_urdf, skeleton_to_urdf
+from ptrack.skeleton import Skeleton
+from ptrack.urdf import (
+    UNLIMITED_PRISMATIC,
+    parse_urdf,
+    skeleton_from_urdf,
+    skeleton_to_urdf,
+)
 
 try:
     import yourdfpy
@@ -529,7 +534,8 @@ def test_export_at_pitch_half_pi(tmp_path, pitch):
 MIMIC = (_joint("lead", "revolute", "base", "l1", xyz="0 0 0.1", axis="0 0 1",
                 extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>')
          + _joint("follow", "revolute", "base", "f1", xyz="0.1 0 0", axis="0 1 0",
-                  extra='<limit lower="-3" upper="3" effort="1" velocity="1"/><mimic joint="lead" multiplier="-2" offset="0.3"/>')
+                  extra='<limit lower="-3" upper="3" effort="1" velocity="1"/>'
+                        '<mimic joint="lead" multiplier="-2" offset="0.3"/>')
          + _joint("follow2", "continuous", "f1", "f2", xyz="0.1 0 0", axis="1 0 0",
                   extra='<mimic joint="lead" multiplier="0.5" offset="-0.1"/>')
          + _joint("grip", "prismatic", "l1", "g1", xyz="0 0.05 0", axis="0 1 0",
@@ -554,8 +560,10 @@ def test_a_chain_of_mimics(tmp_path):
     """c mimics b, which mimics a: q_c = 0.5 (-2 q_a + 0.3) - 0.1 (yourdfpy would hold c at its offset)."""
     lim = '<limit lower="-3" upper="3" effort="1" velocity="1"/>'
     text = _robot(_joint("a", "revolute", "l0", "l1", axis="0 0 1", extra=lim),
-                  _joint("b", "revolute", "l1", "l2", axis="0 0 1", extra=lim + '<mimic joint="a" multiplier="-2" offset="0.3"/>'),
-                  _joint("c", "revolute", "l2", "l3", axis="0 0 1", extra=lim + '<mimic joint="b" multiplier="0.5" offset="-0.1"/>'))
+                  _joint("b", "revolute", "l1", "l2", axis="0 0 1",
+                         extra=lim + '<mimic joint="a" multiplier="-2" offset="0.3"/>'),
+                  _joint("c", "revolute", "l2", "l3", axis="0 0 1",
+                         extra=lim + '<mimic joint="b" multiplier="0.5" offset="-0.1"/>'))
     m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
     assert m.dof_names == ("a",)
     r = m.forward_kinematics(torch.tensor([0.4], dtype=torch.float64), rotations=True)[1]
@@ -584,7 +592,8 @@ def test_mimic_roundtrip_and_gradients(tmp_path):
     ('<mimic joint="fixed_one"/>', "fixed joint"),
 ])
 def test_bad_mimic(tmp_path, extra, match):
-    text = _robot(_joint("a_to_b", "revolute", "a", "b", extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>' + extra),
+    lim = '<limit lower="-1" upper="1" effort="1" velocity="1"/>'
+    text = _robot(_joint("a_to_b", "revolute", "a", "b", extra=lim + extra),
                   _joint("b_to_c", "revolute", "b", "c",
                          extra='<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="a_to_b"/>'),
                   _joint("fixed_one", "fixed", "c", "d"))
@@ -666,6 +675,7 @@ def test_model_without_dofs(tmp_path):
     q = torch.zeros(4, 0, dtype=torch.float64, requires_grad=True)
     j, r = m.forward_kinematics(q, rotations=True)
     assert j.shape == (4, 2, 3) and j[0, 1].tolist() == [1.0, 0.0, 0.0]
+    assert r.shape == (4, 2, 3, 3)
     m.forward_kinematics(q).sum().backward()
     assert q.grad.shape == (4, 0)
     back = Skeleton.from_urdf(_write(tmp_path, m.to_urdf(), "back.urdf"))
@@ -719,3 +729,62 @@ def test_geometric_jacobian_refuses_slides_and_mimics(tmp_path):
         m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
         with pytest.raises(InputError, match="geometric Jacobian"):
             joint_jacobian(m, torch.zeros(m.num_dofs, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("extra,match", [
+    ('<limit lower="nan" upper="1" effort="1" velocity="1"/>', "lower='nan'"),
+    ('<limit lower="-1" upper="x" effort="1" velocity="1"/>', "upper='x'"),
+    ('<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="a_to_b" multiplier="inf"/>', "multiplier='inf'"),
+])
+def test_numbers_that_are_not(tmp_path, extra, match):
+    text = _robot(_joint("a_to_b", "revolute", "a", "b", extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>'),
+                  _joint("b_to_c", "revolute", "b", "c", extra=extra))
+    with pytest.raises(InputError, match=match):
+        Skeleton.from_urdf(_write(tmp_path, text))
+
+
+def test_infinite_limits_are_unlimited(tmp_path):
+    text = _robot(_joint("j", "prismatic", "a", "b", extra='<limit lower="-inf" upper="inf" effort="1" velocity="1"/>'))
+    m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
+    assert m.lower.tolist() == [-math.inf] and m.upper.tolist() == [math.inf]
+
+
+try:
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+except ImportError:  # a test dependency; without it only the fuzz test below is skipped
+    st = None
+
+_FUZZ_BASE = (CORPUS_DIR / "example_robot_data" / "panda_description" / "panda.urdf").read_text()
+_FUZZ_VALUES = ["nan", "inf", "-inf", "", "1 2", "0 0 0 0", "1e400", "-0", "x", "1 -1", "0 0 0", "world",
+                "panda_link0", "panda_finger_joint1", "revolute", "prismatic", "continuous", "fixed", "floating"]
+
+
+if st is None:
+    @pytest.mark.skip(reason="hypothesis is not installed (pip install -e '.[test]')")
+    def test_fuzzed_urdf_loads_or_raises_input_error():
+        pass
+else:
+    @settings(max_examples=60, deadline=None, derandomize=True, database=None,
+              suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+    @given(edits=st.lists(st.tuples(st.integers(0, 10_000), st.sampled_from(_FUZZ_VALUES)), min_size=1, max_size=4),
+           cut=st.one_of(st.none(), st.tuples(st.integers(0, len(_FUZZ_BASE)), st.integers(0, 60))))
+    def test_fuzzed_urdf_loads_or_raises_input_error(tmp_path, edits, cut):
+        """Panda's URDF with attribute values replaced (and a slice cut out): it loads, with finite FK
+        and limits that are numbers, or raises InputError; never another exception."""
+        import re
+
+        text = _FUZZ_BASE
+        for k, value in edits:
+            attrs = list(re.finditer(r'="([^"]*)"', text))
+            m = attrs[k % len(attrs)]
+            text = text[:m.start(1)] + value + text[m.end(1):]
+        if cut is not None:
+            text = text[:cut[0]] + text[cut[0] + cut[1]:]
+        try:
+            sk = Skeleton.from_urdf(_write(tmp_path, text, "fuzz.urdf"))
+        except InputError:
+            return
+        assert not np.any(np.isnan(sk.lower)) and not np.any(np.isnan(sk.upper))
+        assert torch.isfinite(sk.forward_kinematics(torch.zeros(sk.num_dofs, dtype=torch.float64))).all()
+        assert isinstance(sk.to_urdf(), str)
