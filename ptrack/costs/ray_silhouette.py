@@ -87,27 +87,21 @@ def ray_capsule_distance(origin: Tensor, directions: Tensor, a: Tensor, b: Tenso
     de = directions @ e.mT  # (..., S, B)
     da = directions @ a0.mT
     tiny = torch.finfo(a.dtype).tiny
-    # candidates (s, u): interior of the (s >= 0, 0 <= u <= 1) domain, and its three edges
+    # closest points by clamping (Ericson, Real-Time Collision Detection 5.1.9, a ray for the first segment):
+    # u of the lines' closest points clamped into [0, 1], s the ray's best for that u; where s < 0, s = 0
+    # and u the segment's point nearest the camera centre. Exact for this convex problem.
     den = ee - de * de
-    ok = den > 1e-9 * ee
-    u_in = (de * da - ea) / torch.where(ok, den, torch.ones_like(den))
-    s_in = da + u_in * de
-    ok = ok & (u_in >= 0) & (u_in <= 1) & (s_in >= 0)
-    shape = u_in.shape  # (..., S, B)
-    zero, one = torch.zeros(shape, dtype=a.dtype, device=a.device), torch.ones(shape, dtype=a.dtype, device=a.device)
-    u_edge = (-ea / ee.clamp_min(tiny)).clamp(0, 1).expand(shape)  # s = 0: nearest to the camera centre
-    cands_u = torch.stack([u_in, zero, one, u_edge], dim=-1)
-    cands_s = torch.stack([s_in, da.clamp_min(0).expand(shape), (da + de).clamp_min(0), zero], dim=-1)
-    # |s d - a0 - u e|^2 = s^2 + |a0|^2 + u^2 |e|^2 - 2 s d.a0 + 2 u e.a0 - 2 s u d.e for each candidate
-    cs, cu = cands_s, cands_u
-    sq = cs * (cs - 2 * da[..., None] - 2 * cu * de[..., None]) + aa[..., None] \
-        + cu * (cu * ee[..., None] + 2 * ea[..., None])
-    sq = torch.cat([torch.where(ok, sq[..., 0], math.inf)[..., None], sq[..., 1:]], dim=-1)  # interior if inside
-    best_sq, which = sq.min(-1)  # (..., S, B)
-    dist, bone = (best_sq.clamp_min(0).sqrt() - radii.to(a)).min(-1)  # (..., S)
-    pick = which.gather(-1, bone[..., None])  # (..., S, 1): the candidate of the nearest bone
-    u = cands_u.gather(-2, bone[..., None, None].expand(*bone.shape, 1, 4))[..., 0, :].gather(-1, pick)[..., 0]
-    s_ = cands_s.gather(-2, bone[..., None, None].expand(*bone.shape, 1, 4))[..., 0, :].gather(-1, pick)[..., 0]
+    par = den <= 1e-9 * ee  # parallel: any u gives the same distance to the line, take u = 0
+    u = torch.where(par, 0.0, (de * da - ea) / torch.where(par, 1.0, den)).clamp(0, 1)
+    s = da + u * de
+    behind = s < 0
+    u = torch.where(behind, (-ea / ee.clamp_min(tiny)).clamp(0, 1), u)
+    s = s.clamp_min(0)
+    # |s d - a0 - u e|^2 = s^2 + |a0|^2 + u^2 |e|^2 - 2 s d.a0 + 2 u e.a0 - 2 s u d.e
+    sq = s * (s - 2 * da - 2 * u * de) + aa + u * (u * ee + 2 * ea)
+    dist, bone = (sq.clamp_min(0).sqrt() - radii.to(a)).min(-1)  # (..., S)
+    u = u.gather(-1, bone[..., None])[..., 0]
+    s_ = s.gather(-1, bone[..., None])[..., 0]
     a_n = a0.gather(-2, bone[..., None].expand(*bone.shape, 3)) if a.ndim > 2 else a0[bone]
     e_n = e.gather(-2, bone[..., None].expand(*bone.shape, 3)) if a.ndim > 2 else e[bone]
     n = s_[..., None] * directions - a_n - u[..., None] * e_n  # (..., S, 3) from the segment to the ray
