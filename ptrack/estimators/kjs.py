@@ -23,9 +23,12 @@ from frame t-1's modes to frame t's:
    each with the covariance scale * (Gauss-Newton Hessian)^-1 for the next frame's diffusion.
 
 The polishing objective holds robust reprojection, joint limits, body non-self-intersection, the
-dynamics (a Gaussian around each mode's prediction, std `kjs.prior_sigma` widened per dof by
-`kjs.motion_scale` times the mode's last motion) and a weak CMU pose prior (`kjs.pose_prior_weight`,
-`ptrack.pose_prior`).
+dynamics (a prior around each mode's prediction, std `kjs.prior_sigma` widened per dof by
+`kjs.motion_scale` times the mode's last motion, Gaussian within `kjs.prior_tail_scale` std and
+heavy-tailed beyond (`kjs.prior_tail`, cauchy: the paper's long-tailed components), so a limb
+flipped far from the prediction remains a minimum of comparable cost) and a weak CMU pose prior
+(`kjs.pose_prior_weight`, `ptrack.pose_prior`). Limits, priors and collision are folded into the
+normal equations rather than stacked as residual rows (`ptrack.costs.Objective.linearize`).
 
 Frame 0 starts from a 3D keyframe (`kjs.init: keyframe`), or, with no 3D input (`init: tree`), from
 the rest pose placed in view under `kjs.init_yaws` headings (each also leaned forward and back),
