@@ -2,22 +2,28 @@
 
 The motion model (`ptrack.motion_model`) gives every joint angle but the root's as a function of the
 PCA weights alpha (m,) and a normalised time mu in [0, 1] (eq. 2). The tracker fits it over sliding
-windows of f frames (`pca.window`, sliding one frame at a time); the state of a window is (eq. 5)
+windows of f frames (`pca.window`, slid by `pca.step`, default one frame); the state of a window is (eq. 5)
 
     S = [alpha_1 .. alpha_m, mu_1 .. mu_f, G_1 .. G_f]     (m + 7 f parameters)
 
-with alpha shared by the window and, per frame, a normalised time and the root pose G_t (translation
-and the root's three Euler angles, which the model leaves out). Its energy (eq. 7) is
+with alpha shared by the window and, per frame, a normalised time and the root pose G_t (translation,
+and a rotation vector w_t turning the frame's predicted root rotation: R_t = exp(w_t) R^_t; the root,
+which the model leaves out, is not parametrised by the skeleton's Euler angles because CMU subject 64
+stands near their singularity). Its energy (eq. 7) is
 
     w_joint  sum rho(|proj(joint) - observed|^2 / sigma_px^2)   tracked joints (knees, ankles, wrists, head)
     + w_fg   sum (ray-to-model distance / sigma_m)^2             foreground samples (section 4.1,
                                                                  `ptrack.costs.ray_silhouette`)
     + |(G - G^) / sigma_G|^2 + |(mu - mu^) / sigma_mu|^2 + |(alpha - alpha^) / (s sigma_alpha)|^2
-    + w_prior |alpha / sigma_alpha|^2
+    + w_prior |alpha / sigma_alpha|^2 + |(mu - mu_0) / sigma_timing|^2
 
 where the predictions ^ are the previous window's trajectory continued at its last speed (the frames
 the window shares with the previous one keep their previous values as prediction), alpha^ the previous
-window's weights, and sigma_alpha the spread of the training swings' weights (the model's `sigma`).
+window's weights, sigma_alpha the spread of the training swings' weights (the model's `sigma`), and
+mu_0 the start's timing (below; `pca.timing_sigma`, null drops it). Beyond the paper's eq. 7, which has
+none of them, time never runs backwards (each window's times are bounded below by the time of the frame
+that last left a window), the weights are boxed in `pca.alpha_bound` training stds, and the timing prior
+is there: without it the tracker read a held-out downswing as the backswing reversed (docs/results.md).
 Each window is one Levenberg-Marquardt solve of `ptrack.solvers` with a closed-form Jacobian: the
 decoder is linear in alpha and piecewise linear in mu, the joints' Jacobian is the geometric one
 (`ptrack.jacobians.joint_jacobian`), the projections' is the camera's, and the silhouette term's comes
