@@ -48,6 +48,7 @@ from typing import Callable, Iterable
 import torch
 from torch import Tensor
 
+from ptrack.banded import one_thread
 from ptrack.costs import HeavyTailedPrior, JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators.frame import rest_pose_in_view
@@ -432,7 +433,16 @@ def principal_directions(sk, q: Tensor, chol: Tensor, scale: float) -> Tensor:
 
 def track(problem: Problem, cfg, generator: torch.Generator, strategy: Strategy,
           progress: Callable[[Iterable], Iterable] = lambda x: x) -> Estimate:
-    """Run the tracker `strategy` over every frame of `problem` (see the module docstring)."""
+    """Run the tracker `strategy` over every frame of `problem` (see the module docstring), on one
+    intra-op thread (`ptrack.banded.one_thread`): its products are small batched ones, and
+    `scripts/bench_kjs.py` measured 6.1 fps on one thread and on two on an idle 2-core machine, but
+    0.7 fps on two threads when another job held a core."""
+    with one_thread():
+        return _track(problem, cfg, generator, strategy, progress)
+
+
+def _track(problem: Problem, cfg, generator: torch.Generator, strategy: Strategy,
+           progress: Callable[[Iterable], Iterable]) -> Estimate:
     s = _setup(problem, cfg, strategy)
     sk, obs = problem.skeleton, problem.observations
     k = cfg.kjs
