@@ -69,8 +69,24 @@ import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
-from ptrack.jumps import (Chain, Product, _aos, _flatten_bits, _sconst, _scross, _sdot, _seye, _smin_rotation,
-                          _smm, _smv, _snorm, _soa, _st, _sunit, path_below)
+from ptrack.jumps import (
+    Chain,
+    Product,
+    _aos,
+    _flatten_bits,
+    _sconst,
+    _scross,
+    _sdot,
+    _seye,
+    _smin_rotation,
+    _smm,
+    _smv,
+    _snorm,
+    _soa,
+    _st,
+    _sunit,
+    path_below,
+)
 from ptrack.limits import TAU
 from ptrack.skeleton import Skeleton
 from ptrack.solvers import levenberg_marquardt
@@ -765,7 +781,7 @@ def chain_ik(plan: ChainIK, q: Tensor, positions: Tensor, mode: str = "prune", t
         raise InputError(f"chain_ik: positions must be (..., L, {n1}, 3) with q's batch dims "
                          f"{tuple(q.shape[:-1])} for chain {chain.name!r}, got "
                          f"{tuple(getattr(positions, 'shape', ()))}")
-    batch, leaves = q.shape[:-1], positions.shape[-3]
+    leaves = positions.shape[-3]
     tc = _tensors(plan, q.dtype, q.device)
     qf = q.reshape(-1, sk.num_dofs)
     qs = qf.index_select(1, tc["used"]).T.contiguous()  # (D', B): the dofs IK reads
@@ -859,5 +875,13 @@ def product_ik(q: Tensor, results: list[IKResult], prod: Product) -> IKResult:
                     start=q, positions=positions.flatten(start, start + nb - 1), **flags)
 
 
-__all__ = ["ChainIK", "ClosedFormUnavailable", "IKResult", "MODES", "chain_ik", "euler_zyx_solutions",
-           "ik_plan", "product_ik"]
+__all__ = [
+    "MODES",
+    "ChainIK",
+    "ClosedFormUnavailable",
+    "IKResult",
+    "chain_ik",
+    "euler_zyx_solutions",
+    "ik_plan",
+    "product_ik",
+]

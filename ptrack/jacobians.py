@@ -37,7 +37,7 @@ column is one backward pass per output row.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import Tensor

@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 from typing import NamedTuple
 
 import torch
@@ -118,7 +119,7 @@ def make_chain(sk: Skeleton, joint_names: Sequence[str], name: str | None = None
     if missing:
         raise InputError(f"chain {label!r}: skeleton {sk.name!r} has no joint {missing[0]!r}")
     idx = tuple(sk.joint_names.index(n) for n in names)
-    for (a, b), (na, nb) in zip(zip(idx[:-1], idx[1:]), zip(names[:-1], names[1:])):
+    for (a, b), (na, nb) in zip(pairwise(idx), pairwise(names)):
         if not _is_descendant(sk, b, a):
             raise InputError(f"chain {label!r}: {nb!r} is not below {na!r} in skeleton {sk.name!r}; "
                              "each joint must be a descendant of the previous one")

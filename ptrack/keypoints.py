@@ -7,8 +7,8 @@ is a bone's end point, so e.g. the knee is the end of the femur). Any model can 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import torch
 from torch import Tensor

@@ -71,7 +71,7 @@ def read_limits_file(path: str | Path | None = None) -> dict[str, tuple[float, f
     return out
 
 
-def with_limits(sk: "Skeleton", source: str, path: str | Path | None = None) -> "Skeleton":
+def with_limits(sk: Skeleton, source: str, path: str | Path | None = None) -> Skeleton:
     """`sk` with the joint limits of `source` ("data", "asf" or "none"); see the module docstring.
 
     For "data", dofs named in the file get its bounds and the others keep `sk`'s own; `path`

@@ -25,9 +25,10 @@ from __future__ import annotations
 import json
 import math
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -36,7 +37,6 @@ from torch import Tensor
 from ptrack.camera import Camera
 from ptrack.checks import as_float_tensor
 from ptrack.errors import InputError
-
 
 
 @dataclass(frozen=True, eq=False)

@@ -57,7 +57,7 @@ def read_pose_prior(path: str | Path | None = None) -> dict[str, tuple[float, fl
     return out
 
 
-def pose_prior(sk: "Skeleton", lower: Tensor, upper: Tensor, angular: Tensor,
+def pose_prior(sk: Skeleton, lower: Tensor, upper: Tensor, angular: Tensor,
                path: str | Path | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """The prior of `sk`'s dofs: -> mean (D,) radians (wrapped into the limits' windows), std (D,),
     known (D,) bool (dofs the file names; the others get mean 0, std 0). dtype and device follow

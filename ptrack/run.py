@@ -24,10 +24,10 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 import torch
@@ -38,9 +38,9 @@ from ptrack.config import RunConfig, dump_yaml
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators import ESTIMATORS
 from ptrack.export import write_bvh
+from ptrack.keyframes import ground_truth_keyframes, read_keyframes
 from ptrack.keypoints import make_keypoints
 from ptrack.observations import ChannelConfig, Observations, simulate_observations
-from ptrack.keyframes import ground_truth_keyframes, read_keyframes
 from ptrack.problem import Estimate, Problem
 from ptrack.silhouette import capsule_radii, render_silhouettes
 from ptrack.skeleton import Motion, Skeleton, load_amc

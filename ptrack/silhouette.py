@@ -9,7 +9,7 @@ and segment parameters, minimised over the interior and the four edges of its do
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor

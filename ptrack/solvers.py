@@ -29,12 +29,16 @@ objective, and any `q (N, D) -> energy (N,)` made of torch ops serves L-BFGS.
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
+
+if TYPE_CHECKING:
+    from ptrack.banded import BlockBanded
 
 
 class Linearization(NamedTuple):
@@ -437,7 +441,7 @@ class BandedLinearization(NamedTuple):
     objective lowered (with IRLS weights W, g is its gradient). The caller forms H and g blockwise
     (per-frame terms on the diagonal, temporal terms on the band), never the stacked J."""
 
-    hessian: "BlockBanded"
+    hessian: BlockBanded
     gradient: Tensor
     energy: Tensor
 
@@ -455,7 +459,7 @@ class BandedLMInfo(NamedTuple):
     converged: Tensor
     cost: Tensor
     history: Tensor
-    hessian: "BlockBanded"
+    hessian: BlockBanded
     gradient: Tensor
     damping: Tensor
     evaluations: int
@@ -580,7 +584,8 @@ def banded_levenberg_marquardt(linearize: Callable[[Tensor], BandedLinearization
         nu = torch.where(accept, torch.full_like(nu, 2.0), torch.where(active, nu * 2, nu))
         q = _where(accept, trial, q)
         lin = BandedLinearization(_band_select(accept, new.hessian, lin.hessian),
-                                  _where(accept, new.gradient, lin.gradient), torch.where(accept, new.energy, lin.energy))
+                                  _where(accept, new.gradient, lin.gradient),
+                                  torch.where(accept, new.energy, lin.energy))
         # the model itself promises nothing more (a step the box cut into a non-descent one does not count)
         no_gain = (predicted >= 0) & (predicted <= tol * lin.energy)
         stop = active & ok & (small_drop | tiny_step | (~accept & no_gain))

@@ -30,13 +30,13 @@ import platform
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable
-
-import torch
 
 import pytorch_kinematics as pk
+import torch
+
 from ptrack.skeleton import Skeleton
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

@@ -34,8 +34,8 @@ import argparse
 import math
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import torch
 
@@ -118,7 +118,7 @@ def bench_batched_vs_sequential(sk, cam, kps, obj, q0, lo, hi, sequential: int, 
     n = q0.shape[0]
     lin = objective_linearization(sk, obj, cam, kps)
     settings = dict(max_iter=30)
-    t_batch, (q_b, info_b) = median_time(lambda: levenberg_marquardt(lin, q0, lo, hi, **settings), repeats)
+    t_batch, (_q_b, info_b) = median_time(lambda: levenberg_marquardt(lin, q0, lo, hi, **settings), repeats)
     k = min(sequential, n)
 
     def one_by_one():

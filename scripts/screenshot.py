@@ -17,6 +17,7 @@ Exit status: 0 written, 2 bad arguments (missing recording), 1 the viewer failed
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import shutil
 import signal
@@ -50,10 +51,8 @@ def stop(viewer: subprocess.Popen) -> None:
         os.killpg(viewer.pid, signal.SIGTERM)
     except ProcessLookupError:
         return
-    try:
+    with contextlib.suppress(subprocess.TimeoutExpired):
         viewer.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        pass
     deadline = time.monotonic() + 10
     while time.monotonic() < deadline:
         try:
@@ -61,10 +60,8 @@ def stop(viewer: subprocess.Popen) -> None:
         except ProcessLookupError:
             return
         time.sleep(0.1)
-    try:
+    with contextlib.suppress(ProcessLookupError):
         os.killpg(viewer.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
     viewer.wait()
 
 

@@ -178,7 +178,8 @@ def main():
         st = s.stats(q_raw, q_opt, c_raw, info.cost, args.distinct_deg)
         st.update(label=label, n=q_raw.shape[0], note=note, seconds=time.time() - t0)
         rows.append(st)
-        print(f"{label:28s} n={st['n']:5d} minima={st['minima']:5d}/{st['minima3d']:5d} dist {st['dist_raw']:.3f}/{st['dist_opt']:.3f}"
+        print(f"{label:28s} n={st['n']:5d} minima={st['minima']:5d}/{st['minima3d']:5d}"
+              f" dist {st['dist_raw']:.3f}/{st['dist_opt']:.3f}"
               f" std {st['std_raw']:.2f}/{st['std_opt']:.2f} cost {st['cost_raw']:.3g}/{st['cost_opt']:.3g}"
               f" ({st['seconds']:.0f} s)", flush=True)
     write(args, s, rows, time.time() - t_start)
@@ -228,15 +229,17 @@ def write(args, s, rows, seconds):
         "start's own minimum. Distinct minima (3D): the same on the 17 keypoints' 3D positions, no coordinate "
         "more than 5 cm apart, excluding the start's. Distances: Euclidean norm of "
         "q - q_start over all dofs (radians, root position in metres); std: Mahalanobis distance under the "
-        "unscaled covariance H^-1 (std <= 30 deg per direction; sampling uses the same ceiling after scaling, as the trackers do). Raw = before optimisation, over all samples; opt = over the 3D-distinct minima "
+        "unscaled covariance H^-1 (std <= 30 deg per direction; sampling uses the same ceiling after scaling, "
+        "as the trackers do). Raw = before optimisation, over all samples; opt = over the 3D-distinct minima "
         "found. Costs: medians over all samples (raw, opt) and over the 3D-distinct minima. Histograms: values "
         "above each method's 95th percentile are counted at it.",
         "",
-        "| method | samples | distinct minima (q / 3D) | median dist raw / opt | median std raw / opt | median cost raw | "
-        "median cost opt (all / minima) | note |",
+        "| method | samples | distinct minima (q / 3D) | median dist raw / opt | median std raw / opt "
+        "| median cost raw | median cost opt (all / minima) | note |",
         "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['label']} | {r['n']} | {r['minima']} / {r['minima3d']} | {r['dist_raw']:.3f} / {r['dist_opt']:.3f} | "
+        lines.append(f"| {r['label']} | {r['n']} | {r['minima']} / {r['minima3d']} "
+                     f"| {r['dist_raw']:.3f} / {r['dist_opt']:.3f} | "
                      f"{r['std_raw']:.2f} / {r['std_opt']:.2f} | {r['cost_raw']:.3g} | "
                      f"{r['cost_opt']:.3g} / {r['cost_minima']:.3g} | {r['note']} |")
     lines += ["", "![histograms](table1_hist.png)" if png else

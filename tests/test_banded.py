@@ -114,7 +114,7 @@ def test_float32_and_shapes_follow_inputs():
 def test_single_frame_and_short_sequences():
     for t_len in (1, 2):
         a = random_banded(1, t_len, 3, 2, True)
-        factor, ok = bd.factorize(a)
+        factor, _ok = bd.factorize(a)
         b = torch.randn(1, t_len, 3, dtype=F64)
         x = bd.solve(factor, b)
         assert torch.allclose(bd.to_dense(a) @ x.flatten(-2)[..., None], b.flatten(-2)[..., None], atol=1e-12)

@@ -76,7 +76,8 @@ def test_run_success(tmp_path, capsys):
     assert metrics == json.loads((out / "metrics.json").read_text())
     assert metrics["frames"] == 12 and metrics["mpjpe_mm"] > 0
     assert "Traceback" not in captured.err and "error" not in captured.err
-    assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "metrics.json", "result.bvh", "result.npz", "run.rrd"]
+    assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "metrics.json", "result.bvh", "result.npz",
+                                                     "run.rrd"]
 
 
 def test_run_from_observation_file(tmp_path, capsys, obs_arrays):
@@ -439,7 +440,8 @@ def test_closed_stdout_is_not_a_traceback(tmp_path):
 
 def test_help_and_version_do_not_load_torch(tmp_path):
     code = ("import sys\nfrom ptrack.cli import main\n"
-            "for argv in (['--help'], ['--version'], ['run', '--help'], ['evaluate', '--help'], ['replay', '--help']):\n"
+            "for argv in (['--help'], ['--version'], ['run', '--help'], ['evaluate', '--help'],"
+            " ['replay', '--help']):\n"
             "    try:\n        main(argv)\n    except SystemExit as e:\n        assert e.code == 0, (argv, e.code)\n"
             "import ptrack\nprint(sorted(m for m in ('torch', 'numpy', 'yaml', 'rerun') if m in sys.modules))")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)

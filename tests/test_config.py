@@ -10,7 +10,13 @@ import pytest
 import yaml
 
 from ptrack.config import (
-    CameraConfig, DataConfig, ObservationsConfig, RunConfig, dump_yaml, load_config, parse_override,
+    CameraConfig,
+    DataConfig,
+    ObservationsConfig,
+    RunConfig,
+    dump_yaml,
+    load_config,
+    parse_override,
     to_dict,
 )
 from ptrack.errors import InputError
@@ -266,26 +272,26 @@ def test_stop_equal_to_start_is_refused():
 
 
 def test_missing_file(tmp_path):
-    with pytest.raises(FileNotFoundError, match="nothere.yaml"):
+    with pytest.raises(FileNotFoundError, match=r"nothere\.yaml"):
         load_config(tmp_path / "nothere.yaml")
 
 
 def test_invalid_yaml_names_the_file(tmp_path):
     path = _write(tmp_path / "broken.yaml", "data: {asf: [1, 2\n  amc: x\n")
-    with pytest.raises(InputError, match="broken.yaml"):
+    with pytest.raises(InputError, match=r"broken\.yaml"):
         load_config(path)
 
 
 def test_yaml_list_is_refused(tmp_path):
     path = _write(tmp_path / "list.yaml", "- seed: 1\n- method: frame\n")
-    with pytest.raises(InputError, match="list.yaml.*mapping"):
+    with pytest.raises(InputError, match=r"list\.yaml.*mapping"):
         load_config(path)
 
 
 def test_non_utf8_yaml_is_refused(tmp_path):
     path = tmp_path / "bin.yaml"
     path.write_bytes(b"seed: \xff\xfe\x00\x01\n")
-    with pytest.raises(InputError, match="bin.yaml"):
+    with pytest.raises(InputError, match=r"bin\.yaml"):
         load_config(path)
 
 

@@ -37,7 +37,7 @@ def _autograd(sk, kps, cam, objective, q):
 
 
 def test_camera_projection_jacobian(scene):
-    sk, q, kps, cam = scene
+    sk, q, _kps, cam = scene
     X = sk.forward_kinematics(q)
     proj, d = cam.project_jacobian(X)
     torch.testing.assert_close(proj.pixels, cam.project(X).pixels)

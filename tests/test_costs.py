@@ -235,7 +235,7 @@ def test_joint_limits_input_errors():
         JointLimits(torch.zeros(2), torch.ones(3))
     with pytest.raises(InputError, match="sigma"):
         JointLimits(torch.zeros(2), torch.ones(2), sigma=-0.1)
-    with pytest.raises(InputError, match="ev.q"):
+    with pytest.raises(InputError, match=r"ev\.q"):
         JointLimits(torch.zeros(2), torch.ones(2)).energy(ev(q=torch.zeros(4, 3)))
 
 

@@ -118,7 +118,7 @@ def test_progress_false_in_config_is_respected(tmp_path, capsys):
 
 def test_missing_clip(tmp_path, capsys):
     out = tmp_path / "eval"
-    with pytest.raises(FileNotFoundError, match="nope.amc"):
+    with pytest.raises(FileNotFoundError, match=r"nope\.amc"):
         evaluate(EVAL, f"{AMC},{tmp_path / 'nope.amc'}", QUICK, out=out)
     assert not out.exists()
     rc = main(["evaluate", str(EVAL), *QUICK, "--clips", str(tmp_path / "nope.amc"), "--out", str(out)])
@@ -158,9 +158,9 @@ def test_parse_clips(tmp_path):
     listing.write_text("# nothing\n")
     with pytest.raises(InputError, match="no clip"):
         parse_clips(str(listing))
-    with pytest.raises(InputError, match="not an .amc"):
+    with pytest.raises(InputError, match=r"not an \.amc"):
         parse_clips("m/10_02.amc,m/10.asf", cwd=tmp_path)
-    with pytest.raises(FileNotFoundError, match="gone.amc"):
+    with pytest.raises(FileNotFoundError, match=r"gone\.amc"):
         parse_clips("gone.amc", cwd=tmp_path)
 
 
@@ -180,7 +180,7 @@ def test_asf_for(tmp_path):
     shutil.copy(ASF, other / "skeleton.asf")
     assert asf_for(other / "10_02.amc") == other / "skeleton.asf"  # the only .asf there
     shutil.copy(ASF, other / "another.asf")
-    with pytest.raises(InputError, match="10.asf"):
+    with pytest.raises(InputError, match=r"10\.asf"):
         asf_for(other / "10_02.amc")
 
 

@@ -89,10 +89,8 @@ def _check_against_fk(sk: Skeleton, q: torch.Tensor, text: str) -> float:
     pivot = fk - sk.lengths[:, None] * np.einsum("tjab,jb->tja", rot.numpy(), sk.offset_local)
     err = 0.0
     for j, name in enumerate(names):
-        if name is None:  # end site = its joint's position
-            ref = fk[:, sk.joint_index(names[parents[j]])]
-        else:
-            ref = pivot[:, sk.joint_index(name)]
+        # an end site (no name) sits at its joint's position
+        ref = fk[:, sk.joint_index(names[parents[j]])] if name is None else pivot[:, sk.joint_index(name)]
         err = max(err, float(np.abs(pos[:, j] - ref).max()))
     return err
 

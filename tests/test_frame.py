@@ -196,7 +196,8 @@ def test_constant_velocity_prior_smooths():
 
 def test_urdf_model_is_trackable(tmp_path):
     """A model read from URDF (here the bundled skeleton written out as URDF) goes through the same
-    estimator: same keypoints by joint name, same accuracy as the ASF model (measured 19.8 mm on frames 0-44 of 10_02)."""
+    estimator: same keypoints by joint name, same accuracy as the ASF model (measured 19.8 mm on frames
+    0-44 of 10_02)."""
     from ptrack.camera import camera_for_motion
     from ptrack.config import FrameMethodConfig, RunConfig
     from ptrack.keypoints import make_keypoints

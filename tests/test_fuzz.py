@@ -4,6 +4,7 @@ run: `HYPOTHESIS_PROFILE=long python -m pytest tests/test_fuzz.py`."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -11,7 +12,8 @@ import pytest
 import yaml
 
 hypothesis = pytest.importorskip("hypothesis")
-from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
 
 from ptrack.acclaim import parse_amc, parse_asf  # noqa: E402
 from ptrack.config import load_config  # noqa: E402
@@ -40,10 +42,8 @@ def _mutations(base: bytes):
 
 
 def _loads_or_input_error(fn, *args) -> None:
-    try:
+    with contextlib.suppress(InputError):
         fn(*args)
-    except InputError:
-        pass
 
 
 @given(_mutations(ASF))

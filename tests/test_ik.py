@@ -83,7 +83,7 @@ def test_no_closed_form_falls_back_to_iterative(sk):
     assert [reduced.dof_names[d] for d in plan.dofs] == ["lhumerus.rz", "lhumerus.rx", "lradius.rx"]
     # nothing moves the chain: still an error, naming the chain
     frozen = sk.freeze(["lhumerus.*", "lradius.*"])
-    with pytest.raises(ClosedFormUnavailable, match="'larm'.*no dof moves its joints"):
+    with pytest.raises(ClosedFormUnavailable, match=r"'larm'.*no dof moves its joints"):
         ik_plan(frozen, default_chains(frozen, ["larm"])[0])
     assert issubclass(ClosedFormUnavailable, InputError)
     # freezing other dofs (fingers, clavicles) keeps the closed form, with the dofs renumbered

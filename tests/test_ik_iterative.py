@@ -15,7 +15,7 @@ import torch
 
 from ptrack.camera import camera_for_motion
 from ptrack.ik import chain_ik, ik_plan, product_ik
-from ptrack.jumps import default_chains, interpretation_tree, interpretation_trees, make_chain, product
+from ptrack.jumps import default_chains, interpretation_trees, make_chain, product
 from ptrack.skeleton import Skeleton
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
@@ -41,7 +41,7 @@ ARM_URDF = """<?xml version="1.0"?>
   <joint name="palm" type="fixed"><parent link="hand"/><child link="tip"/>
     <origin xyz="0 0 -0.08" rpy="0 0 0"/></joint>
 </robot>
-"""
+"""  # noqa: E501 (the URDF keeps one joint element per two lines)
 ARM_CHAIN = ("shoulder", "fore", "hand")  # shoulder -> elbow -> wrist
 
 
@@ -325,7 +325,8 @@ def test_unlimited_dofs_stay_in_their_window(tmp_path):
     """A continuous shoulder yaw: its angle comes back in [-pi, pi), also after the bounded fit of
     "project" mode (which bounds only the limited dofs)."""
     pytest.importorskip("pytorch_kinematics")
-    text = ARM_URDF.replace('<joint name="shoulder_yaw" type="revolute">', '<joint name="shoulder_yaw" type="continuous">')
+    text = ARM_URDF.replace('<joint name="shoulder_yaw" type="revolute">',
+                            '<joint name="shoulder_yaw" type="continuous">')
     text = text.replace('<limit lower="-2.0" upper="2.0" effort="1" velocity="1"/>', "")  # the yaw's
     path = tmp_path / "continuous.urdf"
     path.write_text(text)

@@ -173,6 +173,6 @@ def test_objective_linearization_gives_the_objectives_weights_and_energy(pose_pr
 
 
 def test_objective_linearization_needs_camera_and_keypoints(pose_problem):
-    sk, cam, kps, obj, _ = pose_problem
+    sk, _cam, kps, obj, _ = pose_problem
     with pytest.raises(InputError, match="camera"):
         objective_linearization(sk, obj, None, kps)

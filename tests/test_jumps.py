@@ -16,8 +16,17 @@ import torch
 from ptrack.camera import camera_for_motion
 from ptrack.errors import InputError
 from ptrack.jumps import (
-    CMU_CHAINS, check_independent, default_chains, flip_names, interpretation_tree,
-    interpretation_trees, joint_observations, make_chain, min_rotation, product, product_joints,
+    CMU_CHAINS,
+    check_independent,
+    default_chains,
+    flip_names,
+    interpretation_tree,
+    interpretation_trees,
+    joint_observations,
+    make_chain,
+    min_rotation,
+    product,
+    product_joints,
 )
 from ptrack.keypoints import make_keypoints
 from ptrack.skeleton import Skeleton
@@ -61,15 +70,15 @@ def test_default_chains_cmu(sk):
 
 
 def test_chain_validation_names_the_chain(sk):
-    with pytest.raises(InputError, match="'bad'.*'rradius' is not below 'lradius'"):
+    with pytest.raises(InputError, match=r"'bad'.*'rradius' is not below 'lradius'"):
         make_chain(sk, ("lhumerus", "lradius", "rradius"), name="bad")
-    with pytest.raises(InputError, match="'up'.*'lclavicle' is not below 'lhumerus'"):
+    with pytest.raises(InputError, match=r"'up'.*'lclavicle' is not below 'lhumerus'"):
         make_chain(sk, ("lhumerus", "lclavicle"), name="up")
-    with pytest.raises(InputError, match="'one'.*at least two joints"):
+    with pytest.raises(InputError, match=r"'one'.*at least two joints"):
         make_chain(sk, ("lhumerus",), name="one")
-    with pytest.raises(InputError, match="'rep'.*repeats"):
+    with pytest.raises(InputError, match=r"'rep'.*repeats"):
         make_chain(sk, ("lhumerus", "lradius", "lhumerus"), name="rep")
-    with pytest.raises(InputError, match="'ghost'.*no joint 'lelbow'"):
+    with pytest.raises(InputError, match=r"'ghost'.*no joint 'lelbow'"):
         make_chain(sk, ("lhumerus", "lelbow"), name="ghost")
     with pytest.raises(InputError, match="unknown default chain 'tail'"):
         default_chains(sk, ["tail"])
@@ -79,7 +88,7 @@ def test_chain_validation_names_the_chain(sk):
 
 def test_default_chains_need_cmu_names(sk):
     renamed = replace(sk, joint_names=tuple(f"j{i}" for i in range(sk.num_joints)))
-    with pytest.raises(InputError, match="'larm'.*no joint 'lclavicle'"):
+    with pytest.raises(InputError, match=r"'larm'.*no joint 'lclavicle'"):
         default_chains(renamed)
 
 
@@ -159,7 +168,7 @@ def _ray_sphere(pixel_point: torch.Tensor, centre: torch.Tensor, radius: torch.T
 def test_known_flip_is_found(sk, scene):
     """Flip the left elbow in depth (and put the wrist back on its ray), run the tree from that
     wrong hypothesis: one leaf is the true arm."""
-    q, joints, cam, pixels, conf = scene
+    _q, joints, cam, pixels, conf = scene
     chain = default_chains(sk, ["larm"])[0]
     s_i, e_i, w_i = chain.joints
     shoulder, elbow, wrist = joints[:, s_i], joints[:, e_i], joints[:, w_i]

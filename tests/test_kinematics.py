@@ -7,7 +7,6 @@ model's URDF export, and by physical invariants (bone lengths, feet on the floor
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import torch

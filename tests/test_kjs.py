@@ -83,7 +83,7 @@ def test_tree_init_needs_no_3d():
     prep = prepare(cfg)
     bare = Problem(prep.problem.skeleton, prep.problem.keypoints, prep.problem.observations)  # no keyframes
     est = track(bare, cfg, torch.Generator().manual_seed(1), KJS)
-    traj, best = _errors(prep, est)
+    _traj, best = _errors(prep, est)
     assert best < 30.0, f"best-of-K {best:.1f} mm"
 
 
@@ -154,7 +154,8 @@ def test_tree_init_when_every_flip_is_pruned(cmu_file):
     prep = prepare(cfg)
     obs = prep.problem.observations
     short = dataclasses.replace(obs, keypoints=obs.keypoints[:4], confidence=obs.confidence[:4], times=obs.times[:4])
-    est = track(Problem(prep.problem.skeleton, prep.problem.keypoints, short), cfg, torch.Generator().manual_seed(0), KJS)
+    est = track(Problem(prep.problem.skeleton, prep.problem.keypoints, short), cfg, torch.Generator().manual_seed(0),
+                KJS)
     assert torch.isfinite(est.hypotheses).all() and est.hypotheses.shape[:2] == (4, K)
 
 

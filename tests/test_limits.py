@@ -138,7 +138,7 @@ def test_shipped_file_states_its_provenance():
 
 def test_config_key():
     assert load_config(REPO / "configs" / "demo.yaml").model.limits == "data"
-    with pytest.raises(InputError, match="model.limits"):
+    with pytest.raises(InputError, match=r"model\.limits"):
         load_config(REPO / "configs" / "demo.yaml", ["model.limits=loose"])
 
 

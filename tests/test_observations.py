@@ -1,11 +1,10 @@
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-
-from pathlib import Path
 
 from ptrack.camera import Camera, camera_for_motion, look_at
 from ptrack.errors import InputError
@@ -529,7 +528,7 @@ def test_load_rejects_malformed_files(tmp_path, change, match):
         else:
             arrays[key] = value
     path = _write(tmp_path / "bad.npz", **arrays)
-    with pytest.raises(InputError, match="bad.npz") as exc:
+    with pytest.raises(InputError, match=r"bad\.npz") as exc:
         Observations.load_npz(path)
     assert exc.match(match)
 
@@ -539,13 +538,13 @@ def test_load_rejects_non_npz_files(tmp_path):
         Observations.load_npz(tmp_path / "missing.npz")
     garbage = tmp_path / "garbage.npz"
     garbage.write_bytes(b"\x00\x01 not a zip archive at all")
-    with pytest.raises(InputError, match="garbage.npz"):
+    with pytest.raises(InputError, match=r"garbage\.npz"):
         Observations.load_npz(garbage)
     single = tmp_path / "single.npy"
     np.save(single, np.zeros(3))
-    with pytest.raises(InputError, match="not an .npz"):
+    with pytest.raises(InputError, match=r"not an \.npz"):
         Observations.load_npz(single)
     pickled = tmp_path / "pickled.npz"
     _write(pickled, **{**_plain_arrays(), "keypoint_names": np.array([{"a": 1}] * 3, dtype=object)})
-    with pytest.raises(InputError, match="pickled.npz"):
+    with pytest.raises(InputError, match=r"pickled\.npz"):
         Observations.load_npz(pickled)

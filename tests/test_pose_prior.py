@@ -55,7 +55,7 @@ def test_mean_pose_is_nearer_real_motion_than_the_zero_pose(model):
 
     full, sk = model
     lower, upper = sk.limits(dtype=torch.float64)
-    mean, std, known = pose_prior(sk, lower, upper, torch.as_tensor(sk.angular_dofs()))
+    mean, _std, known = pose_prior(sk, lower, upper, torch.as_tensor(sk.angular_dofs()))
     q = sk.reduce(load_amc(DATA / "10_02.amc", full).q[::20], full)
     truth = sk.forward_kinematics(q)
     at_mean = M.mpjpe(sk.forward_kinematics(torch.where(known, mean, q)), truth).mean()

@@ -17,8 +17,8 @@ import torch
 
 import ptrack.run
 import ptrack.viz
-from ptrack.config import load_config, to_dict
 from ptrack import metrics as M
+from ptrack.config import load_config, to_dict
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators import ESTIMATORS, estimate_frames
 from ptrack.problem import Estimate
@@ -216,7 +216,7 @@ def test_observation_file_frame_count_must_match(tmp_path):
     obs = prepare(_cfg(tmp_path / "unused", fast=QUICK)).problem.observations
     path = tmp_path / "obs.npz"
     obs.save_npz(path)
-    with pytest.raises(InputError, match="obs.npz"):
+    with pytest.raises(InputError, match=r"obs\.npz"):
         execute(_cfg(tmp_path / "o", f"observations.file={path}", "data.stop=80", fast=QUICK))
     assert not (tmp_path / "o").exists()
 
@@ -258,7 +258,7 @@ def test_existing_non_empty_out_dir_is_refused(tmp_path):
 def test_out_dir_that_is_a_file_is_refused(tmp_path):
     out = tmp_path / "file"
     out.write_text("x")
-    with pytest.raises(InputError, match="out_dir .* is an existing file, not a folder"):
+    with pytest.raises(InputError, match=r"out_dir .* is an existing file, not a folder"):
         execute(_cfg(out, fast=QUICK))
     assert out.read_text() == "x"
 
@@ -309,7 +309,7 @@ def test_bvh_output_matches_result(run_dir):
     from test_export import read_bvh
 
     res = np.load(run_dir / "result.npz")
-    names, _, _, channels, frame_time, values = read_bvh((run_dir / "result.bvh").read_text())
+    names, _, _, _channels, frame_time, values = read_bvh((run_dir / "result.bvh").read_text())
     assert names[0] == "root" and values.shape[0] == res["q"].shape[0]
     assert frame_time == pytest.approx(4 / 120, abs=1e-6)  # stride 4 of the 120 fps clip
     np.testing.assert_allclose(values[:, :3], res["joints"][:, 0], atol=2e-5)

@@ -12,8 +12,14 @@ from scipy import stats
 
 from ptrack.errors import InputError
 from ptrack.samplers import (
-    Draws, css_proposal, project_to_limits, proposal_log_density, scaled_covariance, spherical_chol,
-    spherical_proposal, spherical_std,
+    Draws,
+    css_proposal,
+    project_to_limits,
+    proposal_log_density,
+    scaled_covariance,
+    spherical_chol,
+    spherical_proposal,
+    spherical_std,
 )
 
 F64 = torch.float64
@@ -120,7 +126,7 @@ def test_scaled_covariance_gradcheck():
 
 def test_css_gaussian_draws_have_the_stated_covariance(css50):
     """Done-when of the issue: 200k draws, fixed seed, covariance scale * H^-1 (regularised)."""
-    H, ref, sc = css50
+    _H, ref, sc = css50
     mean = torch.linspace(-1, 1, 50, dtype=F64)[None]
     d = css_proposal(mean, sc.chol[None], N_BIG, gen(0))
     x = d.samples[0]
@@ -131,7 +137,7 @@ def test_css_gaussian_draws_have_the_stated_covariance(css50):
 
 
 def test_css_student_draws_have_covariance_dof_over_dof_minus_2(css50):
-    H, ref, sc = css50
+    _H, ref, sc = css50
     mean = torch.zeros(1, 50, dtype=F64)
     x = css_proposal(mean, sc.chol[None], N_BIG, gen(3), tail="student", dof=5.0).samples[0]
     S = torch.cov(x.T).numpy()

@@ -93,7 +93,7 @@ def test_from_asf_rejects_translation_bone_dof(tmp_path, asf_64):
     assert "dof tx" in text
     p = tmp_path / "tdof.asf"
     p.write_bytes(text.encode())
-    with pytest.raises(InputError, match="'tx'.*rotational"):
+    with pytest.raises(InputError, match=r"'tx'.*rotational"):
         Skeleton.from_asf(p)
 
 
@@ -104,7 +104,7 @@ def test_from_asf_bones_not_connected_to_root(tmp_path, asf_64):
     text = text.replace("lwrist lhand lthumb", "lwrist lhand\r\n    lfingers lthumb")
     p = tmp_path / "cycle.asf"
     p.write_bytes(text.encode())
-    with pytest.raises(InputError, match="not connected to the root.*lfingers"):
+    with pytest.raises(InputError, match=r"not connected to the root.*lfingers"):
         Skeleton.from_asf(p)
 
 
@@ -304,7 +304,7 @@ def test_motion_slice_bad_arguments(motion, args):
 
 
 def test_motion_is_frozen(motion):
-    with pytest.raises(Exception):
+    with pytest.raises(AttributeError):  # dataclasses.FrozenInstanceError
         motion.fps = 60.0  # type: ignore[misc]
 
 

@@ -3,6 +3,7 @@ per-problem independence, box constraints, IRLS, info records, and a real pose f
 
 from __future__ import annotations
 
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -59,7 +60,7 @@ class Arms:
     def energy(self, q: torch.Tensor) -> torch.Tensor:
         return 0.5 * self.residuals(q).square().sum(-1)
 
-    def subset(self, idx) -> "Arms":
+    def subset(self, idx) -> Arms:
         out = Arms.__new__(Arms)
         out.q_true, out.targets, out.q0 = self.q_true[idx], self.targets[idx], self.q0[idx]
         return out
@@ -138,14 +139,14 @@ def test_lm_converged_flags_and_iterations(arms):
 def test_callbacks_see_every_iteration(arms):
     seen = []
     record = lambda it, q, c: seen.append((it, c.clone()))  # noqa: E731
-    q, info = levenberg_marquardt(arms.linearize, arms.q0, max_iter=7, callback=record)
+    _q, info = levenberg_marquardt(arms.linearize, arms.q0, max_iter=7, callback=record)
     assert [it for it, _ in seen] == list(range(7))
     torch.testing.assert_close(seen[-1][1], info.cost, rtol=0, atol=0)
-    assert all((b <= a).all() for (_, a), (_, b) in zip(seen, seen[1:]))  # LM never raises a cost
+    assert all((b <= a).all() for (_, a), (_, b) in pairwise(seen))  # LM never raises a cost
     seen.clear()
     _, info = lbfgs(arms.energy, arms.q0, max_iter=5, callback=record)
     assert [it for it, _ in seen] == list(range(5))
-    assert all((b <= a).all() for (_, a), (_, b) in zip(seen, seen[1:]))
+    assert all((b <= a).all() for (_, a), (_, b) in pairwise(seen))
 
 
 def test_lm_hessian_is_gauss_newton_at_the_solution(arms):

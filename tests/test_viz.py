@@ -197,7 +197,7 @@ def test_missing_keypoints_not_drawn(full):
 
 
 def test_metric_scalars(full):
-    log, rec = full
+    _log, rec = full
     rows = rec.temporal["metrics/mpjpe"]
     assert [r["frame"] for r in rows] == [10, 18, 22, 26]  # the NaN frame (14) is skipped
     np.testing.assert_allclose([r["Scalars:scalars"][0] for r in rows], [0.1, 0.3, 0.4, 0.5])
@@ -328,7 +328,7 @@ def test_bad_input_names_the_field(change, needle):
 
 
 def test_missing_paths(tmp_path):
-    with pytest.raises(FileNotFoundError, match="nope.rrd"):
+    with pytest.raises(FileNotFoundError, match=r"nope\.rrd"):
         open_viewer(tmp_path / "nope.rrd")
     with pytest.raises(FileNotFoundError, match="no_such_dir"):
         write_recording(tmp_path / "no_such_dir" / "x.rrd", _run_log(full=False))

@@ -4,7 +4,8 @@ and the least-squares / robust mixins."""
 from __future__ import annotations
 
 import logging
-from typing import Callable, ClassVar, NamedTuple, Protocol
+from collections.abc import Callable
+from typing import ClassVar, NamedTuple, Protocol
 
 import torch
 from torch import Tensor

@@ -39,14 +39,15 @@ from __future__ import annotations
 
 import fnmatch
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from ptrack.checks import as_float_tensor
-from ptrack.costs.base import PoseJacobian, PoseEval, _LeastSquares, _positive, _shape
+from ptrack.costs.base import PoseEval, PoseJacobian, _LeastSquares, _positive, _shape
 from ptrack.errors import InputError
 from ptrack.silhouette import capsule_radii
 
@@ -303,10 +304,10 @@ class SelfIntersection(_LeastSquares):
         return energy.reshape(batch), h.reshape(*batch, d, d), g.reshape(*batch, d)
 
     @staticmethod
-    def for_skeleton(sk: "Skeleton", radii: Tensor | Mapping[str, float] | None = None,
+    def for_skeleton(sk: Skeleton, radii: Tensor | Mapping[str, float] | None = None,
                      min_hops: int = 2, sigma: float = 0.01, margin: float = 0.0,
                      radius_scale: float = 0.5, skip: Sequence[str] = DEFAULT_SKIP,
-                     exclude: Sequence[tuple[str, str]] = ()) -> "SelfIntersection":
+                     exclude: Sequence[tuple[str, str]] = ()) -> SelfIntersection:
         """The term for a skeleton (defaults measured on CMU motion: see the module docstring).
 
         One capsule per bone of non-zero length, named by its child joint, from `sk.bones()`.

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Mapping, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from ptrack.errors import InputError
 from ptrack.costs.base import CostTerm, PoseEval, PoseJacobian, _LeastSquares
+from ptrack.errors import InputError
 
 # ---------------------------------------------------------------------------------------------
 # Objective.

@@ -11,8 +11,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ptrack.errors import InputError
 from ptrack.costs.base import PoseEval, _positive, _Robust, _shape, log, robust_loss
+from ptrack.errors import InputError
 
 
 def distance_transform(mask: Tensor) -> Tensor:

@@ -10,10 +10,20 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from ptrack.errors import InputError
 from ptrack.checks import as_float_tensor
-from ptrack.costs.base import (PoseEval, PoseJacobian, _frame_count, _LeastSquares, _mask, _positive, _Robust,
-                               _shape, _times, robust_loss)
+from ptrack.costs.base import (
+    PoseEval,
+    PoseJacobian,
+    _frame_count,
+    _LeastSquares,
+    _mask,
+    _positive,
+    _Robust,
+    _shape,
+    _times,
+    robust_loss,
+)
+from ptrack.errors import InputError
 
 # ---------------------------------------------------------------------------------------------
 # Terms.

@@ -35,10 +35,10 @@ import dataclasses
 import json
 import logging
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 import torch
@@ -208,7 +208,7 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True
     """
     p = obj.problem
     sk, cam, kps = p.skeleton, p.observations.camera, p.keypoints
-    b_len, t_len, d = q.shape
+    b_len, t_len, _d = q.shape
     if with_jacobian:
         ev, jac = pose_eval_and_jacobian(sk, cam.to(device=q.device, dtype=q.dtype), kps, q)
     else:

@@ -11,7 +11,7 @@ or from the rest pose placed in front of the camera (`rest`).
 
 from __future__ import annotations
 
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
 import torch
 from torch import Tensor

@@ -42,8 +42,8 @@ keypoint is carried by the dynamics. The output's `hypotheses` are the K modes o
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Callable, Iterable
 
 import torch
 from torch import Tensor
@@ -54,8 +54,15 @@ from ptrack.errors import EstimationError, InputError
 from ptrack.estimators.frame import rest_pose_in_view
 from ptrack.ik import ChainIK, ClosedFormUnavailable, chain_ik, ik_plan, product_ik
 from ptrack.jacobians import objective_linearization
-from ptrack.jumps import (Chain, check_independent, default_chains, interpretation_tree, interpretation_trees,
-                          joint_observations, product)
+from ptrack.jumps import (
+    Chain,
+    check_independent,
+    default_chains,
+    interpretation_tree,
+    interpretation_trees,
+    joint_observations,
+    product,
+)
 from ptrack.mixture import Modes, distinct_minima, posterior_weights, viterbi
 from ptrack.pose_prior import pose_prior
 from ptrack.problem import Estimate, Problem, first_keyframe, pose_eval_from_joints
