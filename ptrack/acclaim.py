@@ -81,6 +81,11 @@ def _floats(tokens: list[str], n: int, where: str) -> tuple[float, ...]:
     return vals
 
 
+def _vec3(tokens: list[str], where: str) -> tuple[float, float, float]:
+    x, y, z = _floats(tokens, 3, where)
+    return x, y, z
+
+
 _DOF_NAMES = {"rx", "ry", "rz", "tx", "ty", "tz", "l"}
 
 
@@ -140,9 +145,9 @@ def parse_asf(path: str | Path) -> AsfFile:
         elif key == "axis":
             root_axis = _axis_order(tok[1] if len(tok) > 1 else "", f"{path}:{i}")
         elif key == "position":
-            root_position = _floats(tok[1:], 3, f"{path}:{i}")
+            root_position = _vec3(tok[1:], f"{path}:{i}")
         elif key == "orientation":
-            root_orientation = _floats(tok[1:], 3, f"{path}:{i}")
+            root_orientation = _vec3(tok[1:], f"{path}:{i}")
 
     bones = _parse_bones(sections["bonedata"], str(path))
     names = {b.name for b in bones}
@@ -283,9 +288,10 @@ def _make_bone(block: dict, where: str) -> AsfBone:
         )
     if not limits:
         limits = [(float("-inf"), float("inf"))] * len(dof)
+    dx, dy, dz = (float(x) for x in (d / norm if norm > 0 else d))
     return AsfBone(
         name=block["name"],
-        direction=tuple(float(x) for x in (d / norm if norm > 0 else d)),
+        direction=(dx, dy, dz),
         length=length,
         axis=tuple(block.get("axis", (0.0, 0.0, 0.0))),
         axis_order=block.get("axis_order", "XYZ"),

@@ -259,16 +259,16 @@ def _reduce(diag: Tensor, lower: Tensor) -> tuple[_Reduction, Tensor]:
     c_pad = torch.nn.functional.pad(lower, (0, 0, 0, pad))
     c_pad = torch.where(frame[:, None] >= k_idx, c_pad, 0.0).reshape(b, n, w, w)  # [i, r, k-1] = A[iW+r, iW+r-k]
     zero = diag.new_zeros(b, n)
-    big_d = [[zero] * w for _ in range(w)]
-    big_l = [[zero] * w for _ in range(w)]
+    rows_d = [[zero] * w for _ in range(w)]
+    rows_l = [[zero] * w for _ in range(w)]
     for r in range(w):
-        big_d[r][r] = d_pad[:, :, r]
+        rows_d[r][r] = d_pad[:, :, r]
         for r2 in range(r):  # inside the block
-            big_d[r][r2] = big_d[r2][r] = c_pad[:, :, r, r - r2 - 1]
+            rows_d[r][r2] = rows_d[r2][r] = c_pad[:, :, r, r - r2 - 1]
         for r2 in range(r, w):  # block i row r, block i-1 column r2: k = W + r - r2 <= W
-            big_l[r][r2] = c_pad[:, :, r, w + r - r2 - 1]
-    big_d = torch.stack([torch.stack(row) for row in big_d])  # (W, W, B, N)
-    big_l = torch.stack([torch.stack(row) for row in big_l])
+            rows_l[r][r2] = c_pad[:, :, r, w + r - r2 - 1]
+    big_d = torch.stack([torch.stack(row) for row in rows_d])  # (W, W, B, N)
+    big_l = torch.stack([torch.stack(row) for row in rows_l])
     big_u = _shift(big_l, -1).transpose(0, 1)  # U_i = L_{i+1}^T
     ok = torch.ones(b, dtype=torch.bool, device=diag.device)
     alphas, betas = [], []
@@ -369,11 +369,16 @@ def _solve_dense(f: _Chol, b: Tensor) -> Tensor:
 
 def solve(f: BandedFactor, b: Tensor) -> Tensor:
     """Solve A x = b with `factorize`'s factor; b (..., T, D) -> x (..., T, D)."""
-    t_len = f.dense.inv_chol_t.shape[1] if f.dense is not None else f.scalar.diag.shape[1]
+    if f.dense is not None:
+        t_len = f.dense.inv_chol_t.shape[1]
+    else:
+        assert f.scalar is not None  # factorize fills at least one of the two
+        t_len = f.scalar.diag.shape[1]
     if not isinstance(b, Tensor) or b.shape != (*f.batch, t_len, f.size):
         raise InputError(f"solve: b must have shape {(*f.batch, t_len, f.size)}, got {tuple(getattr(b, 'shape', ()))}")
     flat = b.reshape(-1, t_len, f.size)
     if f.scalar is None:
+        assert f.dense is not None
         with one_thread():
             return _solve_dense(f.dense, flat).reshape(b.shape)
     x = torch.empty_like(flat)
@@ -413,6 +418,7 @@ def marginal_blocks(f: BandedFactor) -> Tensor:
     """Diagonal blocks of A^{-1} from `factorize`'s factor -> (..., T, D, D): the marginal
     covariances of a Gaussian with precision A (module docstring; the inverse's band only)."""
     if f.scalar is None:
+        assert f.dense is not None
         with one_thread():
             return _marginals(f.dense).reshape(*f.batch, f.dense.inv_chol_t.shape[1], f.size, f.size)
     u = f.decoupled.numel()

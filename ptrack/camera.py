@@ -143,7 +143,7 @@ class Camera:
         )
 
     def _params_like(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        kw = {"dtype": x.dtype, "device": x.device}
+        kw: dict[str, Any] = {"dtype": x.dtype, "device": x.device}
         return self.K.to(**kw), self.R.to(**kw), self.t.to(**kw)
 
     # -- geometry ------------------------------------------------------------------------------
@@ -290,7 +290,7 @@ def look_at(
         raise InputError(f"look_at: target must be 3 finite numbers, got shape {tuple(tgt.shape)}")
     floating_tensor = isinstance(target, Tensor) and target.is_floating_point()
     out_dtype = tgt.dtype if floating_tensor else torch.get_default_dtype()
-    f64 = {"dtype": torch.float64, "device": tgt.device}
+    f64: dict[str, Any] = {"dtype": torch.float64, "device": tgt.device}
     tgt = tgt.detach().to(**f64)
 
     e_y = torch.as_tensor(up, **f64)

@@ -11,6 +11,7 @@ import json
 import logging
 import math
 import sys
+from collections.abc import Iterable
 from datetime import datetime
 from pathlib import Path
 
@@ -81,11 +82,12 @@ def evaluate(config: str | Path, clips: str, overrides: list[str] | tuple[str, .
     rows: list[tuple[str, dict | str]] = []
     show = base.progress if progress is None else progress
     on_terminal = sys.stderr.isatty()
+    clips_shown: Iterable[Path] = paths
     if show and on_terminal:
         from tqdm.auto import tqdm
 
-        paths = tqdm(paths, desc="clips", unit="clip")
-    for i, amc in enumerate(paths):
+        clips_shown = tqdm(paths, desc="clips", unit="clip")
+    for i, amc in enumerate(clips_shown):
         if show and not on_terminal:  # a file or CI log: one short line per clip, no bar
             log.info("clip %d of %d: %s", i + 1, len(paths), amc.stem)
         clip_over = [*overrides, f"data.amc={amc}", f"data.asf={asf_for(amc)}",

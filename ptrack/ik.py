@@ -210,6 +210,7 @@ def _limb_constants(plan: ChainIK) -> dict:
     bone v(t) = D Rot(n, t) c for hinge angle t, and a . v(t) = alpha cos t + beta sin t + gamma."""
     sk, m, e, k = plan.sk, plan.balls[0], plan.hinge, plan.hinge_slot
     c_m = _frame(sk, m)
+    assert c_m is not None  # the plan's ball joint has a frame (`_is_ball`)
     a = c_m.T @ sk.rest_rotation[m] @ sk.offset_local[m]
     p_rot = _slot_rotation(sk.axes[e, :k], sk.frozen_axes[e, :k])
     q_rot = _slot_rotation(sk.axes[e, k + 1:], sk.frozen_axes[e, k + 1:]) @ sk.rest_rotation[e]
@@ -324,11 +325,9 @@ def _local(pj: dict, theta: Tensor) -> Tensor:
         r = _smm(_smm(c, _seuler(theta)), _st(c))
     else:
         eye = _seye(theta, nd)
-        r = None
-        for s in range(3):
-            rs = eye + torch.sin(theta[s]) * _sconst(pj["k1"][s], nd) \
-                + (1 - torch.cos(theta[s])) * _sconst(pj["k2"][s], nd)
-            r = rs if r is None else _smm(r, rs)
+        rots = [eye + torch.sin(theta[s]) * _sconst(pj["k1"][s], nd)
+                + (1 - torch.cos(theta[s])) * _sconst(pj["k2"][s], nd) for s in range(3)]
+        r = _smm(_smm(rots[0], rots[1]), rots[2])
     return r if pj["rest"] is None else _smm(r, _sconst(pj["rest"], nd))
 
 
@@ -607,7 +606,7 @@ def _walk_fk(plan: ChainIK, tc: dict, g_par: Tensor, pivot: Tensor, qs: Tensor, 
     walk = (chain.joints[0],) + plan.path
     pos: dict[int, Tensor] = {}
     columns = []  # (column, walk index, world axis (3, P), pivot (3, P))
-    g_p, p_p = g_par, None
+    g_p, p_p = g_par, pivot  # the parent frame and position (p_p unread at the chain root)
     for i, j in enumerate(walk):
         pj = per[j]
         th = _slot_angles(pj, qs)
@@ -678,6 +677,7 @@ def _linearization(plan: ChainIK, tc: dict, n: int, g_par: Tensor, pivot: Tensor
     def linearize(th: Tensor) -> tuple[Tensor, Tensor]:
         p, m = th.shape
         pos, jac = _walk_fk(plan, tc, g_par, pivot, qs, th.T, True)
+        assert jac is not None  # asked for
         r = torch.where(bad, 0.0, pos[1:] - target).permute(2, 0, 1).reshape(p, 3 * n)
         return r, torch.where(bad, 0.0, jac).permute(3, 0, 1, 2).reshape(p, 3 * n, m)
 

@@ -167,9 +167,11 @@ def residual_jacobian(sk: Skeleton, residual_fn: ResidualFn, q: Tensor,
     tangent_x = dx.movedim(-1, 0)  # (D, ..., J, 3)
 
     def column(tq: Tensor, tx: Tensor) -> tuple[Tensor, Tensor]:
-        return torch.func.jvp(residual_fn, (q, joints), (tq, tx))
+        out = torch.func.jvp(residual_fn, (q, joints), (tq, tx))  # (primal, tangent): no has_aux
+        return out[0], out[1]
 
-    r, cols = torch.func.vmap(column, out_dims=(None, 0))(eye, tangent_x)
+    # torch's stub types out_dims without the None that vmap accepts per output
+    r, cols = torch.func.vmap(column, out_dims=(None, 0))(eye, tangent_x)  # type: ignore[arg-type]
     return r, cols.movedim(0, -1)
 
 

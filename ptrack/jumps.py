@@ -46,7 +46,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import pairwise
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -482,8 +482,10 @@ def product(trees: Sequence[Tree]) -> Product:
     dev = trees[0].positions.device
     flips = torch.arange(total, device=dev)
     leaf = torch.stack([(flips >> o) & ((1 << nb) - 1) for o, nb in zip(offsets, bits)], dim=-1)
+    # the layout only (bits_view reads chains and offsets): the last three fields are filled by _replace below
+    unset: Any = None
     prod = Product(chains=tuple(t.chain for t in trees), leaf=leaf, flips=flips, offsets=offsets,
-                   unique=None, infeasible=None, penalty=None)
+                   unique=unset, infeasible=unset, penalty=unset)
     unique = prod.bits_view(0, trees[0].unique, -1)
     infeasible = prod.bits_view(0, trees[0].infeasible.any(-1), -1)
     penalty = prod.bits_view(0, trees[0].penalty, -1)

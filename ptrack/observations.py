@@ -162,7 +162,7 @@ class Observations:
         if self.masks is not None:
             arrays["masks"] = self.masks.cpu().numpy()
         with open(path, "wb") as f:
-            np.savez_compressed(f, **arrays)
+            np.savez_compressed(f, **arrays)  # type: ignore[arg-type]  # numpy's stub: a key could be allow_pickle
 
     @classmethod
     def load_npz(cls, path: str | Path, camera: Camera | None = None) -> Observations:
@@ -200,20 +200,21 @@ class Observations:
             return a if a.dtype in (np.float32, np.float64) else a.astype(np.float32)
 
         kp = torch.from_numpy(numeric("keypoints"))
-        names = need("keypoint_names")
-        if names.dtype.kind not in "US" or names.ndim != 1:
+        name_array = need("keypoint_names")
+        if name_array.dtype.kind not in "US" or name_array.ndim != 1:
             raise InputError(
-                f"{path}: key 'keypoint_names' must be a 1-D string array, got dtype {names.dtype} "
-                f"shape {names.shape}"
+                f"{path}: key 'keypoint_names' must be a 1-D string array, got dtype {name_array.dtype} "
+                f"shape {name_array.shape}"
             )
-        names = tuple(n.decode() if isinstance(n, bytes) else str(n) for n in names.tolist())
+        names = tuple(n.decode() if isinstance(n, bytes) else str(n) for n in name_array.tolist())
         if camera is None:
             camera = _camera_from_arrays(arrays, path)
-        masks = arrays.get("masks")
-        if masks is not None:
-            if masks.dtype.kind not in "biu":
-                raise InputError(f"{path}: key 'masks' must be bool or integer, got dtype {masks.dtype}")
-            masks = torch.from_numpy(masks != 0)
+        mask_array = arrays.get("masks")
+        masks = None
+        if mask_array is not None:
+            if mask_array.dtype.kind not in "biu":
+                raise InputError(f"{path}: key 'masks' must be bool or integer, got dtype {mask_array.dtype}")
+            masks = torch.from_numpy(mask_array != 0)
         try:
             return cls(
                 keypoints=kp,
@@ -256,7 +257,7 @@ def _camera_from_arrays(arrays: dict[str, np.ndarray], path: Path) -> Camera:
             if arrays[key].dtype.kind not in "fiu":
                 raise InputError(f"key {key!r} must be numeric, got dtype {arrays[key].dtype}")
             mats[key] = torch.from_numpy(arrays[key].astype(np.float64))
-        return Camera(**mats, **size)
+        return Camera(K=mats["K"], R=mats["R"], t=mats["t"], width=size["width"], height=size["height"])
     except InputError as e:
         raise InputError(f"{path}: {e}") from None
 
@@ -277,8 +278,8 @@ CHANNEL_RANGES: dict[str, tuple[float, float, bool]] = {
 def channel_range_error(name: str, value: object) -> str | None:
     """None when `value` suits the channel setting `name` (see CHANNEL_RANGES), else what it must be."""
     lo, hi, hi_open = CHANNEL_RANGES[name]
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    ok = ok and lo <= value and (value < hi if hi_open else value <= hi)
+    ok = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+          and lo <= value and (value < hi if hi_open else value <= hi))
     if ok:
         return None
     return f"must be a number in [{lo:g}, {hi:g}{')' if hi_open else ']'}, got {value!r}"

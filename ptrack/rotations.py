@@ -8,6 +8,7 @@ first, i.e. for "XYZ": R = Rz @ Ry @ Rx (the Acclaim convention).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -42,7 +43,7 @@ def elementary_matrix_np(axis: str, angle_rad: float) -> np.ndarray:
     raise ValueError(f"axis must be X, Y or Z, got {axis!r}")
 
 
-def euler_matrix_np(angles_rad: tuple[float, float, float], order: str = "XYZ") -> np.ndarray:
+def euler_matrix_np(angles_rad: Sequence[float], order: str = "XYZ") -> np.ndarray:
     """Euler angles (given as x, y, z values) applied in `order`, first letter first: (3, 3) float64."""
     by_axis = dict(zip("XYZ", angles_rad))
     r = np.eye(3)

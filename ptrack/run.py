@@ -109,6 +109,7 @@ def prepare(cfg: RunConfig) -> Prepared:
         frames = motion.frames if motion is not None else np.arange(obs.num_frames)
         visible = obs.confidence > 0
     else:
+        assert motion is not None and gt_joints is not None  # the config check: data.amc without observations.file
         c = cfg.camera
         camera = camera_for_motion(gt_joints, c.distance_m, c.azimuth_deg, c.elevation_deg, c.focal_px,
                                    c.width, c.height)
@@ -373,7 +374,7 @@ def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, res
         (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
         (tmp / "metrics.json").write_text(json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n",
                                           encoding="utf-8")
-        np.savez_compressed(tmp / "result.npz", **res)
+        np.savez_compressed(tmp / "result.npz", **res)  # type: ignore[arg-type]  # numpy's stub: a key could be allow_pickle
         times = res["times"].astype(np.float64)
         fps = float(1.0 / np.median(np.diff(times))) if len(times) > 1 else 30.0
         write_bvh(tmp / "result.bvh", prep.problem.skeleton, est.q, fps)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -174,7 +175,7 @@ def render_silhouettes(
     if T == 0 or B == 0:
         return masks
     cam = camera.to(joints.device, joints.dtype)
-    kw = {"dtype": joints.dtype, "device": joints.device}
+    kw: dict[str, Any] = {"dtype": joints.dtype, "device": joints.device}
     h, w = -(-H // k), -(-W // k)  # evaluated grid
     ny, nx = -(-h // S), -(-w // S)  # tiles
     v = torch.arange(ny * S, **kw) * k + k / 2  # block centres; pixel (i, j) covers [i, i+1)

@@ -193,7 +193,18 @@ def _normal_equations(lin: Linearization) -> tuple[Tensor, Tensor]:
 
 
 def _select(mask: Tensor, a: Linearization, b: Linearization) -> Linearization:
-    return Linearization(*(None if x is None else _where(mask, x, y) for x, y in zip(a, b)))
+    """Per-problem select of two `_linearize` outputs (the same fields set): a where mask, else b."""
+
+    def pick(x: Tensor | None, y: Tensor | None) -> Tensor | None:
+        return None if x is None or y is None else _where(mask, x, y)
+
+    return Linearization._make(pick(x, y) for x, y in zip(a, b))
+
+
+def _energy(lin: Linearization) -> Tensor:
+    """The energy of a `_linearize` output (which always sets it)."""
+    assert lin.energy is not None
+    return lin.energy
 
 
 def levenberg_marquardt(linearize: LinearizeFn, q0: Tensor, lower: Tensor | None = None,
@@ -260,14 +271,14 @@ def levenberg_marquardt(linearize: LinearizeFn, q0: Tensor, lower: Tensor | None
         new = _linearize(linearize, trial, weights_fn, energy_fn)
         evaluations += 1
         predicted = -((g * step).sum(-1) + 0.5 * (step * (h @ step[..., None])[..., 0]).sum(-1))
-        actual = lin.energy - new.energy
+        actual = _energy(lin) - _energy(new)
         active = ~done
         iterations += active.long()
-        accept = active & ok & torch.isfinite(new.energy) & (actual > 0)
+        accept = active & ok & torch.isfinite(_energy(new)) & (actual > 0)
         rho = actual / predicted.clamp(min=tiny)
         step_norm = step.norm(dim=-1)
         tiny_step = step_norm <= tol * (q.norm(dim=-1) + tol)
-        small_drop = accept & (actual <= tol * lin.energy)
+        small_drop = accept & (actual <= tol * _energy(lin))
         lam = torch.where(accept, lam * torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3),
                           torch.where(active, lam * nu, lam))
         nu = torch.where(accept, torch.full_like(nu, 2.0), torch.where(active, nu * 2, nu))
@@ -279,8 +290,8 @@ def levenberg_marquardt(linearize: LinearizeFn, q0: Tensor, lower: Tensor | None
         converged |= stop
         done |= stop | (lam > 1e30)  # damping this high: no step lowers the energy any more
         if callback is not None:
-            callback(it, q, lin.energy)
-    return q, LMInfo(iterations=iterations, converged=converged, cost=lin.energy, hessian=h,
+            callback(it, q, _energy(lin))
+    return q, LMInfo(iterations=iterations, converged=converged, cost=_energy(lin), hessian=h,
                      gradient=g, damping=lam, evaluations=evaluations)
 
 

@@ -379,6 +379,7 @@ def _log_hypotheses(rec: rr.RecordingStream, log: RunLog, bones: np.ndarray,
                     index: list[rr.TimeColumn]) -> None:
     """(T, N, J, 3) hypotheses -> `world/hypotheses/h{n}/...`; see the module docstring."""
     H = log.hypotheses
+    assert H is not None  # called only for logs that have hypotheses
     T, N = H.shape[:2]
     weights = log.hypothesis_weights
     weights = np.full((T, N), 1.0 / N) if weights is None else weights.astype(np.float64)
@@ -635,6 +636,7 @@ def blueprint(log: RunLog) -> rrb.Blueprint:
     plots = [rrb.TimeSeriesView(name=title, origin="/", contents=[f"+ /{e}" for e in entities])
              for title, entities in plot_groups(log)]
     top = rrb.Horizontal(scene, closeup, image, column_shares=[4, 3, 3])
+    layout: rrb.Container
     if plots:
         columns = len(plots) if len(plots) <= 5 else -(-len(plots) // 2)
         layout = rrb.Vertical(top, rrb.Grid(*plots, grid_columns=columns), row_shares=[3, 2])

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import ClassVar, NamedTuple, Protocol
+from typing import TYPE_CHECKING, ClassVar, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
@@ -168,6 +168,9 @@ class CostTerm(Protocol):
 class _LeastSquares:
     """Mixin: energy = 0.5 |r|^2 and IRLS weights all one."""
 
+    if TYPE_CHECKING:  # provided by the term that mixes this in
+        def residual(self, ev: PoseEval) -> Tensor: ...
+
     def energy(self, ev: PoseEval) -> Tensor:
         """ev -> (...,) = 0.5 * sum of squared residual entries."""
         return 0.5 * self.residual(ev).square().sum(-1)
@@ -183,6 +186,9 @@ class _Robust:
     _group: ClassVar[int]
     loss: str
     scale: float
+
+    if TYPE_CHECKING:  # provided by the term that mixes this in
+        def residual(self, ev: PoseEval) -> Tensor: ...
 
     def _squared(self, ev: PoseEval) -> tuple[Tensor, Tensor]:
         r = self.residual(ev)

@@ -32,7 +32,7 @@ def distance_transform(mask: Tensor) -> Tensor:
     h, w = mask.shape[-2:]
     images = mask.cpu().reshape(math.prod(mask.shape[:-2]), h, w).numpy()
     out = np.empty(images.shape, dtype=np.float64)
-    for image, dist, has_pixel in zip(images, out, images.any(axis=(-2, -1))):
+    for image, dist, has_pixel in zip(images, out, np.asarray(images.any(axis=(-2, -1)))):
         if has_pixel:
             distance_transform_edt(~image, distances=dist)
         else:

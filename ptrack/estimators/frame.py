@@ -12,12 +12,18 @@ or from the rest pose placed in front of the camera (`rest`).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
+from typing import cast
 
 import torch
 from torch import Tensor
 
 from ptrack.costs import JointLimits, PoseEval, Reprojection, Smoothness
 from ptrack.problem import Estimate, Problem, evaluate_pose, first_keyframe
+
+
+def _total(e: dict[str, Tensor]) -> Tensor:
+    """The sum of the energy terms (never empty, so a tensor)."""
+    return cast(Tensor, sum(e.values()))
 
 
 def rest_pose_in_view(problem: Problem, dtype: torch.dtype) -> Tensor:
@@ -97,7 +103,7 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
 
         def closure() -> Tensor:
             opt.zero_grad()
-            total = sum(energies(q).values())
+            total = _total(energies(q))
             total.backward()
             return total
 
@@ -109,7 +115,7 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
         q_prev = q.detach()
         history.append(q_prev)
         qs.append(q_prev)
-        costs.append(sum(e.values()).detach())
+        costs.append(_total(e).detach())
         for k, v in e.items():
             terms[k].append(v.detach())
     q_all = torch.stack(qs)
