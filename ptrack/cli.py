@@ -98,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
             model = fit_from_config(cfg)
             seconds = time.perf_counter() - start
             save_motion_model(model, out)
+            assert model.info is not None  # a fitted model records its clips
             shares = ", ".join(f"{100 * float(e):.1f}%" for e in model.explained)
             print(f"ptrack: {len(model.info['clips'])} clips, {model.num_components} components explain {shares} "
                   f"of the variance ({100 * float(model.explained.sum()):.1f}% in all); fitted in {seconds:.1f} s",

@@ -274,7 +274,8 @@ class RunConfig:
 
 
 METHODS = ("frame", "kjs", "css", "ss", "batch", "pca")
-_PATH_KEYS = {"data.asf", "data.amc", "observations.file", "out_dir", "keyframes.file", "init_from", "motion.model_file"}
+_PATH_KEYS = {"data.asf", "data.amc", "observations.file", "out_dir", "keyframes.file", "init_from",
+              "motion.model_file"}
 _PATH_LIST_KEYS = {"motion.clips"}  # a path or a list of paths
 
 

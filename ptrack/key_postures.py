@@ -55,7 +55,8 @@ def parse_rule(text: str, key: str = "motion.key_postures") -> Rule:
     """`"first max height after top"` -> Rule; InputError naming the config key if malformed."""
     words = str(text).split()
     bad = InputError(f"config key {key!r}: cannot read rule {text!r}; expected '[first|last] max|min "
-                     "height|speed [before|after KEY [within SECONDS s]]' or 'rest before|after KEY [within SECONDS s]'")
+                     "height|speed [before|after KEY [within SECONDS s]]' "
+                     "or 'rest before|after KEY [within SECONDS s]'")
     within = None
     if len(words) >= 2 and words[-1] == "s":
         words = words[:-1]
@@ -133,11 +134,13 @@ def find_frames(height: np.ndarray, speed: np.ndarray, fps: float, rules: Mappin
     for name in _resolution_order(parsed):
         r = parsed[name]
         lo, hi = 0, t
-        span = t if r.within_s is None else int(round(r.within_s * fps))
+        span = t if r.within_s is None else round(r.within_s * fps)
         if r.side == "before":
+            assert r.ref is not None  # a rule with a side names the key it refers to
             hi = found[r.ref]
             lo = max(0, hi - span)
         elif r.side == "after":
+            assert r.ref is not None
             lo = found[r.ref] + 1
             hi = min(t, found[r.ref] + 1 + span)
         frame = _apply(r, height, speed, lo, hi, prominence, rest_fraction)

@@ -6,8 +6,8 @@ time (`key_times`: the clips' mean relative positions of the postures between th
 which sit at 0 and 1), and resampled at N normalised times mu_i = i / (N - 1). A swing is then an
 angular motion vector Psi (N * D,) of the D modelled dofs (every dof of the skeleton but the root's
 six, which the tracker estimates itself, and those matching `motion.exclude`: by default fingers, thumbs,
-hands and toes, which the trackers hold at zero and whose CMU angles jump by whole turns). PCA over the clips gives the mean motion
-Theta_0 and m eigen-motions Theta_i: Psi ~ Theta_0 + sum_i alpha_i Theta_i (eq. 2).
+hands and toes, which the trackers hold at zero and whose CMU angles jump by whole turns). PCA over the clips
+gives the mean motion Theta_0 and m eigen-motions Theta_i: Psi ~ Theta_0 + sum_i alpha_i Theta_i (eq. 2).
 
 Resampling between two captured frames interpolates each 3-dof joint's rotation by quaternion slerp
 (kornia) and reads the angles back in the joint's own Euler order (the branch and 2 pi turn nearest
@@ -208,7 +208,8 @@ def read_clips(paths: Sequence[str | Path]) -> list[Clip]:
     """Load AMC clips (each with the .asf beside it) through the acclaim loaders."""
     from ptrack.config import skeleton_beside
 
-    clips, skeletons = [], {}
+    clips: list[Clip] = []
+    skeletons: dict[Path, Skeleton] = {}
     for p in paths:
         p = Path(p)
         if not p.is_file():

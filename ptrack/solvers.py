@@ -174,7 +174,7 @@ def _linearize(fn: LinearizeFn, q: Tensor, weights_fn, energy_fn) -> Linearizati
                          f"got {tuple(w.shape)}")
     if e.shape != (n,):
         raise InputError(f"levenberg_marquardt: energy must have shape ({n},), got {tuple(e.shape)}")
-    if (lin.fold_h is None) != (lin.fold_g is None) or (lin.fold_h is not None and (
+    if (lin.fold_h is None) != (lin.fold_g is None) or (lin.fold_h is not None and lin.fold_g is not None and (
             lin.fold_h.shape != (n, d, d) or lin.fold_g.shape != (n, d))):
         raise InputError(f"levenberg_marquardt: fold_h ({n}, {d}, {d}) and fold_g ({n}, {d}) must both be "
                          "given or both be None")
@@ -187,6 +187,7 @@ def _normal_equations(lin: Linearization) -> tuple[Tensor, Tensor]:
     h = jw.mT @ lin.jacobian
     g = (jw.mT @ lin.residuals[..., None])[..., 0]
     if lin.fold_h is not None:
+        assert lin.fold_g is not None  # `_linearize` checks: both or neither
         h = h + lin.fold_h
         g = g + lin.fold_g
     return h, g
@@ -492,10 +493,8 @@ def _band_damped(h, free: Tensor, lam: Tensor):
     """H + lambda I restricted to the free dofs (B, T, D) (other rows/columns: identity)."""
     from ptrack.banded import BlockBanded
 
-    if bool(free.all()):  # no dof held at a bound: one copy of the blocks
-        diag = h.diagonal.clone()
-    else:
-        diag = h.diagonal * (free[..., :, None] & free[..., None, :])
+    # no dof held at a bound: one copy of the blocks
+    diag = h.diagonal.clone() if bool(free.all()) else h.diagonal * (free[..., :, None] & free[..., None, :])
     diag.diagonal(dim1=-2, dim2=-1).add_(torch.where(free, lam[:, None, None], 1.0))  # held dofs: identity rows
     w = h.lower.shape[-2] if h.coupling_is_diagonal else h.lower.shape[-3]
     f = free.to(h.diagonal.dtype)

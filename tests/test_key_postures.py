@@ -12,8 +12,14 @@ from torch import Tensor
 from ptrack.camera import camera_for_motion
 from ptrack.config import MotionConfig
 from ptrack.errors import InputError
-from ptrack.key_postures import (Rule, detect_key_postures, detect_key_postures_2d, initial_times, parse_rule,
-                                 parse_rules)
+from ptrack.key_postures import (
+    Rule,
+    detect_key_postures,
+    detect_key_postures_2d,
+    initial_times,
+    parse_rule,
+    parse_rules,
+)
 from ptrack.skeleton import Skeleton
 
 SWINGS = ("64_01", "64_02", "64_04", "64_05", "64_06", "64_08", "64_09")
@@ -135,7 +141,7 @@ def test_2d_detector_with_missing_points(swings):
 def test_not_found_names_the_clip(swings):
     sk, joints = swings["64_01"]
     still = joints[:100]  # the golfer at the address: no swing
-    with pytest.raises(InputError, match="^64_01-address: key posture"):
+    with pytest.raises(InputError, match=r"^64_01-address: key posture"):
         detect_key_postures(still, sk, 120.0, MotionConfig(), clip="64_01-address")
     with pytest.raises(InputError, match="no joint 'lpalm'"):
         detect_key_postures(joints, sk, 120.0, MotionConfig(joints=("lpalm",)), clip="x")

@@ -171,9 +171,9 @@ def test_load_refuses_another_skeleton(model, tmp_path, asf_64):
     (tmp_path / "other.asf").write_text(other)
     sk = Skeleton.from_asf(tmp_path / "other.asf")
     assert "ltoes.rx" not in sk.dof_names
-    with pytest.raises(InputError, match="fitted on another skeleton.*'ltoes.rx'"):
+    with pytest.raises(InputError, match=r"fitted on another skeleton.*'ltoes\.rx'"):
         load_motion_model(path, sk)
-    with pytest.raises(InputError, match="no dof 'lhumerus.rx'"):
+    with pytest.raises(InputError, match=r"no dof 'lhumerus\.rx'"):
         dof_index(model, Skeleton.from_asf(asf_64).freeze(("lhumerus",)))
 
 
@@ -217,7 +217,7 @@ def test_fit_refuses_bad_inputs(clips):
     with pytest.raises(InputError, match=r"'motion.components' \(3\) must be at most .* minus one \(2\)"):
         fit_motion_model(clips[:3], MotionConfig(components=3))
     still = dataclasses.replace(clips[2], name="still.amc", q=clips[2].q[:60])  # the address only
-    with pytest.raises(InputError, match="^still.amc: key posture"):
+    with pytest.raises(InputError, match=r"^still\.amc: key posture"):
         fit_motion_model([clips[0], still], MotionConfig(components=1))
 
 
@@ -226,13 +226,13 @@ def test_config_section(tmp_path):
     assert cfg.motion.clips == (str(CLIPS.resolve()),)
     assert cfg.motion.model_file == str((REPO / "logs" / "motion" / "golf.npz").resolve())
     assert cfg.motion.samples == 200 and cfg.motion.components == 4
-    with pytest.raises(InputError, match="unknown config key 'motion.sample'"):
+    with pytest.raises(InputError, match=r"unknown config key 'motion\.sample'"):
         load_config(GOLF, ["motion.sample=3"], run=False)
-    with pytest.raises(InputError, match="'motion.key_postures.end': rule refers to unknown key posture 'impact'"):
+    with pytest.raises(InputError, match=r"'motion\.key_postures\.end': rule refers to unknown key posture 'impact'"):
         load_config(GOLF, ["motion.key_postures={start: max speed, end: max height after impact}"], run=False)
-    with pytest.raises(InputError, match="'motion.components' must be >= 1"):
+    with pytest.raises(InputError, match=r"'motion\.components' must be >= 1"):
         load_config(GOLF, ["motion.components=0"], run=False)
-    with pytest.raises(InputError, match="data.asf"):
+    with pytest.raises(InputError, match=r"data\.asf"):
         load_config(GOLF)  # a run needs its data; fit-motion does not
     # overrides' paths are relative to the working directory
     cfg = load_config(GOLF, ["motion.clips=[a.amc, b.amc]"], cwd=tmp_path, run=False)

@@ -74,7 +74,8 @@ def _cmu_scene(dtype=F64):
     joints = sk.forward_kinematics(q)
     cam = camera_for_motion(joints, 5.0, 30.0, 10.0, 800.0, 320, 240)
     bones = torch.as_tensor(sk.bones())
-    radii = capsule_radii([sk.joint_names[j] for _, j in sk.bones()], torch.as_tensor(sk.lengths[bones[:, 1]], dtype=dtype))
+    radii = capsule_radii([sk.joint_names[j] for _, j in sk.bones()],
+                          torch.as_tensor(sk.lengths[bones[:, 1]], dtype=dtype))
     return sk, q, joints, cam, bones, radii
 
 

@@ -102,7 +102,9 @@ class Objective:
             parts.append(math.sqrt(self.weights[name]) * j)
         return torch.cat(parts, dim=-2)
 
-    def linearize(self, ev: PoseEval, jac: PoseJacobian, fold: bool = False) -> tuple[Tensor, ...]:
+    def linearize(
+        self, ev: PoseEval, jac: PoseJacobian, fold: bool = False
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor] | tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
         """`residuals`, `jacobian`, `robust_weights` and the total energy at once, each least-squares
         term's residual computed once: -> (..., M), (..., M, D), (..., M), (...,).
 
@@ -143,6 +145,7 @@ class Objective:
         if not fold:
             return torch.cat(rs, -1), self.jacobian(ev, jac), torch.cat(ws, -1), energy
         if diag_h is not None:
+            assert diag_g is not None  # set together with diag_h
             diag = torch.diag_embed(diag_h)
             fold_h = diag if fold_h is None else fold_h + diag
             fold_g = diag_g if fold_g is None else fold_g + diag_g

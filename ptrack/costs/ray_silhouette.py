@@ -139,7 +139,8 @@ class RaySilhouette(_LeastSquares):
         bones = torch.as_tensor(self.bones)
         if bones.ndim != 2 or bones.shape[1] != 2 or bones.shape[0] == 0 or bones.is_floating_point() \
                 or bool((bones < 0).any()):
-            raise InputError(f"RaySilhouette.bones must be non-empty (start, end) joint index pairs, got {self.bones!r}")
+            raise InputError("RaySilhouette.bones must be non-empty (start, end) joint index pairs, "
+                             f"got {self.bones!r}")
         radii = torch.as_tensor(self.radii, dtype=dirs.dtype)
         if radii.shape != (bones.shape[0],) or not bool((radii > 0).all()):
             raise InputError(f"RaySilhouette.radii must be ({bones.shape[0]},) positive, got {_shape(radii)}")

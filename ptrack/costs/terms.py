@@ -136,7 +136,6 @@ class JointLimits(_LeastSquares):
         """(..., D) -> (..., D, D) diagonal: 1/sigma where q is outside its limits (time_axis: autograd)."""
         if self.time_axis:
             raise NotImplementedError("JointLimits.jacobian with time_axis")
-        q = ev.q
         return torch.diag_embed(self.diagonal_jacobian(ev))
 
     def diagonal_jacobian(self, ev: PoseEval) -> Tensor:

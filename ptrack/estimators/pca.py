@@ -46,8 +46,9 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Callable, Iterable
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -57,13 +58,25 @@ from ptrack.costs.ray_silhouette import RaySilhouette, mask_samples
 from ptrack.errors import InputError
 from ptrack.jacobians import joint_jacobian
 from ptrack.key_postures import detect_key_postures_2d, initial_times
-from ptrack.motion_model import (MotionModel, clip_paths, decode, dof_index, fit_motion_model, load_motion_model,
-                                 model_path, read_clips, save_motion_model)
+from ptrack.motion_model import (
+    MotionModel,
+    clip_paths,
+    decode,
+    dof_index,
+    fit_motion_model,
+    load_motion_model,
+    model_path,
+    read_clips,
+    save_motion_model,
+)
 from ptrack.problem import Estimate, Problem
 from ptrack.rotations import matrix_to_euler_np, skew
 from ptrack.silhouette import capsule_radii
 from ptrack.skeleton import Skeleton
 from ptrack.solvers import Linearization, levenberg_marquardt
+
+if TYPE_CHECKING:
+    from ptrack.config import RunConfig
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +108,7 @@ class Setup:
     foreground samples."""
 
     problem: Problem
-    cfg: object
+    cfg: RunConfig
     model: MotionModel
     model_dofs: Tensor  # (Dm,) positions of the model's dofs in q
     root_dofs: Tensor  # (6,) positions of root tx, ty, tz and the root's three angles in q
@@ -132,7 +145,8 @@ def _setup(problem: Problem, cfg) -> Setup:
                     sk.dof_names[other[0]])
     missing = [j for j in p.joints if j not in kps.names]
     if missing:
-        raise InputError(f"config key 'pca.joints': unknown keypoint {missing[0]!r} (keypoints: {', '.join(kps.names)})")
+        raise InputError(f"config key 'pca.joints': unknown keypoint {missing[0]!r} "
+                         f"(keypoints: {', '.join(kps.names)})")
     kp = [kps.names.index(j) for j in p.joints]
     tracked = torch.as_tensor([kps.joints[k] for k in kp], dtype=torch.long, device=device)
     observed = obs.keypoints[:, kp].to(dtype)
@@ -163,7 +177,7 @@ def _setup(problem: Problem, cfg) -> Setup:
     with torch.no_grad():
         _, rest = sk.forward_kinematics(torch.zeros(sk.num_dofs, dtype=dtype, device=device), rotations=True)
     return Setup(problem, cfg, model, model_dofs, torch.as_tensor(root, device=device), tracked, observed, weight,
-                          rays, valid, bones, radii, model.sigma.to(dtype=dtype, device=device), order, root_xyz, rest[0])
+                 rays, valid, bones, radii, model.sigma.to(dtype=dtype, device=device), order, root_xyz, rest[0])
 
 
 # ---------------------------------------------------------------- poses of a state
@@ -348,6 +362,7 @@ def _window_linearization(s: Setup, frames: Tensor, ref: Tensor, pred: Predictio
 def _silhouette(s: Setup, frames: Tensor) -> RaySilhouette | None:
     if s.rays is None:
         return None
+    assert s.ray_valid is not None  # set with rays
     cam = s.problem.observations.camera
     return RaySilhouette(s.rays[frames], s.ray_valid[frames], cam.center, s.bones, s.radii,
                          sigma_m=s.cfg.pca.silhouette_sigma_m)
@@ -495,6 +510,7 @@ def estimate_pca(problem: Problem, cfg, generator: torch.Generator,
         terms = {"joints": 0.5 * p.joint_weight * robust_loss(cfg.costs.loss)(r.square().sum(-1),
                                                                               cfg.costs.robust_scale).sum(-1)}
         if s.rays is not None:
+            assert s.ray_valid is not None  # set with rays
             sil = RaySilhouette(s.rays, s.ray_valid, obs.camera.center, s.bones, s.radii,
                                 sigma_m=p.silhouette_sigma_m)
             terms["silhouette"] = 0.5 * p.silhouette_weight * sil.residual_per_frame(joints).square().sum(-1)
