@@ -518,33 +518,33 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         raise InputError(f"config key 'frame.init' must be 'keyframe' or 'rest', got {cfg.frame.init!r}")
     if cfg.frame.iterations < 1 or cfg.frame.first_iterations < 1:
         raise InputError("config keys 'frame.iterations' and 'frame.first_iterations' must be >= 1")
-    k = cfg.kjs
-    if k.modes < 1:
-        raise InputError(f"config key 'kjs.modes' must be >= 1, got {k.modes}")
-    if k.samples < k.modes:
-        raise InputError(f"config key 'kjs.samples' must be at least kjs.modes ({k.modes}), got {k.samples}")
+    kc = cfg.kjs
+    if kc.modes < 1:
+        raise InputError(f"config key 'kjs.modes' must be >= 1, got {kc.modes}")
+    if kc.samples < kc.modes:
+        raise InputError(f"config key 'kjs.samples' must be at least kjs.modes ({kc.modes}), got {kc.samples}")
     for key in ("scale", "tail_dof", "distinct_deg", "temperature", "prior_sigma", "floor_deg", "ceiling_deg",
                 "viterbi_sigma", "rest_sigma", "start_prior_scale", "prior_tail_scale"):
-        if not getattr(k, key) > 0:
-            raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(k, key)}")
+        if not getattr(kc, key) > 0:
+            raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(kc, key)}")
     for key in ("init_yaws", "init_fits"):
-        if getattr(k, key) < 1:
-            raise InputError(f"config key 'kjs.{key}' must be >= 1, got {getattr(k, key)}")
-    if k.collision_weight < 0:
-        raise InputError(f"config key 'kjs.collision_weight' must be >= 0, got {k.collision_weight}")
-    if k.polish_iterations < 0 or k.refine_iterations < 0 or k.jumps_per_sample < 0:
+        if getattr(kc, key) < 1:
+            raise InputError(f"config key 'kjs.{key}' must be >= 1, got {getattr(kc, key)}")
+    if kc.collision_weight < 0:
+        raise InputError(f"config key 'kjs.collision_weight' must be >= 0, got {kc.collision_weight}")
+    if kc.polish_iterations < 0 or kc.refine_iterations < 0 or kc.jumps_per_sample < 0:
         raise InputError("config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' "
                          "must be >= 0")
     for key in ("motion_scale", "pose_prior_weight", "distinct_mm"):
-        if getattr(k, key) < 0:
-            raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(k, key)}")
-    if not 0 <= k.momentum <= 1:
-        raise InputError(f"config key 'kjs.momentum' must be in [0, 1], got {k.momentum}")
+        if getattr(kc, key) < 0:
+            raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")
+    if not 0 <= kc.momentum <= 1:
+        raise InputError(f"config key 'kjs.momentum' must be in [0, 1], got {kc.momentum}")
     for key, allowed in (("tail", ("gaussian", "student", "cauchy")), ("limits_mode", ("prune", "project")),
                          ("polisher", ("lm", "lbfgs")), ("init", ("keyframe", "tree")),
                          ("prior_tail", ("gaussian", "cauchy", "huber", "geman_mcclure"))):
-        if getattr(k, key) not in allowed:
-            raise InputError(f"config key 'kjs.{key}' must be one of {', '.join(allowed)}, got {getattr(k, key)!r}")
+        if getattr(kc, key) not in allowed:
+            raise InputError(f"config key 'kjs.{key}' must be one of {', '.join(allowed)}, got {getattr(kc, key)!r}")
     kf = cfg.keyframes
     if kf.every_s is not None and not kf.every_s > 0:
         raise InputError(f"config key 'keyframes.every_s' must be positive or null, got {kf.every_s}")

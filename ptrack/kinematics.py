@@ -50,7 +50,7 @@ class _Plan:
     u: Tensor | None  # (J, 3) offset fixed in the parent frame, None if all zero
     w: Tensor | None  # (J, 3) offset turning with the joint, None if all zero
     slide: Tensor | None  # (J, 3) prismatic displacement per unit of q, in H's frame; None without prismatic joints
-    slide_index: Tensor | None  # (J,) long clamped q index of each prismatic joint
+    slide_index: Tensor  # (J,) long clamped q index of each prismatic joint (0 where none)
     lengths: Tensor  # (J,)
     level_index: Tensor  # (J,) joint index of each level-order position
     order: Tensor  # (J,) level-order position of each joint

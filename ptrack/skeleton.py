@@ -82,7 +82,7 @@ class Skeleton:
     upper: np.ndarray
     frozen_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (J, 3) angle of frozen axes
     frozen: tuple[tuple[str, float], ...] = ()  # (dof name, value) removed by `freeze`
-    amc_layout: "AmcLayout | None" = None
+    amc_layout: AmcLayout | None = None
     axis_scale: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (J, 3), ones by default
     slide_axis: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (J, 3), zeros by default
     slide_dof: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # (J,), -1 by default
@@ -129,7 +129,7 @@ class Skeleton:
         return (torch.as_tensor(self.lower, dtype=dtype, device=device),
                 torch.as_tensor(self.upper, dtype=dtype, device=device))
 
-    def with_limits(self, source: str, path: str | Path | None = None) -> "Skeleton":
+    def with_limits(self, source: str, path: str | Path | None = None) -> Skeleton:
         """This model with the joint limits of `source`: "data" (measured on real CMU motion, the
         default of runs), "asf" (the model file's own) or "none". See `ptrack.limits`."""
         from ptrack.limits import with_limits
@@ -158,12 +158,12 @@ class Skeleton:
 
     # ---------------------------------------------------------------- constructors
     @staticmethod
-    def from_asf(path: str | Path) -> "Skeleton":
+    def from_asf(path: str | Path) -> Skeleton:
         """Read an Acclaim ASF skeleton (lengths converted to metres, limits to radians)."""
         return _from_asf(parse_asf(path))
 
     @staticmethod
-    def from_urdf(path: str | Path, floating_base: bool | None = None) -> "Skeleton":
+    def from_urdf(path: str | Path, floating_base: bool | None = None) -> Skeleton:
         """Any URDF articulated model (ptrack's own reader of the kinematic elements: `ptrack.urdf`).
 
         One joint per link, at the link's frame, in depth-first order from the root link. Revolute
@@ -188,7 +188,7 @@ class Skeleton:
         return skeleton_to_urdf(self)
 
     # ---------------------------------------------------------------- reduced models
-    def freeze(self, patterns: list[str] | tuple[str, ...], value: float = 0.0) -> "Skeleton":
+    def freeze(self, patterns: list[str] | tuple[str, ...], value: float = 0.0) -> Skeleton:
         """A reduced model: dofs matching any pattern are removed from q and held at `value`.
 
         A pattern matches a joint name (all its dofs: "lfingers", "*clavicle") or a dof name
@@ -233,7 +233,7 @@ class Skeleton:
             upper=self.upper[keep],
         )
 
-    def expand(self, q_reduced: Tensor, full: "Skeleton") -> Tensor:
+    def expand(self, q_reduced: Tensor, full: Skeleton) -> Tensor:
         """Map a pose of this (reduced) model into `full`'s dof layout: (..., D) -> (..., D_full).
 
         Frozen dofs get their frozen value (0 unless `freeze(value=...)` said otherwise).
@@ -246,7 +246,7 @@ class Skeleton:
         out[..., idx] = q_reduced
         return out
 
-    def reduce(self, q_full: Tensor, full: "Skeleton") -> Tensor:
+    def reduce(self, q_full: Tensor, full: Skeleton) -> Tensor:
         """Select this model's dofs from a pose of `full`: (..., D_full) -> (..., D)."""
         idx = [full.dof_names.index(n) for n in self.dof_names]
         return q_full[..., idx]
@@ -262,7 +262,7 @@ class Skeleton:
 
         return forward_kinematics(self, q, lengths=lengths, rotations=rotations)
 
-    def load_amc(self, path: str | Path) -> "Motion":
+    def load_amc(self, path: str | Path) -> Motion:
         return load_amc(path, self)
 
 
@@ -285,7 +285,7 @@ class Motion:
         """(T,) seconds from the first frame."""
         return (self.frames - self.frames[0]) / self.frame_rate
 
-    def slice(self, start: int = 0, stop: int | None = None, stride: int = 1) -> "Motion":
+    def slice(self, start: int = 0, stop: int | None = None, stride: int = 1) -> Motion:
         """Frames [start, stop) of the clip (indices, not AMC frame numbers) every `stride`."""
         t = self.q.shape[0]
         if stride < 1:

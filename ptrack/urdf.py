@@ -78,7 +78,7 @@ def _vector(text: str | None, default, what: str, where: str) -> tuple[float, fl
         v = ()
     if len(v) != 3 or not all(math.isfinite(x) for x in v):
         raise InputError(f"{where}: {what}={text!r} is not three numbers")
-    return v  # type: ignore[return-value]
+    return v
 
 
 def _number(el: ET.Element, key: str, default: float, where: str, infinite: bool = False) -> float:
@@ -131,10 +131,10 @@ def parse_urdf(text: str, source: str = "<string>") -> UrdfModel:
             extra = " (a free base: from_urdf(..., floating_base=True) on the file without it)" \
                 if kind == "floating" else ""
             raise InputError(f"{where} is of type {kind!r}; ptrack supports {', '.join(JOINT_TYPES)} joints{extra}")
-        ends = []
+        ends: list[str] = []
         for tag in ("parent", "child"):
-            e = el.find(tag)
-            link = e.get("link") if e is not None else None
+            end = el.find(tag)
+            link = end.get("link") if end is not None else None
             if not link:
                 raise InputError(f"{where} has no <{tag} link=...>")
             if link not in links:
@@ -154,7 +154,7 @@ def parse_urdf(text: str, source: str = "<string>") -> UrdfModel:
             n = math.sqrt(sum(a * a for a in axis))
             if n == 0.0:
                 raise InputError(f"{where}: its axis is zero")
-            axis = tuple(a / n for a in axis)
+            axis = (axis[0] / n, axis[1] / n, axis[2] / n)
             lim = el.find("limit")
             if lim is not None:
                 lower, upper = _number(lim, "lower", 0.0, where, True), _number(lim, "upper", 0.0, where, True)
@@ -164,7 +164,7 @@ def parse_urdf(text: str, source: str = "<string>") -> UrdfModel:
             n = math.sqrt(sum(a * a for a in axis))
             if n == 0.0:
                 raise InputError(f"{where}: its axis is zero")
-            axis = tuple(a / n for a in axis)
+            axis = (axis[0] / n, axis[1] / n, axis[2] / n)
         mimic = None
         m = el.find("mimic")
         if m is not None and kind != "fixed":
@@ -202,12 +202,12 @@ def _mimic_source(model: UrdfModel, source: str) -> dict[str, tuple[str | None, 
         if j.type == "fixed":
             continue
         name, mult, off, seen = j.name, 1.0, 0.0, [j.name]
-        while by_name[name].mimic is not None:
-            leader, m, o = by_name[name].mimic  # q_name = m q_leader + o
+        while (mimic := by_name[name].mimic) is not None:
+            leader, m, o = mimic  # q_name = m q_leader + o
             if leader not in by_name:
                 _log.warning("%s: joint %r mimics %r, which is not a joint of the file: held at its offset %g",
                              source, name, leader, o)
-                off, mult, name = mult * o + off, 0.0, None
+                out[j.name] = (None, 0.0, mult * o + off)
                 break
             if by_name[leader].type == "fixed":
                 raise InputError(f"{source}: joint {name!r} mimics {leader!r}, a fixed joint")
@@ -216,7 +216,8 @@ def _mimic_source(model: UrdfModel, source: str) -> dict[str, tuple[str | None, 
             mult, off = mult * m, mult * o + off
             name = leader
             seen.append(name)
-        out[j.name] = (name, mult, off)
+        else:  # the chain ends at an independent joint
+            out[j.name] = (name, mult, off)
     return out
 
 
@@ -309,7 +310,9 @@ def skeleton_from_model(model: UrdfModel, floating_base: bool | None = None, nam
             dof_names.append(j.name)
             lower.append(j.lower)
             upper.append(j.upper)
-    for i, (_, j) in enumerate(order[1:], start=1):
+    for i, (_, incoming) in enumerate(order[1:], start=1):
+        assert incoming is not None  # only the root link, order[0], has no joint moving it
+        j = incoming
         r0 = euler_matrix_np(j.rpy, "XYZ")
         t0 = np.asarray(j.xyz, dtype=np.float64)
         rest[i] = r0
@@ -322,6 +325,7 @@ def skeleton_from_model(model: UrdfModel, floating_base: bool | None = None, nam
                 rest[i] = r0 @ axis_angle_matrix(torch.as_tensor(ax), torch.tensor(off, dtype=torch.float64)).numpy()
         elif j.type != "fixed":
             leader, mult, off = source_of[j.name]
+            assert leader is not None  # the branch above took the joints held at their offset
             d = dof_of[leader]
             if j.type == "prismatic":
                 slide_dof[i] = d
@@ -392,7 +396,8 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
             d = int(sk.axis_dof[i, k])
             if d >= 0 and sk.axis_scale[i, k] == 1.0 and sk.frozen_axes[i, k] == 0.0:
                 owner.setdefault(d, (i, k))
-    for d in sorted({int(x) for x in sk.axis_dof[sk.axis_dof >= 0]} | {int(x) for x in sk.slide_dof[sk.slide_dof >= 0]}):
+    driven = {int(x) for x in sk.axis_dof[sk.axis_dof >= 0]} | {int(x) for x in sk.slide_dof[sk.slide_dof >= 0]}
+    for d in sorted(driven):
         if d not in owner:
             raise InputError(f"skeleton {sk.name!r}: dof {sk.dof_names[d]!r} drives no joint directly "
                              "(only through a multiplier or offset), which URDF cannot write")
@@ -411,7 +416,8 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
         if axis is not None:
             s.append(f'    <axis xyz="{_fmt(axis)}"/>')
         if lim is not None:
-            s.append(f'    <limit lower="{_limit(lim[0]):.17g}" upper="{_limit(lim[1]):.17g}" effort="1" velocity="1"/>')
+            s.append(f'    <limit lower="{_limit(lim[0]):.17g}" upper="{_limit(lim[1]):.17g}" '
+                     'effort="1" velocity="1"/>')
         if mimic is not None:
             leader, mult, off = mimic
             s.append(f"    <mimic joint={quoteattr(leader)} multiplier=\"{mult:.17g}\" offset=\"{off:.17g}\"/>")
@@ -452,7 +458,8 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
                 jname, mimic = moving(d, (i, k), float(sk.axis_scale[i, k]), float(sk.frozen_axes[i, k]))
                 lim = lim_of(d, "revolute", (i, k))
                 kind = "revolute" if lim is not None and np.all(np.isfinite(lim)) else "continuous"
-                steps.append((jname, kind, None, {"axis": ax, "lim": lim if kind == "revolute" else None, "mimic": mimic}))
+                steps.append((jname, kind, None,
+                              {"axis": ax, "lim": lim if kind == "revolute" else None, "mimic": mimic}))
             elif sk.frozen_axes[i, k] != 0.0:
                 r = axis_angle_matrix(torch.as_tensor(ax), torch.tensor(float(sk.frozen_axes[i, k]),
                                                                          dtype=torch.float64)).numpy()
@@ -473,8 +480,9 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
             joint(jname, kind, parent if parent is not None else prev, child, **kw)
             prev = child
     # the joints that own a dof in dof order (readers number dofs in file order), the others in place
-    slots = [k for k, (d, _) in enumerate(joints) if d is not None]
-    for k, jt in zip(slots, sorted((joints[k] for k in slots), key=lambda jt: jt[0])):
+    dof_at = {k: d for k, (d, _) in enumerate(joints) if d is not None}  # slot -> dof
+    in_dof_order = [joints[k] for k in sorted(dof_at, key=dof_at.__getitem__)]
+    for k, jt in zip(dof_at, in_dof_order):
         joints[k] = jt
     head = f'<?xml version="1.0"?>\n<robot name={quoteattr(sk.name or "ptrack")} {_BASE_MARK}="false">'
     return "\n".join([head, *links, *(text for _, text in joints), "</robot>\n"])

@@ -18,12 +18,12 @@ evaluations; the script prints both times, both costs and the ratio. One torch t
 from __future__ import annotations
 
 import argparse
-from math import comb
 import os
 import resource
 import subprocess
 import sys
 import time
+from math import comb
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +33,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from ptrack.config import load_config  # noqa: E402
-from ptrack.estimators.batch import (interpolate_keyframes, linearization, trajectory_objective,  # noqa: E402
-                                     warp_to_keyframes)
+from ptrack.estimators.batch import (  # noqa: E402
+    interpolate_keyframes,
+    linearization,
+    trajectory_objective,
+    warp_to_keyframes,
+)
 from ptrack.problem import evaluate_pose  # noqa: E402
 from ptrack.run import prepare  # noqa: E402
 from ptrack.solvers import banded_levenberg_marquardt  # noqa: E402
@@ -209,8 +213,9 @@ def warm_start(args) -> None:
         lin = linearization(obj2)
         stamps = []
         t0, c0 = time.perf_counter(), time.process_time()
-        q, info2 = banded_levenberg_marquardt(lin, start, obj2.lower, obj2.upper,
-                                             callback=lambda it, q, c: stamps.append(time.process_time() - c0), **solve)
+        _q, info2 = banded_levenberg_marquardt(
+            lin, start, obj2.lower, obj2.upper,
+            callback=lambda it, q, c: stamps.append(time.process_time() - c0), **solve)
         out[name] = (time.perf_counter() - t0, time.process_time() - c0, int(info2.iterations[0]), info2.history[:, 0],
                      stamps)
     final = min(float(o[3][-1]) for o in out.values())
@@ -255,7 +260,7 @@ def memory_one(frames: int) -> None:
     torch.set_num_threads(1)
     load = run.load_amc
     run.load_amc = lambda path, sk: ping_pong(load(path, sk), frames)
-    cfg, prep, obj, q0 = problem(frames)
+    _cfg, _prep, obj, q0 = problem(frames)
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
     t0 = time.perf_counter()
     q, info = banded_levenberg_marquardt(linearization(obj), q0[None], obj.lower, obj.upper, max_iter=3)

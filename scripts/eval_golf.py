@@ -79,7 +79,8 @@ def swing_keys(swing: Path, stride: int) -> list[int]:
     motion = load_amc(swing, sk)
     cfg = load_config(REPO / "configs" / "eval_golf.yaml", run=False)
     with torch.no_grad():
-        keys = detect_key_postures(sk.forward_kinematics(motion.q.double()), sk, motion.fps, cfg.motion, clip=swing.stem)
+        keys = detect_key_postures(sk.forward_kinematics(motion.q.double()), sk, motion.fps, cfg.motion,
+                                   clip=swing.stem)
     return [int(k) // stride for k in keys]
 
 
@@ -89,14 +90,16 @@ def swing_end(swing: Path, stride: int) -> int:
     motion = load_amc(swing, sk)
     cfg = load_config(REPO / "configs" / "eval_golf.yaml", run=False)
     with torch.no_grad():
-        keys = detect_key_postures(sk.forward_kinematics(motion.q.double()), sk, motion.fps, cfg.motion, clip=swing.stem)
+        keys = detect_key_postures(sk.forward_kinematics(motion.q.double()), sk, motion.fps, cfg.motion,
+                                   clip=swing.stem)
     return int((int(keys[-1]) + TAIL_S * motion.fps) // stride)
 
 
 def span_metrics(folder: Path, stop: int) -> dict:
     """MPJPE, PA-MPJPE (17 keypoints, pelvis-aligned) and flip rate over frames [0, stop] of a run."""
     with np.load(folder / "result.npz") as z:
-        est, gt = torch.from_numpy(z["joints"][:stop + 1]).double(), torch.from_numpy(z["gt_joints"][:stop + 1]).double()
+        est = torch.from_numpy(z["joints"][:stop + 1]).double()
+        gt = torch.from_numpy(z["gt_joints"][:stop + 1]).double()
         R, t = torch.from_numpy(z["camera_R"]).double(), torch.from_numpy(z["camera_t"]).double()
     sk = Skeleton.from_asf(load_config(folder / "config.yaml").data.asf)
     kps = make_keypoints(sk)
@@ -117,9 +120,9 @@ def table(rows: dict[str, dict[str, dict]], variants: list[str], title: str) -> 
     means = []
     for v in variants:
         vals = [per[v] for per in rows.values() if v in per]
-        means.append(" / ".join(f"{np.mean([x[k] for x in vals]):{f}}" for k, f in
-                                (("mpjpe_mm", ".1f"), ("pa_mpjpe_mm", ".1f"), ("flip_error_rate", ".3f"))) if vals else "–")
-    lines.append(f"| **mean** | " + " | ".join(f"**{m}**" for m in means) + " |")
+        cols = (("mpjpe_mm", ".1f"), ("pa_mpjpe_mm", ".1f"), ("flip_error_rate", ".3f"))
+        means.append(" / ".join(f"{np.mean([x[k] for x in vals]):{f}}" for k, f in cols) if vals else "–")
+    lines.append("| **mean** | " + " | ".join(f"**{m}**" for m in means) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -133,7 +136,7 @@ def plot(folder: Path, path: Path, n: int = 8) -> None:
 
     with np.load(folder / "result.npz") as z:
         est, gt, parents = z["joints"], z["gt_joints"], z["parents"]
-        K, R, t, size = z["camera_K"], z["camera_R"], z["camera_t"], z["image_size"]
+        K, R, t = z["camera_K"], z["camera_R"], z["camera_t"]
     keys = swing_keys(Path(load_config(folder / "config.yaml").data.amc), 4)
     frames = np.linspace(max(keys[0] - 4, 0), min(keys[-1] + 4, len(est) - 1), n).round().astype(int)
 

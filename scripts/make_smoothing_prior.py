@@ -1,7 +1,8 @@
 """Make `ptrack/data/cmu_smoothing.json`: per-dof velocity and acceleration scales of `method: batch`'s
 smoothing prior, fitted to real CMU motion.
 
-    python scripts/make_smoothing_prior.py [--clips configs/clips/dev.txt] [--fps 30] [--out ptrack/data/cmu_smoothing.json]
+    python scripts/make_smoothing_prior.py [--clips configs/clips/dev.txt] [--fps 30] \\
+        [--out ptrack/data/cmu_smoothing.json]
 
 The batch objective's smoothing terms are zero-mean Gaussians on each dof's velocity and acceleration
 (`ptrack/estimators/batch.py`); the maximum-likelihood std of such a Gaussian on a clip is the RMS of
@@ -50,7 +51,7 @@ def rms_rates(amc: Path, fps: float) -> tuple[list[str], list[bool], np.ndarray,
     """dof names, angular flags, per-dof RMS velocity and acceleration of one clip at `fps`."""
     sk = Skeleton.from_asf(amc.parent / f"{amc.stem.split('_')[0]}.asf")
     motion = load_amc(amc, sk)
-    stride = max(int(round(motion.frame_rate / fps)), 1)
+    stride = max(round(motion.frame_rate / fps), 1)
     q = motion.q.numpy()[::stride]
     dt = stride / motion.frame_rate
     angular = np.asarray(sk.angular_dofs(), dtype=bool)

@@ -145,7 +145,8 @@ def test_warp_to_keyframes_meets_a_new_keyframe_and_keeps_the_met_ones():
     warped = warp_to_keyframes(moved, obj)
     assert float((warped[30] - obj.kf_target[1]).abs().max()) < 1e-9
     assert float(warped[15, i] - moved[15, i]) == pytest.approx(-0.15)  # halfway down the ramp
-    assert float((warped[0] - moved[0]).abs().max()) == 0.0 and float(warped[39, i] - moved[39, i]) == pytest.approx(-0.3)
+    assert float((warped[0] - moved[0]).abs().max()) == 0.0
+    assert float(warped[39, i] - moved[39, i]) == pytest.approx(-0.3)
 
 
 def test_accuracy_on_a_clip_not_tuned_on(cmu_file):

@@ -59,7 +59,7 @@ def test_decode_jacobian_matches_decode(heldout_model):
 
 
 def test_root_rotation_round_trip_and_window_jacobian(cmu_file, heldout_model):
-    cfg, prep, s = _setup(cmu_file, heldout_model)
+    _cfg, prep, s = _setup(cmu_file, heldout_model)
     gt = prep.gt_q[:4]
     rot = P._rotation_of(s, gt[:, s.root_dofs[3:]])
     assert torch.allclose(P._rotation_of(s, P.root_angles(s, rot)), rot, atol=1e-12)

@@ -205,12 +205,12 @@ def test_unsupported_joint_type(tmp_path):
 def test_malformed_urdf(tmp_path, text):
     p = tmp_path / "bad.urdf"
     p.write_text(text)
-    with pytest.raises(InputError, match="bad.urdf"):
+    with pytest.raises(InputError, match=r"bad\.urdf"):
         Skeleton.from_urdf(p)
 
 
 def test_missing_urdf_file(tmp_path):
-    with pytest.raises(FileNotFoundError, match="nope.urdf"):
+    with pytest.raises(FileNotFoundError, match=r"nope\.urdf"):
         Skeleton.from_urdf(tmp_path / "nope.urdf")
     with pytest.raises(FileNotFoundError):
         skeleton_from_urdf(tmp_path / "nope.urdf", floating_base=False)
@@ -604,7 +604,8 @@ def test_bad_mimic(tmp_path, extra, match):
 def test_mimic_of_a_missing_joint_is_held_at_its_offset(tmp_path, caplog):
     """As yourdfpy does (example-robot-data's alex_psyonic_hands.urdf has such joints), with a warning."""
     text = _robot(_joint("a_to_b", "revolute", "a", "b", axis="0 0 1",
-                         extra='<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="nope" offset="0.5"/>'),
+                         extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>'
+                               '<mimic joint="nope" offset="0.5"/>'),
                   _joint("b_to_c", "fixed", "b", "c", xyz="1 0 0"))
     with caplog.at_level("WARNING", logger="ptrack.urdf"):
         m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
@@ -646,7 +647,8 @@ def test_files_urdfdom_accepts_load_quietly(tmp_path, capfd, text):
     (_robot(_joint("j", "revolute", "a", "b", axis="0 0 0")), "axis is zero"),
     (_robot(_joint("j", "revolute", "a", "b", xyz="1, 2, 3")), "xyz='1, 2, 3'"),
     (_robot(_joint("j", "planar", "a", "b")), "'planar'"),
-    (_robot(_joint("j", "fixed", "a", "b"), _joint("k", "fixed", "c", "b"), links=["a", "b", "c"]), "child of two joints"),
+    (_robot(_joint("j", "fixed", "a", "b"), _joint("k", "fixed", "c", "b"), links=["a", "b", "c"]),
+     "child of two joints"),
 ])
 def test_files_urdfdom_refuses(tmp_path, text, match):
     with pytest.raises(InputError, match=match):
@@ -709,7 +711,7 @@ def test_roundtrip_default_arguments_keeps_the_base(tmp_path, arm_path):
 
 def test_unlimited_translations_export_as_large_limits(sk):
     robot = ET.fromstring(sk.to_urdf())
-    tx = [j for j in robot.iter("joint") if j.get("name") == "root.tx"][0]
+    tx = next(j for j in robot.iter("joint") if j.get("name") == "root.tx")
     assert float(tx.find("limit").get("upper")) == UNLIMITED_PRISMATIC
 
 
@@ -734,7 +736,8 @@ def test_geometric_jacobian_refuses_slides_and_mimics(tmp_path):
 @pytest.mark.parametrize("extra,match", [
     ('<limit lower="nan" upper="1" effort="1" velocity="1"/>', "lower='nan'"),
     ('<limit lower="-1" upper="x" effort="1" velocity="1"/>', "upper='x'"),
-    ('<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="a_to_b" multiplier="inf"/>', "multiplier='inf'"),
+    ('<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="a_to_b" multiplier="inf"/>',
+     "multiplier='inf'"),
 ])
 def test_numbers_that_are_not(tmp_path, extra, match):
     text = _robot(_joint("a_to_b", "revolute", "a", "b", extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>'),

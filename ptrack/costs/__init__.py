@@ -14,16 +14,39 @@ Pixel coordinates follow OpenCV: u = column, v = row; pixel (u, v) covers [u, u+
 centre at (u + 0.5, v + 0.5), as in `Camera` and `render_silhouettes`.
 """
 
-from ptrack.costs.base import (CostTerm, PoseEval, cauchy, geman_mcclure, huber, l2, robust_loss,
-                               robust_loss_derivative)
+from ptrack.costs.base import CostTerm, PoseEval, cauchy, geman_mcclure, huber, l2, robust_loss, robust_loss_derivative
 from ptrack.costs.collision import SelfIntersection
 from ptrack.costs.objective import Objective, ObjectiveValue
 from ptrack.costs.silhouette import Silhouette, distance_transform
-from ptrack.costs.terms import (HeavyTailedPrior, JointKeyframe, JointLimits, Keyframe, PosePrior, Reprojection,
-                                Smoothness)
+from ptrack.costs.terms import (
+    HeavyTailedPrior,
+    JointKeyframe,
+    JointLimits,
+    Keyframe,
+    PosePrior,
+    Reprojection,
+    Smoothness,
+)
 
 __all__ = [
-    "CostTerm", "HeavyTailedPrior", "JointKeyframe", "JointLimits", "Keyframe", "Objective", "ObjectiveValue", "PosePrior", "PoseEval",
-    "Reprojection", "SelfIntersection", "Silhouette", "Smoothness", "cauchy", "distance_transform", "geman_mcclure", "huber",
-    "l2", "robust_loss", "robust_loss_derivative",
+    "CostTerm",
+    "HeavyTailedPrior",
+    "JointKeyframe",
+    "JointLimits",
+    "Keyframe",
+    "Objective",
+    "ObjectiveValue",
+    "PoseEval",
+    "PosePrior",
+    "Reprojection",
+    "SelfIntersection",
+    "Silhouette",
+    "Smoothness",
+    "cauchy",
+    "distance_transform",
+    "geman_mcclure",
+    "huber",
+    "l2",
+    "robust_loss",
+    "robust_loss_derivative",
 ]

@@ -63,9 +63,15 @@ class Objective:
         object.__setattr__(self, "weights",
                            MappingProxyType({n: float(weights.get(n, 1.0)) for n in self.terms}))
 
+    @property
+    def _weights(self) -> Mapping[str, float]:
+        """weights as `__post_init__` stored them: one per term."""
+        assert self.weights is not None
+        return self.weights
+
     def __call__(self, ev: PoseEval) -> ObjectiveValue:
         """ev -> ObjectiveValue(total (...,), terms {name: w * energy (...,)})."""
-        parts = {name: self.weights[name] * term.energy(ev) for name, term in self.terms.items()}
+        parts = {name: self._weights[name] * term.energy(ev) for name, term in self.terms.items()}
         _same_batch("energy", {name: e.shape for name, e in parts.items()})
         return ObjectiveValue(torch.stack(list(parts.values())).sum(0), parts)
 
@@ -76,7 +82,7 @@ class Objective:
         whitened residual: a Gauss-Newton / IRLS step uses diag(robust_weights(ev)) as the per-row
         weight (J^T W J dq = -J^T W r), which matches the gradient of the robust total.
         """
-        parts = {n: math.sqrt(self.weights[n]) * t.residual(ev) for n, t in self.terms.items()}
+        parts = {n: math.sqrt(self._weights[n]) * t.residual(ev) for n, t in self.terms.items()}
         _same_batch("residuals", {name: r.shape[:-1] for name, r in parts.items()})
         return torch.cat(list(parts.values()), dim=-1)
 
@@ -99,7 +105,7 @@ class Objective:
                     j = None
             if j is None:
                 j = _forward_jacobian(term, ev, jac)
-            parts.append(math.sqrt(self.weights[name]) * j)
+            parts.append(math.sqrt(self._weights[name]) * j)
         return torch.cat(parts, dim=-2)
 
     def linearize(
@@ -117,7 +123,7 @@ class Objective:
         rs, ws, es, stacked = [], [], [], []
         diag_h = diag_g = fold_h = fold_g = None
         for name, term in self.terms.items():
-            w = self.weights[name]
+            w = self._weights[name]
             if fold:
                 part = _folded(term, ev, jac)
                 if part is not None:

@@ -22,7 +22,6 @@ d dist / d b = -u* n (the minimiser's own motion does not change the minimum to 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
 

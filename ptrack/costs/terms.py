@@ -121,6 +121,12 @@ class JointLimits(_LeastSquares):
         object.__setattr__(self, "upper", hi)
         object.__setattr__(self, "sigma", sigma)
 
+    @property
+    def _sigma(self) -> Tensor:
+        """sigma as `__post_init__` stored it: a tensor."""
+        assert isinstance(self.sigma, Tensor)
+        return self.sigma
+
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.q (..., D) or (..., T, D) with time_axis -> (..., D) or (..., T*D)."""
         q = ev.q
@@ -129,7 +135,7 @@ class JointLimits(_LeastSquares):
                              f"{self.lower.shape[0]})")
         below = torch.clamp(q - self.lower.to(q), max=0.0)
         above = torch.clamp(q - self.upper.to(q), min=0.0)
-        r = (below + above) / self.sigma.to(q)
+        r = (below + above) / self._sigma.to(q)
         return r.flatten(-2) if self.time_axis else r
 
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
@@ -145,7 +151,7 @@ class JointLimits(_LeastSquares):
             raise NotImplementedError("JointLimits.diagonal_jacobian with time_axis")
         q = ev.q
         outside = (q < self.lower.to(q)) | (q > self.upper.to(q))
-        return outside.to(q) / self.sigma.to(q).expand(q.shape[-1:])
+        return outside.to(q) / self._sigma.to(q).expand(q.shape[-1:])
 
 
 @dataclass(frozen=True, eq=False)
@@ -346,23 +352,29 @@ class PosePrior(_LeastSquares):
         object.__setattr__(self, "mean", mean)
         object.__setattr__(self, "sigma", sigma)
 
+    @property
+    def _sigma(self) -> Tensor:
+        """sigma as `__post_init__` stored it: a tensor."""
+        assert isinstance(self.sigma, Tensor)
+        return self.sigma
+
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.q (..., D) -> (..., D)."""
         if ev.q.shape[-1] != self.mean.shape[-1]:
             raise InputError(f"PosePrior: ev.q {_shape(ev.q)} must end in D={self.mean.shape[-1]}")
-        return (ev.q - self.mean.to(ev.q)) / self.sigma.to(ev.q)
+        return (ev.q - self.mean.to(ev.q)) / self._sigma.to(ev.q)
 
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
         """(..., D) -> (..., D, D) = diag(1 / sigma)."""
         q = ev.q
-        inv = 1.0 / self.sigma.to(q)
+        inv = 1.0 / self._sigma.to(q)
         if inv.ndim <= 1:
             return torch.diag_embed(inv.expand(q.shape[-1:])).expand(*q.shape, q.shape[-1])
         return torch.diag_embed(inv.expand(q.shape))  # a std per hypothesis: (..., D) like q
 
     def diagonal_jacobian(self, ev: PoseEval) -> Tensor:
         """(..., D) -> (..., D): the Jacobian's diagonal, 1 / sigma (it has no other entries)."""
-        return (1.0 / self.sigma.to(ev.q)).expand(ev.q.shape)
+        return (1.0 / self._sigma.to(ev.q)).expand(ev.q.shape)
 
 
 @dataclass(frozen=True, eq=False)
@@ -391,11 +403,17 @@ class HeavyTailedPrior(_Robust):
         object.__setattr__(self, "mean", prior.mean)
         object.__setattr__(self, "sigma", prior.sigma)
 
+    @property
+    def _sigma(self) -> Tensor:
+        """sigma as `__post_init__` stored it: a tensor."""
+        assert isinstance(self.sigma, Tensor)
+        return self.sigma
+
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.q (..., D) -> (..., D)."""
         if ev.q.shape[-1] != self.mean.shape[-1]:
             raise InputError(f"HeavyTailedPrior: ev.q {_shape(ev.q)} must end in D={self.mean.shape[-1]}")
-        return (ev.q - self.mean.to(ev.q)) / self.sigma.to(ev.q)
+        return (ev.q - self.mean.to(ev.q)) / self._sigma.to(ev.q)
 
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
         """(..., D) -> (..., D, D) = diag(1 / sigma)."""
@@ -403,4 +421,4 @@ class HeavyTailedPrior(_Robust):
 
     def diagonal_jacobian(self, ev: PoseEval) -> Tensor:
         """(..., D) -> (..., D): the Jacobian's diagonal, 1 / sigma (it has no other entries)."""
-        return (1.0 / self.sigma.to(ev.q)).expand(ev.q.shape)
+        return (1.0 / self._sigma.to(ev.q)).expand(ev.q.shape)

@@ -91,7 +91,7 @@ def smoothing_prior(name: str | None) -> dict[str, dict[str, float]]:
         return {}
     if name != "cmu":
         raise InputError(f"config key 'batch.prior' must be 'cmu' or null, got {name!r}")
-    with resources.files("ptrack").joinpath("data", "cmu_smoothing.json").open() as f:
+    with resources.files("ptrack").joinpath("data").joinpath("cmu_smoothing.json").open() as f:
         doc = json.load(f)
     return {"velocity": doc["velocity"], "accel": doc["accel"]}
 
@@ -234,6 +234,7 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True
     terms["keyframes"] = keyframes.index_add(1, obj.jk_frames, 0.5 * jk_r.square().sum((-1, -2)))
     if not with_jacobian:
         return terms, None, None
+    assert jac is not None  # with_jacobian
 
     w = robust_loss_derivative(rp.loss)(s, rp.scale)  # (B, T, K) IRLS weights
     jr = rp.jacobian(ev, jac).unflatten(-2, (t_len, 2 * k))  # (B, T, 2K, D), rows (keypoint, x|y)
@@ -262,6 +263,7 @@ def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
 
     def linearize(q: Tensor) -> BandedLinearization:
         terms, h, g = evaluate(obj, q)
+        assert h is not None and g is not None  # with_jacobian
         h.diagonal(dim1=-2, dim2=-1).add_(band[:, 0])
         energy = torch.stack(list(terms.values())).sum(0).sum(-1)
         return BandedLinearization(BlockBanded(h, lower.to(q)), g, energy)
@@ -314,7 +316,7 @@ def interpolate_keyframes(problem: Problem, lower: Tensor, upper: Tensor) -> Ten
     t_len = problem.observations.num_frames
     full = None if kf is None else (torch.ones(kf.frames.shape, dtype=torch.bool) if kf.mask is None
                                     else kf.mask.all(-1).cpu())
-    if kf is None or not bool(full.any()):
+    if kf is None or full is None or not bool(full.any()):
         raise InputError("batch.init is 'keyframes' but no keyframe gives every dof")
     frames = kf.frames.cpu()[full]
     order = torch.argsort(frames)

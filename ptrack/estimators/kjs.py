@@ -44,12 +44,21 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from ptrack.banded import one_thread
-from ptrack.costs import HeavyTailedPrior, JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
+from ptrack.costs import (
+    CostTerm,
+    HeavyTailedPrior,
+    JointLimits,
+    Objective,
+    PosePrior,
+    Reprojection,
+    SelfIntersection,
+)
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators.frame import rest_pose_in_view
 from ptrack.ik import ChainIK, ClosedFormUnavailable, chain_ik, ik_plan, product_ik
@@ -68,6 +77,9 @@ from ptrack.pose_prior import pose_prior
 from ptrack.problem import Estimate, Problem, first_keyframe, pose_eval_from_joints
 from ptrack.samplers import css_proposal, project_to_limits, scaled_covariance, spherical_proposal
 from ptrack.solvers import lbfgs, levenberg_marquardt
+
+if TYPE_CHECKING:
+    from ptrack.config import RunConfig
 
 
 @dataclass(frozen=True)
@@ -90,7 +102,7 @@ class Setup:
     chains with their IK plans."""
 
     problem: Problem
-    cfg: object
+    cfg: RunConfig
     lower: Tensor  # (D,)
     upper: Tensor  # (D,)
     angular: Tensor  # (D,) bool
@@ -147,9 +159,10 @@ def _objective(s: Setup, t: int, mean: Tensor | None, sigma: float | Tensor | No
     `kjs.pose_prior_weight`)."""
     cc, k = s.cfg.costs, s.cfg.kjs
     obs = s.problem.observations
-    terms = {"reprojection": Reprojection(obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss,
-                                          scale=cc.robust_scale),
-             "limits": JointLimits(s.lower, s.upper, sigma=cc.limits_sigma)}
+    terms: dict[str, CostTerm] = {
+        "reprojection": Reprojection(obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss,
+                                     scale=cc.robust_scale),
+        "limits": JointLimits(s.lower, s.upper, sigma=cc.limits_sigma)}
     weights = {"limits": cc.limits_weight}
     if s.collision is not None:
         terms["collision"] = s.collision
@@ -258,7 +271,7 @@ def _jump(s: Setup, t: int, q: Tensor, parent: Tensor, modes: Modes, gen: torch.
 
 
 def _select(s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, prior_weight: Tensor, origin: Tensor,
-            count: int) -> Tensor:
+            count: int) -> tuple[Tensor, Tensor]:
     """Distinct minima among polished hypotheses, the `count` heaviest first: -> indices (M,) and their
     normalised weights (M,). prior_weight (N,): weight of the mode each came from."""
     k = s.cfg.kjs
@@ -453,7 +466,11 @@ def _track(problem: Problem, cfg, generator: torch.Generator, strategy: Strategy
     s = _setup(problem, cfg, strategy)
     sk, obs = problem.skeleton, problem.observations
     k = cfg.kjs
-    qs, ws, cs, ls, jumps = [], [], [], [], []
+    qs: list[Tensor] = []
+    ws: list[Tensor] = []
+    cs: list[Tensor] = []
+    ls: list[Tensor] = []
+    jumps = []
     modes = None
     for t in progress(range(obs.num_frames)):
         if modes is None:
