@@ -623,8 +623,10 @@ def test_mimic_of_a_missing_joint_is_held_at_its_offset(tmp_path, caplog):
     _robot(_joint("j", "fixed", "a", "b")).replace("<robot name='t'>", "<robot name='t' version='0.0'>"),
     # several geometry children, a transmission, a texture without a filename, gazebo and unknown tags
     "<robot name='t'><material name='m'><texture/></material>"
-    "<link name='a'><visual><geometry><box size='1 1 1'/><sphere radius='1'/></geometry><material name='m'/></visual>"
-    "<collision><geometry><mesh filename='package://x/y.stl'/><cylinder radius='1' length='2'/></geometry></collision>"
+    "<link name='a'><visual><geometry><box size='1 1 1'/><sphere radius='1'/></geometry>"
+    "<material name='m'/></visual>"
+    "<collision><geometry><mesh filename='package://x/y.stl'/><cylinder radius='1' length='2'/></geometry>"
+    "</collision>"
     "<inertial><mass value='1'/></inertial><contact><lateral_friction value='1'/></contact></link>"
     "<link name='b'/>" + _joint("j", "revolute", "a", "b", extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>'
                                 "<dynamics damping='1'/><safety_controller k_velocity='1'/><calibration rising='0'/>")
