@@ -16,13 +16,19 @@ __version__ = "0.1.0"
 
 #: public name -> the module that defines it
 _EXPORTS = {
-    "Camera": "ptrack.camera", "camera_for_motion": "ptrack.camera", "look_at": "ptrack.camera",
+    "Camera": "ptrack.camera",
+    "camera_for_motion": "ptrack.camera",
+    "look_at": "ptrack.camera",
     "InputError": "ptrack.errors",
-    "KeypointSet": "ptrack.keypoints", "make_keypoints": "ptrack.keypoints",
+    "KeypointSet": "ptrack.keypoints",
+    "make_keypoints": "ptrack.keypoints",
     "forward_kinematics": "ptrack.kinematics",
-    "ChannelConfig": "ptrack.observations", "Observations": "ptrack.observations",
+    "ChannelConfig": "ptrack.observations",
+    "Observations": "ptrack.observations",
     "simulate_observations": "ptrack.observations",
-    "Motion": "ptrack.skeleton", "Skeleton": "ptrack.skeleton", "load_amc": "ptrack.skeleton",
+    "Motion": "ptrack.skeleton",
+    "Skeleton": "ptrack.skeleton",
+    "load_amc": "ptrack.skeleton",
 }
 
 __all__ = sorted(_EXPORTS)

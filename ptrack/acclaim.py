@@ -232,7 +232,7 @@ def _parse_bones(lines: list[tuple[int, str]], path: str) -> list[AsfBone]:
             block["dof"] = dof
         elif key == "limits":
             n = len(block.get("dof", ()))
-            rest = line[len(tok[0]):].strip()
+            rest = line[len(tok[0]) :].strip()
             block["limits"].append(_limit(rest, where))
             pending_limits = n - 1
         elif key in ("id", "bodymass", "cofmass"):
@@ -283,9 +283,7 @@ def _make_bone(block: dict, where: str) -> AsfBone:
     dof = block.get("dof", ())
     limits = block["limits"]
     if limits and len(limits) != len(dof):
-        raise InputError(
-            f"{where}: bone {block['name']!r} has {len(dof)} dofs but {len(limits)} limits"
-        )
+        raise InputError(f"{where}: bone {block['name']!r} has {len(dof)} dofs but {len(limits)} limits")
     if not limits:
         limits = [(float("-inf"), float("inf"))] * len(dof)
     dx, dy, dz = (float(x) for x in (d / norm if norm > 0 else d))

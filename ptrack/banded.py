@@ -69,8 +69,11 @@ class BlockBanded(NamedTuple):
     @property
     def shape(self) -> tuple[int, int, int]:
         """(T, W, D)."""
-        return self.diagonal.shape[-3], self.lower.shape[-3 if not self.coupling_is_diagonal else -2], \
-            self.diagonal.shape[-1]
+        return (
+            self.diagonal.shape[-3],
+            self.lower.shape[-3 if not self.coupling_is_diagonal else -2],
+            self.diagonal.shape[-1],
+        )
 
 
 class _Chol(NamedTuple):
@@ -117,11 +120,14 @@ def _check(a: BlockBanded, who: str) -> tuple[int, int, int]:
     ok = isinstance(dg, Tensor) and isinstance(lo, Tensor) and dg.ndim >= 3 and dg.shape[-1] == dg.shape[-2]
     if ok:
         t_len, d = dg.shape[-3], dg.shape[-1]
-        ok = (lo.ndim == dg.ndim + 1 and lo.shape[-4] == t_len and lo.shape[-2:] == (d, d)) or \
-            (lo.ndim == dg.ndim and lo.shape[-3] == t_len and lo.shape[-1] == d)
+        ok = (lo.ndim == dg.ndim + 1 and lo.shape[-4] == t_len and lo.shape[-2:] == (d, d)) or (
+            lo.ndim == dg.ndim and lo.shape[-3] == t_len and lo.shape[-1] == d
+        )
     if not ok:
-        raise InputError(f"{who}: expected diagonal (..., T, D, D) and lower (..., T, W, D, D) or (..., T, W, D), "
-                         f"got {tuple(getattr(dg, 'shape', ()))} and {tuple(getattr(lo, 'shape', ()))}")
+        raise InputError(
+            f"{who}: expected diagonal (..., T, D, D) and lower (..., T, W, D, D) or (..., T, W, D), "
+            f"got {tuple(getattr(dg, 'shape', ()))} and {tuple(getattr(lo, 'shape', ()))}"
+        )
     return a.shape
 
 
@@ -137,7 +143,7 @@ def _factor_dense(diag: Tensor, lower: Tensor) -> tuple[_Chol, Tensor]:
     a_tt = diag.unbind(1)
     a_k = [lower[:, :, k].unbind(1) for k in range(w)]  # a_k[k-1][t] = A[t, t-k]
     if vec and w > 1:  # dense A[t, t-k] for k < W (the k = W block stays a row scaling)
-        a_k[:w - 1] = [torch.diag_embed(lower[:, :, k]).unbind(1) for k in range(w - 1)]
+        a_k[: w - 1] = [torch.diag_embed(lower[:, :, k]).unbind(1) for k in range(w - 1)]
     cit: list[Tensor] = [zero] * w  # cit[t + W] = C_t^{-T}
     blk: list[list[Tensor]] = [[zero] * w for _ in range(w)]  # blk[t + W][k-1] = B[t, k]
     infos = []
@@ -220,7 +226,7 @@ def _shift(x: Tensor, s: int) -> Tensor:
     n = x.shape[-1]
     s = max(min(s, n), -n)
     if s >= 0:
-        return torch.nn.functional.pad(x[..., :n - s], (s, 0))
+        return torch.nn.functional.pad(x[..., : n - s], (s, 0))
     return torch.nn.functional.pad(x[..., -s:], (0, -s))
 
 
@@ -321,7 +327,7 @@ def factorize(a: BlockBanded) -> tuple[BandedFactor, Tensor]:
     batch = a.diagonal.shape[:-3]
     dg = a.diagonal.reshape(-1, t_len, d, d)
     vec = a.coupling_is_diagonal
-    lo = a.lower.reshape(-1, *a.lower.shape[-3 if vec else -4:])
+    lo = a.lower.reshape(-1, *a.lower.shape[-3 if vec else -4 :])
     b = dg.shape[0]
     alone = _split(a) if vec and d > 1 else torch.zeros(d, dtype=torch.bool, device=dg.device)
     decoupled = torch.nonzero(alone).flatten()
@@ -338,8 +344,10 @@ def factorize(a: BlockBanded) -> tuple[BandedFactor, Tensor]:
     if u:
         sd = dg.diagonal(dim1=-2, dim2=-1)[..., decoupled]  # (B, T, u)
         sl = lo[..., decoupled]  # (B|1, T, W, u)
-        scalar, good = _reduce(sd.permute(0, 2, 1).reshape(b * u, t_len),
-                               sl.permute(0, 3, 1, 2).expand(b, u, t_len, w).reshape(b * u, t_len, w))
+        scalar, good = _reduce(
+            sd.permute(0, 2, 1).reshape(b * u, t_len),
+            sl.permute(0, 3, 1, 2).expand(b, u, t_len, w).reshape(b * u, t_len, w),
+        )
         ok &= good.reshape(b, u).all(-1)
     return BandedFactor(dense, scalar, coupled, decoupled, tuple(batch), d), ok.reshape(batch)
 
@@ -403,13 +411,14 @@ def _marginals(f: _Chol) -> Tensor:
     out = cit.new_empty(bsz, t_len, n, n)
     big = cit.new_zeros(bsz, w * n, w * n)  # S over frames t+1 .. t+W (zero past the end)
     for t in range(t_len - 1, -1, -1):
-        g = torch.cat([cpl[:, t + k, k - 1].mT if t + k < t_len else cit.new_zeros(bsz, n, n)
-                       for k in range(1, w + 1)], dim=-1)  # (B, n, W n)
+        g = torch.cat(
+            [cpl[:, t + k, k - 1].mT if t + k < t_len else cit.new_zeros(bsz, n, n) for k in range(1, w + 1)], dim=-1
+        )  # (B, n, W n)
         r = -(cit[:, t] @ (g @ big))  # S[t, t+1 .. t+W]
         s_tt = cit[:, t] @ (cit[:, t].mT - g @ r.mT)
         s_tt = 0.5 * (s_tt + s_tt.mT)
         full = torch.cat([torch.cat([s_tt, r], -1), torch.cat([r.mT, big], -1)], -2)
-        big = full[:, :w * n, :w * n]
+        big = full[:, : w * n, : w * n]
         out[:, t] = s_tt
     return out
 
@@ -455,12 +464,12 @@ def to_dense(a: BlockBanded) -> Tensor:
     t_len, w, d = _check(a, "to_dense")
     out = a.diagonal.new_zeros(*a.diagonal.shape[:-3], t_len * d, t_len * d)
     for t in range(t_len):
-        out[..., t * d:(t + 1) * d, t * d:(t + 1) * d] = a.diagonal[..., t, :, :]
+        out[..., t * d : (t + 1) * d, t * d : (t + 1) * d] = a.diagonal[..., t, :, :]
         for k in range(1, min(w, t) + 1):
             blk = a.lower[..., t, k - 1, :] if a.coupling_is_diagonal else a.lower[..., t, k - 1, :, :]
             blk = torch.diag_embed(blk) if a.coupling_is_diagonal else blk
-            out[..., t * d:(t + 1) * d, (t - k) * d:(t - k + 1) * d] = blk
-            out[..., (t - k) * d:(t - k + 1) * d, t * d:(t + 1) * d] = blk.mT
+            out[..., t * d : (t + 1) * d, (t - k) * d : (t - k + 1) * d] = blk
+            out[..., (t - k) * d : (t - k + 1) * d, t * d : (t + 1) * d] = blk.mT
     return out
 
 

@@ -41,7 +41,6 @@ class Projection(NamedTuple):
     in_front: Tensor  # (...,) bool, depth > min_depth
 
 
-
 def _check_size(name: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value <= 0:
         raise InputError(f"Camera.{name} must be a positive integer, got {value!r}")
@@ -82,9 +81,7 @@ class Camera:
             if tuple(x.shape) != shape:
                 raise InputError(f"Camera.{name} must have shape {shape}, got {tuple(x.shape)}")
         if not (K.device == R.device == t.device):
-            raise InputError(
-                f"Camera.K, R, t must share a device, got {K.device}, {R.device}, {t.device}"
-            )
+            raise InputError(f"Camera.K, R, t must share a device, got {K.device}, {R.device}, {t.device}")
         dtype = torch.promote_types(torch.promote_types(K.dtype, R.dtype), t.dtype)
         K, R, t = K.to(dtype), R.to(dtype), t.to(dtype)
         with torch.no_grad():
@@ -93,9 +90,7 @@ class Camera:
                     raise InputError(f"Camera.{name} has non-finite values: {x.tolist()}")
             Kd = K.double()
             if Kd[2].tolist() != [0.0, 0.0, 1.0] or float(Kd[1, 0]) != 0.0:
-                raise InputError(
-                    f"Camera.K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}"
-                )
+                raise InputError(f"Camera.K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}")
             if not (float(Kd[0, 0]) > 0.0 and float(Kd[1, 1]) > 0.0):
                 raise InputError(f"Camera.K focal lengths must be > 0, got {K.tolist()}")
             Rd = R.double()
@@ -104,8 +99,7 @@ class Camera:
             det = float(torch.linalg.det(Rd))
             if ortho_err > ROTATION_TOL or abs(det - 1.0) > ROTATION_TOL:
                 raise InputError(
-                    f"Camera.R (shape (3, 3)) is not a rotation: |R R^T - I| = {ortho_err:.3g}, "
-                    f"det = {det:.6g}"
+                    f"Camera.R (shape (3, 3)) is not a rotation: |R R^T - I| = {ortho_err:.3g}, det = {det:.6g}"
                 )
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "R", R)
@@ -128,9 +122,7 @@ class Camera:
     def device(self) -> torch.device:
         return self.K.device
 
-    def to(
-        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
-    ) -> Camera:
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Camera:
         """A copy with K, R, t moved to ``device`` and/or cast to floating ``dtype``."""
         if dtype is not None and not dtype.is_floating_point:
             raise InputError(f"Camera.to: dtype must be floating point, got {dtype}")
@@ -314,9 +306,7 @@ def look_at(
     down = torch.linalg.cross(forward, right)
     R = torch.stack([right, down, forward])
     t = -(R @ center)
-    K = torch.tensor(
-        [[focal_px, 0.0, width / 2.0], [0.0, focal_px, height / 2.0], [0.0, 0.0, 1.0]], **f64
-    )
+    K = torch.tensor([[focal_px, 0.0, width / 2.0], [0.0, focal_px, height / 2.0], [0.0, 0.0, 1.0]], **f64)
     return Camera(K=K, R=R, t=t, width=width, height=height).to(dtype=out_dtype)
 
 

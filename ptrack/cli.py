@@ -34,21 +34,30 @@ def _parser() -> argparse.ArgumentParser:
     e = sub.add_parser("evaluate", help="run a config over several clips and write a markdown table")
     e.add_argument("config", help="YAML run config, e.g. configs/eval_frame.yaml")
     e.add_argument("overrides", nargs="*", help="dotted.key=value overrides applied to every clip")
-    e.add_argument("--clips", required=True,
-                   help="AMC files: a comma-separated list, or a text file with one path per line "
-                        "(relative to that file); each clip's ASF is the .asf in the AMC's folder")
+    e.add_argument(
+        "--clips",
+        required=True,
+        help="AMC files: a comma-separated list, or a text file with one path per line "
+        "(relative to that file); each clip's ASF is the .asf in the AMC's folder",
+    )
     e.add_argument("--out", default=None, help="output folder (default logs/eval-<config>-<time>)")
     e.add_argument("--quiet", action="store_true", help="no progress (bar on a terminal, one line per clip elsewhere)")
     e.add_argument("--json", action="store_true", help="print results.json on stdout instead of the table's path")
     f = sub.add_parser("fit-motion", help="fit a PCA motion model to the config's motion.clips and write it")
     f.add_argument("config", help="YAML config with a motion: section, e.g. configs/golf_motion.yaml")
     f.add_argument("overrides", nargs="*", help="dotted.key=value overrides, e.g. motion.components=3")
-    f.add_argument("--out", default=None,
-                   help="model file to write (default: motion.model_file, else ~/.cache/ptrack/motion/<config>.npz)")
+    f.add_argument(
+        "--out",
+        default=None,
+        help="model file to write (default: motion.model_file, else ~/.cache/ptrack/motion/<config>.npz)",
+    )
     v = sub.add_parser("replay", help="open a run's recording in the rerun viewer")
     v.add_argument("run_dir", help="a run folder (holding run.rrd) or an .rrd file")
-    v.add_argument("--web", action="store_true",
-                   help="serve rerun's web viewer instead (no display needed) and print the address to open")
+    v.add_argument(
+        "--web",
+        action="store_true",
+        help="serve rerun's web viewer instead (no display needed) and print the address to open",
+    )
     v.add_argument("--bind", default="127.0.0.1", help="with --web: the address to listen on (default 127.0.0.1)")
     return p
 
@@ -82,8 +91,9 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "evaluate":
             from ptrack.evaluate import evaluate
 
-            table = evaluate(args.config, args.clips, args.overrides, out=args.out,
-                             progress=False if args.quiet else None)
+            table = evaluate(
+                args.config, args.clips, args.overrides, out=args.out, progress=False if args.quiet else None
+            )
             json_path = table.with_name("results.json")
             print(json_path.read_text() if args.json else table, end="" if args.json else "\n", flush=True)
         elif args.command == "fit-motion":
@@ -100,9 +110,11 @@ def main(argv: list[str] | None = None) -> int:
             save_motion_model(model, out)
             assert model.info is not None  # a fitted model records its clips
             shares = ", ".join(f"{100 * float(e):.1f}%" for e in model.explained)
-            print(f"ptrack: {len(model.info['clips'])} clips, {model.num_components} components explain {shares} "
-                  f"of the variance ({100 * float(model.explained.sum()):.1f}% in all); fitted in {seconds:.1f} s",
-                  file=sys.stderr)
+            print(
+                f"ptrack: {len(model.info['clips'])} clips, {model.num_components} components explain {shares} "
+                f"of the variance ({100 * float(model.explained.sum()):.1f}% in all); fitted in {seconds:.1f} s",
+                file=sys.stderr,
+            )
             print(out, flush=True)
         elif args.command == "replay":
             from ptrack.viz import open_viewer

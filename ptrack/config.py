@@ -21,6 +21,7 @@ from ptrack.errors import InputError
 
 log = logging.getLogger(__name__)
 
+
 @dataclass(frozen=True)
 class DataConfig:
     asf: str = ""  # ASF skeleton file
@@ -274,8 +275,15 @@ class RunConfig:
 
 
 METHODS = ("frame", "kjs", "css", "ss", "batch", "pca")
-_PATH_KEYS = {"data.asf", "data.amc", "observations.file", "out_dir", "keyframes.file", "init_from",
-              "motion.model_file"}
+_PATH_KEYS = {
+    "data.asf",
+    "data.amc",
+    "observations.file",
+    "out_dir",
+    "keyframes.file",
+    "init_from",
+    "motion.model_file",
+}
 _PATH_LIST_KEYS = {"motion.clips"}  # a path or a list of paths
 
 
@@ -414,8 +422,12 @@ def _resolve_paths(value: str | list, base: Path) -> str | list:
     return [str((base / v).resolve()) if isinstance(v, str) and v else v for v in value]
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (),
-                cwd: str | Path | None = None, run: bool = True) -> RunConfig:
+def load_config(
+    path: str | Path | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    cwd: str | Path | None = None,
+    run: bool = True,
+) -> RunConfig:
     """Read a YAML run config (or only defaults when `path` is None) and apply overrides.
 
     run=False (`ptrack fit-motion`) does not require the data of a run (data.asf, data.amc)."""
@@ -428,8 +440,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise FileNotFoundError(f"config file not found: {p}")
         if p.is_dir():
             found = sorted(p.glob("*.yaml"))
-            raise InputError(f"config {p} is a folder; give a YAML file" +
-                             (f", e.g. {found[0]}" if found else ""))
+            raise InputError(f"config {p} is a folder; give a YAML file" + (f", e.g. {found[0]}" if found else ""))
         try:
             loaded = yaml.safe_load(p.read_text(encoding="utf-8"))
         except (yaml.YAMLError, UnicodeDecodeError) as e:
@@ -463,11 +474,13 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         # another clip, maybe of another subject: its own skeleton, not the config's bone lengths
         asf, beside = _get_dotted(raw, "data.asf"), skeleton_beside(amc)
         if beside is None:
-            log.warning("data.amc is %s but no skeleton is beside it: keeping data.asf %s (set data.asf to choose)",
-                        amc, asf)
+            log.warning(
+                "data.amc is %s but no skeleton is beside it: keeping data.asf %s (set data.asf to choose)", amc, asf
+            )
         elif not (isinstance(asf, str) and asf and Path(asf).resolve() == beside.resolve()):
-            log.warning("data.amc is %s: using the skeleton beside it, %s (set data.asf to choose another)",
-                        amc, beside)
+            log.warning(
+                "data.amc is %s: using the skeleton beside it, %s (set data.asf to choose another)", amc, beside
+            )
             _set_dotted(raw, "data.asf", str(beside.resolve()))
     cfg = _build(RunConfig, raw)
     validate(cfg, run=run)
@@ -478,7 +491,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     """Value checks beyond types (InputError naming the key); run=False: no data.asf/amc needed."""
     if cfg.method not in METHODS:
         raise InputError(f"config key 'method' must be one of {', '.join(METHODS)}, got {cfg.method!r}")
-    if not -2**63 <= cfg.seed < 2**63:
+    if not -(2**63) <= cfg.seed < 2**63:
         raise InputError(f"config key 'seed' must be between -2**63 and 2**63 - 1, got {cfg.seed}")
     validate_motion(cfg.motion)
     if not run:
@@ -510,8 +523,9 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     from ptrack.limits import SOURCES as LIMIT_SOURCES
 
     if cfg.model.limits not in LIMIT_SOURCES:
-        raise InputError(f"config key 'model.limits' must be one of {', '.join(LIMIT_SOURCES)}, "
-                         f"got {cfg.model.limits!r}")
+        raise InputError(
+            f"config key 'model.limits' must be one of {', '.join(LIMIT_SOURCES)}, got {cfg.model.limits!r}"
+        )
     if cfg.dtype not in ("float32", "float64"):
         raise InputError(f"config key 'dtype' must be float32 or float64, got {cfg.dtype!r}")
     if cfg.frame.init not in ("keyframe", "rest"):
@@ -523,8 +537,19 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         raise InputError(f"config key 'kjs.modes' must be >= 1, got {kc.modes}")
     if kc.samples < kc.modes:
         raise InputError(f"config key 'kjs.samples' must be at least kjs.modes ({kc.modes}), got {kc.samples}")
-    for key in ("scale", "tail_dof", "distinct_deg", "temperature", "prior_sigma", "floor_deg", "ceiling_deg",
-                "viterbi_sigma", "rest_sigma", "start_prior_scale", "prior_tail_scale"):
+    for key in (
+        "scale",
+        "tail_dof",
+        "distinct_deg",
+        "temperature",
+        "prior_sigma",
+        "floor_deg",
+        "ceiling_deg",
+        "viterbi_sigma",
+        "rest_sigma",
+        "start_prior_scale",
+        "prior_tail_scale",
+    ):
         if not getattr(kc, key) > 0:
             raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(kc, key)}")
     for key in ("init_yaws", "init_fits"):
@@ -533,16 +558,21 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     if kc.collision_weight < 0:
         raise InputError(f"config key 'kjs.collision_weight' must be >= 0, got {kc.collision_weight}")
     if kc.polish_iterations < 0 or kc.refine_iterations < 0 or kc.jumps_per_sample < 0:
-        raise InputError("config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' "
-                         "must be >= 0")
+        raise InputError(
+            "config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' must be >= 0"
+        )
     for key in ("motion_scale", "pose_prior_weight", "distinct_mm"):
         if getattr(kc, key) < 0:
             raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")
     if not 0 <= kc.momentum <= 1:
         raise InputError(f"config key 'kjs.momentum' must be in [0, 1], got {kc.momentum}")
-    for key, allowed in (("tail", ("gaussian", "student", "cauchy")), ("limits_mode", ("prune", "project")),
-                         ("polisher", ("lm", "lbfgs")), ("init", ("keyframe", "tree")),
-                         ("prior_tail", ("gaussian", "cauchy", "huber", "geman_mcclure"))):
+    for key, allowed in (
+        ("tail", ("gaussian", "student", "cauchy")),
+        ("limits_mode", ("prune", "project")),
+        ("polisher", ("lm", "lbfgs")),
+        ("init", ("keyframe", "tree")),
+        ("prior_tail", ("gaussian", "cauchy", "huber", "geman_mcclure")),
+    ):
         if getattr(kc, key) not in allowed:
             raise InputError(f"config key 'kjs.{key}' must be one of {', '.join(allowed)}, got {getattr(kc, key)!r}")
     kf = cfg.keyframes
@@ -565,8 +595,10 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     if b.init not in ("frame", "keyframes"):
         raise InputError(f"config key 'batch.init' must be 'frame' or 'keyframes', got {b.init!r}")
     if b.upsample > 1 and cfg.data.stride % b.upsample:
-        raise InputError(f"config key 'batch.upsample' ({b.upsample}) must divide data.stride ({cfg.data.stride}): "
-                         f"the reconstruction is read at stride {cfg.data.stride}/{b.upsample}")
+        raise InputError(
+            f"config key 'batch.upsample' ({b.upsample}) must divide data.stride ({cfg.data.stride}): "
+            f"the reconstruction is read at stride {cfg.data.stride}/{b.upsample}"
+        )
     if cfg.costs.sigma_px <= 0:
         raise InputError(f"config key 'costs.sigma_px' must be positive, got {cfg.costs.sigma_px}")
     validate_pca(cfg.pca, cfg.model.keypoints, names=cfg.method == "pca")
@@ -623,6 +655,7 @@ def validate_motion(m: MotionConfig) -> None:
 
 def to_dict(cfg) -> dict:
     """Plain nested dict (lists for tuples) of a config, for YAML/JSON output."""
+
     def conv(v):
         if dataclasses.is_dataclass(v):
             return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
@@ -631,6 +664,7 @@ def to_dict(cfg) -> dict:
         if isinstance(v, dict):
             return {k: conv(x) for k, x in v.items()}
         return v
+
     return conv(cfg)
 
 

@@ -64,13 +64,19 @@ def asf_for(amc: Path) -> Path:
     """The skeleton of an AMC clip: `<subject>.asf` beside it, or the only .asf there."""
     found = skeleton_beside(amc)
     if found is None:
-        raise InputError(f"cannot tell which ASF skeleton belongs to {amc}: expected "
-                         f"{amc.stem.split('_')[0]}.asf in its folder")
+        raise InputError(
+            f"cannot tell which ASF skeleton belongs to {amc}: expected {amc.stem.split('_')[0]}.asf in its folder"
+        )
     return found
 
 
-def evaluate(config: str | Path, clips: str, overrides: list[str] | tuple[str, ...] = (),
-             out: str | Path | None = None, progress: bool | None = False) -> Path:
+def evaluate(
+    config: str | Path,
+    clips: str,
+    overrides: list[str] | tuple[str, ...] = (),
+    out: str | Path | None = None,
+    progress: bool | None = False,
+) -> Path:
     """Run `config` on every clip; returns the path of the markdown table.
 
     progress: show progress bars (None: as the config's `progress` says)."""
@@ -90,8 +96,12 @@ def evaluate(config: str | Path, clips: str, overrides: list[str] | tuple[str, .
     for i, amc in enumerate(clips_shown):
         if show and not on_terminal:  # a file or CI log: one short line per clip, no bar
             log.info("clip %d of %d: %s", i + 1, len(paths), amc.stem)
-        clip_over = [*overrides, f"data.amc={amc}", f"data.asf={asf_for(amc)}",
-                     f"out_dir={(out_dir / amc.stem).resolve()}"]
+        clip_over = [
+            *overrides,
+            f"data.amc={amc}",
+            f"data.asf={asf_for(amc)}",
+            f"out_dir={(out_dir / amc.stem).resolve()}",
+        ]
         try:
             cfg = load_config(config, clip_over)
             run_dir = execute(cfg, progress=progress)
@@ -103,8 +113,9 @@ def evaluate(config: str | Path, clips: str, overrides: list[str] | tuple[str, .
     out_dir.mkdir(parents=True, exist_ok=True)
     table = out_dir / "results.md"
     table.write_text(markdown_table(base.name, base.method, rows), encoding="utf-8")
-    (out_dir / "results.json").write_text(json.dumps(json_safe(dict(rows)), indent=2, allow_nan=False) + "\n",
-                                          encoding="utf-8")
+    (out_dir / "results.json").write_text(
+        json.dumps(json_safe(dict(rows)), indent=2, allow_nan=False) + "\n", encoding="utf-8"
+    )
     return table
 
 

@@ -30,8 +30,10 @@ def bvh_text(skeleton: Skeleton, q: Tensor, fps: float) -> str:
         raise InputError(f"BVH export needs a positive frame rate, got {fps}")
     if np.any(skeleton.slide_dof >= 0):
         sliding = [skeleton.joint_names[i] for i in np.flatnonzero(skeleton.slide_dof >= 0)]
-        raise InputError(f"BVH export: {skeleton.name!r} has prismatic joints below its root (links {sliding[:3]}), "
-                         "which BVH cannot hold: only its root translates")
+        raise InputError(
+            f"BVH export: {skeleton.name!r} has prismatic joints below its root (links {sliding[:3]}), "
+            "which BVH cannot hold: only its root translates"
+        )
     sk = skeleton
     children: dict[int, list[int]] = {i: [] for i in range(sk.num_joints)}
     for i, p in enumerate(sk.parents):

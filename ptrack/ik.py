@@ -131,8 +131,12 @@ def _frame(sk: Skeleton, j: int) -> np.ndarray | None:
 
 
 def _is_ball(sk: Skeleton, j: int) -> bool:
-    return bool(np.all(sk.axis_dof[j] >= 0)) and _frame(sk, j) is not None \
-        and not np.any(sk.offset_parent[j]) and sk.lengths[j] > 0
+    return (
+        bool(np.all(sk.axis_dof[j] >= 0))
+        and _frame(sk, j) is not None
+        and not np.any(sk.offset_parent[j])
+        and sk.lengths[j] > 0
+    )
 
 
 def ik_plan(sk: Skeleton, chain: Chain, closed_form: bool = True) -> ChainIK:
@@ -158,22 +162,48 @@ def ik_plan(sk: Skeleton, chain: Chain, closed_form: bool = True) -> ChainIK:
             driven = np.flatnonzero(sk.axis_dof[e] >= 0)
             if len(driven) == 1 and not np.any(sk.offset_parent[e]) and sk.lengths[e] > 0:
                 m = path[0]
-                plan = ChainIK(sk=sk, chain=chain, kind="limb", ancestors=ancestors, path=tuple(path),
-                               balls=(m,), hinge=e, hinge_slot=int(driven[0]),
-                               dofs=tuple(int(d) for d in sk.axis_dof[m]) + (int(sk.axis_dof[e, driven[0]]),))
+                plan = ChainIK(
+                    sk=sk,
+                    chain=chain,
+                    kind="limb",
+                    ancestors=ancestors,
+                    path=tuple(path),
+                    balls=(m,),
+                    hinge=e,
+                    hinge_slot=int(driven[0]),
+                    dofs=tuple(int(d) for d in sk.axis_dof[m]) + (int(sk.axis_dof[e, driven[0]]),),
+                )
                 if _limb_constants(plan)["rho"] >= 1e-6:  # else the hinge does not bend the limb
                     return plan
         if all(_is_ball(sk, j) for j in firsts):
-            return ChainIK(sk=sk, chain=chain, kind="swing", ancestors=ancestors, path=tuple(path),
-                           balls=tuple(firsts), hinge=-1, hinge_slot=-1,
-                           dofs=tuple(int(d) for j in firsts for d in sk.axis_dof[j]))
+            return ChainIK(
+                sk=sk,
+                chain=chain,
+                kind="swing",
+                ancestors=ancestors,
+                path=tuple(path),
+                balls=tuple(firsts),
+                hinge=-1,
+                hinge_slot=-1,
+                dofs=tuple(int(d) for j in firsts for d in sk.axis_dof[j]),
+            )
     dofs = _moving_dofs(sk, chain, path)
     if not dofs:
         raise ClosedFormUnavailable(
             f"chain {chain.name!r} on {sk.name!r}: no dof moves its joints {list(chain.joint_names[1:])} "
-            f"while keeping its root {chain.joint_names[0]!r} in place; no inverse kinematics to solve")
-    return ChainIK(sk=sk, chain=chain, kind="iterative", ancestors=ancestors, path=tuple(path),
-                   balls=(), hinge=-1, hinge_slot=-1, dofs=dofs)
+            f"while keeping its root {chain.joint_names[0]!r} in place; no inverse kinematics to solve"
+        )
+    return ChainIK(
+        sk=sk,
+        chain=chain,
+        kind="iterative",
+        ancestors=ancestors,
+        path=tuple(path),
+        balls=(),
+        hinge=-1,
+        hinge_slot=-1,
+        dofs=dofs,
+    )
 
 
 def _moving_dofs(sk: Skeleton, chain: Chain, path: list[int]) -> tuple[int, ...]:
@@ -188,7 +218,7 @@ def _moving_dofs(sk: Skeleton, chain: Chain, path: list[int]) -> tuple[int, ...]
         off_pivot = bool(np.any(sk.offset_local[j])) and sk.lengths[j] > 0
         if i == 0 and off_pivot:
             continue  # an ASF bone end: turning its joint would move the chain's root
-        if (j in targets and off_pivot) or targets & set(walk[i + 1:]):
+        if (j in targets and off_pivot) or targets & set(walk[i + 1 :]):
             out.extend(int(d) for d in sk.axis_dof[j] if d >= 0 and int(d) not in out)
     return tuple(out)
 
@@ -213,7 +243,7 @@ def _limb_constants(plan: ChainIK) -> dict:
     assert c_m is not None  # the plan's ball joint has a frame (`_is_ball`)
     a = c_m.T @ sk.rest_rotation[m] @ sk.offset_local[m]
     p_rot = _slot_rotation(sk.axes[e, :k], sk.frozen_axes[e, :k])
-    q_rot = _slot_rotation(sk.axes[e, k + 1:], sk.frozen_axes[e, k + 1:]) @ sk.rest_rotation[e]
+    q_rot = _slot_rotation(sk.axes[e, k + 1 :], sk.frozen_axes[e, k + 1 :]) @ sk.rest_rotation[e]
     n = sk.axes[e, k] / np.linalg.norm(sk.axes[e, k])
     d = c_m.T @ sk.rest_rotation[m] @ p_rot
     c = q_rot @ sk.offset_local[e]
@@ -222,8 +252,19 @@ def _limb_constants(plan: ChainIK) -> dict:
     beta = a1 @ np.cross(n, c)
     gamma = (a1 @ n) * (n @ c)
     rho, ac = math.hypot(alpha, beta), float(np.linalg.norm(a) * np.linalg.norm(c))
-    return dict(a=a, d=d, n=n, c=c, alpha=alpha, beta=beta, gamma=gamma, rho=rho, ac=ac,
-                delta=min(rho - (ac - gamma), 0.0), phi=math.atan2(beta, alpha))
+    return dict(
+        a=a,
+        d=d,
+        n=n,
+        c=c,
+        alpha=alpha,
+        beta=beta,
+        gamma=gamma,
+        rho=rho,
+        ac=ac,
+        delta=min(rho - (ac - gamma), 0.0),
+        phi=math.atan2(beta, alpha),
+    )
 
 
 def _solved_slots(plan: ChainIK) -> dict[int, tuple[tuple[int, int], ...]]:
@@ -250,8 +291,11 @@ def _tensors(plan: ChainIK, dtype: torch.dtype, device: torch.device) -> dict:
 
     joints = plan.ancestors + plan.path
     # the dofs IK reads, as rows of qs (the transposed q it works on)
-    used = sorted({int(d) for j in joints for d in sk.axis_dof[j] if d >= 0}
-                  | {int(d) for d in sk.translation_dof if d >= 0} | set(plan.dofs))
+    used = sorted(
+        {int(d) for j in joints for d in sk.axis_dof[j] if d >= 0}
+        | {int(d) for d in sk.translation_dof if d >= 0}
+        | set(plan.dofs)
+    )
     row = {d: i for i, d in enumerate(used)}
 
     def rows(ds) -> Tensor:
@@ -266,7 +310,8 @@ def _tensors(plan: ChainIK, dtype: torch.dtype, device: torch.device) -> dict:
             mask=t(sk.axis_dof[j] >= 0)[:, None],
             frozen=t(np.where(sk.axis_dof[j] >= 0, 0.0, sk.frozen_axes[j]))[:, None],
             c=None if c is None else t(c),
-            k1=t(k1), k2=t(k1 @ k1),
+            k1=t(k1),
+            k2=t(k1 @ k1),
             rest=None if np.allclose(sk.rest_rotation[j], np.eye(3)) else t(sk.rest_rotation[j]),
             u=None if not np.any(sk.offset_parent[j]) else t(sk.offset_parent[j] * sk.lengths[j]),
             w=t(sk.offset_local[j] * sk.lengths[j]),
@@ -276,19 +321,30 @@ def _tensors(plan: ChainIK, dtype: torch.dtype, device: torch.device) -> dict:
         )
     lower, upper = sk.limits(dtype=dtype, device=device)
     dofs = torch.as_tensor(plan.dofs, device=device)
-    out = dict(per=per, dofs=dofs, lower=lower[dofs], upper=upper[dofs],
-               shift=_window_shift(lower[dofs], upper[dofs]),
-               used=torch.as_tensor(used, device=device), hinge_row=row[plan.dofs[-1]],
-               dof_rows=rows(plan.dofs), slots=_solved_slots(plan),
-               root_position=t(sk.root_position)[:, None],
-               trans_index=rows(sk.translation_dof),
-               trans_mask=t(sk.translation_dof >= 0)[:, None])
+    out = dict(
+        per=per,
+        dofs=dofs,
+        lower=lower[dofs],
+        upper=upper[dofs],
+        shift=_window_shift(lower[dofs], upper[dofs]),
+        used=torch.as_tensor(used, device=device),
+        hinge_row=row[plan.dofs[-1]],
+        dof_rows=rows(plan.dofs),
+        slots=_solved_slots(plan),
+        root_position=t(sk.root_position)[:, None],
+        trans_index=rows(sk.translation_dof),
+        trans_mask=t(sk.translation_dof >= 0)[:, None],
+    )
     if plan.kind == "limb":
         lc = _limb_constants(plan)
         lt = {k: (t(v) if isinstance(v, np.ndarray) else float(v)) for k, v in lc.items()}
-        lt.update(ncross=torch.linalg.cross(lt["n"], lt["c"], dim=-1), nc=float(lc["n"] @ lc["c"]),
-                  a_unit=lt["a"] / torch.linalg.vector_norm(lt["a"]),
-                  length_m=float(sk.lengths[plan.balls[0]]), length_e=float(sk.lengths[plan.hinge]))
+        lt.update(
+            ncross=torch.linalg.cross(lt["n"], lt["c"], dim=-1),
+            nc=float(lc["n"] @ lc["c"]),
+            a_unit=lt["a"] / torch.linalg.vector_norm(lt["a"]),
+            length_m=float(sk.lengths[plan.balls[0]]),
+            length_e=float(sk.lengths[plan.hinge]),
+        )
         out["limb"] = lt
     plan._cache[key] = out
     return out
@@ -310,11 +366,19 @@ def _seuler(theta: Tensor) -> Tensor:
     sz, sy, sx = s
     cz, cy, cx = c
     czsy, szsy = cz * sy, sz * sy
-    return torch.stack([
-        cz * cy, czsy * sx - sz * cx, czsy * cx + sz * sx,
-        sz * cy, szsy * sx + cz * cx, szsy * cx - cz * sx,
-        -sy, cy * sx, cy * cx,
-    ]).unflatten(0, (3, 3))
+    return torch.stack(
+        [
+            cz * cy,
+            czsy * sx - sz * cx,
+            czsy * cx + sz * sx,
+            sz * cy,
+            szsy * sx + cz * cx,
+            szsy * cx - cz * sx,
+            -sy,
+            cy * sx,
+            cy * cx,
+        ]
+    ).unflatten(0, (3, 3))
 
 
 def _local(pj: dict, theta: Tensor) -> Tensor:
@@ -325,8 +389,10 @@ def _local(pj: dict, theta: Tensor) -> Tensor:
         r = _smm(_smm(c, _seuler(theta)), _st(c))
     else:
         eye = _seye(theta, nd)
-        rots = [eye + torch.sin(theta[s]) * _sconst(pj["k1"][s], nd)
-                + (1 - torch.cos(theta[s])) * _sconst(pj["k2"][s], nd) for s in range(3)]
+        rots = [
+            eye + torch.sin(theta[s]) * _sconst(pj["k1"][s], nd) + (1 - torch.cos(theta[s])) * _sconst(pj["k2"][s], nd)
+            for s in range(3)
+        ]
         r = _smm(_smm(rots[0], rots[1]), rots[2])
     return r if pj["rest"] is None else _smm(r, _sconst(pj["rest"], nd))
 
@@ -346,8 +412,11 @@ def _ancestors(plan: ChainIK, tc: dict, qs: Tensor) -> tuple[Tensor, Tensor]:
     per = tc["per"]
     root = plan.ancestors[0]
     g = _local(per[root], _slot_angles(per[root], qs))
-    p = qs.index_select(0, tc["trans_index"]) * tc["trans_mask"] + tc["root_position"] \
+    p = (
+        qs.index_select(0, tc["trans_index"]) * tc["trans_mask"]
+        + tc["root_position"]
         + _smv(g, _sconst(per[root]["w"], 1))
+    )
     for j in plan.ancestors[1:]:
         g, p = _step(per[j], g, p, _slot_angles(per[j], qs))
     return g, p
@@ -376,8 +445,7 @@ def _seuler_solutions(r: Tensor, x_lock: Tensor) -> Tensor:
     sx, cx = torch.sin(x), torch.cos(x)
     y = torch.atan2(-r20, sx * r21 + cx * r22)
     z = torch.atan2(sx * r[0, 2] - cx * r[0, 1], cx * r[1, 1] - sx * r[1, 2])
-    return torch.stack([torch.stack([z, z + math.pi]), torch.stack([y, math.pi - y]),
-                        torch.stack([x, x + math.pi])])
+    return torch.stack([torch.stack([z, z + math.pi]), torch.stack([y, math.pi - y]), torch.stack([x, x + math.pi])])
 
 
 def euler_zyx_solutions(r: Tensor, x_lock: Tensor) -> Tensor:
@@ -548,7 +616,7 @@ def _swing(plan: ChainIK, tc: dict, g_r: Tensor, p_r: Tensor, qs: Tensor, x: Ten
 
 def _solved(plan: ChainIK, tc: dict, theta: Tensor) -> dict[int, Tensor]:
     """Solved angles (M, L, B) -> slot angles {joint: (3, L, B)} for `_path_fk` (swing chains)."""
-    return {b: theta[3 * i:3 * i + 3] for i, b in enumerate(plan.balls)}
+    return {b: theta[3 * i : 3 * i + 3] for i, b in enumerate(plan.balls)}
 
 
 # ---------------------------------------------------------------- iterative fallback
@@ -584,16 +652,20 @@ def _walk_local(pj: dict, theta: Tensor) -> Tensor:
         return _local(pj, theta)
     r = None
     for s in pj["active"]:
-        rs = _seye(theta, 1) + torch.sin(theta[s]) * _sconst(pj["k1"][s], 1) \
+        rs = (
+            _seye(theta, 1)
+            + torch.sin(theta[s]) * _sconst(pj["k1"][s], 1)
             + (1 - torch.cos(theta[s])) * _sconst(pj["k2"][s], 1)
+        )
         r = rs if r is None else _smm(r, rs)
     if r is None:
         return _seye(theta, 1) if pj["rest"] is None else _sconst(pj["rest"], 1)
     return r if pj["rest"] is None else _smm(r, _sconst(pj["rest"], 1))
 
 
-def _walk_fk(plan: ChainIK, tc: dict, g_par: Tensor, pivot: Tensor, qs: Tensor, theta: Tensor,
-             jacobian: bool) -> tuple[Tensor, Tensor | None]:
+def _walk_fk(
+    plan: ChainIK, tc: dict, g_par: Tensor, pivot: Tensor, qs: Tensor, theta: Tensor, jacobian: bool
+) -> tuple[Tensor, Tensor | None]:
     """Forward kinematics from the chain root down its path with the solved dofs set, and the
     geometric Jacobian of the chain's joints w.r.t. them (`ptrack.jacobians`, restricted to the
     chain: slot s of joint i turns the joints below about its world axis a through its pivot o_i,
@@ -637,8 +709,18 @@ def _walk_fk(plan: ChainIK, tc: dict, g_par: Tensor, pivot: Tensor, qs: Tensor, 
     return out, jac
 
 
-def _fit(plan: ChainIK, tc: dict, g_par: Tensor, pivot: Tensor, qs: Tensor, x: Tensor, theta0: Tensor,
-         bounded: bool, max_iter: int, first_round: int = 8) -> Tensor:
+def _fit(
+    plan: ChainIK,
+    tc: dict,
+    g_par: Tensor,
+    pivot: Tensor,
+    qs: Tensor,
+    x: Tensor,
+    theta0: Tensor,
+    bounded: bool,
+    max_iter: int,
+    first_round: int = 8,
+) -> Tensor:
     """Least-squares fit of the chain's joints 1..n to targets x (n+1, 3, P) over the solved dofs,
     from theta0 (M, P), by `ptrack.solvers.levenberg_marquardt` (all P problems at once), within
     the joint limits if bounded -> theta (M, P). Problems with non-finite targets stay at theta0.
@@ -655,10 +737,14 @@ def _fit(plan: ChainIK, tc: dict, g_par: Tensor, pivot: Tensor, qs: Tensor, x: T
     idx: Tensor | None = None  # the problems still running (None: all)
     left, rounds = max_iter, first_round
     while left > 0:
-        sub = (g_par, pivot, qs, target, bad) if idx is None else \
-            (g_par[..., idx], pivot[:, idx], qs[:, idx], target[..., idx], bad[idx])
-        sol, info = levenberg_marquardt(_linearization(plan, tc, n, *sub), theta if idx is None else theta[idx],
-                                        lo, hi, max_iter=min(rounds, left))
+        sub = (
+            (g_par, pivot, qs, target, bad)
+            if idx is None
+            else (g_par[..., idx], pivot[:, idx], qs[:, idx], target[..., idx], bad[idx])
+        )
+        sol, info = levenberg_marquardt(
+            _linearization(plan, tc, n, *sub), theta if idx is None else theta[idx], lo, hi, max_iter=min(rounds, left)
+        )
         left, rounds = left - rounds, 2 * rounds
         if idx is None:
             theta, idx = sol, (~info.converged).nonzero()[:, 0]
@@ -670,8 +756,9 @@ def _fit(plan: ChainIK, tc: dict, g_par: Tensor, pivot: Tensor, qs: Tensor, x: T
     return theta.T
 
 
-def _linearization(plan: ChainIK, tc: dict, n: int, g_par: Tensor, pivot: Tensor, qs: Tensor, target: Tensor,
-                   bad: Tensor):
+def _linearization(
+    plan: ChainIK, tc: dict, n: int, g_par: Tensor, pivot: Tensor, qs: Tensor, target: Tensor, bad: Tensor
+):
     """The solver's linearize for `_fit`: th (P, M) -> residuals (P, 3 n), jacobian (P, 3 n, M)."""
 
     def linearize(th: Tensor) -> tuple[Tensor, Tensor]:
@@ -684,8 +771,9 @@ def _linearization(plan: ChainIK, tc: dict, n: int, g_par: Tensor, pivot: Tensor
     return linearize
 
 
-def _iterative(plan: ChainIK, tc: dict, qs: Tensor, x: Tensor, mode: str, tol: float,
-               max_iter: int) -> tuple[Tensor, ...]:
+def _iterative(
+    plan: ChainIK, tc: dict, qs: Tensor, x: Tensor, mode: str, tol: float, max_iter: int
+) -> tuple[Tensor, ...]:
     """Iterative IK of every leaf from the hypothesis's own angles: qs (D', B), x (n+1, 3, L, B)
     -> theta (M, L, B), positions (n+1, 3, L, B), residual, exact, in_limits, keep, projected (L, B).
     Solved unbounded and wrapped into the limits' windows; in "project" mode the leaves outside
@@ -710,8 +798,9 @@ def _iterative(plan: ChainIK, tc: dict, qs: Tensor, x: Tensor, mode: str, tol: f
         if bool(projected.any()):
             i = projected.nonzero()[:, 0]
             lo, hi = _sconst(tc["lower"], 1), _sconst(tc["upper"], 1)
-            sub = _fit(plan, tc, gp[..., i], pv[:, i], qp[:, i], xp[..., i],
-                       torch.clamp(theta[:, i], lo, hi), True, max_iter)
+            sub = _fit(
+                plan, tc, gp[..., i], pv[:, i], qp[:, i], xp[..., i], torch.clamp(theta[:, i], lo, hi), True, max_iter
+            )
             sub = _violation(sub, tc)[0]  # unlimited dofs back into [-pi, pi)
             theta[:, i] = sub
             pos[..., i] = _walk_fk(plan, tc, gp[..., i], pv[:, i], qp[:, i], sub, False)[0]
@@ -725,8 +814,18 @@ def _iterative(plan: ChainIK, tc: dict, qs: Tensor, x: Tensor, mode: str, tol: f
     return (lb(theta), lb(pos), lb(residual), lb(exact), lb(in_limits), lb(keep), lb(projected))
 
 
-def _refine(plan: ChainIK, tc: dict, qs: Tensor, x: Tensor, theta: Tensor, pos: Tensor, residual: Tensor,
-            viol: Tensor, miss: Tensor, max_iter: int) -> None:
+def _refine(
+    plan: ChainIK,
+    tc: dict,
+    qs: Tensor,
+    x: Tensor,
+    theta: Tensor,
+    pos: Tensor,
+    residual: Tensor,
+    viol: Tensor,
+    miss: Tensor,
+    max_iter: int,
+) -> None:
     """Refine the closed form's missed leaves miss (L, B) iteratively from its angles, in place:
     theta (M, L, B) (wrapped into the windows), pos (n+1, 3, L, B), residual and viol (L, B). A
     leaf keeps the closed form's answer if the fit does not lower its residual (e.g. targets that
@@ -746,8 +845,16 @@ def _refine(plan: ChainIK, tc: dict, qs: Tensor, x: Tensor, theta: Tensor, pos: 
     viol[li, bi] = torch.where(better, sub_viol, viol[li, bi])
 
 
-def chain_ik(plan: ChainIK, q: Tensor, positions: Tensor, mode: str = "prune", tol: float = 1e-4,
-             collinear_tol: float | None = None, refine: bool = True, max_iter: int = 50) -> IKResult:
+def chain_ik(
+    plan: ChainIK,
+    q: Tensor,
+    positions: Tensor,
+    mode: str = "prune",
+    tol: float = 1e-4,
+    collinear_tol: float | None = None,
+    refine: bool = True,
+    max_iter: int = 50,
+) -> IKResult:
     """Inverse kinematics of a chain for every leaf of every hypothesis.
 
     Args:
@@ -773,14 +880,21 @@ def chain_ik(plan: ChainIK, q: Tensor, positions: Tensor, mode: str = "prune", t
         raise InputError(f"chain_ik: mode must be one of {', '.join(MODES)}, got {mode!r}")
     sk, chain = plan.sk, plan.chain
     if not isinstance(q, Tensor) or not q.is_floating_point() or q.ndim < 1 or q.shape[-1] != sk.num_dofs:
-        raise InputError(f"chain_ik: q must be a floating tensor (..., {sk.num_dofs}), got "
-                         f"{tuple(getattr(q, 'shape', ()))}")
+        raise InputError(
+            f"chain_ik: q must be a floating tensor (..., {sk.num_dofs}), got {tuple(getattr(q, 'shape', ()))}"
+        )
     n1 = chain.num_links + 1
-    if not isinstance(positions, Tensor) or positions.ndim != q.ndim + 2 \
-            or positions.shape[-2:] != (n1, 3) or positions.shape[:-3] != q.shape[:-1]:
-        raise InputError(f"chain_ik: positions must be (..., L, {n1}, 3) with q's batch dims "
-                         f"{tuple(q.shape[:-1])} for chain {chain.name!r}, got "
-                         f"{tuple(getattr(positions, 'shape', ()))}")
+    if (
+        not isinstance(positions, Tensor)
+        or positions.ndim != q.ndim + 2
+        or positions.shape[-2:] != (n1, 3)
+        or positions.shape[:-3] != q.shape[:-1]
+    ):
+        raise InputError(
+            f"chain_ik: positions must be (..., L, {n1}, 3) with q's batch dims "
+            f"{tuple(q.shape[:-1])} for chain {chain.name!r}, got "
+            f"{tuple(getattr(positions, 'shape', ()))}"
+        )
     leaves = positions.shape[-3]
     tc = _tensors(plan, q.dtype, q.device)
     qf = q.reshape(-1, sk.num_dofs)
@@ -827,8 +941,17 @@ def chain_ik(plan: ChainIK, q: Tensor, positions: Tensor, mode: str = "prune", t
     return _result(q, plan.dofs, theta, pos, residual, exact, in_limits, keep, projected)
 
 
-def _result(q: Tensor, dofs: tuple[int, ...], theta: Tensor, pos: Tensor, residual: Tensor, exact: Tensor,
-            in_limits: Tensor, keep: Tensor, projected: Tensor) -> IKResult:
+def _result(
+    q: Tensor,
+    dofs: tuple[int, ...],
+    theta: Tensor,
+    pos: Tensor,
+    residual: Tensor,
+    exact: Tensor,
+    in_limits: Tensor,
+    keep: Tensor,
+    projected: Tensor,
+) -> IKResult:
     """Struct-of-arrays solution -> `IKResult`: theta (M, L, B), pos (n+1, 3, L, B), flags (L, B)."""
     n1, _, leaves, _ = pos.shape
     lead = (*q.shape[:-1], leaves)
@@ -836,10 +959,17 @@ def _result(q: Tensor, dofs: tuple[int, ...], theta: Tensor, pos: Tensor, residu
     def flags(f: Tensor) -> Tensor:
         return f.T.contiguous().reshape(lead)
 
-    return IKResult(angles=theta.permute(2, 1, 0).contiguous().reshape(*lead, theta.shape[0]), dofs=dofs, start=q,
-                    positions=pos.permute(3, 2, 0, 1).contiguous().reshape(*lead, n1, 3),
-                    residual=flags(residual), exact=flags(exact), in_limits=flags(in_limits),
-                    keep=flags(keep), projected=flags(projected))
+    return IKResult(
+        angles=theta.permute(2, 1, 0).contiguous().reshape(*lead, theta.shape[0]),
+        dofs=dofs,
+        start=q,
+        positions=pos.permute(3, 2, 0, 1).contiguous().reshape(*lead, n1, 3),
+        residual=flags(residual),
+        exact=flags(exact),
+        in_limits=flags(in_limits),
+        keep=flags(keep),
+        projected=flags(projected),
+    )
 
 
 def product_ik(q: Tensor, results: list[IKResult], prod: Product) -> IKResult:
@@ -860,19 +990,28 @@ def product_ik(q: Tensor, results: list[IKResult], prod: Product) -> IKResult:
     a_off = p_off = 0
     for c, r in enumerate(results):  # each chain's leaves into its slice, by broadcasting
         na, npos = r.angles.shape[-1], r.positions.shape[-2]
-        angles[..., a_off:a_off + na] = prod.bits_view(c, r.angles, -2)
-        positions[..., p_off:p_off + npos, :] = prod.bits_view(c, r.positions, -3)
+        angles[..., a_off : a_off + na] = prod.bits_view(c, r.angles, -2)
+        positions[..., p_off : p_off + npos, :] = prod.bits_view(c, r.positions, -3)
         a_off, p_off = a_off + na, p_off + npos
     flags = {}
-    for name, combine in (("keep", torch.logical_and), ("exact", torch.logical_and),
-                          ("in_limits", torch.logical_and), ("projected", torch.logical_or),
-                          ("residual", torch.maximum)):
+    for name, combine in (
+        ("keep", torch.logical_and),
+        ("exact", torch.logical_and),
+        ("in_limits", torch.logical_and),
+        ("projected", torch.logical_or),
+        ("residual", torch.maximum),
+    ):
         x = prod.bits_view(0, getattr(first, name), -1)
         for c, r in enumerate(results[1:], start=1):
             x = combine(x, prod.bits_view(c, getattr(r, name), -1))
         flags[name] = _flatten_bits(x, start, nb)
-    return IKResult(angles=angles.flatten(start, start + nb - 1), dofs=tuple(d for r in results for d in r.dofs),
-                    start=q, positions=positions.flatten(start, start + nb - 1), **flags)
+    return IKResult(
+        angles=angles.flatten(start, start + nb - 1),
+        dofs=tuple(d for r in results for d in r.dofs),
+        start=q,
+        positions=positions.flatten(start, start + nb - 1),
+        **flags,
+    )
 
 
 __all__ = [

@@ -62,8 +62,10 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
     if c is not None:
         return c
     if sk.has_slides_or_mimics:
-        raise InputError(f"skeleton {sk.name!r} has prismatic joints below its root or mimic joints, which the "
-                         "geometric Jacobian does not handle yet (forward_kinematics and its autograd gradient do)")
+        raise InputError(
+            f"skeleton {sk.name!r} has prismatic joints below its root or mimic joints, which the "
+            "geometric Jacobian does not handle yet (forward_kinematics and its autograd gradient do)"
+        )
     j = sk.num_joints
     anc = torch.zeros(j, j, dtype=torch.bool)  # anc[y, i]: i is y or an ancestor of y
     for y in range(j):
@@ -124,8 +126,7 @@ def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
     c = _constants(sk, q.dtype, q.device)
     batch = q.shape[:-1]
     # slot angles (..., J, 3): driven ones from q, the others at their frozen value
-    theta = torch.where(c["driven"], q.index_select(-1, c["slot_index"].flatten()).unflatten(-1, (-1, 3)),
-                        c["frozen"])
+    theta = torch.where(c["driven"], q.index_select(-1, c["slot_index"].flatten()).unflatten(-1, (-1, 3)), c["frozen"])
     a1, a2, a3 = c["axes"].unbind(-2)  # (J, 3) each: the slots' axes in the parent frame
     v2 = _turn(a1, theta[..., 0], a2)
     v3 = _turn(a1, theta[..., 0], _turn(a2, theta[..., 1], a3))
@@ -151,8 +152,9 @@ def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
     return joints, jac
 
 
-def residual_jacobian(sk: Skeleton, residual_fn: ResidualFn, q: Tensor,
-                      joints_and_jacobian: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+def residual_jacobian(
+    sk: Skeleton, residual_fn: ResidualFn, q: Tensor, joints_and_jacobian: tuple[Tensor, Tensor] | None = None
+) -> tuple[Tensor, Tensor]:
     """Residuals r(q) = f(q, joints(q)) and their Jacobian w.r.t. q, with FK run once.
 
     residual_fn(q (..., D), joints (..., J, 3)) -> (..., M) must be written in torch ops that
@@ -175,8 +177,9 @@ def residual_jacobian(sk: Skeleton, residual_fn: ResidualFn, q: Tensor,
     return r, cols.movedim(0, -1)
 
 
-def objective_linearization(sk: Skeleton, objective: Objective, camera: Camera,
-                            keypoints: KeypointSet, fold: bool = False) -> Callable[[Tensor], Linearization]:
+def objective_linearization(
+    sk: Skeleton, objective: Objective, camera: Camera, keypoints: KeypointSet, fold: bool = False
+) -> Callable[[Tensor], Linearization]:
     """The one-frame objective as the solvers read it: q (N, D) -> Linearization(residuals (N, M),
     jacobian (N, M, D), weights (N, M) IRLS, energy (N,) the robust total), one FK per call.
 
@@ -196,8 +199,9 @@ def objective_linearization(sk: Skeleton, objective: Objective, camera: Camera,
     return linearize
 
 
-def pose_eval_and_jacobian(sk: Skeleton, camera: Camera, keypoints: KeypointSet,
-                           q: Tensor) -> tuple[PoseEval, PoseJacobian]:
+def pose_eval_and_jacobian(
+    sk: Skeleton, camera: Camera, keypoints: KeypointSet, q: Tensor
+) -> tuple[PoseEval, PoseJacobian]:
     """`ptrack.problem.evaluate_pose` and the derivatives of its fields w.r.t. q, from one FK pass:
     q (..., D) -> PoseEval (joints (..., J, 3), pixels (..., K, 2), depth (..., K)) and PoseJacobian
     (joints (..., J, 3, D), pixels (..., K, 2, D), depth (..., K, D)). Cost terms turn these into

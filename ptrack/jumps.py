@@ -121,8 +121,10 @@ def make_chain(sk: Skeleton, joint_names: Sequence[str], name: str | None = None
     idx = tuple(sk.joint_names.index(n) for n in names)
     for (a, b), (na, nb) in zip(pairwise(idx), pairwise(names)):
         if not _is_descendant(sk, b, a):
-            raise InputError(f"chain {label!r}: {nb!r} is not below {na!r} in skeleton {sk.name!r}; "
-                             "each joint must be a descendant of the previous one")
+            raise InputError(
+                f"chain {label!r}: {nb!r} is not below {na!r} in skeleton {sk.name!r}; "
+                "each joint must be a descendant of the previous one"
+            )
     return Chain(name=label, joints=idx, joint_names=names)
 
 
@@ -151,26 +153,33 @@ def check_independent(sk: Skeleton, chains: Sequence[Chain]) -> None:
     for i, k in pairs:
         a, b = chains[i], chains[k]
         if b.joints[0] in moved[i]:
-            raise InputError(f"chains {a.name!r} and {b.name!r} are not independent: {a.name!r} "
-                             f"moves {b.name!r}'s root {b.joint_names[0]!r}")
+            raise InputError(
+                f"chains {a.name!r} and {b.name!r} are not independent: {a.name!r} "
+                f"moves {b.name!r}'s root {b.joint_names[0]!r}"
+            )
     for i, k in pairs:
         shared = moved[i] & moved[k]
         if shared:
-            raise InputError(f"chains {chains[i].name!r} and {chains[k].name!r} are not independent: "
-                             f"both move {sk.joint_names[min(shared)]!r}")
+            raise InputError(
+                f"chains {chains[i].name!r} and {chains[k].name!r} are not independent: "
+                f"both move {sk.joint_names[min(shared)]!r}"
+            )
 
 
 # ---------------------------------------------------------------- observations
 
 
-def joint_observations(keypoints: KeypointSet, pixels: Tensor, confidence: Tensor,
-                       num_joints: int) -> tuple[Tensor, Tensor]:
+def joint_observations(
+    keypoints: KeypointSet, pixels: Tensor, confidence: Tensor, num_joints: int
+) -> tuple[Tensor, Tensor]:
     """Keypoint observations as per-joint arrays: pixels (..., K, 2), confidence (..., K) ->
     pixels (..., J, 2) (0 where no keypoint), confidence (..., J) (0 = missing)."""
     k = keypoints.num_keypoints
     if pixels.shape[-2:] != (k, 2) or confidence.shape[-1:] != (k,):
-        raise InputError(f"joint_observations: pixels must be (..., {k}, 2) and confidence (..., {k}), "
-                         f"got {tuple(pixels.shape)} and {tuple(confidence.shape)}")
+        raise InputError(
+            f"joint_observations: pixels must be (..., {k}, 2) and confidence (..., {k}), "
+            f"got {tuple(pixels.shape)} and {tuple(confidence.shape)}"
+        )
     idx = keypoints.index(device=pixels.device)
     out_px = pixels.new_zeros(*pixels.shape[:-2], num_joints, 2).index_copy(-2, idx, pixels)
     conf = confidence.to(pixels)
@@ -305,8 +314,9 @@ def _tile(x: Tensor, leaves: int) -> Tensor:
     return x if reps == 1 else x.repeat(1, reps, 1)
 
 
-def interpretation_tree(chain: Chain, joints: Tensor, camera: Camera, pixels: Tensor,
-                        confidence: Tensor, tangent_tol: float = 1e-6) -> Tree:
+def interpretation_tree(
+    chain: Chain, joints: Tensor, camera: Camera, pixels: Tensor, confidence: Tensor, tangent_tol: float = 1e-6
+) -> Tree:
     """All forwards/backwards flips of `chain` for each hypothesis (see the module docstring).
 
     Args:
@@ -323,16 +333,19 @@ def interpretation_tree(chain: Chain, joints: Tensor, camera: Camera, pixels: Te
     Returns:
         `Tree` with leading dims `...` in place of N. Dtype and device follow `joints`.
     """
-    if not isinstance(joints, Tensor) or not joints.is_floating_point() or joints.ndim < 2 \
-            or joints.shape[-1] != 3:
-        raise InputError(f"interpretation_tree: joints must be a floating tensor (..., J, 3), got "
-                         f"{tuple(getattr(joints, 'shape', ()))}")
+    if not isinstance(joints, Tensor) or not joints.is_floating_point() or joints.ndim < 2 or joints.shape[-1] != 3:
+        raise InputError(
+            f"interpretation_tree: joints must be a floating tensor (..., J, 3), got "
+            f"{tuple(getattr(joints, 'shape', ()))}"
+        )
     j_count = joints.shape[-2]
     if max(chain.joints) >= j_count:
         raise InputError(f"chain {chain.name!r} uses joint {max(chain.joints)} but joints has {j_count}")
     if pixels.shape[-2:] != (j_count, 2) or confidence.shape[-1:] != (j_count,):
-        raise InputError(f"interpretation_tree: pixels must be (..., {j_count}, 2) and confidence "
-                         f"(..., {j_count}), got {tuple(pixels.shape)} and {tuple(confidence.shape)}")
+        raise InputError(
+            f"interpretation_tree: pixels must be (..., {j_count}, 2) and confidence "
+            f"(..., {j_count}), got {tuple(pixels.shape)} and {tuple(confidence.shape)}"
+        )
     if not tangent_tol >= 0.0:
         raise InputError(f"tangent_tol must be >= 0, got {tangent_tol!r}")
     batch = joints.shape[:-2]
@@ -391,8 +404,7 @@ def interpretation_tree(chain: Chain, joints: Tensor, camera: Camera, pixels: Te
         single = ~obs | ~two
         child = torch.cat([keep, flip], dim=1)  # (3, 2S, B): the new bit k is the high bit
         if k + 1 < n:
-            turn = _smin_rotation(torch.cat([moved, moved], 1).expand_as(child),
-                                  child - torch.cat([parent, parent], 1))
+            turn = _smin_rotation(torch.cat([moved, moved], 1).expand_as(child), child - torch.cat([parent, parent], 1))
             carry = turn if carry is None else _smm(turn, torch.cat([carry, carry], 2))
         dup = torch.cat([dup, dup | single], dim=0)
         pen = torch.cat([pen + gap, pen + gap], dim=0)
@@ -415,8 +427,14 @@ def interpretation_tree(chain: Chain, joints: Tensor, camera: Camera, pixels: Te
     )
 
 
-def interpretation_trees(chains: Sequence[Chain], joints: Tensor, camera: Camera, pixels: Tensor,
-                         confidence: Tensor, tangent_tol: float = 1e-6) -> list[Tree]:
+def interpretation_trees(
+    chains: Sequence[Chain],
+    joints: Tensor,
+    camera: Camera,
+    pixels: Tensor,
+    confidence: Tensor,
+    tangent_tol: float = 1e-6,
+) -> list[Tree]:
     """`interpretation_tree` for each chain (same arguments)."""
     return [interpretation_tree(c, joints, camera, pixels, confidence, tangent_tol) for c in chains]
 
@@ -455,14 +473,14 @@ class Product(NamedTuple):
         d = x.ndim + dim
         n, off = self.chains[c].num_links, self.offsets[c]
         bits = [1] * (self.num_bits - off - n) + [2] * n + [1] * off
-        return x.reshape(*x.shape[:d], *bits, *x.shape[d + 1:])
+        return x.reshape(*x.shape[:d], *bits, *x.shape[d + 1 :])
 
 
 def _flatten_bits(x: Tensor, start: int, bits: int) -> Tensor:
     """Broadcast bit dims -> combined leaves: x (..., b_{T-1}, ..., b_0, ...) with each bit dim
     of size 1 or 2, starting at `start` -> (..., 2^T, ...)."""
     shape = list(x.shape)
-    shape[start:start + bits] = [2] * bits
+    shape[start : start + bits] = [2] * bits
     return x.expand(shape).flatten(start, start + bits - 1)
 
 
@@ -474,8 +492,10 @@ def product(trees: Sequence[Tree]) -> Product:
     batch = trees[0].unique.shape[:-1]
     for t in trees:
         if t.unique.shape[:-1] != batch:
-            raise InputError(f"product: trees must share hypotheses, got batch {tuple(batch)} and "
-                             f"{tuple(t.unique.shape[:-1])} ({t.chain.name!r})")
+            raise InputError(
+                f"product: trees must share hypotheses, got batch {tuple(batch)} and "
+                f"{tuple(t.unique.shape[:-1])} ({t.chain.name!r})"
+            )
     bits = [t.chain.num_links for t in trees]
     offsets = tuple(int(sum(bits[:i])) for i in range(len(bits)))
     total = 1 << int(sum(bits))
@@ -484,8 +504,15 @@ def product(trees: Sequence[Tree]) -> Product:
     leaf = torch.stack([(flips >> o) & ((1 << nb) - 1) for o, nb in zip(offsets, bits)], dim=-1)
     # the layout only (bits_view reads chains and offsets): the last three fields are filled by _replace below
     unset: Any = None
-    prod = Product(chains=tuple(t.chain for t in trees), leaf=leaf, flips=flips, offsets=offsets,
-                   unique=unset, infeasible=unset, penalty=unset)
+    prod = Product(
+        chains=tuple(t.chain for t in trees),
+        leaf=leaf,
+        flips=flips,
+        offsets=offsets,
+        unique=unset,
+        infeasible=unset,
+        penalty=unset,
+    )
     unique = prod.bits_view(0, trees[0].unique, -1)
     infeasible = prod.bits_view(0, trees[0].infeasible.any(-1), -1)
     penalty = prod.bits_view(0, trees[0].penalty, -1)
@@ -494,8 +521,11 @@ def product(trees: Sequence[Tree]) -> Product:
         infeasible = infeasible | prod.bits_view(c, t.infeasible.any(-1), -1)
         penalty = penalty + prod.bits_view(c, t.penalty, -1)
     nb, start = prod.num_bits, len(batch)
-    return prod._replace(unique=_flatten_bits(unique, start, nb), infeasible=_flatten_bits(infeasible, start, nb),
-                         penalty=_flatten_bits(penalty, start, nb))
+    return prod._replace(
+        unique=_flatten_bits(unique, start, nb),
+        infeasible=_flatten_bits(infeasible, start, nb),
+        penalty=_flatten_bits(penalty, start, nb),
+    )
 
 
 def product_joints(joints: Tensor, trees: Sequence[Tree], prod: Product) -> Tensor:
@@ -524,7 +554,20 @@ def flip_names(prod: Product | Sequence[Chain], leaf: int) -> list[str]:
 
 
 __all__ = [
-    "CMU_CHAINS", "Chain", "Product", "Tree", "check_independent", "default_chains", "flip_names",
-    "interpretation_tree", "interpretation_trees", "joint_observations", "make_chain", "min_rotation",
-    "moving_joints", "path_below", "product", "product_joints",
+    "CMU_CHAINS",
+    "Chain",
+    "Product",
+    "Tree",
+    "check_independent",
+    "default_chains",
+    "flip_names",
+    "interpretation_tree",
+    "interpretation_trees",
+    "joint_observations",
+    "make_chain",
+    "min_rotation",
+    "moving_joints",
+    "path_below",
+    "product",
+    "product_joints",
 ]

@@ -54,9 +54,11 @@ class Rule:
 def parse_rule(text: str, key: str = "motion.key_postures") -> Rule:
     """`"first max height after top"` -> Rule; InputError naming the config key if malformed."""
     words = str(text).split()
-    bad = InputError(f"config key {key!r}: cannot read rule {text!r}; expected '[first|last] max|min "
-                     "height|speed [before|after KEY [within SECONDS s]]' "
-                     "or 'rest before|after KEY [within SECONDS s]'")
+    bad = InputError(
+        f"config key {key!r}: cannot read rule {text!r}; expected '[first|last] max|min "
+        "height|speed [before|after KEY [within SECONDS s]]' "
+        "or 'rest before|after KEY [within SECONDS s]'"
+    )
     within = None
     if len(words) >= 2 and words[-1] == "s":
         words = words[:-1]
@@ -92,8 +94,9 @@ def parse_rules(rules: Mapping[str, str], key: str = "motion.key_postures") -> d
     parsed = {name: parse_rule(text, f"{key}.{name}") for name, text in rules.items()}
     for name, r in parsed.items():
         if r.ref is not None and r.ref not in parsed:
-            raise InputError(f"config key '{key}.{name}': rule refers to unknown key posture {r.ref!r} "
-                             f"(known: {', '.join(parsed)})")
+            raise InputError(
+                f"config key '{key}.{name}': rule refers to unknown key posture {r.ref!r} (known: {', '.join(parsed)})"
+            )
     _resolution_order(parsed, key)
     return parsed
 
@@ -121,8 +124,15 @@ def signals(points: np.ndarray, fps: float, smooth_s: float, up_sign: float = 1.
     return height, speed
 
 
-def find_frames(height: np.ndarray, speed: np.ndarray, fps: float, rules: Mapping[str, str], prominence: float,
-                rest_fraction: float, clip: str = "clip") -> np.ndarray:
+def find_frames(
+    height: np.ndarray,
+    speed: np.ndarray,
+    fps: float,
+    rules: Mapping[str, str],
+    prominence: float,
+    rest_fraction: float,
+    clip: str = "clip",
+) -> np.ndarray:
     """Apply the rules to the signals (T,) at `fps`: key-posture frames (P,) int64 in the rules' order.
 
     Raises InputError naming `clip` and the posture when a rule finds no frame or the frames are not
@@ -154,8 +164,9 @@ def find_frames(height: np.ndarray, speed: np.ndarray, fps: float, rules: Mappin
     return frames
 
 
-def _apply(r: Rule, height: np.ndarray, speed: np.ndarray, lo: int, hi: int, prominence: float,
-           rest_fraction: float) -> int | None:
+def _apply(
+    r: Rule, height: np.ndarray, speed: np.ndarray, lo: int, hi: int, prominence: float, rest_fraction: float
+) -> int | None:
     if hi - lo < 1:
         return None
     if r.kind == "rest":
@@ -206,8 +217,9 @@ def detect_key_postures(joints_3d: Tensor, joint_names, fps: float, cfg, clip: s
     return torch.from_numpy(frames)
 
 
-def detect_key_postures_2d(wrist_uv: Tensor, fps: float, cfg, valid: Tensor | None = None,
-                           clip: str = "observations") -> Tensor:
+def detect_key_postures_2d(
+    wrist_uv: Tensor, fps: float, cfg, valid: Tensor | None = None, clip: str = "observations"
+) -> Tensor:
     """Key-posture frames from a 2D wrist track in pixels (image y grows downward).
 
     Args:
@@ -225,8 +237,10 @@ def detect_key_postures_2d(wrist_uv: Tensor, fps: float, cfg, valid: Tensor | No
     if uv.ndim == 2:
         uv = uv[:, None]
     if uv.ndim != 3 or uv.shape[-1] != 2 or uv.shape[0] < 2:
-        raise InputError(f"{clip}: wrist track must have shape (T, 2) or (T, K, 2) with T >= 2, got "
-                         f"{tuple(torch.as_tensor(wrist_uv).shape)}")
+        raise InputError(
+            f"{clip}: wrist track must have shape (T, 2) or (T, K, 2) with T >= 2, got "
+            f"{tuple(torch.as_tensor(wrist_uv).shape)}"
+        )
     ok = np.isfinite(uv).all(-1)
     if valid is not None:
         v = torch.as_tensor(valid).detach().cpu().numpy().astype(bool)
@@ -236,11 +250,14 @@ def detect_key_postures_2d(wrist_uv: Tensor, fps: float, cfg, valid: Tensor | No
         ok &= v
     tracks = [k for k in range(uv.shape[1]) if ok[:, k].sum() >= 2]  # each point filled in time, then averaged
     if not tracks:
-        raise InputError(f"{clip}: the wrists are seen in {int(ok.any(1).sum())} frames; key postures need "
-                         "one seen in at least 2")
+        raise InputError(
+            f"{clip}: the wrists are seen in {int(ok.any(1).sum())} frames; key postures need one seen in at least 2"
+        )
     frames = np.arange(len(uv))
-    point = np.mean([np.stack([np.interp(frames, frames[ok[:, k]], uv[ok[:, k], k, c]) for c in range(2)], axis=1)
-                     for k in tracks], axis=0)
+    point = np.mean(
+        [np.stack([np.interp(frames, frames[ok[:, k]], uv[ok[:, k], k, c]) for c in range(2)], axis=1) for k in tracks],
+        axis=0,
+    )
     height, speed = signals(point, fps, cfg.smooth_s, up_sign=-1.0)
     return torch.from_numpy(find_frames(height, speed, fps, cfg.key_postures, cfg.prominence, cfg.rest_fraction, clip))
 

@@ -39,9 +39,17 @@ from ptrack.problem import JointKeyframes, Keyframes
 from ptrack.skeleton import Skeleton
 
 
-def ground_truth_keyframes(gt_q: Tensor, times: Tensor, skeleton: Skeleton, every_s: float | None, last: bool,
-                           noise_deg: float, sigma_deg: float, sigma_m: float,
-                           generator: torch.Generator) -> Keyframes:
+def ground_truth_keyframes(
+    gt_q: Tensor,
+    times: Tensor,
+    skeleton: Skeleton,
+    every_s: float | None,
+    last: bool,
+    noise_deg: float,
+    sigma_deg: float,
+    sigma_m: float,
+    generator: torch.Generator,
+) -> Keyframes:
     """Ground-truth poses as keyframes: frame 0, then the first frame at or after each multiple of
     `every_s` seconds (None: none), and the last frame if `last`. Angles get Gaussian noise of std
     `noise_deg` (drawn from `generator`; the root position is kept). gt_q (T, D), times (T,) s."""
@@ -80,8 +88,14 @@ def _sigma(entry: dict, key: str, default: float, where: str) -> float:
     return s
 
 
-def read_keyframes(path: str | Path, skeleton: Skeleton, num_frames: int, sigma_deg: float, sigma_m: float,
-                   dtype: torch.dtype = torch.float32) -> tuple[Keyframes | None, JointKeyframes | None]:
+def read_keyframes(
+    path: str | Path,
+    skeleton: Skeleton,
+    num_frames: int,
+    sigma_deg: float,
+    sigma_m: float,
+    dtype: torch.dtype = torch.float32,
+) -> tuple[Keyframes | None, JointKeyframes | None]:
     """Read a keyframe file (module docstring) for a model and a sequence of `num_frames` frames.
     -> angle keyframes (partial ones masked) and joint-position keyframes, either None if absent."""
     p = Path(path)
@@ -135,8 +149,10 @@ def read_keyframes(path: str | Path, skeleton: Skeleton, num_frames: int, sigma_
             if "q" in entry:
                 q = entry["q"]
                 if not isinstance(q, list) or len(q) != d:
-                    raise InputError(f"{where}: 'q' must list all {d} dofs of the model, got "
-                                     f"{len(q) if isinstance(q, list) else q!r}")
+                    raise InputError(
+                        f"{where}: 'q' must list all {d} dofs of the model, got "
+                        f"{len(q) if isinstance(q, list) else q!r}"
+                    )
                 items = list(zip(skeleton.dof_names, q))
             else:
                 if not isinstance(entry["dofs"], dict) or not entry["dofs"]:
@@ -144,8 +160,9 @@ def read_keyframes(path: str | Path, skeleton: Skeleton, num_frames: int, sigma_
                 items = list(entry["dofs"].items())
             for name, v in items:
                 if name not in dofs:
-                    raise InputError(f"{where}: unknown dof {name!r} (the model's dofs: "
-                                     f"{', '.join(skeleton.dof_names[:8])}, ...)")
+                    raise InputError(
+                        f"{where}: unknown dof {name!r} (the model's dofs: {', '.join(skeleton.dof_names[:8])}, ...)"
+                    )
                 i = dofs[name]
                 values[i] = _number(v, f"{where}: {name}") * (1.0 if i in trans else scale)
                 mask[i] = True
@@ -157,8 +174,10 @@ def read_keyframes(path: str | Path, skeleton: Skeleton, num_frames: int, sigma_
             pos, mask = [[0.0, 0.0, 0.0] for _ in range(j)], [False] * j
             for name, v in js.items():
                 if name not in joints:
-                    raise InputError(f"{where}: unknown joint {name!r} (the skeleton's joints: "
-                                     f"{', '.join(skeleton.joint_names[:8])}, ...)")
+                    raise InputError(
+                        f"{where}: unknown joint {name!r} (the skeleton's joints: "
+                        f"{', '.join(skeleton.joint_names[:8])}, ...)"
+                    )
                 if not isinstance(v, list) or len(v) != 3:
                     raise InputError(f"{where}: joint {name} must be [x, y, z] in metres, got {v!r}")
                 pos[joints[name]] = [_number(c, f"{where}: {name}") for c in v]
@@ -166,13 +185,17 @@ def read_keyframes(path: str | Path, skeleton: Skeleton, num_frames: int, sigma_
             jk_rows.append((frame, pos, mask, s_m))
     kf = jk = None
     if kf_rows:
-        kf = Keyframes(frames=torch.tensor([r[0] for r in kf_rows], dtype=torch.long),
-                       q=torch.tensor([r[1] for r in kf_rows], dtype=dtype),
-                       mask=torch.tensor([r[2] for r in kf_rows], dtype=torch.bool),
-                       sigma=torch.tensor([r[3] for r in kf_rows], dtype=dtype))
+        kf = Keyframes(
+            frames=torch.tensor([r[0] for r in kf_rows], dtype=torch.long),
+            q=torch.tensor([r[1] for r in kf_rows], dtype=dtype),
+            mask=torch.tensor([r[2] for r in kf_rows], dtype=torch.bool),
+            sigma=torch.tensor([r[3] for r in kf_rows], dtype=dtype),
+        )
     if jk_rows:
-        jk = JointKeyframes(frames=torch.tensor([r[0] for r in jk_rows], dtype=torch.long),
-                            joints=torch.tensor([r[1] for r in jk_rows], dtype=dtype),
-                            mask=torch.tensor([r[2] for r in jk_rows], dtype=torch.bool),
-                            sigma=torch.tensor([r[3] for r in jk_rows], dtype=dtype))
+        jk = JointKeyframes(
+            frames=torch.tensor([r[0] for r in jk_rows], dtype=torch.long),
+            joints=torch.tensor([r[1] for r in jk_rows], dtype=dtype),
+            mask=torch.tensor([r[2] for r in jk_rows], dtype=torch.bool),
+            sigma=torch.tensor([r[3] for r in jk_rows], dtype=dtype),
+        )
     return kf, jk

@@ -17,9 +17,23 @@ from ptrack.errors import InputError
 from ptrack.skeleton import Skeleton
 
 H36M17: tuple[str, ...] = (
-    "pelvis", "r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle",
-    "spine", "thorax", "neck", "head",
-    "l_shoulder", "l_elbow", "l_wrist", "r_shoulder", "r_elbow", "r_wrist",
+    "pelvis",
+    "r_hip",
+    "r_knee",
+    "r_ankle",
+    "l_hip",
+    "l_knee",
+    "l_ankle",
+    "spine",
+    "thorax",
+    "neck",
+    "head",
+    "l_shoulder",
+    "l_elbow",
+    "l_wrist",
+    "r_shoulder",
+    "r_elbow",
+    "r_wrist",
 )
 
 #: H36M-17 keypoint -> CMU ASF joint (bone end point).
@@ -45,9 +59,16 @@ CMU_H36M17: dict[str, str] = {
 
 #: limbs whose depth order the flip-error metric checks (start keypoint, end keypoint)
 H36M17_LIMBS: tuple[tuple[str, str], ...] = (
-    ("r_hip", "r_knee"), ("r_knee", "r_ankle"), ("l_hip", "l_knee"), ("l_knee", "l_ankle"),
-    ("r_shoulder", "r_elbow"), ("r_elbow", "r_wrist"), ("l_shoulder", "l_elbow"), ("l_elbow", "l_wrist"),
-    ("thorax", "head"), ("pelvis", "thorax"),
+    ("r_hip", "r_knee"),
+    ("r_knee", "r_ankle"),
+    ("l_hip", "l_knee"),
+    ("l_knee", "l_ankle"),
+    ("r_shoulder", "r_elbow"),
+    ("r_elbow", "r_wrist"),
+    ("l_shoulder", "l_elbow"),
+    ("l_elbow", "l_wrist"),
+    ("thorax", "head"),
+    ("pelvis", "thorax"),
 )
 
 
@@ -90,8 +111,10 @@ def make_keypoints(skeleton: Skeleton, mapping: Mapping[str, str] | None = None)
     for k in names:
         j = mapping[k]
         if j not in skeleton.joint_names:
-            raise InputError(f"keypoint {k!r} maps to {j!r}, which is not a joint of skeleton "
-                             f"{skeleton.name!r} (joints: {', '.join(skeleton.joint_names[:8])}, ...)")
+            raise InputError(
+                f"keypoint {k!r} maps to {j!r}, which is not a joint of skeleton "
+                f"{skeleton.name!r} (joints: {', '.join(skeleton.joint_names[:8])}, ...)"
+            )
         joints.append(skeleton.joint_names.index(j))
     pos = {n: i for i, n in enumerate(names)}
     swaps = tuple((pos[n], pos["r_" + n[2:]]) for n in names if n.startswith("l_") and "r_" + n[2:] in pos)

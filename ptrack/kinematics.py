@@ -68,7 +68,8 @@ def _frames_of(sk: Skeleton) -> np.ndarray | None:
     axes are not a right-handed orthonormal frame."""
     c = np.stack([sk.axes[:, 2], sk.axes[:, 1], sk.axes[:, 0]], axis=-1)
     ok = np.allclose(np.einsum("jab,jac->jbc", c, c), np.eye(3), atol=1e-9) and np.allclose(
-        np.linalg.det(c), 1.0, atol=1e-9)
+        np.linalg.det(c), 1.0, atol=1e-9
+    )
     return c if ok else None
 
 
@@ -94,8 +95,9 @@ def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool 
     for d, nodes in enumerate(levels):
         bounds.append((off, len(nodes)))
         slots = [levels[d - 1].index(sk.parents[i]) for i in nodes] if d > 0 else []
-        parent_slot.append(None if slots == list(range(len(nodes))) or d == 0
-                           else torch.as_tensor(slots, device=device))
+        parent_slot.append(
+            None if slots == list(range(len(nodes))) or d == 0 else torch.as_tensor(slots, device=device)
+        )
         off += len(nodes)
     order = [lv.index(i) for i in range(sk.num_joints)]
 
@@ -120,7 +122,11 @@ def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool 
         dof_index=torch.as_tensor(np.clip(sk.axis_dof[lv], 0, None).reshape(-1), device=device),
         dof_mask=t(driven * sk.axis_scale[lv]),
         frozen=t(sk.frozen_axes[lv]),
-        d=d_, f=f_, k1=k1, k2=k2, rest=rest,
+        d=d_,
+        f=f_,
+        k1=k1,
+        k2=k2,
+        rest=rest,
         c_t=t_or_none(np.swapaxes(c_lv, -1, -2), c is None),
         u=t_or_none(u, not np.any(u)),
         w=t_or_none(w, not np.any(w)),
@@ -132,8 +138,9 @@ def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool 
         identity_order=order == list(range(sk.num_joints)),
         bounds=tuple(bounds),
         parent_slot=tuple(parent_slot),
-        parent_lv=torch.as_tensor([lv.index(sk.parents[i]) + 1 if sk.parents[i] >= 0 else 0 for i in lv],
-                                  device=device),
+        parent_lv=torch.as_tensor(
+            [lv.index(sk.parents[i]) + 1 if sk.parents[i] >= 0 else 0 for i in lv], device=device
+        ),
         root_position=t(sk.root_position),
         trans_index=torch.as_tensor(np.clip(sk.translation_dof, 0, None), device=device),
         trans_mask=t((sk.translation_dof >= 0).astype(np.float64)),
@@ -158,11 +165,20 @@ def euler_zyx(theta: Tensor) -> Tensor:
     sz, sy, sx = s.unbind(-1)
     cz, cy, cx = c.unbind(-1)
     czsy, szsy = cz * sy, sz * sy
-    m = torch.stack([
-        cz * cy, czsy * sx - sz * cx, czsy * cx + sz * sx,
-        sz * cy, szsy * sx + cz * cx, szsy * cx - cz * sx,
-        -sy, cy * sx, cy * cx,
-    ], dim=-1)
+    m = torch.stack(
+        [
+            cz * cy,
+            czsy * sx - sz * cx,
+            czsy * cx + sz * sx,
+            sz * cy,
+            szsy * sx + cz * cx,
+            szsy * cx - cz * sx,
+            -sy,
+            cy * sx,
+            cy * cx,
+        ],
+        dim=-1,
+    )
     return m.unflatten(-1, (3, 3))
 
 
@@ -204,8 +220,9 @@ def _local(p: _Plan, q: Tensor) -> Tensor:
     return local if p.rest is None else _mm(local, p.rest)
 
 
-def forward_kinematics(sk: Skeleton, q: Tensor, lengths: Tensor | None = None, rotations: bool = False,
-                       generic: bool = False):
+def forward_kinematics(
+    sk: Skeleton, q: Tensor, lengths: Tensor | None = None, rotations: bool = False, generic: bool = False
+):
     """Forward kinematics.
 
     Args:
@@ -222,11 +239,15 @@ def forward_kinematics(sk: Skeleton, q: Tensor, lengths: Tensor | None = None, r
         rotations of each joint frame.
     """
     if not isinstance(q, Tensor) or not q.is_floating_point() or q.ndim == 0:
-        raise InputError(f"pose q must be a floating tensor of shape (..., {sk.num_dofs}), got "
-                         f"{type(q).__name__} {tuple(getattr(q, 'shape', ()))} {getattr(q, 'dtype', '')}")
+        raise InputError(
+            f"pose q must be a floating tensor of shape (..., {sk.num_dofs}), got "
+            f"{type(q).__name__} {tuple(getattr(q, 'shape', ()))} {getattr(q, 'dtype', '')}"
+        )
     if q.shape[-1] != sk.num_dofs:
-        raise InputError(f"pose q has {q.shape[-1]} dofs in its last dim (shape {tuple(q.shape)}); "
-                         f"skeleton {sk.name!r} has {sk.num_dofs}")
+        raise InputError(
+            f"pose q has {q.shape[-1]} dofs in its last dim (shape {tuple(q.shape)}); "
+            f"skeleton {sk.name!r} has {sk.num_dofs}"
+        )
     p = _plan(sk, q.dtype, q.device, generic)
     q = _with_a_dof(q)
     if lengths is None:
@@ -235,8 +256,13 @@ def forward_kinematics(sk: Skeleton, q: Tensor, lengths: Tensor | None = None, r
         if lengths.shape[-1] != sk.num_joints:
             raise InputError(f"lengths must have {sk.num_joints} entries in the last dim, got {tuple(lengths.shape)}")
         lens = lengths.to(q.dtype).index_select(-1, p.level_index)
-    if p.closed_form and not rotations and q.requires_grad and torch.is_grad_enabled() \
-            and not (isinstance(lens, Tensor) and lens.requires_grad):
+    if (
+        p.closed_form
+        and not rotations
+        and q.requires_grad
+        and torch.is_grad_enabled()
+        and not (isinstance(lens, Tensor) and lens.requires_grad)
+    ):
         return _AnalyticFK.apply(q, lens, p)
     h, pos, _ = _compose(p, q, lens)
     joints = pos if p.identity_order else pos.index_select(-2, p.order)
@@ -274,10 +300,10 @@ def _compose(p: _Plan, q: Tensor, lens: Tensor) -> tuple[Tensor, Tensor, Tensor]
             elif hp.shape[-3] != n:  # parents are the first n joints of a longer previous level
                 hp, pp = hp.narrow(-3, 0, n), pp.narrow(-2, 0, n)
             h = _mm(hp, loc)
-            pivot = pp if p.u is None else pp + ln * _mv(hp, p.u[off:off + n])
-        pos = pivot if p.w is None else pivot + ln * _mv(h, p.w[off:off + n])
+            pivot = pp if p.u is None else pp + ln * _mv(hp, p.u[off : off + n])
+        pos = pivot if p.w is None else pivot + ln * _mv(h, p.w[off : off + n])
         if p.slide is not None:  # prismatic joints (no rotation of their own) slide their frame
-            s = q.index_select(-1, p.slide_index[off:off + n])[..., None] * p.slide[off:off + n]
+            s = q.index_select(-1, p.slide_index[off : off + n])[..., None] * p.slide[off : off + n]
             pos = pos + _mv(h, s)
         hs.append(h)
         ps.append(pos)
@@ -330,14 +356,14 @@ def _pose_gradient(p: _Plan, q: Tensor, h: Tensor, pos: Tensor, pivot: Tensor, g
         poff, pn = p.bounds[lvl - 1]
         slot = p.parent_slot[lvl]
         if slot is None:  # the parents are the first n joints of the previous level
-            gs[..., poff:poff + n, :] += gs[..., off:off + n, :]
-            s[..., poff:poff + n, :] += s[..., off:off + n, :]
+            gs[..., poff : poff + n, :] += gs[..., off : off + n, :]
+            s[..., poff : poff + n, :] += s[..., off : off + n, :]
         else:
-            g_src, s_src = gs[..., off:off + n, :], s[..., off:off + n, :]
+            g_src, s_src = gs[..., off : off + n, :], s[..., off : off + n, :]
             if graph:
                 g_src, s_src = g_src.clone(), s_src.clone()
-            gs[..., poff:poff + pn, :].index_add_(-2, slot, g_src)
-            s[..., poff:poff + pn, :].index_add_(-2, slot, s_src)
+            gs[..., poff : poff + pn, :].index_add_(-2, slot, g_src)
+            s[..., poff : poff + pn, :].index_add_(-2, slot, s_src)
     t = s - torch.linalg.cross(pivot, gs, dim=-1)  # (..., J, 3)
     # A = H_parent D in level order; the root's parent frame is the identity
     eye = torch.eye(3, dtype=h.dtype, device=h.device).expand(*h.shape[:-3], 1, 3, 3)

@@ -64,8 +64,12 @@ def read_limits_file(path: str | Path | None = None) -> dict[str, tuple[float, f
         if bounds is None:
             out[name] = (-math.inf, math.inf)
             continue
-        if (not isinstance(bounds, list) or len(bounds) != 2
-                or not all(isinstance(b, (int, float)) for b in bounds) or not bounds[0] <= bounds[1]):
+        if (
+            not isinstance(bounds, list)
+            or len(bounds) != 2
+            or not all(isinstance(b, (int, float)) for b in bounds)
+            or not bounds[0] <= bounds[1]
+        ):
             raise InputError(f"joint limits file {p}: {name!r} must be [lower, upper] degrees or null, got {bounds!r}")
         out[name] = (math.radians(bounds[0]), math.radians(bounds[1]))
     return out

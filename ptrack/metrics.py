@@ -41,12 +41,9 @@ class JointLimitReport(NamedTuple):
     max_deg: Tensor
 
 
-
 def _check_same(a: Tensor, b: Tensor, name_a: str, name_b: str) -> None:
     if a.shape != b.shape:
-        raise InputError(
-            f"{name_a} and {name_b} must have the same shape, got {tuple(a.shape)} and {tuple(b.shape)}"
-        )
+        raise InputError(f"{name_a} and {name_b} must have the same shape, got {tuple(a.shape)} and {tuple(b.shape)}")
 
 
 def _joint_pair(pred, gt, min_dim: int = 2) -> tuple[Tensor, Tensor]:

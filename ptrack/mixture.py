@@ -35,8 +35,9 @@ def distinct_minima(q: Tensor, cost: Tensor, min_distance: float, limit: int | N
     costs are never kept. q: (N, D); cost: (N,) -> (M,) int64 with M <= limit.
     """
     if q.ndim != 2 or cost.shape != q.shape[:1]:
-        raise InputError(f"distinct_minima: q (N, D) and cost (N,) expected, got {tuple(q.shape)} and "
-                         f"{tuple(cost.shape)}")
+        raise InputError(
+            f"distinct_minima: q (N, D) and cost (N,) expected, got {tuple(q.shape)} and {tuple(cost.shape)}"
+        )
     order = torch.argsort(torch.where(torch.isfinite(cost), cost, torch.full_like(cost, float("inf"))))
     order = order[torch.isfinite(cost[order])]
     if order.numel() == 0:
@@ -76,15 +77,16 @@ def viterbi(unary: Tensor, q: Tensor, sigma: float) -> Tensor:
     unary: (T, K); q: (T, K, D) -> (T,) int64 hypothesis index per frame.
     """
     if unary.ndim != 2 or q.shape[:2] != unary.shape:
-        raise InputError(f"viterbi: unary (T, K) and q (T, K, D) expected, got {tuple(unary.shape)} and "
-                         f"{tuple(q.shape)}")
+        raise InputError(
+            f"viterbi: unary (T, K) and q (T, K, D) expected, got {tuple(unary.shape)} and {tuple(q.shape)}"
+        )
     big = torch.finfo(unary.dtype).max / 4
     u = torch.where(torch.isfinite(unary), unary, torch.full_like(unary, big))
     T = u.shape[0]
     score = u[0]
     back = []
     for t in range(1, T):
-        pair = 0.5 * torch.cdist(q[t - 1], q[t]).square() / sigma ** 2  # (K_prev, K)
+        pair = 0.5 * torch.cdist(q[t - 1], q[t]).square() / sigma**2  # (K_prev, K)
         total = score[:, None] + pair
         best, arg = total.min(0)
         back.append(arg)

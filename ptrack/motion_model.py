@@ -121,8 +121,9 @@ def dof_index(model: MotionModel, skeleton: Skeleton) -> Tensor:
     """
     missing = [d for d in model.dof_names if d not in skeleton.dof_names]
     if missing:
-        raise InputError(f"skeleton {skeleton.name!r} has no dof {missing[0]!r} of the motion model "
-                         f"({len(missing)} missing)")
+        raise InputError(
+            f"skeleton {skeleton.name!r} has no dof {missing[0]!r} of the motion model ({len(missing)} missing)"
+        )
     return torch.as_tensor([skeleton.dof_names.index(d) for d in model.dof_names], dtype=torch.long)
 
 
@@ -133,8 +134,14 @@ def modelled_dofs(skeleton: Skeleton, exclude: Sequence[str] = ()) -> list[int]:
     """Indices of the dofs a motion model holds: every dof not driving the root joint nor matching an
     `exclude` pattern (shell-style, on the dof name or its joint's name, as `Skeleton.freeze`)."""
     root = {int(i) for i in skeleton.axis_dof[0] if i >= 0} | {int(i) for i in skeleton.translation_dof if i >= 0}
-    return [i for i, name in enumerate(skeleton.dof_names) if i not in root and not any(
-        fnmatch.fnmatchcase(name, pat) or fnmatch.fnmatchcase(name.rsplit(".", 1)[0], pat) for pat in exclude)]
+    return [
+        i
+        for i, name in enumerate(skeleton.dof_names)
+        if i not in root
+        and not any(
+            fnmatch.fnmatchcase(name, pat) or fnmatch.fnmatchcase(name.rsplit(".", 1)[0], pat) for pat in exclude
+        )
+    ]
 
 
 def _euler_branches(m: np.ndarray) -> np.ndarray:
@@ -165,7 +172,8 @@ def resample(skeleton: Skeleton, q: Tensor, times: np.ndarray) -> np.ndarray:
     out = qn[i0] * (1 - w[:, None]) + qn[i1] * w[:, None]  # linear, replaced below for ball joints
     c = np.stack([skeleton.axes[:, 2], skeleton.axes[:, 1], skeleton.axes[:, 0]], axis=-1)
     frames_ok = np.isclose(np.linalg.det(c), 1.0, atol=1e-9) & np.all(
-        np.isclose(np.einsum("jab,jac->jbc", c, c), np.eye(3), atol=1e-9), axis=(1, 2))
+        np.isclose(np.einsum("jab,jac->jbc", c, c), np.eye(3), atol=1e-9), axis=(1, 2)
+    )
     ball = [j for j in range(1, skeleton.num_joints) if np.all(skeleton.axis_dof[j] >= 0) and frames_ok[j]]
     if ball and t > 1:
         slots = torch.as_tensor(skeleton.axis_dof[ball])  # (B, 3) dofs of the (z, y, x) slots
@@ -297,14 +305,25 @@ def save_motion_model(model: MotionModel, path: str | Path) -> Path:
     """Write the model (module docstring: format) atomically; returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"format": FORMAT, "version": VERSION, "dof_names": list(model.dof_names),
-            "skeleton_dof_names": list(model.skeleton_dof_names), "key_names": list(model.key_names),
-            **(model.info or {})}
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        "dof_names": list(model.dof_names),
+        "skeleton_dof_names": list(model.skeleton_dof_names),
+        "key_names": list(model.key_names),
+        **(model.info or {}),
+    }
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
-        np.savez_compressed(f, mean=model.mean.double().numpy(), components=model.components.double().numpy(),
-                            explained=model.explained.double().numpy(), sigma=model.sigma.double().numpy(),
-                            key_times=model.key_times.double().numpy(), meta=np.array(json.dumps(meta)))
+        np.savez_compressed(
+            f,
+            mean=model.mean.double().numpy(),
+            components=model.components.double().numpy(),
+            explained=model.explained.double().numpy(),
+            sigma=model.sigma.double().numpy(),
+            key_times=model.key_times.double().numpy(),
+            meta=np.array(json.dumps(meta)),
+        )
     os.replace(tmp, path)
     return path
 
@@ -335,18 +354,24 @@ def load_motion_model(path: str | Path, skeleton: Skeleton | None = None) -> Mot
     except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, json.JSONDecodeError) as e:
         raise InputError(f"motion model file {path} is corrupt or not a motion model: {e}") from None
     model = MotionModel(
-        dof_names=dofs, skeleton_dof_names=sk_dofs,
+        dof_names=dofs,
+        skeleton_dof_names=sk_dofs,
         **{k: torch.from_numpy(np.ascontiguousarray(v, dtype=np.float64)) for k, v in arrays.items()},
         key_names=keys,
-        info={k: v for k, v in meta.items() if k not in ("format", "version", "dof_names", "skeleton_dof_names",
-                                                          "key_names")},
+        info={
+            k: v
+            for k, v in meta.items()
+            if k not in ("format", "version", "dof_names", "skeleton_dof_names", "key_names")
+        },
     )
     if skeleton is not None:
         have = set(skeleton.dof_names) | {name for name, _ in skeleton.frozen}
         if have != set(sk_dofs):
             diff = sorted(have ^ set(sk_dofs))
-            raise InputError(f"motion model {path} was fitted on another skeleton: dofs differ from "
-                             f"{skeleton.name!r}'s ({len(diff)} differ, e.g. {diff[0]!r})")
+            raise InputError(
+                f"motion model {path} was fitted on another skeleton: dofs differ from "
+                f"{skeleton.name!r}'s ({len(diff)} differ, e.g. {diff[0]!r})"
+            )
     return model
 
 
@@ -363,8 +388,10 @@ def _check_counts(clips: int, components: int) -> None:
     if clips < 2:
         raise InputError(f"a motion model needs at least 2 training clips, got {clips}")
     if components > clips - 1:
-        raise InputError(f"config key 'motion.components' ({components}) must be at most the number of training "
-                         f"clips minus one ({clips - 1})")
+        raise InputError(
+            f"config key 'motion.components' ({components}) must be at most the number of training "
+            f"clips minus one ({clips - 1})"
+        )
 
 
 def check_writable(path: str | Path) -> Path:

@@ -76,9 +76,7 @@ class Observations:
             )
         times = as_float_tensor(self.times, "Observations.times", like=kp)
         if tuple(times.shape) != (T,):
-            raise InputError(
-                f"Observations.times must have shape (T,) = {(T,)}, got {tuple(times.shape)}"
-            )
+            raise InputError(f"Observations.times must have shape (T,) = {(T,)}, got {tuple(times.shape)}")
         if not isinstance(self.camera, Camera):
             raise InputError(f"Observations.camera must be a Camera, got {type(self.camera).__name__}")
         names = self.keypoint_names
@@ -92,9 +90,7 @@ class Observations:
                 raise InputError("Observations.confidence has values outside [0, 1] (or NaN)")
             seen = conf > 0
             if not bool(seen.any()):
-                raise InputError(
-                    "Observations: the camera sees none of the keypoints (all confidence 0)"
-                )
+                raise InputError("Observations: the camera sees none of the keypoints (all confidence 0)")
             bad = seen & ~torch.isfinite(kp).all(dim=-1)
             if bool(bad.any()):
                 t, k = (int(i) for i in bad.nonzero()[0])
@@ -136,9 +132,7 @@ class Observations:
     def num_keypoints(self) -> int:
         return self.keypoints.shape[1]
 
-    def to(
-        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
-    ) -> Observations:
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Observations:
         """A copy on ``device`` with floating tensors (and the camera) cast to ``dtype``."""
         masks = None if self.masks is None else self.masks.to(device)
         return Observations(
@@ -233,9 +227,7 @@ def _camera_from_arrays(arrays: dict[str, np.ndarray], path: Path) -> Camera:
         if "camera" in arrays:
             text = arrays["camera"]
             if text.dtype.kind not in "US" or text.ndim != 0:
-                raise InputError(
-                    f"key 'camera' must be a JSON string, got dtype {text.dtype} shape {text.shape}"
-                )
+                raise InputError(f"key 'camera' must be a JSON string, got dtype {text.dtype} shape {text.shape}")
             try:
                 d = json.loads(str(text.item().decode() if text.dtype.kind == "S" else text.item()))
             except json.JSONDecodeError as e:
@@ -243,9 +235,7 @@ def _camera_from_arrays(arrays: dict[str, np.ndarray], path: Path) -> Camera:
             return Camera.from_dict(d, dtype=torch.float64)
         missing = [k for k in ("K", "R", "t", "width", "height") if k not in arrays]
         if missing:
-            raise InputError(
-                f"no key 'camera' and missing camera keys {missing} (pass camera= to load_npz)"
-            )
+            raise InputError(f"no key 'camera' and missing camera keys {missing} (pass camera= to load_npz)")
         size = {}
         for key in ("width", "height"):
             a = arrays[key]
@@ -278,8 +268,13 @@ CHANNEL_RANGES: dict[str, tuple[float, float, bool]] = {
 def channel_range_error(name: str, value: object) -> str | None:
     """None when `value` suits the channel setting `name` (see CHANNEL_RANGES), else what it must be."""
     lo, hi, hi_open = CHANNEL_RANGES[name]
-    ok = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-          and lo <= value and (value < hi if hi_open else value <= hi))
+    ok = (
+        isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and lo <= value
+        and (value < hi if hi_open else value <= hi)
+    )
     if ok:
         return None
     return f"must be a number in [{lo:g}, {hi:g}{')' if hi_open else ']'}, got {value!r}"
@@ -367,9 +362,7 @@ def _partners(swap_pairs: Sequence[tuple[int, int]], K: int) -> list[int]:
     return partner
 
 
-def _outlier_rates(
-    kept: int, swappable: int, outliers: float, swap_fraction: float
-) -> tuple[float, float, float]:
+def _outlier_rates(kept: int, swappable: int, outliers: float, swap_fraction: float) -> tuple[float, float, float]:
     """Per-entry probabilities (outlier if swappable, outlier if not, swap given a swappable outlier).
 
     Chosen so that, in expectation over the clip, ``outliers * kept`` entries are outliers and a
@@ -453,30 +446,21 @@ def simulate_observations(
     """
     joints = as_float_tensor(joints, "simulate_observations: joints")
     if joints.ndim != 3 or joints.shape[-1] != 3 or joints.shape[0] == 0:
-        raise InputError(
-            f"simulate_observations: joints must have shape (T, J, 3), got {tuple(joints.shape)}"
-        )
+        raise InputError(f"simulate_observations: joints must have shape (T, J, 3), got {tuple(joints.shape)}")
     T, J, _ = joints.shape
     index = torch.as_tensor(keypoint_index, device=joints.device)
     if index.ndim != 1 or index.numel() == 0 or index.is_floating_point() or index.dtype == torch.bool:
         raise InputError(
-            "simulate_observations: keypoint_index must be (K,) integers, "
-            f"got {index.dtype} {tuple(index.shape)}"
+            f"simulate_observations: keypoint_index must be (K,) integers, got {index.dtype} {tuple(index.shape)}"
         )
     if bool(((index < 0) | (index >= J)).any()):
-        raise InputError(
-            f"simulate_observations: keypoint_index has values outside [0, {J}): {index.tolist()}"
-        )
+        raise InputError(f"simulate_observations: keypoint_index has values outside [0, {J}): {index.tolist()}")
     K = index.shape[0]
     times = as_float_tensor(times, "simulate_observations: times", like=joints)
     if tuple(times.shape) != (T,):
-        raise InputError(
-            f"simulate_observations: times must have shape (T,) = {(T,)}, got {tuple(times.shape)}"
-        )
+        raise InputError(f"simulate_observations: times must have shape (T,) = {(T,)}, got {tuple(times.shape)}")
     if len(keypoint_names) != K:
-        raise InputError(
-            f"simulate_observations: keypoint_names must have K = {K} names, got {len(keypoint_names)}"
-        )
+        raise InputError(f"simulate_observations: keypoint_names must have K = {K} names, got {len(keypoint_names)}")
     partner = torch.tensor(_partners(swap_pairs, K), device=joints.device)
     cam = camera.to(joints.device, joints.dtype)
 

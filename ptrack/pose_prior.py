@@ -50,15 +50,21 @@ def read_pose_prior(path: str | Path | None = None) -> dict[str, tuple[float, fl
         raise InputError(f"pose prior file {p} must be JSON with a 'prior_deg' mapping ({e})") from None
     out: dict[str, tuple[float, float]] = {}
     for name, v in items:
-        if (not isinstance(v, list) or len(v) != 2 or not all(isinstance(x, (int, float)) for x in v)
-                or not all(math.isfinite(x) for x in v) or v[1] < 0):
+        if (
+            not isinstance(v, list)
+            or len(v) != 2
+            or not all(isinstance(x, (int, float)) for x in v)
+            or not all(math.isfinite(x) for x in v)
+            or v[1] < 0
+        ):
             raise InputError(f"pose prior file {p}: {name!r} must be [mean, std >= 0] degrees, got {v!r}")
         out[name] = (math.radians(v[0]), math.radians(v[1]))
     return out
 
 
-def pose_prior(sk: Skeleton, lower: Tensor, upper: Tensor, angular: Tensor,
-               path: str | Path | None = None) -> tuple[Tensor, Tensor, Tensor]:
+def pose_prior(
+    sk: Skeleton, lower: Tensor, upper: Tensor, angular: Tensor, path: str | Path | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
     """The prior of `sk`'s dofs: -> mean (D,) radians (wrapped into the limits' windows), std (D,),
     known (D,) bool (dofs the file names; the others get mean 0, std 0). dtype and device follow
     `lower`. Root dofs are never in the file (a heading or a position has no prior)."""

@@ -40,8 +40,10 @@ class Keyframes:
 
     def __post_init__(self) -> None:
         if self.frames.ndim != 1 or self.q.ndim != 2 or self.q.shape[0] != self.frames.shape[0]:
-            raise InputError(f"keyframes: frames (F,) and q (F, D) expected, got {tuple(self.frames.shape)} "
-                             f"and {tuple(self.q.shape)}")
+            raise InputError(
+                f"keyframes: frames (F,) and q (F, D) expected, got {tuple(self.frames.shape)} "
+                f"and {tuple(self.q.shape)}"
+            )
         if self.mask is not None and self.mask.shape != self.q.shape:
             raise InputError(f"keyframes: mask shape {tuple(self.mask.shape)} must equal q's {tuple(self.q.shape)}")
         if self.sigma is not None and self.sigma.shape != self.q.shape:
@@ -63,9 +65,11 @@ class JointKeyframes:
         f = self.frames.shape[0]
         ok = self.frames.ndim == 1 and self.joints.ndim == 3 and self.joints.shape[0] == f and self.joints.shape[2] == 3
         if not ok or self.mask.shape != self.joints.shape[:2] or self.sigma.shape != (f,):
-            raise InputError(f"joint keyframes: frames (F,), joints (F, J, 3), mask (F, J), sigma (F,) expected, got "
-                             f"{tuple(self.frames.shape)}, {tuple(self.joints.shape)}, {tuple(self.mask.shape)}, "
-                             f"{tuple(self.sigma.shape)}")
+            raise InputError(
+                f"joint keyframes: frames (F,), joints (F, J, 3), mask (F, J), sigma (F,) expected, got "
+                f"{tuple(self.frames.shape)}, {tuple(self.joints.shape)}, {tuple(self.mask.shape)}, "
+                f"{tuple(self.sigma.shape)}"
+            )
 
 
 @dataclass(frozen=True)
@@ -80,11 +84,14 @@ class Problem:
 
     def __post_init__(self) -> None:
         if self.observations.num_keypoints != self.keypoints.num_keypoints:
-            raise InputError(f"observations have {self.observations.num_keypoints} keypoints, the keypoint set "
-                             f"has {self.keypoints.num_keypoints} ({', '.join(self.keypoints.names)})")
+            raise InputError(
+                f"observations have {self.observations.num_keypoints} keypoints, the keypoint set "
+                f"has {self.keypoints.num_keypoints} ({', '.join(self.keypoints.names)})"
+            )
         if self.keyframes is not None and self.keyframes.q.shape[-1] != self.skeleton.num_dofs:
-            raise InputError(f"keyframes have {self.keyframes.q.shape[-1]} dofs, the model has "
-                             f"{self.skeleton.num_dofs}")
+            raise InputError(
+                f"keyframes have {self.keyframes.q.shape[-1]} dofs, the model has {self.skeleton.num_dofs}"
+            )
         if self.keyframes is not None:
             warn_keyframes_outside_limits(self.skeleton, self.keyframes)
 
@@ -119,11 +126,15 @@ def warn_keyframes_outside_limits(skeleton: Skeleton, keyframes: Keyframes, tol:
             continue
         broken += 1
         worst = sorted(bad, key=lambda d: -float(row[d]))[:3]
-        names = ", ".join(f"{skeleton.dof_names[d]} by " + (f"{math.degrees(float(row[d])):.1f} deg" if angular[d]
-                                                            else f"{float(row[d]):.3f} m") for d in worst)
+        names = ", ".join(
+            f"{skeleton.dof_names[d]} by "
+            + (f"{math.degrees(float(row[d])):.1f} deg" if angular[d] else f"{float(row[d]):.3f} m")
+            for d in worst
+        )
         more = f" and {len(bad) - len(worst)} more" if len(bad) > len(worst) else ""
-        log.warning("the 3D keyframe at frame %d lies outside the joint limits (%s%s); it is kept as given",
-                    f, names, more)
+        log.warning(
+            "the 3D keyframe at frame %d lies outside the joint limits (%s%s); it is kept as given", f, names, more
+        )
     return broken
 
 
@@ -149,14 +160,16 @@ class Estimate(NamedTuple):
     jumps: dict[str, Tensor] | None = None  # {chain: (T,) kinematic-jump leaves kept per frame} (kjs)
 
 
-def evaluate_pose(skeleton: Skeleton, camera: Camera, keypoints: KeypointSet, q: Tensor,
-                  joint_pixels: bool = False) -> PoseEval:
+def evaluate_pose(
+    skeleton: Skeleton, camera: Camera, keypoints: KeypointSet, q: Tensor, joint_pixels: bool = False
+) -> PoseEval:
     """FK + projection. q: (..., D) -> PoseEval with joints (..., J, 3), pixels (..., K, 2)."""
     return pose_eval_from_joints(camera, keypoints, q, skeleton.forward_kinematics(q), joint_pixels)
 
 
-def pose_eval_from_joints(camera: Camera, keypoints: KeypointSet, q: Tensor, joints: Tensor,
-                          joint_pixels: bool = False) -> PoseEval:
+def pose_eval_from_joints(
+    camera: Camera, keypoints: KeypointSet, q: Tensor, joints: Tensor, joint_pixels: bool = False
+) -> PoseEval:
     """`evaluate_pose` without the FK: joints (..., J, 3) given for the pose q (..., D)."""
     proj = camera.project(joints.index_select(-2, keypoints.index(q.device)))
     jp = camera.project(joints).pixels if joint_pixels else None

@@ -78,8 +78,10 @@ def prepare(cfg: RunConfig) -> Prepared:
     full = Skeleton.from_asf(cfg.data.asf).with_limits(cfg.model.limits)
     model = full.freeze(list(cfg.model.freeze)) if cfg.model.freeze else full
     if model.num_dofs == 0:
-        raise InputError(f"config key 'model.freeze' {list(cfg.model.freeze)} freezes every dof of {cfg.data.asf}; "
-                         f"nothing is left to estimate")
+        raise InputError(
+            f"config key 'model.freeze' {list(cfg.model.freeze)} freezes every dof of {cfg.data.asf}; "
+            f"nothing is left to estimate"
+        )
     kps = make_keypoints(model, cfg.model.keypoints)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
 
@@ -95,8 +97,10 @@ def prepare(cfg: RunConfig) -> Prepared:
         stop = None if cfg.data.stop is None else min(cfg.data.stop, n)
         motion = motion.slice(cfg.data.start, stop, cfg.data.stride // upsample)
         if motion.q.shape[0] < 3:
-            raise InputError(f"the selected frames of {cfg.data.amc} (start {cfg.data.start}, stop {cfg.data.stop}, "
-                             f"stride {cfg.data.stride}) give {motion.q.shape[0]} frames; at least 3 are needed")
+            raise InputError(
+                f"the selected frames of {cfg.data.amc} (start {cfg.data.start}, stop {cfg.data.stop}, "
+                f"stride {cfg.data.stride}) give {motion.q.shape[0]} frames; at least 3 are needed"
+            )
         q_full = motion.q.to(dtype)
         gt_joints = full.forward_kinematics(q_full)
         gt_q = model.reduce(q_full, full)
@@ -104,19 +108,28 @@ def prepare(cfg: RunConfig) -> Prepared:
     if cfg.observations.file:
         obs = Observations.load_npz(cfg.observations.file)
         if motion is not None and obs.num_frames != motion.q.shape[0]:
-            raise InputError(f"{cfg.observations.file} has {obs.num_frames} frames but the selected AMC frames are "
-                             f"{motion.q.shape[0]} (check data.start/stop/stride)")
+            raise InputError(
+                f"{cfg.observations.file} has {obs.num_frames} frames but the selected AMC frames are "
+                f"{motion.q.shape[0]} (check data.start/stop/stride)"
+            )
         frames = motion.frames if motion is not None else np.arange(obs.num_frames)
         visible = obs.confidence > 0
     else:
         assert motion is not None and gt_joints is not None  # the config check: data.amc without observations.file
         c = cfg.camera
-        camera = camera_for_motion(gt_joints, c.distance_m, c.azimuth_deg, c.elevation_deg, c.focal_px,
-                                   c.width, c.height)
+        camera = camera_for_motion(
+            gt_joints, c.distance_m, c.azimuth_deg, c.elevation_deg, c.focal_px, c.width, c.height
+        )
         o = cfg.observations
-        channel = ChannelConfig(noise_px=o.noise_px, missing=o.missing, occlusion_bursts=o.occlusion_bursts,
-                                dropped_frames=o.dropped_frames, outliers=o.outliers, outlier_px=o.outlier_px,
-                                swap_fraction=o.swap_fraction)
+        channel = ChannelConfig(
+            noise_px=o.noise_px,
+            missing=o.missing,
+            occlusion_bursts=o.occlusion_bursts,
+            dropped_frames=o.dropped_frames,
+            outliers=o.outliers,
+            outlier_px=o.outlier_px,
+            swap_fraction=o.swap_fraction,
+        )
         masks = None
         if o.silhouettes:
             bones = torch.as_tensor(full.bones(), dtype=torch.long)
@@ -124,22 +137,31 @@ def prepare(cfg: RunConfig) -> Prepared:
             radii = capsule_radii(names, torch.as_tensor(full.lengths[bones[:, 1]], dtype=dtype))
             masks = render_silhouettes(gt_joints, bones, radii, camera)
         times = torch.as_tensor(motion.times, dtype=dtype)
-        obs, info = simulate_observations(gt_joints, kps.index(), camera, times, channel, gen, kps.names,
-                                          swap_pairs=kps.swap_pairs, masks=masks)
+        obs, info = simulate_observations(
+            gt_joints, kps.index(), camera, times, channel, gen, kps.names, swap_pairs=kps.swap_pairs, masks=masks
+        )
         visible = info.visible
         frames = motion.frames
         if upsample > 1:  # 2D on every upsample-th reconstructed frame only
             seen = (torch.arange(obs.num_frames) % upsample == 0).to(obs.confidence)
             obs = dataclasses.replace(obs, confidence=obs.confidence * seen[:, None])
     if tuple(obs.keypoint_names) != kps.names:
-        raise InputError(f"observation keypoints {list(obs.keypoint_names)} differ from the model's keypoint set "
-                         f"{list(kps.names)} (config model.keypoints)")
+        raise InputError(
+            f"observation keypoints {list(obs.keypoint_names)} differ from the model's keypoint set "
+            f"{list(kps.names)} (config model.keypoints)"
+        )
     if cfg.observations.file:  # the file is usable: say which settings it makes moot
-        ignored = [f"observations.{f.name}" for f in dataclasses.fields(cfg.observations)
-                   if f.name != "file" and getattr(cfg.observations, f.name) != f.default]
+        ignored = [
+            f"observations.{f.name}"
+            for f in dataclasses.fields(cfg.observations)
+            if f.name != "file" and getattr(cfg.observations, f.name) != f.default
+        ]
         if ignored:
-            log.warning("observations.file is given, so %s (for simulated observations) %s ignored",
-                        ", ".join(ignored), "is" if len(ignored) == 1 else "are")
+            log.warning(
+                "observations.file is given, so %s (for simulated observations) %s ignored",
+                ", ".join(ignored),
+                "is" if len(ignored) == 1 else "are",
+            )
     check_visibility(visible)
     obs = obs.to(device=device, dtype=dtype)
     keyframes = joint_keyframes = None
@@ -147,12 +169,29 @@ def prepare(cfg: RunConfig) -> Prepared:
     if kc.file:
         keyframes, joint_keyframes = read_keyframes(kc.file, model, obs.num_frames, kc.sigma_deg, kc.sigma_m, dtype)
     elif gt_q is not None:  # the clip's own poses play the user's 3D keyframes (frame 0 unless keyframes.* ask more)
-        keyframes = ground_truth_keyframes(gt_q, obs.times, model, kc.every_s, kc.last, kc.noise_deg, kc.sigma_deg,
-                                           kc.sigma_m, torch.Generator(device="cpu").manual_seed(cfg.seed + 2))
-    problem = Problem(skeleton=model, keypoints=kps, observations=obs, keyframes=keyframes,
-                      joint_keyframes=joint_keyframes)
-    return Prepared(full=full, motion=motion, gt_q=gt_q, gt_joints=gt_joints, problem=problem,
-                    frames=np.asarray(frames), visible=visible.cpu())
+        keyframes = ground_truth_keyframes(
+            gt_q,
+            obs.times,
+            model,
+            kc.every_s,
+            kc.last,
+            kc.noise_deg,
+            kc.sigma_deg,
+            kc.sigma_m,
+            torch.Generator(device="cpu").manual_seed(cfg.seed + 2),
+        )
+    problem = Problem(
+        skeleton=model, keypoints=kps, observations=obs, keyframes=keyframes, joint_keyframes=joint_keyframes
+    )
+    return Prepared(
+        full=full,
+        motion=motion,
+        gt_q=gt_q,
+        gt_joints=gt_joints,
+        problem=problem,
+        frames=np.asarray(frames),
+        visible=visible.cpu(),
+    )
 
 
 #: a frame counts as seen when at least this share of its keypoints is visible; a run needs MIN_SEEN_FRAMES
@@ -165,12 +204,18 @@ def check_visibility(visible: torch.Tensor) -> None:
     per_frame = visible.float().mean(-1)
     seen, fraction = int((per_frame >= SEEN_FRAME_SHARE).sum()), float(per_frame.mean())
     if seen < MIN_SEEN_FRAMES:
-        raise InputError(f"the camera sees too little: {seen} of {visible.shape[0]} frames have at least a third of "
-                         f"the keypoints visible ({MIN_SEEN_FRAMES} are needed; visible_fraction {fraction:.3f}); "
-                         f"check camera.* or the observations")
+        raise InputError(
+            f"the camera sees too little: {seen} of {visible.shape[0]} frames have at least a third of "
+            f"the keypoints visible ({MIN_SEEN_FRAMES} are needed; visible_fraction {fraction:.3f}); "
+            f"check camera.* or the observations"
+        )
     if fraction < 0.5:
-        log.warning("the camera sees only %.0f%% of the keypoints (visible_fraction %.3f): the estimate rests on "
-                    "few observations", 100 * fraction, fraction)
+        log.warning(
+            "the camera sees only %.0f%% of the keypoints (visible_fraction %.3f): the estimate rests on "
+            "few observations",
+            100 * fraction,
+            fraction,
+        )
 
 
 def reprojected_keypoints(prep: Prepared, est: Estimate) -> torch.Tensor:
@@ -225,7 +270,8 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
             per_limb = M.flip_error_rate(flips)
             summary["flip_error_rate"] = float(flips.nanmean())  # NaN -> null in metrics.json
             summary["flip_error_rate_per_limb"] = {
-                f"{kps.names[a]}-{kps.names[b]}": float(r) for (a, b), r in zip(kps.limbs, per_limb)}
+                f"{kps.names[a]}-{kps.names[b]}": float(r) for (a, b), r in zip(kps.limbs, per_limb)
+            }
             series["flip_error_rate"] = flips.nanmean(-1).double().cpu().numpy()
         if est.hypotheses is not None:
             put("best_of_k_mpjpe_mm", M.best_of_k_mpjpe(est.hypotheses.index_select(-2, idx), gt_kp, root=root))
@@ -234,8 +280,10 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
         series["joint_std_max_m"] = est.joint_std.amax(-1).detach().double().cpu().numpy()
     if est.solver_cost is not None:
         summary["solver_iterations"] = int(est.solver_cost.shape[0] - 1)
-        summary["solver_cost_start"], summary["solver_cost_final"] = (float(est.solver_cost[0]),
-                                                                      float(est.solver_cost[-1]))
+        summary["solver_cost_start"], summary["solver_cost_final"] = (
+            float(est.solver_cost[0]),
+            float(est.solver_cost[-1]),
+        )
     series["cost"] = est.cost.detach().double().cpu().numpy()
     for k, v in est.terms.items():
         series[f"cost_{k}"] = v.detach().double().cpu().numpy()
@@ -262,8 +310,10 @@ def check_finite(est: Estimate, method: str) -> None:
     n = int(bad.sum())
     if n:
         first = torch.nonzero(bad)[:5, 0].tolist()
-        raise EstimationError(f"method {method!r} returned non-finite poses in {n} of {bad.shape[0]} frames "
-                              f"(nonfinite_frames={n}; first at frame indices {first}); no results were written")
+        raise EstimationError(
+            f"method {method!r} returned non-finite poses in {n} of {bad.shape[0]} frames "
+            f"(nonfinite_frames={n}; first at frame indices {first}); no results were written"
+        )
 
 
 def default_out_dir(cfg: RunConfig, root: str | Path = "logs") -> Path:
@@ -302,8 +352,13 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
     check_finite(est, cfg.method)
     reproj = reprojected_keypoints(prep, est)
     summary, series = compute_metrics(prep, est, reproj)
-    summary = {"method": cfg.method, "frames": int(est.q.shape[0]), "seconds": seconds,
-               "fps": float(est.q.shape[0] / seconds), **summary}
+    summary = {
+        "method": cfg.method,
+        "frames": int(est.q.shape[0]),
+        "seconds": seconds,
+        "fps": float(est.q.shape[0] / seconds),
+        **summary,
+    }
     _write_outputs(out, cfg, prep, est, result_arrays(prep, est, reproj), summary, series)
     return out
 
@@ -350,8 +405,14 @@ def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[s
     }
     if prep.gt_joints is not None:
         arrays["gt_joints"] = prep.gt_joints.detach().cpu().numpy()
-    for name in ("hypotheses", "hypothesis_weights", "hypothesis_costs", "joint_std", "solver_cost",
-                 "hypothesis_directions"):
+    for name in (
+        "hypotheses",
+        "hypothesis_weights",
+        "hypothesis_costs",
+        "joint_std",
+        "solver_cost",
+        "hypothesis_directions",
+    ):
         v = getattr(est, name)
         if v is not None:
             arrays[name] = v.detach().cpu().numpy()
@@ -361,8 +422,15 @@ def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[s
     return arrays
 
 
-def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, res: dict[str, np.ndarray], summary: dict,
-                   series: dict[str, np.ndarray]) -> None:
+def _write_outputs(
+    out: Path,
+    cfg: RunConfig,
+    prep: Prepared,
+    est: Estimate,
+    res: dict[str, np.ndarray],
+    summary: dict,
+    series: dict[str, np.ndarray],
+) -> None:
     from ptrack.viz import RunLog, write_recording
 
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -372,8 +440,9 @@ def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, res
     tmp.chmod(0o777 & ~umask)  # mkdtemp makes 0700; the run folder gets a new folder's usual mode
     try:
         (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
-        (tmp / "metrics.json").write_text(json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n",
-                                          encoding="utf-8")
+        (tmp / "metrics.json").write_text(
+            json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n", encoding="utf-8"
+        )
         np.savez_compressed(tmp / "result.npz", **res)  # type: ignore[arg-type]  # numpy's stub: a key could be allow_pickle
         times = res["times"].astype(np.float64)
         fps = float(1.0 / np.median(np.diff(times))) if len(times) > 1 else 30.0
@@ -381,16 +450,28 @@ def _write_outputs(out: Path, cfg: RunConfig, prep: Prepared, est: Estimate, res
         prob = prep.problem
         obs = prob.observations
         rlog = RunLog(
-            joint_names=prob.skeleton.joint_names, parents=prob.skeleton.parents, frames=prep.frames,
-            times=res["times"], estimate=res["joints"], ground_truth=res.get("gt_joints"),
-            camera=obs.camera.to(device="cpu"), observed=res["keypoints_observed"], confidence=res["confidence"],
-            reprojected=res["keypoints_reprojected"], keypoint_names=prob.keypoints.names,
+            joint_names=prob.skeleton.joint_names,
+            parents=prob.skeleton.parents,
+            frames=prep.frames,
+            times=res["times"],
+            estimate=res["joints"],
+            ground_truth=res.get("gt_joints"),
+            camera=obs.camera.to(device="cpu"),
+            observed=res["keypoints_observed"],
+            confidence=res["confidence"],
+            reprojected=res["keypoints_reprojected"],
+            keypoint_names=prob.keypoints.names,
             keypoint_joints=prob.keypoints.joints,
-            hypotheses=res.get("hypotheses"), hypothesis_weights=res.get("hypothesis_weights"),
-            hypothesis_costs=res.get("hypothesis_costs"), hypothesis_directions=res.get("hypothesis_directions"),
+            hypotheses=res.get("hypotheses"),
+            hypothesis_weights=res.get("hypothesis_weights"),
+            hypothesis_costs=res.get("hypothesis_costs"),
+            hypothesis_directions=res.get("hypothesis_directions"),
             jumps=dict(zip(res["jump_chains"].tolist(), res["jump_counts"].T)) if "jump_chains" in res else {},
-            scalars=series, masks=obs.masks.cpu().numpy() if obs.masks is not None else None,
-            joint_std=res.get("joint_std"), solver_cost=res.get("solver_cost"))
+            scalars=series,
+            masks=obs.masks.cpu().numpy() if obs.masks is not None else None,
+            joint_std=res.get("joint_std"),
+            solver_cost=res.get("solver_cost"),
+        )
         write_recording(tmp / "run.rrd", rlog)
         if out.exists():
             out.rmdir()  # empty (checked before the run)

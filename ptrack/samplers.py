@@ -70,8 +70,9 @@ class Draws(NamedTuple):
 # ---------------------------------------------------------------- covariance
 
 
-def scaled_covariance(hessian: Tensor, scale: float | Tensor = 1.0, *, max_std: float = 1.0,
-                      min_std: float = 0.0) -> ScaledCovariance:
+def scaled_covariance(
+    hessian: Tensor, scale: float | Tensor = 1.0, *, max_std: float = 1.0, min_std: float = 0.0
+) -> ScaledCovariance:
     """The CSS covariance `scale * H^-1`, with H the Gauss-Newton Hessian at a mode, regularised so
     that it is finite and positive definite.
 
@@ -90,10 +91,16 @@ def scaled_covariance(hessian: Tensor, scale: float | Tensor = 1.0, *, max_std: 
     max_std > 0 finite; 0 <= min_std <= max_std.
     -> ScaledCovariance(covariance (..., D, D), chol (..., D, D)).
     """
-    if not isinstance(hessian, Tensor) or hessian.ndim < 2 or hessian.shape[-1] != hessian.shape[-2] \
-            or hessian.shape[-1] == 0:
-        raise InputError(f"hessian must be a (..., D, D) tensor with D >= 1, got "
-                         f"{tuple(hessian.shape) if isinstance(hessian, Tensor) else type(hessian).__name__}")
+    if (
+        not isinstance(hessian, Tensor)
+        or hessian.ndim < 2
+        or hessian.shape[-1] != hessian.shape[-2]
+        or hessian.shape[-1] == 0
+    ):
+        raise InputError(
+            f"hessian must be a (..., D, D) tensor with D >= 1, got "
+            f"{tuple(hessian.shape) if isinstance(hessian, Tensor) else type(hessian).__name__}"
+        )
     if not hessian.is_floating_point():
         raise InputError(f"hessian must be a floating-point tensor, got {hessian.dtype}")
     if not (isinstance(max_std, (int, float)) and math.isfinite(max_std) and max_std > 0):
@@ -136,8 +143,15 @@ def spherical_chol(chol: Tensor) -> Tensor:
 # ---------------------------------------------------------------- proposals
 
 
-def css_proposal(mean: Tensor, chol: Tensor, n: int | Sequence[int] | Tensor, generator: torch.Generator, *,
-                 tail: str = "gaussian", dof: float | None = None) -> Draws:
+def css_proposal(
+    mean: Tensor,
+    chol: Tensor,
+    n: int | Sequence[int] | Tensor,
+    generator: torch.Generator,
+    *,
+    tail: str = "gaussian",
+    dof: float | None = None,
+) -> Draws:
     """Covariance Scaled Sampling: samples around each mode, x = mean_m + chol_m u, u a standard
     Gaussian, Student-t or Cauchy vector (see the module docstring).
 
@@ -153,8 +167,15 @@ def css_proposal(mean: Tensor, chol: Tensor, n: int | Sequence[int] | Tensor, ge
     return _draws(mean, u @ chol.mT, base - _log_det_chol(chol)[:, None], counts, per_mode)
 
 
-def spherical_proposal(mean: Tensor, chol: Tensor, n: int | Sequence[int] | Tensor, generator: torch.Generator, *,
-                       tail: str = "gaussian", dof: float | None = None) -> Draws:
+def spherical_proposal(
+    mean: Tensor,
+    chol: Tensor,
+    n: int | Sequence[int] | Tensor,
+    generator: torch.Generator,
+    *,
+    tail: str = "gaussian",
+    dof: float | None = None,
+) -> Draws:
     """Spherical Sampling, the paper's baseline: like `css_proposal` with the same arguments, but each
     mode's covariance replaced by the isotropic one of the same core volume, std = det(Sigma)^(1/(2D))
     (`spherical_std`). Since the volumes agree, so do the log-densities of corresponding draws.
@@ -169,8 +190,9 @@ def spherical_proposal(mean: Tensor, chol: Tensor, n: int | Sequence[int] | Tens
     return _draws(mean, u * std[:, None, None], base - log_det[:, None], counts, per_mode)
 
 
-def proposal_log_density(x: Tensor, mean: Tensor, chol: Tensor, *, tail: str = "gaussian",
-                         dof: float | None = None) -> Tensor:
+def proposal_log_density(
+    x: Tensor, mean: Tensor, chol: Tensor, *, tail: str = "gaussian", dof: float | None = None
+) -> Tensor:
     """Log-density of points under each mode's component (before projection onto the limits).
 
     For a mixture with log-weights log_w (M,): torch.logsumexp(log_w + proposal_log_density(...), -1).
@@ -193,8 +215,9 @@ def proposal_log_density(x: Tensor, mean: Tensor, chol: Tensor, *, tail: str = "
 # ---------------------------------------------------------------- limits
 
 
-def project_to_limits(q: Tensor, lower: Tensor, upper: Tensor, angular: Tensor | None = None, *,
-                      mode: str = "clamp") -> Tensor:
+def project_to_limits(
+    q: Tensor, lower: Tensor, upper: Tensor, angular: Tensor | None = None, *, mode: str = "clamp"
+) -> Tensor:
     """Samples moved into the joint-limit box [lower, upper] (bounds may be -inf / inf).
 
     Angular dofs (`angular` True) are first written in their limits' 2 pi window
@@ -215,8 +238,10 @@ def project_to_limits(q: Tensor, lower: Tensor, upper: Tensor, angular: Tensor |
     if mode not in PROJECTIONS:
         raise InputError(f"projection mode must be one of {', '.join(PROJECTIONS)}, got {mode!r}")
     if not isinstance(q, Tensor) or q.ndim < 1 or not q.is_floating_point():
-        raise InputError(f"q must be a floating-point (..., D) tensor, got "
-                         f"{tuple(q.shape) if isinstance(q, Tensor) else type(q).__name__}")
+        raise InputError(
+            f"q must be a floating-point (..., D) tensor, got "
+            f"{tuple(q.shape) if isinstance(q, Tensor) else type(q).__name__}"
+        )
     D = q.shape[-1]
     lower, upper = torch.as_tensor(lower).to(q), torch.as_tensor(upper).to(q)
     for name, b in (("lower", lower), ("upper", upper)):
@@ -243,8 +268,9 @@ def project_to_limits(q: Tensor, lower: Tensor, upper: Tensor, angular: Tensor |
     period = torch.where(both & (width > 0), 2.0 * width, torch.ones_like(width))
     t = torch.remainder(q - lo, period)
     folded = torch.where(width > 0, lo + torch.where(t <= width, t, period - t), lo)
-    out = torch.where(both, folded,
-                      torch.where(has_lo, lo + (q - lo).abs(), torch.where(has_hi, hi - (hi - q).abs(), q)))
+    out = torch.where(
+        both, folded, torch.where(has_lo, lo + (q - lo).abs(), torch.where(has_hi, hi - (hi - q).abs(), q))
+    )
     return torch.where(keep, q, torch.where(torch.isinf(q), clamped, out))
 
 
@@ -273,19 +299,24 @@ def _positive(name: str, value: float | Tensor, batch: torch.Size, device: torch
 
 def _check_square(name: str, m: Tensor) -> None:
     if not isinstance(m, Tensor) or m.ndim < 2 or m.shape[-1] != m.shape[-2]:
-        raise InputError(f"{name} must be a (..., D, D) tensor, got "
-                         f"{tuple(m.shape) if isinstance(m, Tensor) else type(m).__name__}")
+        raise InputError(
+            f"{name} must be a (..., D, D) tensor, got {tuple(m.shape) if isinstance(m, Tensor) else type(m).__name__}"
+        )
 
 
 def _check_modes(mean: Tensor, chol: Tensor) -> tuple[Tensor, Tensor]:
     """mean (M, D) and chol (M, D, D), chol in mean's dtype and on its device."""
     if not isinstance(mean, Tensor) or mean.ndim != 2 or not mean.is_floating_point():
-        raise InputError(f"mean must be a floating-point (M, D) tensor, got "
-                         f"{tuple(mean.shape) if isinstance(mean, Tensor) else type(mean).__name__}")
+        raise InputError(
+            f"mean must be a floating-point (M, D) tensor, got "
+            f"{tuple(mean.shape) if isinstance(mean, Tensor) else type(mean).__name__}"
+        )
     M, D = mean.shape
     if not isinstance(chol, Tensor) or chol.shape != (M, D, D):
-        raise InputError(f"chol must be (M, D, D) = ({M}, {D}, {D}) to match mean (M, D), got "
-                         f"{tuple(chol.shape) if isinstance(chol, Tensor) else type(chol).__name__}")
+        raise InputError(
+            f"chol must be (M, D, D) = ({M}, {D}, {D}) to match mean (M, D), got "
+            f"{tuple(chol.shape) if isinstance(chol, Tensor) else type(chol).__name__}"
+        )
     return mean, chol.to(mean)
 
 
@@ -293,8 +324,9 @@ def _check_tail(tail: str, dof: float | None) -> float | None:
     """Degrees of freedom of the tail: None for Gaussian, 1 for Cauchy, `dof` for Student-t."""
     if tail not in TAILS:
         raise InputError(f"tail must be one of {', '.join(TAILS)}, got {tail!r}")
-    if dof is not None and (isinstance(dof, bool) or not isinstance(dof, (int, float))
-                            or not math.isfinite(dof) or dof <= 0):
+    if dof is not None and (
+        isinstance(dof, bool) or not isinstance(dof, (int, float)) or not math.isfinite(dof) or dof <= 0
+    ):
         raise InputError(f"dof must be a finite number > 0, got {dof!r}")
     if tail == "student":
         if dof is None:
@@ -313,16 +345,16 @@ def _counts(n: int | Sequence[int] | Tensor, M: int) -> tuple[Tensor | None, int
         return None, n
     c = torch.as_tensor(n)
     if c.is_floating_point() or c.is_complex() or c.dtype == torch.bool or c.shape != (M,):
-        raise InputError(f"counts must be (M,) = ({M},) integers, one per mode, got "
-                         f"{tuple(c.shape)} {c.dtype}")
+        raise InputError(f"counts must be (M,) = ({M},) integers, one per mode, got {tuple(c.shape)} {c.dtype}")
     c = c.to(device="cpu", dtype=torch.long)
     if bool((c < 0).any()):
         raise InputError(f"counts must be >= 0, got {c.tolist()}")
     return c, int(c.max()) if M else 0
 
 
-def _whitened(mean: Tensor, counts: Tensor | None, per_mode: int, generator: torch.Generator, tail: str,
-              dof: float | None) -> tuple[Tensor, Tensor]:
+def _whitened(
+    mean: Tensor, counts: Tensor | None, per_mode: int, generator: torch.Generator, tail: str, dof: float | None
+) -> tuple[Tensor, Tensor]:
     """Standard (Gaussian / t / Cauchy) vectors padded to (M, S, D) in mean's dtype and device, and
     their log-density under the standard distribution (M, S). Padding rows (counts < S) are zeros."""
     nu = _check_tail(tail, dof)
@@ -333,8 +365,9 @@ def _whitened(mean: Tensor, counts: Tensor | None, per_mode: int, generator: tor
     gdev = generator.device
     z = torch.randn((N, D), generator=generator, device=gdev, dtype=torch.float64)
     if nu is not None:  # chi2(nu) / nu = Gamma(nu / 2, rate nu / 2)
-        w = torch._standard_gamma(torch.full((N,), 0.5 * nu, device=gdev, dtype=torch.float64),
-                                  generator=generator) / (0.5 * nu)
+        w = torch._standard_gamma(torch.full((N,), 0.5 * nu, device=gdev, dtype=torch.float64), generator=generator) / (
+            0.5 * nu
+        )
         z = z * w.rsqrt()[:, None]
     sq = z.square().sum(-1)
     base = _log_density_std(sq, D, nu)

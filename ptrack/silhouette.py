@@ -132,9 +132,7 @@ _CORNER_BITS = [(x, y, z) for x in (False, True) for y in (False, True) for z in
 _NEAR = 1e-3  # metres: capsules closer than this to the camera plane are not culled
 
 
-def render_silhouettes(
-    joints: Tensor, bones: Tensor, radii: Tensor, camera: Camera, downsample: int = 1
-) -> Tensor:
+def render_silhouettes(joints: Tensor, bones: Tensor, radii: Tensor, camera: Camera, downsample: int = 1) -> Tensor:
     """Capsule-model silhouettes: joints (T, J, 3) world, bones (B, 2) long (start, end joint),
     radii (B,) metres -> masks (T, H, W) bool with H, W = camera.height, camera.width.
 
@@ -148,23 +146,18 @@ def render_silhouettes(
     joints = torch.as_tensor(joints)
     if not joints.is_floating_point() or joints.ndim != 3 or joints.shape[-1] != 3:
         raise InputError(
-            "render_silhouettes: joints must be floating (T, J, 3), "
-            f"got {joints.dtype} {tuple(joints.shape)}"
+            f"render_silhouettes: joints must be floating (T, J, 3), got {joints.dtype} {tuple(joints.shape)}"
         )
     T, J, _ = joints.shape
     bones = torch.as_tensor(bones, device=joints.device)
     if bones.ndim != 2 or bones.shape[-1] != 2 or bones.is_floating_point() or bones.dtype == torch.bool:
-        raise InputError(
-            f"render_silhouettes: bones must be (B, 2) integers, got {bones.dtype} {tuple(bones.shape)}"
-        )
+        raise InputError(f"render_silhouettes: bones must be (B, 2) integers, got {bones.dtype} {tuple(bones.shape)}")
     if bool(((bones < 0) | (bones >= J)).any()):
         raise InputError(f"render_silhouettes: bones has joint indices outside [0, {J})")
     B = bones.shape[0]
     radii = torch.as_tensor(radii).to(dtype=joints.dtype, device=joints.device)
     if tuple(radii.shape) != (B,) or not bool((radii > 0).all()):
-        raise InputError(
-            f"render_silhouettes: radii must be (B,) = ({B},) positive values, got {tuple(radii.shape)}"
-        )
+        raise InputError(f"render_silhouettes: radii must be (B,) = ({B},) positive values, got {tuple(radii.shape)}")
     if isinstance(downsample, bool) or not isinstance(downsample, int) or downsample < 1:
         raise InputError(f"render_silhouettes: downsample must be an integer >= 1, got {downsample!r}")
     if not bool(torch.isfinite(joints).all()):

@@ -126,8 +126,10 @@ class Skeleton:
 
     def limits(self, dtype=torch.float32, device=None) -> tuple[Tensor, Tensor]:
         """Joint limits as tensors: lower (D,), upper (D,)."""
-        return (torch.as_tensor(self.lower, dtype=dtype, device=device),
-                torch.as_tensor(self.upper, dtype=dtype, device=device))
+        return (
+            torch.as_tensor(self.lower, dtype=dtype, device=device),
+            torch.as_tensor(self.upper, dtype=dtype, device=device),
+        )
 
     def with_limits(self, source: str, path: str | Path | None = None) -> Skeleton:
         """This model with the joint limits of `source`: "data" (measured on real CMU motion, the
@@ -148,9 +150,12 @@ class Skeleton:
         slots, or a slot with a multiplier or offset) is in the model: FK handles them, code that
         works on `axes`/`axis_dof` alone does not."""
         driven = self.axis_dof[self.axis_dof >= 0]
-        return bool(np.any(self.slide_dof >= 0) or len(set(driven.tolist())) < len(driven)
-                    or np.any((self.axis_scale != 1.0) & (self.axis_dof >= 0))
-                    or np.any((self.frozen_axes != 0.0) & (self.axis_dof >= 0)))
+        return bool(
+            np.any(self.slide_dof >= 0)
+            or len(set(driven.tolist())) < len(driven)
+            or np.any((self.axis_scale != 1.0) & (self.axis_dof >= 0))
+            or np.any((self.frozen_axes != 0.0) & (self.axis_dof >= 0))
+        )
 
     def length_tensor(self, dtype=torch.float32, device=None) -> Tensor:
         """Bone lengths (J,) in metres, e.g. as a starting point for differentiable lengths."""
@@ -196,8 +201,11 @@ class Skeleton:
         """
         drop: set[int] = set()
         for pat in patterns:
-            hits = [i for i, n in enumerate(self.dof_names)
-                    if fnmatch.fnmatchcase(n, pat) or fnmatch.fnmatchcase(n.split(".")[0], pat)]
+            hits = [
+                i
+                for i, n in enumerate(self.dof_names)
+                if fnmatch.fnmatchcase(n, pat) or fnmatch.fnmatchcase(n.split(".")[0], pat)
+            ]
             if not hits and not any(fnmatch.fnmatchcase(n, pat) for n in self.joint_names):
                 raise InputError(f"freeze pattern {pat!r} matches no joint or dof of {self.name!r}")
             drop.update(hits)
@@ -216,8 +224,11 @@ class Skeleton:
         held = (self.slide_dof >= 0) & (slide_dof < 0)  # a frozen slide becomes part of the joint's origin
         offset[held] += value * np.einsum("jab,jb->ja", self.rest_rotation[held], self.slide_axis[held])
         lengths = np.linalg.norm(offset, axis=1) if held.any() else self.lengths
-        offset_parent = (np.divide(offset, lengths[:, None], out=np.zeros_like(offset), where=lengths[:, None] > 0)
-                         if held.any() else self.offset_parent)
+        offset_parent = (
+            np.divide(offset, lengths[:, None], out=np.zeros_like(offset), where=lengths[:, None] > 0)
+            if held.any()
+            else self.offset_parent
+        )
         return replace(
             self,
             frozen=self.frozen + tuple((self.dof_names[i], float(value)) for i in sorted(drop)),
@@ -295,8 +306,9 @@ class Motion:
         if stop is not None and not (start < stop <= t):
             raise InputError(f"stop frame {stop} must be in ({start}, {t}] for {self.path}")
         sl = slice(start, stop, stride)
-        return Motion(q=self.q[sl], frames=self.frames[sl], fps=self.fps / stride, path=self.path,
-                      frame_rate=self.frame_rate)
+        return Motion(
+            q=self.q[sl], frames=self.frames[sl], fps=self.fps / stride, path=self.path, frame_rate=self.frame_rate
+        )
 
 
 def load_amc(path: str | Path, skeleton: Skeleton) -> Motion:
@@ -312,8 +324,7 @@ def load_amc(path: str | Path, skeleton: Skeleton) -> Motion:
     q_full = np.concatenate([amc.values[bone] for bone, _ in layout.dof_counts], axis=1)
     q_full = q_full * np.asarray(layout.scale)
     keep = [layout.dof_names.index(n) for n in skeleton.dof_names]
-    return Motion(q=torch.from_numpy(q_full[:, keep].copy()), frames=amc.frame_numbers,
-                  fps=CMU_FPS, path=str(path))
+    return Motion(q=torch.from_numpy(q_full[:, keep].copy()), frames=amc.frame_numbers, fps=CMU_FPS, path=str(path))
 
 
 @dataclass(frozen=True)

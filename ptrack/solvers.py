@@ -109,8 +109,10 @@ Callback = Callable[[int, Tensor, Tensor], None]
 def _check_start(q0: Tensor, lower, upper, who: str) -> tuple[Tensor, Tensor, Tensor]:
     """Validate q0 (N, D) and the bounds; -> q0 clamped, lower (N|1, D), upper (N|1, D)."""
     if not isinstance(q0, Tensor) or not q0.is_floating_point() or q0.ndim != 2:
-        raise InputError(f"{who}: q0 must be a floating tensor of shape (N, D), got "
-                         f"{type(q0).__name__} {tuple(getattr(q0, 'shape', ()))}")
+        raise InputError(
+            f"{who}: q0 must be a floating tensor of shape (N, D), got "
+            f"{type(q0).__name__} {tuple(getattr(q0, 'shape', ()))}"
+        )
     n, d = q0.shape
 
     def bound(x, fill: float, name: str) -> Tensor:
@@ -120,8 +122,9 @@ def _check_start(q0: Tensor, lower, upper, who: str) -> tuple[Tensor, Tensor, Te
         if t.ndim == 1:
             t = t[None]
         if t.ndim != 2 or t.shape[1] != d or t.shape[0] not in (1, n):
-            raise InputError(f"{who}: {name} must have shape (D,) or (N, D) = ({n}, {d}), got "
-                             f"{tuple(torch.as_tensor(x).shape)}")
+            raise InputError(
+                f"{who}: {name} must have shape (D,) or (N, D) = ({n}, {d}), got {tuple(torch.as_tensor(x).shape)}"
+            )
         return t
 
     lo, hi = bound(lower, -math.inf, "lower"), bound(upper, math.inf, "upper")
@@ -154,30 +157,41 @@ def _where(mask: Tensor, a: Tensor, b: Tensor) -> Tensor:
 def _linearize(fn: LinearizeFn, q: Tensor, weights_fn, energy_fn) -> Linearization:
     out = fn(q)
     if not isinstance(out, tuple) or not 2 <= len(out) <= 6:
-        raise InputError("levenberg_marquardt: linearize must return (residuals, jacobian) or a "
-                         f"Linearization, got {type(out).__name__}")
+        raise InputError(
+            "levenberg_marquardt: linearize must return (residuals, jacobian) or a "
+            f"Linearization, got {type(out).__name__}"
+        )
     lin = Linearization(*out)
     r, jac = lin.residuals, lin.jacobian
     n, d = q.shape
     if r.ndim != 2 or r.shape[0] != n or jac.shape != (n, r.shape[1], d):
-        raise InputError(f"levenberg_marquardt: residuals must be (N, M) and jacobian (N, M, D) with "
-                         f"N={n}, D={d}; got {tuple(r.shape)} and {tuple(jac.shape)}")
+        raise InputError(
+            f"levenberg_marquardt: residuals must be (N, M) and jacobian (N, M, D) with "
+            f"N={n}, D={d}; got {tuple(r.shape)} and {tuple(jac.shape)}"
+        )
     w = lin.weights if lin.weights is not None or weights_fn is None else weights_fn(q)
     e = lin.energy if lin.energy is not None or energy_fn is None else energy_fn(q)
     if e is None:
         if w is not None:
-            raise InputError("levenberg_marquardt: with IRLS weights the energy must be given too "
-                             "(energy_fn, or Linearization.energy): it is not 0.5 |r|^2")
+            raise InputError(
+                "levenberg_marquardt: with IRLS weights the energy must be given too "
+                "(energy_fn, or Linearization.energy): it is not 0.5 |r|^2"
+            )
         e = 0.5 * r.square().sum(-1)
     if w is not None and w.shape != r.shape:
-        raise InputError(f"levenberg_marquardt: weights must have the residuals' shape {tuple(r.shape)}, "
-                         f"got {tuple(w.shape)}")
+        raise InputError(
+            f"levenberg_marquardt: weights must have the residuals' shape {tuple(r.shape)}, got {tuple(w.shape)}"
+        )
     if e.shape != (n,):
         raise InputError(f"levenberg_marquardt: energy must have shape ({n},), got {tuple(e.shape)}")
-    if (lin.fold_h is None) != (lin.fold_g is None) or (lin.fold_h is not None and lin.fold_g is not None and (
-            lin.fold_h.shape != (n, d, d) or lin.fold_g.shape != (n, d))):
-        raise InputError(f"levenberg_marquardt: fold_h ({n}, {d}, {d}) and fold_g ({n}, {d}) must both be "
-                         "given or both be None")
+    if (lin.fold_h is None) != (lin.fold_g is None) or (
+        lin.fold_h is not None
+        and lin.fold_g is not None
+        and (lin.fold_h.shape != (n, d, d) or lin.fold_g.shape != (n, d))
+    ):
+        raise InputError(
+            f"levenberg_marquardt: fold_h ({n}, {d}, {d}) and fold_g ({n}, {d}) must both be given or both be None"
+        )
     return Linearization(r, jac, w, e, lin.fold_h, lin.fold_g)
 
 
@@ -208,11 +222,20 @@ def _energy(lin: Linearization) -> Tensor:
     return lin.energy
 
 
-def levenberg_marquardt(linearize: LinearizeFn, q0: Tensor, lower: Tensor | None = None,
-                        upper: Tensor | None = None, *, max_iter: int = 20, tol: float = 1e-10,
-                        gtol: float = 1e-10, damping: float = 1e-3,
-                        weights_fn: EnergyFn | None = None, energy_fn: EnergyFn | None = None,
-                        callback: Callback | None = None) -> tuple[Tensor, LMInfo]:
+def levenberg_marquardt(
+    linearize: LinearizeFn,
+    q0: Tensor,
+    lower: Tensor | None = None,
+    upper: Tensor | None = None,
+    *,
+    max_iter: int = 20,
+    tol: float = 1e-10,
+    gtol: float = 1e-10,
+    damping: float = 1e-3,
+    weights_fn: EnergyFn | None = None,
+    energy_fn: EnergyFn | None = None,
+    callback: Callback | None = None,
+) -> tuple[Tensor, LMInfo]:
     """Minimise N independent (robust) least-squares problems by Levenberg-Marquardt.
 
     Args:
@@ -280,8 +303,9 @@ def levenberg_marquardt(linearize: LinearizeFn, q0: Tensor, lower: Tensor | None
         step_norm = step.norm(dim=-1)
         tiny_step = step_norm <= tol * (q.norm(dim=-1) + tol)
         small_drop = accept & (actual <= tol * _energy(lin))
-        lam = torch.where(accept, lam * torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3),
-                          torch.where(active, lam * nu, lam))
+        lam = torch.where(
+            accept, lam * torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3), torch.where(active, lam * nu, lam)
+        )
         nu = torch.where(accept, torch.full_like(nu, 2.0), torch.where(active, nu * 2, nu))
         q = _where(accept, trial, q)
         lin = _select(accept, new, lin)
@@ -292,8 +316,15 @@ def levenberg_marquardt(linearize: LinearizeFn, q0: Tensor, lower: Tensor | None
         done |= stop | (lam > 1e30)  # damping this high: no step lowers the energy any more
         if callback is not None:
             callback(it, q, _energy(lin))
-    return q, LMInfo(iterations=iterations, converged=converged, cost=_energy(lin), hessian=h,
-                     gradient=g, damping=lam, evaluations=evaluations)
+    return q, LMInfo(
+        iterations=iterations,
+        converged=converged,
+        cost=_energy(lin),
+        hessian=h,
+        gradient=g,
+        damping=lam,
+        evaluations=evaluations,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -306,8 +337,9 @@ def _value_and_grad(fn: EnergyFn, q: Tensor) -> tuple[Tensor, Tensor]:
         x = q.detach().requires_grad_(True)
         e = fn(x)
         if not isinstance(e, Tensor) or e.shape != (q.shape[0],):
-            raise InputError(f"lbfgs: energy_fn must return shape ({q.shape[0]},), got "
-                             f"{tuple(getattr(e, 'shape', ()))}")
+            raise InputError(
+                f"lbfgs: energy_fn must return shape ({q.shape[0]},), got {tuple(getattr(e, 'shape', ()))}"
+            )
         (g,) = torch.autograd.grad(e.sum(), x)
     return e.detach(), g
 
@@ -331,14 +363,29 @@ def _two_loop(g: Tensor, s: Tensor, y: Tensor, rho: Tensor, gamma: Tensor) -> Te
 
 def _forget(mask: Tensor, s: Tensor, y: Tensor, rho: Tensor, gamma: Tensor, has: Tensor):
     """Clear the history of the problems in mask (N,): -> s, y, rho, gamma, has_history."""
-    return (_where(mask, torch.zeros_like(s), s), _where(mask, torch.zeros_like(y), y),
-            _where(mask, torch.zeros_like(rho), rho), torch.where(mask, torch.ones_like(gamma), gamma), has & ~mask)
+    return (
+        _where(mask, torch.zeros_like(s), s),
+        _where(mask, torch.zeros_like(y), y),
+        _where(mask, torch.zeros_like(rho), rho),
+        torch.where(mask, torch.ones_like(gamma), gamma),
+        has & ~mask,
+    )
 
 
-def lbfgs(energy_fn: EnergyFn, q0: Tensor, lower: Tensor | None = None, upper: Tensor | None = None, *,
-          max_iter: int = 100, history: int = 10, tol: float = 1e-10, gtol: float = 1e-8,
-          c1: float = 1e-4, max_line_search: int = 25,
-          callback: Callback | None = None) -> tuple[Tensor, LBFGSInfo]:
+def lbfgs(
+    energy_fn: EnergyFn,
+    q0: Tensor,
+    lower: Tensor | None = None,
+    upper: Tensor | None = None,
+    *,
+    max_iter: int = 100,
+    history: int = 10,
+    tol: float = 1e-10,
+    gtol: float = 1e-8,
+    c1: float = 1e-4,
+    max_line_search: int = 25,
+    callback: Callback | None = None,
+) -> tuple[Tensor, LBFGSInfo]:
     """Minimise N independent smooth energies by projected L-BFGS with per-problem everything.
 
     Args:
@@ -431,15 +478,15 @@ def lbfgs(energy_fn: EnergyFn, q0: Tensor, lower: Tensor | None = None, upper: T
 
         stop = found & (e - e_new <= tol * e.abs())
         failed = active & ~found & ~has_hist  # no step even along the steepest descent
-        s_hist, y_hist, rho, gamma, has_hist = _forget(active & ~found & has_hist, s_hist, y_hist, rho, gamma,
-                                                       has_hist)  # retry from steepest descent
+        s_hist, y_hist, rho, gamma, has_hist = _forget(
+            active & ~found & has_hist, s_hist, y_hist, rho, gamma, has_hist
+        )  # retry from steepest descent
         q, e, g = q_new, e_new, g_new
         converged |= stop
         done |= stop | failed
         if callback is not None:
             callback(it, q, e)
-    return q, LBFGSInfo(iterations=iterations, converged=converged, cost=e, gradient=g,
-                        evaluations=evaluations)
+    return q, LBFGSInfo(iterations=iterations, converged=converged, cost=e, gradient=g, evaluations=evaluations)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -499,8 +546,9 @@ def _band_damped(h, free: Tensor, lam: Tensor):
     w = h.lower.shape[-2] if h.coupling_is_diagonal else h.lower.shape[-3]
     f = free.to(h.diagonal.dtype)
     t_len = f.shape[1]
-    prev = torch.stack([torch.nn.functional.pad(f[:, :t_len - k], (0, 0, min(k, t_len), 0)) for k in range(1, w + 1)],
-                       dim=2)  # (B, T, W, D): free at t-k
+    prev = torch.stack(
+        [torch.nn.functional.pad(f[:, : t_len - k], (0, 0, min(k, t_len), 0)) for k in range(1, w + 1)], dim=2
+    )  # (B, T, W, D): free at t-k
     if h.coupling_is_diagonal:  # (B, T, W, D): row dof free at t and at t-k
         lower = h.lower * f[:, :, None, :] * prev
     else:
@@ -508,10 +556,18 @@ def _band_damped(h, free: Tensor, lam: Tensor):
     return BlockBanded(diag, lower)
 
 
-def banded_levenberg_marquardt(linearize: Callable[[Tensor], BandedLinearization], q0: Tensor,
-                               lower: Tensor | None = None, upper: Tensor | None = None, *, max_iter: int = 30,
-                               tol: float = 1e-8, gtol: float = 1e-8, damping: float = 1e-4,
-                               callback: Callback | None = None) -> tuple[Tensor, BandedLMInfo]:
+def banded_levenberg_marquardt(
+    linearize: Callable[[Tensor], BandedLinearization],
+    q0: Tensor,
+    lower: Tensor | None = None,
+    upper: Tensor | None = None,
+    *,
+    max_iter: int = 30,
+    tol: float = 1e-8,
+    gtol: float = 1e-8,
+    damping: float = 1e-4,
+    callback: Callback | None = None,
+) -> tuple[Tensor, BandedLMInfo]:
     """Minimise B independent trajectory objectives by Levenberg-Marquardt on block-banded normal
     equations (DiFranco et al. 2001 §4: Gauss-Newton with a sparse solve).
 
@@ -536,22 +592,34 @@ def banded_levenberg_marquardt(linearize: Callable[[Tensor], BandedLinearization
     from ptrack.banded import factorize, matvec, solve
 
     if not isinstance(q0, Tensor) or not q0.is_floating_point() or q0.ndim != 3:
-        raise InputError(f"banded_levenberg_marquardt: q0 must be a floating tensor (B, T, D), got "
-                         f"{tuple(getattr(q0, 'shape', ()))}")
+        raise InputError(
+            f"banded_levenberg_marquardt: q0 must be a floating tensor (B, T, D), got {tuple(getattr(q0, 'shape', ()))}"
+        )
     b_len, t_len, d = q0.shape
-    flat_lo = None if lower is None else torch.as_tensor(lower, dtype=q0.dtype, device=q0.device).expand(
-        b_len, t_len, d).reshape(b_len * t_len, d)
-    flat_hi = None if upper is None else torch.as_tensor(upper, dtype=q0.dtype, device=q0.device).expand(
-        b_len, t_len, d).reshape(b_len * t_len, d)
+    flat_lo = (
+        None
+        if lower is None
+        else torch.as_tensor(lower, dtype=q0.dtype, device=q0.device).expand(b_len, t_len, d).reshape(b_len * t_len, d)
+    )
+    flat_hi = (
+        None
+        if upper is None
+        else torch.as_tensor(upper, dtype=q0.dtype, device=q0.device).expand(b_len, t_len, d).reshape(b_len * t_len, d)
+    )
     q, lo, hi = _check_start(q0.reshape(b_len * t_len, d), flat_lo, flat_hi, "banded_levenberg_marquardt")
-    q, lo, hi = q.reshape(b_len, t_len, d), lo.expand(b_len * t_len, d).reshape(b_len, t_len, d), \
-        hi.expand(b_len * t_len, d).reshape(b_len, t_len, d)
+    q, lo, hi = (
+        q.reshape(b_len, t_len, d),
+        lo.expand(b_len * t_len, d).reshape(b_len, t_len, d),
+        hi.expand(b_len * t_len, d).reshape(b_len, t_len, d),
+    )
 
     def lin_at(x: Tensor) -> BandedLinearization:
         out = linearize(x)
         if not isinstance(out, BandedLinearization) or out.gradient.shape != x.shape or out.energy.shape != (b_len,):
-            raise InputError("banded_levenberg_marquardt: linearize must return a BandedLinearization with "
-                             f"gradient {tuple(x.shape)} and energy ({b_len},)")
+            raise InputError(
+                "banded_levenberg_marquardt: linearize must return a BandedLinearization with "
+                f"gradient {tuple(x.shape)} and energy ({b_len},)"
+            )
         return out
 
     lin = lin_at(q)
@@ -589,13 +657,16 @@ def banded_levenberg_marquardt(linearize: Callable[[Tensor], BandedLinearization
         rho = actual / predicted.clamp(min=tiny)
         tiny_step = flat(step).norm(dim=-1) <= tol * (flat(q).norm(dim=-1) + tol)
         small_drop = accept & (actual <= tol * lin.energy)
-        lam = torch.where(accept, lam * torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3),
-                          torch.where(active, lam * nu, lam))
+        lam = torch.where(
+            accept, lam * torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3), torch.where(active, lam * nu, lam)
+        )
         nu = torch.where(accept, torch.full_like(nu, 2.0), torch.where(active, nu * 2, nu))
         q = _where(accept, trial, q)
-        lin = BandedLinearization(_band_select(accept, new.hessian, lin.hessian),
-                                  _where(accept, new.gradient, lin.gradient),
-                                  torch.where(accept, new.energy, lin.energy))
+        lin = BandedLinearization(
+            _band_select(accept, new.hessian, lin.hessian),
+            _where(accept, new.gradient, lin.gradient),
+            torch.where(accept, new.energy, lin.energy),
+        )
         # the model itself promises nothing more (a step the box cut into a non-descent one does not count)
         no_gain = (predicted >= 0) & (predicted <= tol * lin.energy)
         stop = active & ok & (small_drop | tiny_step | (~accept & no_gain))
@@ -604,5 +675,13 @@ def banded_levenberg_marquardt(linearize: Callable[[Tensor], BandedLinearization
         history.append(lin.energy)
         if callback is not None:
             callback(it, q, lin.energy)
-    return q, BandedLMInfo(iterations=iterations, converged=converged, cost=lin.energy, history=torch.stack(history),
-                           hessian=lin.hessian, gradient=lin.gradient, damping=lam, evaluations=evaluations)
+    return q, BandedLMInfo(
+        iterations=iterations,
+        converged=converged,
+        cost=lin.energy,
+        history=torch.stack(history),
+        hessian=lin.hessian,
+        gradient=lin.gradient,
+        damping=lam,
+        evaluations=evaluations,
+    )

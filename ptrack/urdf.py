@@ -128,8 +128,11 @@ def parse_urdf(text: str, source: str = "<string>") -> UrdfModel:
             raise InputError(f"{where} is not unique")
         kind = el.get("type")
         if kind not in JOINT_TYPES:
-            extra = " (a free base: from_urdf(..., floating_base=True) on the file without it)" \
-                if kind == "floating" else ""
+            extra = (
+                " (a free base: from_urdf(..., floating_base=True) on the file without it)"
+                if kind == "floating"
+                else ""
+            )
             raise InputError(f"{where} is of type {kind!r}; ptrack supports {', '.join(JOINT_TYPES)} joints{extra}")
         ends: list[str] = []
         for tag in ("parent", "child"):
@@ -175,11 +178,17 @@ def parse_urdf(text: str, source: str = "<string>") -> UrdfModel:
         joints.append(UrdfJoint(name, kind, parent, child, xyz, rpy, axis, lower, upper, mimic))
     roots = [ln for ln in links if ln not in child_of]
     if len(roots) != 1:
-        raise InputError(f"{source}: the links must form one tree, found {len(roots)} root links "
-                         f"(links no joint moves): {roots[:5]}")
+        raise InputError(
+            f"{source}: the links must form one tree, found {len(roots)} root links (links no joint moves): {roots[:5]}"
+        )
     mark = robot.get(_BASE_MARK)
-    return UrdfModel(name=robot.get("name", ""), links=tuple(links), joints=tuple(joints), root=roots[0],
-                     floating_base=None if mark is None else mark.strip().lower() == "true")
+    return UrdfModel(
+        name=robot.get("name", ""),
+        links=tuple(links),
+        joints=tuple(joints),
+        root=roots[0],
+        floating_base=None if mark is None else mark.strip().lower() == "true",
+    )
 
 
 def _frame_with_z(z: np.ndarray) -> np.ndarray:
@@ -205,8 +214,13 @@ def _mimic_source(model: UrdfModel, source: str) -> dict[str, tuple[str | None, 
         while (mimic := by_name[name].mimic) is not None:
             leader, m, o = mimic  # q_name = m q_leader + o
             if leader not in by_name:
-                _log.warning("%s: joint %r mimics %r, which is not a joint of the file: held at its offset %g",
-                             source, name, leader, o)
+                _log.warning(
+                    "%s: joint %r mimics %r, which is not a joint of the file: held at its offset %g",
+                    source,
+                    name,
+                    leader,
+                    o,
+                )
                 out[j.name] = (None, 0.0, mult * o + off)
                 break
             if by_name[leader].type == "fixed":
@@ -252,15 +266,15 @@ def skeleton_from_urdf(path: str | Path, floating_base: bool | None = None) -> S
     return skeleton_from_model(parse_urdf(text, str(p)), floating_base=floating_base, name=p.stem, source=str(p))
 
 
-def skeleton_from_model(model: UrdfModel, floating_base: bool | None = None, name: str | None = None,
-                        source: str = "<urdf>") -> Skeleton:
+def skeleton_from_model(
+    model: UrdfModel, floating_base: bool | None = None, name: str | None = None, source: str = "<urdf>"
+) -> Skeleton:
     """Build a Skeleton from a parsed URDF (see `Skeleton.from_urdf`)."""
     children: dict[str, list[UrdfJoint]] = {}
     for j in model.joints:
         children.setdefault(j.parent, []).append(j)
     if floating_base is None:
-        floating_base = model.floating_base if model.floating_base is not None \
-            else not _moves_its_base(model, children)
+        floating_base = model.floating_base if model.floating_base is not None else not _moves_its_base(model, children)
 
     # links depth-first from the root, children in file order: parents precede children
     order: list[tuple[str, UrdfJoint | None]] = []
@@ -299,8 +313,10 @@ def skeleton_from_model(model: UrdfModel, floating_base: bool | None = None, nam
         upper.extend([math.inf] * 6)
         clash = sorted(set(dof_names) & {j.name for j in model.joints})
         if clash:
-            raise InputError(f"{source}: joint names {clash} are the floating base's dof names; "
-                             "use floating_base=False or rename them")
+            raise InputError(
+                f"{source}: joint names {clash} are the floating base's dof names; "
+                "use floating_base=False or rename them"
+            )
 
     source_of = _mimic_source(model, source)
     dof_of: dict[str, int] = {}
@@ -399,8 +415,10 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
     driven = {int(x) for x in sk.axis_dof[sk.axis_dof >= 0]} | {int(x) for x in sk.slide_dof[sk.slide_dof >= 0]}
     for d in sorted(driven):
         if d not in owner:
-            raise InputError(f"skeleton {sk.name!r}: dof {sk.dof_names[d]!r} drives no joint directly "
-                             "(only through a multiplier or offset), which URDF cannot write")
+            raise InputError(
+                f"skeleton {sk.name!r}: dof {sk.dof_names[d]!r} drives no joint directly "
+                "(only through a multiplier or offset), which URDF cannot write"
+            )
 
     world = fresh("world")
     links = [f"  <link name={quoteattr(world)}/>"]
@@ -410,17 +428,21 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
         links.append(f"  <link name={quoteattr(name)}/>")
 
     def joint(name, kind, parent, child, xyz=(0, 0, 0), rpy=(0, 0, 0), axis=None, lim=None, mimic=None):
-        s = [f"  <joint name={quoteattr(name)} type=\"{kind}\">",
-             f"    <parent link={quoteattr(parent)}/>", f"    <child link={quoteattr(child)}/>",
-             f'    <origin xyz="{_fmt(xyz)}" rpy="{_fmt(rpy)}"/>']
+        s = [
+            f'  <joint name={quoteattr(name)} type="{kind}">',
+            f"    <parent link={quoteattr(parent)}/>",
+            f"    <child link={quoteattr(child)}/>",
+            f'    <origin xyz="{_fmt(xyz)}" rpy="{_fmt(rpy)}"/>',
+        ]
         if axis is not None:
             s.append(f'    <axis xyz="{_fmt(axis)}"/>')
         if lim is not None:
-            s.append(f'    <limit lower="{_limit(lim[0]):.17g}" upper="{_limit(lim[1]):.17g}" '
-                     'effort="1" velocity="1"/>')
+            s.append(
+                f'    <limit lower="{_limit(lim[0]):.17g}" upper="{_limit(lim[1]):.17g}" effort="1" velocity="1"/>'
+            )
         if mimic is not None:
             leader, mult, off = mimic
-            s.append(f"    <mimic joint={quoteattr(leader)} multiplier=\"{mult:.17g}\" offset=\"{off:.17g}\"/>")
+            s.append(f'    <mimic joint={quoteattr(leader)} multiplier="{mult:.17g}" offset="{off:.17g}"/>')
         s.append("  </joint>")
         joints.append((sk.dof_names.index(name) if mimic is None and kind != "fixed" else None, "\n".join(s)))
 
@@ -441,16 +463,29 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
         e = sk.rest_rotation[i]
         steps: list[tuple] = []  # (joint name, kind, keyword arguments)
         if i == 0:
-            steps.append((fresh(f"{name}__origin"), "fixed", world,
-                          {"xyz": sk.root_position, "rpy": matrix_to_euler_np(e)}))
+            steps.append(
+                (fresh(f"{name}__origin"), "fixed", world, {"xyz": sk.root_position, "rpy": matrix_to_euler_np(e)})
+            )
             for k in range(3):
                 d = int(sk.translation_dof[k])
                 if d >= 0:
-                    steps.append((sk.dof_names[d], "prismatic", None,
-                                  {"axis": e.T @ np.eye(3)[k], "lim": (sk.lower[d], sk.upper[d])}))
+                    steps.append(
+                        (
+                            sk.dof_names[d],
+                            "prismatic",
+                            None,
+                            {"axis": e.T @ np.eye(3)[k], "lim": (sk.lower[d], sk.upper[d])},
+                        )
+                    )
         else:
-            steps.append((fresh(f"{name}__offset"), "fixed", sk.joint_names[sk.parents[i]],
-                          {"xyz": sk.lengths[i] * sk.offset_parent[i], "rpy": matrix_to_euler_np(e)}))
+            steps.append(
+                (
+                    fresh(f"{name}__offset"),
+                    "fixed",
+                    sk.joint_names[sk.parents[i]],
+                    {"xyz": sk.lengths[i] * sk.offset_parent[i], "rpy": matrix_to_euler_np(e)},
+                )
+            )
         for k in range(3):
             d = int(sk.axis_dof[i, k])
             ax = e.T @ sk.axes[i, k]
@@ -458,19 +493,27 @@ def skeleton_to_urdf(sk: Skeleton) -> str:
                 jname, mimic = moving(d, (i, k), float(sk.axis_scale[i, k]), float(sk.frozen_axes[i, k]))
                 lim = lim_of(d, "revolute", (i, k))
                 kind = "revolute" if lim is not None and np.all(np.isfinite(lim)) else "continuous"
-                steps.append((jname, kind, None,
-                              {"axis": ax, "lim": lim if kind == "revolute" else None, "mimic": mimic}))
+                steps.append(
+                    (jname, kind, None, {"axis": ax, "lim": lim if kind == "revolute" else None, "mimic": mimic})
+                )
             elif sk.frozen_axes[i, k] != 0.0:
-                r = axis_angle_matrix(torch.as_tensor(ax), torch.tensor(float(sk.frozen_axes[i, k]),
-                                                                         dtype=torch.float64)).numpy()
+                r = axis_angle_matrix(
+                    torch.as_tensor(ax), torch.tensor(float(sk.frozen_axes[i, k]), dtype=torch.float64)
+                ).numpy()
                 steps.append((fresh(f"{name}__frozen{k}"), "fixed", None, {"rpy": matrix_to_euler_np(r)}))
         d = int(sk.slide_dof[i])
         if d >= 0:  # along G_i s
             s = sk.slide_axis[i]
             n = float(np.linalg.norm(s))
             jname, mimic = moving(d, (i, -1), n, 0.0)
-            steps.append((jname, "prismatic", None, {"axis": s / n if n > 0 else np.eye(3)[0],
-                                                     "lim": lim_of(d, "prismatic", (i, -1)), "mimic": mimic}))
+            steps.append(
+                (
+                    jname,
+                    "prismatic",
+                    None,
+                    {"axis": s / n if n > 0 else np.eye(3)[0], "lim": lim_of(d, "prismatic", (i, -1)), "mimic": mimic},
+                )
+            )
         if np.any(sk.offset_local[i]) and sk.lengths[i] != 0.0:
             steps.append((fresh(f"{name}__end"), "fixed", None, {"xyz": sk.lengths[i] * sk.offset_local[i]}))
         prev = steps[0][2]

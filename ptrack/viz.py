@@ -165,9 +165,22 @@ class RunLog:
     solver_cost: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        for name in ("frames", "times", "estimate", "ground_truth", "observed", "confidence",
-                     "reprojected", "hypotheses", "hypothesis_weights", "hypothesis_costs",
-                     "hypothesis_directions", "masks", "joint_std", "solver_cost"):
+        for name in (
+            "frames",
+            "times",
+            "estimate",
+            "ground_truth",
+            "observed",
+            "confidence",
+            "reprojected",
+            "hypotheses",
+            "hypothesis_weights",
+            "hypothesis_costs",
+            "hypothesis_directions",
+            "masks",
+            "joint_std",
+            "solver_cost",
+        ):
             value = getattr(self, name)
             if value is not None:
                 object.__setattr__(self, name, _as_numpy(value))
@@ -191,9 +204,7 @@ class RunLog:
             raise InputError(f"RunLog.parents has {len(self.parents)} entries, expected J={J}")
         for child, parent in enumerate(self.parents):
             if parent != -1 and not (0 <= parent < J and parent != child):
-                raise InputError(
-                    f"RunLog.parents[{child}] = {parent} is not -1 or another joint index"
-                )
+                raise InputError(f"RunLog.parents[{child}] = {parent} is not -1 or another joint index")
         if self.ground_truth is not None:
             _check_shape("ground_truth", self.ground_truth, (T, J, 3))
         _check_shape("observed", self.observed, (T, K, 2))
@@ -201,11 +212,9 @@ class RunLog:
         _check_shape("reprojected", self.reprojected, (T, K, 2))
         if self.keypoint_joints is not None:
             if len(self.keypoint_joints) != K:
-                raise InputError(f"RunLog.keypoint_joints has {len(self.keypoint_joints)} entries, "
-                                 f"expected K={K}")
+                raise InputError(f"RunLog.keypoint_joints has {len(self.keypoint_joints)} entries, expected K={K}")
             if any(not 0 <= j < J for j in self.keypoint_joints):
-                raise InputError(f"RunLog.keypoint_joints {self.keypoint_joints} has an index outside "
-                                 f"0..{J - 1}")
+                raise InputError(f"RunLog.keypoint_joints {self.keypoint_joints} has an index outside 0..{J - 1}")
         if self.hypotheses is not None:
             N = _check_shape("hypotheses", self.hypotheses, (T, None, J, 3))[1]
             for name in ("hypothesis_weights", "hypothesis_costs"):
@@ -243,9 +252,7 @@ def write_recording(path: str | Path, log: RunLog) -> None:
     """
     path = Path(path)
     if not path.parent.is_dir():
-        raise FileNotFoundError(
-            f"cannot write rerun recording {path}: folder {path.parent} does not exist"
-        )
+        raise FileNotFoundError(f"cannot write rerun recording {path}: folder {path.parent} does not exist")
     rec = rr.RecordingStream(application_id="ptrack")
     rec.save(path)
     try:
@@ -258,14 +265,18 @@ def write_recording(path: str | Path, log: RunLog) -> None:
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
         bones = _bones(log.parents)
         if log.ground_truth is not None:
-            _log_skeleton(rec, "world/ground_truth", log.ground_truth, bones,
-                          GROUND_TRUTH_COLOR, index)
+            _log_skeleton(rec, "world/ground_truth", log.ground_truth, bones, GROUND_TRUTH_COLOR, index)
         _log_skeleton(rec, "world/estimate", log.estimate, bones, ESTIMATE_COLOR, index)
         if log.joint_std is not None:
             radii = np.nan_to_num(log.joint_std.astype(np.float64), nan=0.0, posinf=0.0).reshape(-1)
             rec.log("world/estimate/std", rr.Points3D.from_fields(colors=[STD_COLOR]), static=True)
-            rec.send_columns("world/estimate/std", indexes=index, columns=rr.Points3D.columns(
-                positions=log.estimate.reshape(-1, 3), radii=radii).partition([log.estimate.shape[1]] * T))
+            rec.send_columns(
+                "world/estimate/std",
+                indexes=index,
+                columns=rr.Points3D.columns(positions=log.estimate.reshape(-1, 3), radii=radii).partition(
+                    [log.estimate.shape[1]] * T
+                ),
+            )
         if log.hypotheses is not None:
             _log_hypotheses(rec, log, bones, index)
         _log_camera(rec, log.camera, _center(log))
@@ -279,8 +290,11 @@ def write_recording(path: str | Path, log: RunLog) -> None:
             _log_scalar(rec, f"jumps/{name}", values.astype(np.float64), log)
         if log.solver_cost is not None:
             cost = log.solver_cost.astype(np.float64)
-            rec.send_columns("solver/cost", indexes=[rr.TimeColumn("iteration", sequence=np.arange(len(cost)))],
-                             columns=rr.Scalars.columns(scalars=cost))
+            rec.send_columns(
+                "solver/cost",
+                indexes=[rr.TimeColumn("iteration", sequence=np.arange(len(cost)))],
+                columns=rr.Scalars.columns(scalars=cost),
+            )
         rec.flush()
         logger.info("wrote rerun recording %s (%d frames)", path, T)
     finally:
@@ -305,9 +319,11 @@ def open_viewer(path: str | Path, wait: bool = True) -> int | None:
     if not path.is_file():
         raise FileNotFoundError(f"rerun recording {path} does not exist")
     if not has_display():
-        raise InputError(f"no display here (DISPLAY and WAYLAND_DISPLAY are unset) to open {path} in: serve it with "
-                         f"`ptrack replay {path} --web` (rerun's web viewer on 127.0.0.1), or copy it to a machine "
-                         f"with a display and run `rerun {path.name}` there")
+        raise InputError(
+            f"no display here (DISPLAY and WAYLAND_DISPLAY are unset) to open {path} in: serve it with "
+            f"`ptrack replay {path} --web` (rerun's web viewer on 127.0.0.1), or copy it to a machine "
+            f"with a display and run `rerun {path.name}` there"
+        )
     proc = subprocess.Popen([sys.executable, "-m", "rerun", str(path), "--bind", "127.0.0.1", "--port", "auto"])
     return proc.wait() if wait else None
 
@@ -328,8 +344,19 @@ def web_viewer_command(path: str | Path, bind: str = "127.0.0.1") -> tuple[list[
     host = f"[{bind}]" if ":" in bind else bind
     shown = "127.0.0.1" if bind in ("0.0.0.0", "::") else host
     url = f"http://{shown}:{web}?url=" + quote(f"rerun+http://{shown}:{grpc}/proxy", safe="")
-    argv = [sys.executable, "-m", "rerun", str(path), "--serve-web", "--bind", bind, "--web-viewer-port", str(web),
-            "--port", str(grpc)]
+    argv = [
+        sys.executable,
+        "-m",
+        "rerun",
+        str(path),
+        "--serve-web",
+        "--bind",
+        bind,
+        "--web-viewer-port",
+        str(web),
+        "--port",
+        str(grpc),
+    ]
     return argv, url
 
 
@@ -360,23 +387,26 @@ def _strips(X: np.ndarray, bones: np.ndarray) -> np.ndarray:
     return X[:, bones].reshape(-1, 2, 3)
 
 
-def _log_skeleton(rec: rr.RecordingStream, root: str, X: np.ndarray, bones: np.ndarray,
-                  color: tuple[int, int, int], index: list[rr.TimeColumn]) -> None:
+def _log_skeleton(
+    rec: rr.RecordingStream,
+    root: str,
+    X: np.ndarray,
+    bones: np.ndarray,
+    color: tuple[int, int, int],
+    index: list[rr.TimeColumn],
+) -> None:
     """X: (T, J, 3) -> `{root}/joints` Points3D and `{root}/bones` LineStrips3D on every frame."""
     T, J, _ = X.shape
     joints, bone_strips = f"{root}/joints", f"{root}/bones"
     rec.log(joints, rr.Points3D.from_fields(colors=[color], radii=JOINT_RADIUS), static=True)
-    rec.send_columns(joints, indexes=index,
-                     columns=rr.Points3D.columns(positions=X.reshape(-1, 3)).partition([J] * T))
+    rec.send_columns(joints, indexes=index, columns=rr.Points3D.columns(positions=X.reshape(-1, 3)).partition([J] * T))
     if len(bones):
-        rec.log(bone_strips, rr.LineStrips3D.from_fields(colors=[color], radii=BONE_RADIUS),
-                static=True)
+        rec.log(bone_strips, rr.LineStrips3D.from_fields(colors=[color], radii=BONE_RADIUS), static=True)
         strips = rr.LineStrips3D.columns(strips=_strips(X, bones)).partition([len(bones)] * T)
         rec.send_columns(bone_strips, indexes=index, columns=strips)
 
 
-def _log_hypotheses(rec: rr.RecordingStream, log: RunLog, bones: np.ndarray,
-                    index: list[rr.TimeColumn]) -> None:
+def _log_hypotheses(rec: rr.RecordingStream, log: RunLog, bones: np.ndarray, index: list[rr.TimeColumn]) -> None:
     """(T, N, J, 3) hypotheses -> `world/hypotheses/h{n}/...`; see the module docstring."""
     H = log.hypotheses
     assert H is not None  # called only for logs that have hypotheses
@@ -399,15 +429,23 @@ def _log_hypotheses(rec: rr.RecordingStream, log: RunLog, bones: np.ndarray,
         if len(bones):
             strips = rr.LineStrips3D.columns(strips=_strips(H[:, n], bones))
             rec.log(f"{entity}/bones", rr.LineStrips3D.from_fields(show_labels=False), static=True)
-            rec.send_columns(f"{entity}/bones", indexes=index, columns=[
-                *strips.partition([len(bones)] * T),
-                *rr.LineStrips3D.columns(labels=labels, radii=radii[:, n], colors=colors[:, n]),
-            ])
+            rec.send_columns(
+                f"{entity}/bones",
+                indexes=index,
+                columns=[
+                    *strips.partition([len(bones)] * T),
+                    *rr.LineStrips3D.columns(labels=labels, radii=radii[:, n], colors=colors[:, n]),
+                ],
+            )
         if log.hypothesis_directions is not None:
-            arrows = rr.Arrows3D.columns(origins=H[:, n].reshape(-1, 3),
-                                         vectors=log.hypothesis_directions[:, n].reshape(-1, 3))
-            rec.log(f"{entity}/direction", rr.Arrows3D.from_fields(colors=[DIRECTION_COLOR], radii=DIRECTION_RADIUS),
-                    static=True)
+            arrows = rr.Arrows3D.columns(
+                origins=H[:, n].reshape(-1, 3), vectors=log.hypothesis_directions[:, n].reshape(-1, 3)
+            )
+            rec.log(
+                f"{entity}/direction",
+                rr.Arrows3D.from_fields(colors=[DIRECTION_COLOR], radii=DIRECTION_RADIUS),
+                static=True,
+            )
             rec.send_columns(f"{entity}/direction", indexes=index, columns=arrows.partition([H.shape[2]] * T))
         _log_scalar(rec, f"{entity}/weight", weights[:, n], log)
         if costs is not None:
@@ -421,17 +459,28 @@ def _log_camera(rec: rr.RecordingStream, camera: Camera, target: np.ndarray) -> 
     R = _as_numpy(camera.R).astype(np.float64)
     t = _as_numpy(camera.t).astype(np.float64)
     if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
-        raise InputError(f"RunLog.camera has K {K.shape}, R {R.shape}, t {t.shape}; "
-                         "expected (3, 3), (3, 3), (3,)")
+        raise InputError(f"RunLog.camera has K {K.shape}, R {R.shape}, t {t.shape}; expected (3, 3), (3, 3), (3,)")
     center = _camera_center(camera)
     W, H = int(camera.width), int(camera.height)
     plane = IMAGE_PLANE_FRACTION * float(np.linalg.norm(target - center))
     rec.log("world/camera", rr.Transform3D(translation=center, mat3x3=R.T), static=True)
-    rec.log("world/camera", rr.Pinhole(image_from_camera=K, resolution=[W, H], camera_xyz=rr.ViewCoordinates.RDF,
-                                       image_plane_distance=plane if plane > 0 else None), static=True)
-    rec.log("world/camera/image/border", rr.LineStrips2D(
-        [[(0, 0), (W, 0), (W, H), (0, H), (0, 0)]], colors=[BORDER_COLOR], radii=KEYPOINT_BONE_RADIUS,
-        draw_order=5), static=True)
+    rec.log(
+        "world/camera",
+        rr.Pinhole(
+            image_from_camera=K,
+            resolution=[W, H],
+            camera_xyz=rr.ViewCoordinates.RDF,
+            image_plane_distance=plane if plane > 0 else None,
+        ),
+        static=True,
+    )
+    rec.log(
+        "world/camera/image/border",
+        rr.LineStrips2D(
+            [[(0, 0), (W, 0), (W, H), (0, H), (0, 0)]], colors=[BORDER_COLOR], radii=KEYPOINT_BONE_RADIUS, draw_order=5
+        ),
+        static=True,
+    )
 
 
 def _log_keypoints(rec: rr.RecordingStream, log: RunLog, index: list[rr.TimeColumn]) -> None:
@@ -442,38 +491,56 @@ def _log_keypoints(rec: rr.RecordingStream, log: RunLog, index: list[rr.TimeColu
     finite = np.isfinite(log.reprojected).all(axis=-1)  # (T, K)
     image = "world/camera/image"
     for name, points, keep, color, radius, order in (
-            ("observed", log.observed, seen, OBSERVED_COLOR, OBSERVED_RADIUS, 20),
-            ("reprojected", log.reprojected, finite, REPROJECTED_COLOR, KEYPOINT_RADIUS, 40)):
-        rec.log(f"{image}/{name}", rr.Points2D.from_fields(
-            colors=[color], radii=radius, show_labels=False, draw_order=order), static=True)
-        rec.send_columns(f"{image}/{name}", indexes=index, columns=rr.Points2D.columns(
-            positions=points[keep].reshape(-1, 2),
-            labels=names[np.nonzero(keep)[1]].tolist(),
-        ).partition(keep.sum(axis=1)))
+        ("observed", log.observed, seen, OBSERVED_COLOR, OBSERVED_RADIUS, 20),
+        ("reprojected", log.reprojected, finite, REPROJECTED_COLOR, KEYPOINT_RADIUS, 40),
+    ):
+        rec.log(
+            f"{image}/{name}",
+            rr.Points2D.from_fields(colors=[color], radii=radius, show_labels=False, draw_order=order),
+            static=True,
+        )
+        rec.send_columns(
+            f"{image}/{name}",
+            indexes=index,
+            columns=rr.Points2D.columns(
+                positions=points[keep].reshape(-1, 2),
+                labels=names[np.nonzero(keep)[1]].tolist(),
+            ).partition(keep.sum(axis=1)),
+        )
     if log.keypoint_joints is None:
         return
     pairs = _keypoint_bones(log.parents, log.keypoint_joints)  # (B, 2)
     if not len(pairs):
         return
-    for name, xy, ok, color, order in (("observed_bones", log.observed, seen, OBSERVED_COLOR, 10),
-                                       ("reprojected_bones", log.reprojected, finite, REPROJECTED_COLOR, 30)):
+    for name, xy, ok, color, order in (
+        ("observed_bones", log.observed, seen, OBSERVED_COLOR, 10),
+        ("reprojected_bones", log.reprojected, finite, REPROJECTED_COLOR, 30),
+    ):
         both = ok[:, pairs].all(axis=-1)  # (T, B)
-        rec.log(f"{image}/{name}", rr.LineStrips2D.from_fields(
-            colors=[color], radii=KEYPOINT_BONE_RADIUS, draw_order=order), static=True)
-        rec.send_columns(f"{image}/{name}", indexes=index, columns=rr.LineStrips2D.columns(
-            strips=xy[:, pairs][both]).partition(both.sum(axis=1)))
+        rec.log(
+            f"{image}/{name}",
+            rr.LineStrips2D.from_fields(colors=[color], radii=KEYPOINT_BONE_RADIUS, draw_order=order),
+            static=True,
+        )
+        rec.send_columns(
+            f"{image}/{name}",
+            indexes=index,
+            columns=rr.LineStrips2D.columns(strips=xy[:, pairs][both]).partition(both.sum(axis=1)),
+        )
 
 
 def _log_masks(rec: rr.RecordingStream, masks: np.ndarray, index: list[rr.TimeColumn]) -> None:
     """masks: (T, H, W) bool -> SegmentationImage (class 1 = silhouette) on every frame."""
     T, H, W = masks.shape
     entity = "world/camera/image/silhouette"
-    rec.log(entity, rr.AnnotationContext([(0, "background", (0, 0, 0, 0)), (1, "silhouette", (255, 255, 255))]),
-            static=True)
+    rec.log(
+        entity, rr.AnnotationContext([(0, "background", (0, 0, 0, 0)), (1, "silhouette", (255, 255, 255))]), static=True
+    )
     fmt = rr.components.ImageFormat(width=W, height=H, channel_datatype="U8")
     rec.log(entity, rr.SegmentationImage.from_fields(format=fmt, opacity=0.4), static=True)
-    rec.send_columns(entity, indexes=index, columns=rr.SegmentationImage.columns(
-        buffer=(masks != 0).astype(np.uint8).reshape(T, -1)))
+    rec.send_columns(
+        entity, indexes=index, columns=rr.SegmentationImage.columns(buffer=(masks != 0).astype(np.uint8).reshape(T, -1))
+    )
 
 
 def _keypoint_bones(parents: Sequence[int], keypoint_joints: Sequence[int]) -> np.ndarray:
@@ -536,15 +603,31 @@ def _log_legend(rec: rr.RecordingStream, log: RunLog) -> None:
     top = X[:, 1].max() if len(X) else 0.0
     base = _center(log) * np.array([1.0, 0.0, 1.0])  # a column above the motion, read from any side
     heights = top + LEGEND_SPACING * (1.5 + np.arange(len(kinds))[::-1])
-    rec.log("world/legend", rr.Points3D(
-        base + heights[:, None] * np.array([0.0, 1.0, 0.0]), colors=[c for _, c in kinds], radii=LEGEND_RADIUS,
-        labels=[name for name, _ in kinds], show_labels=True), static=True)
+    rec.log(
+        "world/legend",
+        rr.Points3D(
+            base + heights[:, None] * np.array([0.0, 1.0, 0.0]),
+            colors=[c for _, c in kinds],
+            radii=LEGEND_RADIUS,
+            labels=[name for name, _ in kinds],
+            show_labels=True,
+        ),
+        static=True,
+    )
     W, H = float(log.camera.width), float(log.camera.height)
     y = max(H / 16, 4 * OBSERVED_RADIUS)  # labels are drawn centred under their points
-    rec.log("world/camera/image/legend", rr.Points2D(
-        [(0.15 * W, y), (0.45 * W, y)], colors=[OBSERVED_COLOR, REPROJECTED_COLOR],
-        radii=[OBSERVED_RADIUS, KEYPOINT_RADIUS], labels=["observed", "reprojected estimate"],
-        show_labels=True, draw_order=50), static=True)
+    rec.log(
+        "world/camera/image/legend",
+        rr.Points2D(
+            [(0.15 * W, y), (0.45 * W, y)],
+            colors=[OBSERVED_COLOR, REPROJECTED_COLOR],
+            radii=[OBSERVED_RADIUS, KEYPOINT_RADIUS],
+            labels=["observed", "reprojected estimate"],
+            show_labels=True,
+            draw_order=50,
+        ),
+        static=True,
+    )
 
 
 def _has_values(values: np.ndarray) -> bool:
@@ -580,12 +663,12 @@ def plot_groups(log: RunLog) -> list[tuple[str, list[str]]]:
         N = log.hypotheses.shape[1]
         weights = log.hypothesis_weights
         if weights is None or any(_has_values(weights[:, n]) for n in range(N)):
-            groups["hypothesis weights"] = [f"world/hypotheses/h{n}/weight" for n in range(N)
-                                            if weights is None or _has_values(weights[:, n])]
+            groups["hypothesis weights"] = [
+                f"world/hypotheses/h{n}/weight" for n in range(N) if weights is None or _has_values(weights[:, n])
+            ]
         costs = log.hypothesis_costs
         if costs is not None and any(_has_values(costs[:, n]) for n in range(N)):
-            groups["hypothesis costs"] = [f"world/hypotheses/h{n}/cost" for n in range(N)
-                                          if _has_values(costs[:, n])]
+            groups["hypothesis costs"] = [f"world/hypotheses/h{n}/cost" for n in range(N) if _has_values(costs[:, n])]
     if log.jumps:
         groups["kinematic jumps kept per chain"] = [f"jumps/{name}" for name in log.jumps]
     if log.solver_cost is not None:
@@ -616,8 +699,9 @@ def _closeup_eye(log: RunLog) -> rrb.EyeControls3D:
     the estimate's joints as they move."""
     person, _, v = _toward_camera(log)
     position = person + CLOSEUP_DISTANCE_M * (_turn_y(CLOSEUP_AZIMUTH_DEG) @ v) + np.array([0.0, CLOSEUP_HEIGHT_M, 0.0])
-    return rrb.EyeControls3D(position=position, look_target=person, eye_up=[0.0, 1.0, 0.0],
-                             tracking_entity="/world/estimate/joints")
+    return rrb.EyeControls3D(
+        position=position, look_target=person, eye_up=[0.0, 1.0, 0.0], tracking_entity="/world/estimate/joints"
+    )
 
 
 def blueprint(log: RunLog) -> rrb.Blueprint:
@@ -625,16 +709,25 @@ def blueprint(log: RunLog) -> rrb.Blueprint:
     by side, a grid of time-series plots (`plot_groups`) under them, the time panel on `time`."""
     W, H = float(log.camera.width), float(log.camera.height)
     margin = 0.03 * max(W, H)
-    scene = rrb.Spatial3DView(name="3D: scene and camera", origin="/world", contents="$origin/**",
-                              eye_controls=_eye(log))
+    scene = rrb.Spatial3DView(
+        name="3D: scene and camera", origin="/world", contents="$origin/**", eye_controls=_eye(log)
+    )
     closeup = rrb.Spatial3DView(
-        name="3D: close-up (follows the estimate)", origin="/world",
-        contents=["+ $origin/**", "- /world/camera/**", "- /world/legend"], eye_controls=_closeup_eye(log))
-    image = rrb.Spatial2DView(name="camera: observed and reprojected keypoints", origin="/world/camera",
-                              contents="$origin/**", visual_bounds=rrb.VisualBounds2D(
-                                  x_range=[-margin, W + margin], y_range=[-margin, H + margin]))
-    plots = [rrb.TimeSeriesView(name=title, origin="/", contents=[f"+ /{e}" for e in entities])
-             for title, entities in plot_groups(log)]
+        name="3D: close-up (follows the estimate)",
+        origin="/world",
+        contents=["+ $origin/**", "- /world/camera/**", "- /world/legend"],
+        eye_controls=_closeup_eye(log),
+    )
+    image = rrb.Spatial2DView(
+        name="camera: observed and reprojected keypoints",
+        origin="/world/camera",
+        contents="$origin/**",
+        visual_bounds=rrb.VisualBounds2D(x_range=[-margin, W + margin], y_range=[-margin, H + margin]),
+    )
+    plots = [
+        rrb.TimeSeriesView(name=title, origin="/", contents=[f"+ /{e}" for e in entities])
+        for title, entities in plot_groups(log)
+    ]
     top = rrb.Horizontal(scene, closeup, image, column_shares=[4, 3, 3])
     layout: rrb.Container
     if plots:
@@ -642,8 +735,12 @@ def blueprint(log: RunLog) -> rrb.Blueprint:
         layout = rrb.Vertical(top, rrb.Grid(*plots, grid_columns=columns), row_shares=[3, 2])
     else:
         layout = top
-    return rrb.Blueprint(layout, rrb.SelectionPanel(state="collapsed"),
-                         rrb.TimePanel(timeline="time", state="collapsed"), auto_views=False)
+    return rrb.Blueprint(
+        layout,
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(timeline="time", state="collapsed"),
+        auto_views=False,
+    )
 
 
 def _log_scalar(rec: rr.RecordingStream, entity: str, values: np.ndarray, log: RunLog) -> None:
@@ -653,7 +750,11 @@ def _log_scalar(rec: rr.RecordingStream, entity: str, values: np.ndarray, log: R
     if not keep.any():
         logger.debug("no finite values for %s: nothing logged", entity)
         return
-    rec.send_columns(entity, indexes=[
-        rr.TimeColumn("frame", sequence=log.frames[keep].astype(np.int64)),
-        rr.TimeColumn("time", duration=log.times[keep].astype(np.float64)),
-    ], columns=rr.Scalars.columns(scalars=values[keep]))
+    rec.send_columns(
+        entity,
+        indexes=[
+            rr.TimeColumn("frame", sequence=log.frames[keep].astype(np.int64)),
+            rr.TimeColumn("time", duration=log.times[keep].astype(np.float64)),
+        ],
+        columns=rr.Scalars.columns(scalars=values[keep]),
+    )

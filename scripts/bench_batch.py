@@ -47,8 +47,17 @@ CONFIG = REPO / "configs" / "batch.yaml"
 
 
 def problem(frames: int, every_s: float = 1.0):
-    cfg = load_config(CONFIG, ["data.stride=1", f"data.stop={frames}", "model.freeze=[]", "costs.loss=l2",
-                               f"keyframes.every_s={every_s}", "progress=false"])
+    cfg = load_config(
+        CONFIG,
+        [
+            "data.stride=1",
+            f"data.stop={frames}",
+            "model.freeze=[]",
+            "costs.loss=l2",
+            f"keyframes.every_s={every_s}",
+            "progress=false",
+        ],
+    )
     prep = prepare(cfg)
     obj = trajectory_objective(prep.problem, cfg, torch.float64, torch.device("cpu"))
     q0 = interpolate_keyframes(prep.problem, obj.lower, obj.upper)
@@ -59,8 +68,10 @@ def residuals(obj, q: torch.Tensor) -> torch.Tensor:
     """The stacked residual vector whose 0.5 |r|^2 is the batch energy (l2 loss). q (T, D) -> (M,)."""
     p = obj.problem
     ev = evaluate_pose(p.skeleton, p.observations.camera.to(dtype=q.dtype), p.keypoints, q)
-    parts = [obj.reprojection.residual(ev),
-             ((torch.clamp(q - obj.lower, max=0.0) + torch.clamp(q - obj.upper, min=0.0)) * obj.limits_scale).flatten()]
+    parts = [
+        obj.reprojection.residual(ev),
+        ((torch.clamp(q - obj.lower, max=0.0) + torch.clamp(q - obj.upper, min=0.0)) * obj.limits_scale).flatten(),
+    ]
     for n, a in obj.smooth:
         parts.append((a * torch.diff(q, n=n, dim=0)).flatten())
     d = q[obj.kf_frames] - obj.kf_target
@@ -108,8 +119,9 @@ def jacobian(obj, q: torch.Tensor):
     cols.append((obj.kf_frames.numpy()[:, None] * d + np.arange(d)[None, :]).ravel())
     vals.append(obj.kf_weight.numpy().ravel())
     off += f_len * d
-    return coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(off, t_len * d)).tocsr()
+    return coo_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(off, t_len * d)
+    ).tocsr()
 
 
 def sparsity(obj, t_len: int, d: int):
@@ -124,23 +136,28 @@ def speed(args) -> None:
     torch.set_num_threads(1)
     cfg, prep, obj, q0 = problem(300)
     t_len, d = q0.shape
-    print(f"problem: {t_len} frames, {d} dofs, {obj.kf_frames.numel()} keyframes, "
-          f"{int((prep.problem.observations.confidence > 0).sum())} observed keypoints")
+    print(
+        f"problem: {t_len} frames, {d} dofs, {obj.kf_frames.numel()} keyframes, "
+        f"{int((prep.problem.observations.confidence > 0).sum())} observed keypoints"
+    )
     lin = linearization(obj)
     lin(q0[None])  # warm-up (kernel caches)
     times, cpu = [], []
     for _ in range(args.repeats):
         t0, c0 = time.perf_counter(), time.process_time()
-        q, info = banded_levenberg_marquardt(lin, q0[None], obj.lower, obj.upper, max_iter=30, tol=1e-300,
-                                             gtol=0.0, damping=cfg.batch.damping)
+        q, info = banded_levenberg_marquardt(
+            lin, q0[None], obj.lower, obj.upper, max_iter=30, tol=1e-300, gtol=0.0, damping=cfg.batch.damping
+        )
         times.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
     ours, cost = min(times), float(info.cost[0])
     load = os.getloadavg()[0]
     check = 0.5 * float(residuals(obj, q[0]).square().sum())
-    print(f"ptrack banded LM: 30 iterations in {ours:.2f} s (best of {args.repeats}: "
-          f"{', '.join(f'{t:.2f}' for t in times)}; process CPU time {min(cpu):.2f} s, one thread; load {load:.1f}), "
-          f"cost {float(info.history[0, 0]):.2f} -> {cost:.4f} (same objective as scipy's: {check:.4f})")
+    print(
+        f"ptrack banded LM: 30 iterations in {ours:.2f} s (best of {args.repeats}: "
+        f"{', '.join(f'{t:.2f}' for t in times)}; process CPU time {min(cpu):.2f} s, one thread; load {load:.1f}), "
+        f"cost {float(info.history[0, 0]):.2f} -> {cost:.4f} (same objective as scipy's: {check:.4f})"
+    )
 
     from scipy.optimize import least_squares
 
@@ -168,17 +185,31 @@ def speed(args) -> None:
         jac_arg = dict(jac_sparsity=sparsity(obj, t_len, d))
         how = "trf + jac_sparsity (grouped finite differences)"
     try:
-        res = least_squares(tracked, x0, method="trf", bounds=(lo, hi), max_nfev=args.scipy_nfev, xtol=1e-12,
-                            ftol=1e-12, gtol=1e-12, x_scale=1.0, **jac_arg)
+        res = least_squares(
+            tracked,
+            x0,
+            method="trf",
+            bounds=(lo, hi),
+            max_nfev=args.scipy_nfev,
+            xtol=1e-12,
+            ftol=1e-12,
+            gtol=1e-12,
+            x_scale=1.0,
+            **jac_arg,
+        )
         head = f"scipy least_squares {how}: stopped after {res.nfev} evaluations, {time.perf_counter() - t0:.1f} s"
         print(f"{head}, cost {res.cost:.4f}; never within 1% of ptrack's cost {cost:.4f}")
         scipy_time, bound = time.perf_counter() - t0, " (at least: scipy had not reached the cost)"
     except Reached:
-        print(f"scipy least_squares {how}: cost {reached['cost']:.4f} (within 1% of ptrack's {cost:.4f}) "
-              f"after {reached['t']:.1f} s")
+        print(
+            f"scipy least_squares {how}: cost {reached['cost']:.4f} (within 1% of ptrack's {cost:.4f}) "
+            f"after {reached['t']:.1f} s"
+        )
         scipy_time, bound = reached["t"], ""
-    print(f"times: ptrack {ours:.2f} s, scipy {scipy_time:.1f} s; costs: ptrack {cost:.4f}, "
-          f"scipy {reached.get('cost', float('nan')):.4f}")
+    print(
+        f"times: ptrack {ours:.2f} s, scipy {scipy_time:.1f} s; costs: ptrack {cost:.4f}, "
+        f"scipy {reached.get('cost', float('nan')):.4f}"
+    )
     print(f"ptrack vs scipy least_squares: {scipy_time / ours:.1f}x faster to the same cost within 1%{bound}")
 
 
@@ -201,10 +232,13 @@ def warm_start(args) -> None:
     err = (p.skeleton.forward_kinematics(first[0]) - prep.gt_joints.to(first)).norm(dim=-1).mean(-1)
     worst = int(err.argmax())
     kf = p.keyframes
-    kf2 = dataclasses.replace(kf, frames=torch.cat([kf.frames, torch.tensor([worst])]),
-                              q=torch.cat([kf.q, prep.gt_q[worst:worst + 1].to(kf.q)]),
-                              mask=None if kf.mask is None else torch.cat([kf.mask, kf.mask[:1]]),
-                              sigma=None if kf.sigma is None else torch.cat([kf.sigma, kf.sigma[:1]]))
+    kf2 = dataclasses.replace(
+        kf,
+        frames=torch.cat([kf.frames, torch.tensor([worst])]),
+        q=torch.cat([kf.q, prep.gt_q[worst : worst + 1].to(kf.q)]),
+        mask=None if kf.mask is None else torch.cat([kf.mask, kf.mask[:1]]),
+        sigma=None if kf.sigma is None else torch.cat([kf.sigma, kf.sigma[:1]]),
+    )
     obj2 = trajectory_objective(dataclasses.replace(p, keyframes=kf2), cfg, torch.float64, torch.device("cpu"))
     q2 = interpolate_keyframes(dataclasses.replace(p, keyframes=kf2), obj2.lower, obj2.upper)
     out = {}
@@ -214,30 +248,50 @@ def warm_start(args) -> None:
         stamps = []
         t0, c0 = time.perf_counter(), time.process_time()
         _q, info2 = banded_levenberg_marquardt(
-            lin, start, obj2.lower, obj2.upper,
-            callback=lambda it, q, c: stamps.append(time.process_time() - c0), **solve)
-        out[name] = (time.perf_counter() - t0, time.process_time() - c0, int(info2.iterations[0]), info2.history[:, 0],
-                     stamps)
+            lin,
+            start,
+            obj2.lower,
+            obj2.upper,
+            callback=lambda it, q, c: stamps.append(time.process_time() - c0),
+            **solve,
+        )
+        out[name] = (
+            time.perf_counter() - t0,
+            time.process_time() - c0,
+            int(info2.iterations[0]),
+            info2.history[:, 0],
+            stamps,
+        )
     final = min(float(o[3][-1]) for o in out.values())
-    print(f"first solve (keyframes every 1 s): {int(info.iterations[0])} iterations, cost {float(info.cost[0]):.2f}; "
-          f"worst frame {worst} ({1000 * float(err[worst]):.1f} mm mean joint error) gets a keyframe "
-          f"(damping {cfg.batch.damping:g}, load {os.getloadavg()[0]:.1f})")
+    print(
+        f"first solve (keyframes every 1 s): {int(info.iterations[0])} iterations, cost {float(info.cost[0]):.2f}; "
+        f"worst frame {worst} ({1000 * float(err[worst]):.1f} mm mean joint error) gets a keyframe "
+        f"(damping {cfg.batch.damping:g}, load {os.getloadavg()[0]:.1f})"
+    )
     reach = {}
     for name, (sec, cpu, it, hist, stamps) in out.items():
         reach[name] = {}
         for rel in (1e-3, 1e-5):
             near = int(torch.nonzero(hist <= (1 + rel) * final)[0, 0])  # history[0] is the start
             reach[name][rel] = (near, 0.0 if near == 0 else stamps[near - 1])
-        print(f"re-solve with the added keyframe, {name} start: cost {float(hist[0]):.2f} -> {float(hist[-1]):.4f}; "
-              + "; ".join(f"within {100 * rel:g}% of the final cost after {n} iterations ({c:.2f} s CPU)"
-                          for rel, (n, c) in reach[name].items())
-              + f"; converged (tol {cfg.batch.tol:g}) after {it} iterations ({cpu:.2f} s CPU, {sec:.2f} s wall)")
+        print(
+            f"re-solve with the added keyframe, {name} start: cost {float(hist[0]):.2f} -> {float(hist[-1]):.4f}; "
+            + "; ".join(
+                f"within {100 * rel:g}% of the final cost after {n} iterations ({c:.2f} s CPU)"
+                for rel, (n, c) in reach[name].items()
+            )
+            + f"; converged (tol {cfg.batch.tol:g}) after {it} iterations ({cpu:.2f} s CPU, {sec:.2f} s wall)"
+        )
     for rel in (1e-3, 1e-5):
         (nc, cc), (nw, cw) = reach["cold"][rel], reach["warm"][rel]
-        print(f"warm start (init_from) vs cold re-solve, to within {100 * rel:g}% of the final cost: "
-              f"{cc / max(cw, 1e-9):.1f}x less CPU time ({nc} -> {nw} iterations)")
-    print(f"warm start (init_from) vs cold re-solve, to the tolerance: {out['cold'][1] / out['warm'][1]:.1f}x less CPU "
-          f"time ({out['cold'][2]} -> {out['warm'][2]} iterations)")
+        print(
+            f"warm start (init_from) vs cold re-solve, to within {100 * rel:g}% of the final cost: "
+            f"{cc / max(cw, 1e-9):.1f}x less CPU time ({nc} -> {nw} iterations)"
+        )
+    print(
+        f"warm start (init_from) vs cold re-solve, to the tolerance: {out['cold'][1] / out['warm'][1]:.1f}x less CPU "
+        f"time ({out['cold'][2]} -> {out['warm'][2]} iterations)"
+    )
 
 
 def ping_pong(motion, frames: int):
@@ -247,8 +301,13 @@ def ping_pong(motion, frames: int):
     q = motion.q
     cycle = torch.cat([q, q.flip(0)[1:-1]]) if q.shape[0] > 2 else q
     reps = -(-frames // cycle.shape[0])
-    return Motion(q=cycle.repeat(reps, 1)[:frames], frames=np.arange(frames), fps=motion.fps, path=motion.path,
-                  frame_rate=motion.frame_rate)
+    return Motion(
+        q=cycle.repeat(reps, 1)[:frames],
+        frames=np.arange(frames),
+        fps=motion.fps,
+        path=motion.path,
+        frame_rate=motion.frame_rate,
+    )
 
 
 def memory_one(frames: int) -> None:
@@ -261,15 +320,17 @@ def memory_one(frames: int) -> None:
     load = run.load_amc
     run.load_amc = lambda path, sk: ping_pong(load(path, sk), frames)
     _cfg, _prep, obj, q0 = problem(frames)
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
     t0 = time.perf_counter()
     q, info = banded_levenberg_marquardt(linearization(obj), q0[None], obj.lower, obj.upper, max_iter=3)
     std = joint_std(obj, q, info.hessian)
     sec = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
-    print(f"{q.shape[1]} frames x {q.shape[2]} dofs: 3 iterations + joint_std in {sec:.1f} s, peak resident "
-          f"memory {peak:.2f} GB ({before:.2f} GB before the solve: data, observations, start), joint_std finite: "
-          f"{bool(torch.isfinite(std).all())}, cost {float(info.history[0, 0]):.1f} -> {float(info.cost[0]):.1f}")
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    print(
+        f"{q.shape[1]} frames x {q.shape[2]} dofs: 3 iterations + joint_std in {sec:.1f} s, peak resident "
+        f"memory {peak:.2f} GB ({before:.2f} GB before the solve: data, observations, start), joint_std finite: "
+        f"{bool(torch.isfinite(std).all())}, cost {float(info.history[0, 0]):.1f} -> {float(info.cost[0]):.1f}"
+    )
 
 
 def memory(args) -> None:

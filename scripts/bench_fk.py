@@ -97,8 +97,9 @@ def build_problem(sk: Skeleton, urdf: bytes, dtype: torch.dtype, device: torch.d
     return Problem(sk, chain, perm, frame_idx)
 
 
-def make_poses(q_real: torch.Tensor, batch: int, dtype: torch.dtype, device: torch.device,
-               gen: torch.Generator) -> torch.Tensor:
+def make_poses(
+    q_real: torch.Tensor, batch: int, dtype: torch.dtype, device: torch.device, gen: torch.Generator
+) -> torch.Tensor:
     """Real frames cycled to fill the batch, each perturbed by N(0, 0.02) (rad / m): (B, D)."""
     idx = torch.arange(batch) % q_real.shape[0]
     noise = 0.02 * torch.randn(batch, q_real.shape[1], generator=gen, dtype=torch.float64)
@@ -169,8 +170,9 @@ def _calibrate(fn: Callable[[], object], sync: Callable[[], None]) -> tuple[int,
         n = max(2 * n, int(n * 1.2 * MIN_MEASUREMENT_S / max(t, 1e-9)) + 1)
 
 
-def bench_pair(fa: Callable[[], object], fb: Callable[[], object], repeats: int,
-               sync: Callable[[], None]) -> tuple[tuple[int, list[float]], tuple[int, list[float]]]:
+def bench_pair(
+    fa: Callable[[], object], fb: Callable[[], object], repeats: int, sync: Callable[[], None]
+) -> tuple[tuple[int, list[float]], tuple[int, list[float]]]:
     """Alternating measurements of fa and fb: ((calls, [ms per call]), (calls, [ms per call]))."""
     for _ in range(WARMUP_CALLS):
         fa()
@@ -188,8 +190,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--asf", type=Path, default=DEFAULT_ASF, help="ASF skeleton (default: CMU subject 64)")
     ap.add_argument("--amc", type=Path, default=DEFAULT_AMC, help="AMC motion giving the poses (default: 64_01)")
-    ap.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)),
-                    help="torch intra-op threads (default: all cores available to this process)")
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=len(os.sched_getaffinity(0)),
+        help="torch intra-op threads (default: all cores available to this process)",
+    )
     ap.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
     ap.add_argument("--quick", action="store_true", help="3 repetitions per cell instead of 5")
     ap.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
@@ -224,11 +230,15 @@ def main(argv: list[str] | None = None) -> int:
     gen = torch.Generator().manual_seed(args.seed)
     poses = {b: make_poses(q_real, b, torch.float64, torch.device("cpu"), gen) for b in BATCHES}
 
-    print(f"skeleton {sk.name!r} ({args.asf.name}): J={sk.num_joints} joints, D={sk.num_dofs} dofs; "
-          f"poses: {q_real.shape[0]} frames of {args.amc.name}, cycled + N(0, 0.02) perturbation")
-    print(f"torch {torch.__version__}, pytorch-kinematics {_pk_version()}, device {device}, "
-          f"threads {torch.get_num_threads()}, {platform.processor() or platform.machine()}, "
-          f"repeats {repeats}, >= {MIN_MEASUREMENT_S} s per measurement")
+    print(
+        f"skeleton {sk.name!r} ({args.asf.name}): J={sk.num_joints} joints, D={sk.num_dofs} dofs; "
+        f"poses: {q_real.shape[0]} frames of {args.amc.name}, cycled + N(0, 0.02) perturbation"
+    )
+    print(
+        f"torch {torch.__version__}, pytorch-kinematics {_pk_version()}, device {device}, "
+        f"threads {torch.get_num_threads()}, {platform.processor() or platform.machine()}, "
+        f"repeats {repeats}, >= {MIN_MEASUREMENT_S} s per measurement"
+    )
 
     problems = {dt: build_problem(sk, urdf, dt, device) for dt in DTYPES}
     print(f"pytorch-kinematics chain: {problems[torch.float32].chain._num_frames} frames (4x4 each)")
@@ -237,12 +247,17 @@ def main(argv: list[str] | None = None) -> int:
     for dt in DTYPES:
         c = check_agreement(problems[dt], poses[1024].to(dtype=dt, device=device))
         checks.append(c)
-        print(f"check {c.dtype}, batch {c.batch}: max |joints_ptrack - joints_pk| = {c.max_abs_joint_diff_m:.2e} m, "
-              f"max |grad diff| = {c.max_abs_grad_diff:.2e}")
+        print(
+            f"check {c.dtype}, batch {c.batch}: max |joints_ptrack - joints_pk| = {c.max_abs_joint_diff_m:.2e} m, "
+            f"max |grad diff| = {c.max_abs_grad_diff:.2e}"
+        )
     c32 = checks[0]
     if not c32.max_abs_joint_diff_m < CHECK_TOL_F32:
-        print(f"FAILED: float32 joint difference {c32.max_abs_joint_diff_m:.2e} m >= {CHECK_TOL_F32:g} m; "
-              "the libraries do not compute the same thing, timings would be meaningless", file=sys.stderr)
+        print(
+            f"FAILED: float32 joint difference {c32.max_abs_joint_diff_m:.2e} m >= {CHECK_TOL_F32:g} m; "
+            "the libraries do not compute the same thing, timings would be meaningless",
+            file=sys.stderr,
+        )
         return 1
 
     header = f"{'batch':>6}  {'dtype':<8} {'mode':<17} {'ptrack ms':>11} {'pk ms':>11} {'pk/ptrack':>10}"
@@ -270,18 +285,29 @@ def main(argv: list[str] | None = None) -> int:
 
     big, one = find(max(BATCHES)), find(1)
     print(f"timing took {elapsed:.0f} s")
-    print(f"forward float32 batch {big.batch}: {_ratio_phrase(big.ratio)} "
-          f"({big.ptrack_ms:.3f} ms vs {big.pk_ms:.3f} ms); "
-          f"batch 1 forward float32 ratio: {one.ratio:.2f}x ({one.ptrack_ms:.3f} ms vs {one.pk_ms:.3f} ms)")
+    print(
+        f"forward float32 batch {big.batch}: {_ratio_phrase(big.ratio)} "
+        f"({big.ptrack_ms:.3f} ms vs {big.pk_ms:.3f} ms); "
+        f"batch 1 forward float32 ratio: {one.ratio:.2f}x ({one.ptrack_ms:.3f} ms vs {one.pk_ms:.3f} ms)"
+    )
 
     if args.json is not None:
         out = {
             "meta": {
-                "torch": torch.__version__, "pytorch_kinematics": _pk_version(), "device": str(device),
-                "threads": torch.get_num_threads(), "repeats": repeats, "min_measurement_s": MIN_MEASUREMENT_S,
-                "asf": str(args.asf), "amc": str(args.amc), "joints": sk.num_joints, "dofs": sk.num_dofs,
-                "pk_frames": problems[torch.float32].chain._num_frames, "seed": args.seed,
-                "machine": platform.machine(), "python": platform.python_version(),
+                "torch": torch.__version__,
+                "pytorch_kinematics": _pk_version(),
+                "device": str(device),
+                "threads": torch.get_num_threads(),
+                "repeats": repeats,
+                "min_measurement_s": MIN_MEASUREMENT_S,
+                "asf": str(args.asf),
+                "amc": str(args.amc),
+                "joints": sk.num_joints,
+                "dofs": sk.num_dofs,
+                "pk_frames": problems[torch.float32].chain._num_frames,
+                "seed": args.seed,
+                "machine": platform.machine(),
+                "python": platform.python_version(),
             },
             "checks": [asdict(c) for c in checks],
             "results": [asdict(r) for r in rows],

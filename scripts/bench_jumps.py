@@ -71,14 +71,18 @@ def main() -> None:
     cam64 = camera_for_motion(sk.forward_kinematics(clip[::20]), 5.0, 30.0, 10.0, 1000.0, 640, 480)
     cam64 = cam64.to(dtype=torch.float64)
     px64 = cam64.project(true_joints).pixels  # (J, 2) shared by all hypotheses
-    chains = [make_chain(sk, ("lclavicle", "lhumerus", "lradius"), "larm"),
-              make_chain(sk, ("upperneck", "head"), "neck")]
+    chains = [
+        make_chain(sk, ("lclavicle", "lhumerus", "lradius"), "larm"),
+        make_chain(sk, ("upperneck", "head"), "neck"),
+    ]
     plans = [ik_plan(sk, c) for c in chains]
     leaves = 1 << sum(c.num_links for c in chains)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"bench_jumps: CMU skeleton 10 (J={sk.num_joints}, D={sk.num_dofs}), {args.hypotheses} hypotheses x "
-          f"{leaves} leaves (larm 2 links x neck 1 link), torch {torch.__version__}, "
-          f"{torch.get_num_threads()} threads, load average {load:.2f}")
+    print(
+        f"bench_jumps: CMU skeleton 10 (J={sk.num_joints}, D={sk.num_dofs}), {args.hypotheses} hypotheses x "
+        f"{leaves} leaves (larm 2 links x neck 1 link), torch {torch.__version__}, "
+        f"{torch.get_num_threads()} threads, load average {load:.2f}"
+    )
 
     for dtype in (torch.float32, torch.float64):
         q = q64.to(dtype)
@@ -105,14 +109,16 @@ def main() -> None:
 
         def loop():
             for i in range(sub):
-                trees_and_ik(q[i:i + 1], joints[i:i + 1])
+                trees_and_ik(q[i : i + 1], joints[i : i + 1])
 
         t_loop = _median_ms(loop, 3) * args.hypotheses / sub
         t_fk_leaves = _median_ms(lambda: sk.forward_kinematics(poses), args.repeats)
         t_fk_hyp = _median_ms(lambda: sk.forward_kinematics(q), args.repeats)
         name = str(dtype).replace("torch.", "")
-        print(f"{name}: trees + IK {t_fast:.1f} ms (target < 50 ms; kept leaves {float(res.keep.float().mean()):.0%}, "
-              f"max |FK(leaf pose) - leaf| {err:.1e} m)")
+        print(
+            f"{name}: trees + IK {t_fast:.1f} ms (target < 50 ms; kept leaves {float(res.keep.float().mean()):.0%}, "
+            f"max |FK(leaf pose) - leaf| {err:.1e} m)"
+        )
         print(f"  vs per-hypothesis loop {t_loop:.0f} ms (scaled from {sub}): {t_loop / t_fast:.1f}x")
         print(f"  vs FK of the {args.hypotheses * leaves} leaf poses {t_fk_leaves:.1f} ms: {t_fk_leaves / t_fast:.1f}x")
         print(f"  (not timed: FK of the {args.hypotheses} hypotheses {t_fk_hyp:.1f} ms)")

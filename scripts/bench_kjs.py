@@ -27,8 +27,17 @@ CONFIG = Path(__file__).resolve().parents[1] / "configs" / "kjs.yaml"
 
 
 def run(method: str, args: argparse.Namespace, root: Path) -> dict:
-    cfg = load_config(CONFIG, [f"method={method}", f"data.stop={args.stop}", f"kjs.samples={args.samples}",
-                               f"kjs.modes={args.modes}", f"out_dir={root / method}", "progress=false"])
+    cfg = load_config(
+        CONFIG,
+        [
+            f"method={method}",
+            f"data.stop={args.stop}",
+            f"kjs.samples={args.samples}",
+            f"kjs.modes={args.modes}",
+            f"out_dir={root / method}",
+            "progress=false",
+        ],
+    )
     t0 = time.perf_counter()
     out = execute(cfg, progress=False)
     seconds = time.perf_counter() - t0
@@ -46,14 +55,18 @@ def main() -> None:
     print(f"load average before: {os.getloadavg()[0]:.2f}")
     with tempfile.TemporaryDirectory() as tmp:
         base = run("frame", args, Path(tmp))
-        print(f"{'method':8s} {'frames':>6s} {'seconds':>8s} {'fps':>6s} {'time vs frame':>14s} "
-              f"{'MPJPE mm':>9s} {'best-of-K mm':>13s}")
+        print(
+            f"{'method':8s} {'frames':>6s} {'seconds':>8s} {'fps':>6s} {'time vs frame':>14s} "
+            f"{'MPJPE mm':>9s} {'best-of-K mm':>13s}"
+        )
         rows = [("frame", base)] + [(m, run(m, args, Path(tmp))) for m in args.methods]
         for name, m in rows:
             ratio = m["seconds"] / base["seconds"]
             best = m.get("best_of_k_mpjpe_mm")
-            print(f"{name:8s} {m['frames']:6d} {m['seconds']:8.1f} {m['fps']:6.1f} {ratio:13.1f}x "
-                  f"{m['mpjpe_mm']:9.1f} {best if best is not None else float('nan'):13.1f}")
+            print(
+                f"{name:8s} {m['frames']:6d} {m['seconds']:8.1f} {m['fps']:6.1f} {ratio:13.1f}x "
+                f"{m['mpjpe_mm']:9.1f} {best if best is not None else float('nan'):13.1f}"
+            )
     print(f"load average after: {os.getloadavg()[0]:.2f}; K={args.modes}, {args.samples} hypotheses per frame")
 
 

@@ -50,11 +50,16 @@ def main() -> int:
     cfg = load_config(REPO / "configs" / "golf.yaml", base)
     t = time.perf_counter()
     prep = prepare(cfg)
-    print(f"{swing.stem}: {prep.problem.observations.num_frames} frames; data, observations and silhouettes: "
-          f"{time.perf_counter() - t:.2f} s (not counted); torch threads {torch.get_num_threads()}")
+    print(
+        f"{swing.stem}: {prep.problem.observations.num_frames} frames; data, observations and silhouettes: "
+        f"{time.perf_counter() - t:.2f} s (not counted); torch threads {torch.get_num_threads()}"
+    )
     results = {}
-    for name, over in (("pca (joints + silhouettes)", []), ("pca joints only", ["pca.silhouette_weight=0"]),
-                       ("frame (per-frame L-BFGS)", ["method=frame"])):
+    for name, over in (
+        ("pca (joints + silhouettes)", []),
+        ("pca joints only", ["pca.silhouette_weight=0"]),
+        ("frame (per-frame L-BFGS)", ["method=frame"]),
+    ):
         c = load_config(REPO / "configs" / "golf.yaml", [*base, *over])
         times, cpu = [], []
         for _ in range(args.repeats):
@@ -65,8 +70,10 @@ def main() -> int:
         sec, sec_cpu = statistics.median(times), statistics.median(cpu)
         n = est.q.shape[0]
         results[name] = (n / sec, n / sec_cpu)
-        print(f"  {name:28s} wall {sec:6.2f} s {n / sec:6.1f} fps | CPU {sec_cpu:6.2f} s {n / sec_cpu:6.1f} fps"
-              f"  (wall runs: {', '.join(f'{x:.2f}' for x in times)})")
+        print(
+            f"  {name:28s} wall {sec:6.2f} s {n / sec:6.1f} fps | CPU {sec_cpu:6.2f} s {n / sec_cpu:6.1f} fps"
+            f"  (wall runs: {', '.join(f'{x:.2f}' for x in times)})"
+        )
     full, frame = results["pca (joints + silhouettes)"], results["frame (per-frame L-BFGS)"]
     print(f"pca (full) vs frame: {full[0] / frame[0]:.1f}x (wall), {full[1] / frame[1]:.1f}x (CPU time)")
     print("CPU time is the process's own (on a machine shared with other jobs, wall time also counts the waits)")

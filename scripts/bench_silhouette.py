@@ -82,19 +82,26 @@ def median_time(fn: Callable[[], object], repeats: int) -> float:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=90, help="clip length in frames (default 90)")
-    ap.add_argument("--old-frames", type=int, default=10,
-                    help="frames on which to time the previous implementation, extrapolated to the "
-                         "clip (default 10; 0 = the whole clip)")
+    ap.add_argument(
+        "--old-frames",
+        type=int,
+        default=10,
+        help="frames on which to time the previous implementation, extrapolated to the "
+        "clip (default 10; 0 = the whole clip)",
+    )
     ap.add_argument("--repeats", type=int, default=3, help="repetitions, median reported (default 3)")
-    ap.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)),
-                    help="torch threads (default: all available)")
+    ap.add_argument(
+        "--threads", type=int, default=len(os.sched_getaffinity(0)), help="torch threads (default: all available)"
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
 
     masks = clip_masks(args.frames)
     n_old = args.old_frames if 0 < args.old_frames < args.frames else args.frames
-    print(f"clip: {args.frames} frames, {masks.shape[-1]} x {masks.shape[-2]} px, foreground "
-          f"{masks.double().mean().item():.1%}; torch {torch.__version__}, {args.threads} threads")
+    print(
+        f"clip: {args.frames} frames, {masks.shape[-1]} x {masks.shape[-2]} px, foreground "
+        f"{masks.double().mean().item():.1%}; torch {torch.__version__}, {args.threads} threads"
+    )
 
     previous_distance_transform(masks[:2]), distance_transform(masks[:2])  # warm-up
     old, new = previous_distance_transform(masks[:n_old]), distance_transform(masks[:n_old])
@@ -108,8 +115,11 @@ def main(argv: list[str] | None = None) -> int:
     t_new = median_time(lambda: distance_transform(masks), args.repeats)
     t_old = median_time(lambda: previous_distance_transform(masks[:n_old]), args.repeats)
     t_old_clip = t_old * args.frames / n_old
-    how = "measured" if n_old == args.frames else \
-        f"extrapolated from {t_old:.2f} s on {n_old} frames (x {args.frames / n_old:g})"
+    how = (
+        "measured"
+        if n_old == args.frames
+        else f"extrapolated from {t_old:.2f} s on {n_old} frames (x {args.frames / n_old:g})"
+    )
     print(f"previous (O(H W^2) torch): {t_old_clip:8.2f} s for {args.frames} frames, {how}")
     print(f"current  (scipy EDT):      {t_new:8.2f} s for {args.frames} frames, measured")
     print(f"ratio previous / current:  {t_old_clip / t_new:.1f}x")

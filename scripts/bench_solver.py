@@ -74,9 +74,14 @@ def build(n: int, perturb: float, seed: int = 0):
     g = torch.Generator().manual_seed(seed)
     observed = cam.project(joints[FRAME, kps.index()]).pixels
     observed = observed + 2.0 * torch.randn(observed.shape, generator=g, dtype=F64)
-    obj = Objective({"reprojection": Reprojection(observed, torch.ones(kps.num_keypoints, dtype=F64), sigma_px=2.0,
-                                                  loss="cauchy", scale=3.0),
-                     "limits": JointLimits(lo, hi, sigma=0.02)})
+    obj = Objective(
+        {
+            "reprojection": Reprojection(
+                observed, torch.ones(kps.num_keypoints, dtype=F64), sigma_px=2.0, loss="cauchy", scale=3.0
+            ),
+            "limits": JointLimits(lo, hi, sigma=0.02),
+        }
+    )
     noise = perturb * torch.randn(n, sk.num_dofs, generator=g, dtype=F64)
     noise[:, :3] *= 0.5
     q0 = torch.clamp(q_all[FRAME] + noise, lo, hi)
@@ -94,24 +99,31 @@ def bench_jacobians(sk, cam, kps, obj, q0, repeats: int) -> None:
     t_geo, (_, jac_geo) = median_time(lambda: joint_jacobian(sk, q0), repeats)
     t_fwd, jac_fwd = median_time(lambda: torch.func.vmap(torch.func.jacfwd(fk))(q0), repeats)
     t_ad, jac_ad = median_time(
-        lambda: torch.autograd.functional.jacobian(lambda q: fk(q).sum(0), q0).permute(2, 0, 1, 3),
-        max(1, repeats // 3))
+        lambda: torch.autograd.functional.jacobian(lambda q: fk(q).sum(0), q0).permute(2, 0, 1, 3), max(1, repeats // 3)
+    )
     t_fk, _ = median_time(lambda: sk.forward_kinematics(q0, rotations=True), repeats)
     print(f"    joint positions (N, J, 3, D): FK alone {1e3 * t_fk:.1f}")
-    print(f"      geometric {1e3 * t_geo:.1f} | jacfwd {1e3 * t_fwd:.1f} ({t_fwd / t_geo:.1f}x) | "
-          f"autograd {1e3 * t_ad:.1f} ({t_ad / t_geo:.1f}x); max |geometric - autograd| "
-          f"{(jac_geo - jac_ad).abs().max():.1e}, |jacfwd - autograd| {(jac_fwd - jac_ad).abs().max():.1e}")
+    print(
+        f"      geometric {1e3 * t_geo:.1f} | jacfwd {1e3 * t_fwd:.1f} ({t_fwd / t_geo:.1f}x) | "
+        f"autograd {1e3 * t_ad:.1f} ({t_ad / t_geo:.1f}x); max |geometric - autograd| "
+        f"{(jac_geo - jac_ad).abs().max():.1e}, |jacfwd - autograd| {(jac_fwd - jac_ad).abs().max():.1e}"
+    )
     lin = objective_linearization(sk, obj, cam, kps)
     full = lambda q: obj.residuals(evaluate_pose(sk, cam, kps, q))  # noqa: E731
     t_geo, out = median_time(lambda: lin(q0), repeats)
     t_fwd, r_fwd = median_time(lambda: torch.func.vmap(torch.func.jacfwd(full))(q0), repeats)
     t_ad, r_ad = median_time(
-        lambda: torch.autograd.functional.jacobian(lambda q: full(q).sum(0), q0).permute(1, 0, 2), max(1, repeats // 3))
-    print(f"    residuals (N, M={out.residuals.shape[-1]}, D), with weights and energy: "
-          f"chain rule {1e3 * t_geo:.1f} | jacfwd {1e3 * t_fwd:.1f} ({t_fwd / t_geo:.1f}x) | "
-          f"autograd {1e3 * t_ad:.1f} ({t_ad / t_geo:.1f}x)")
-    print(f"      max |chain rule - autograd| {(out.jacobian - r_ad).abs().max():.1e} "
-          f"(|J| up to {r_ad.abs().max():.0f}), |jacfwd - autograd| {(r_fwd - r_ad).abs().max():.1e}")
+        lambda: torch.autograd.functional.jacobian(lambda q: full(q).sum(0), q0).permute(1, 0, 2), max(1, repeats // 3)
+    )
+    print(
+        f"    residuals (N, M={out.residuals.shape[-1]}, D), with weights and energy: "
+        f"chain rule {1e3 * t_geo:.1f} | jacfwd {1e3 * t_fwd:.1f} ({t_fwd / t_geo:.1f}x) | "
+        f"autograd {1e3 * t_ad:.1f} ({t_ad / t_geo:.1f}x)"
+    )
+    print(
+        f"      max |chain rule - autograd| {(out.jacobian - r_ad).abs().max():.1e} "
+        f"(|J| up to {r_ad.abs().max():.0f}), |jacfwd - autograd| {(r_fwd - r_ad).abs().max():.1e}"
+    )
 
 
 def bench_batched_vs_sequential(sk, cam, kps, obj, q0, lo, hi, sequential: int, repeats: int) -> None:
@@ -122,7 +134,7 @@ def bench_batched_vs_sequential(sk, cam, kps, obj, q0, lo, hi, sequential: int, 
     k = min(sequential, n)
 
     def one_by_one():
-        return [levenberg_marquardt(lin, q0[i:i + 1], lo, hi, **settings) for i in range(k)]
+        return [levenberg_marquardt(lin, q0[i : i + 1], lo, hi, **settings) for i in range(k)]
 
     t0 = time.perf_counter()
     singles = one_by_one()
@@ -131,11 +143,15 @@ def bench_batched_vs_sequential(sk, cam, kps, obj, q0, lo, hi, sequential: int, 
     diff = (cost_s - info_b.cost[:k]).abs().max()
     its = info_b.iterations.float()
     print(f"(b) LM, {n} poses at once vs {n} sequential single-pose solves (max_iter 30, default tolerances)")
-    print(f"    batched {t_batch:.2f} s (iterations per problem: median {its.median():.0f}, max {its.max():.0f}; "
-          f"{int(info_b.converged.sum())}/{n} converged; {info_b.evaluations} batched evaluations)")
+    print(
+        f"    batched {t_batch:.2f} s (iterations per problem: median {its.median():.0f}, max {its.max():.0f}; "
+        f"{int(info_b.converged.sum())}/{n} converged; {info_b.evaluations} batched evaluations)"
+    )
     scaled = f", timed on the first {k} and scaled by {n}/{k}" if k < n else ""
-    print(f"    sequential {t_seq:.2f} s{scaled}; same cost: max |cost difference| {diff:.1e} "
-          f"(costs {info_b.cost.min():.2f}..{info_b.cost.max():.2f})")
+    print(
+        f"    sequential {t_seq:.2f} s{scaled}; same cost: max |cost difference| {diff:.1e} "
+        f"(costs {info_b.cost.min():.2f}..{info_b.cost.max():.2f})"
+    )
     print(f"    speed-up {t_seq / t_batch:.1f}x")
 
 
@@ -158,16 +174,20 @@ def bench_polishing(sk, cam, kps, obj, q0, lo, hi, cost_tol: float, quick: bool)
         traces[name] = trace
     # the cost both reach: per problem, the worse of the two final costs (+ tol)
     target = torch.maximum(traces["LM"][-1][1], traces["L-BFGS"][-1][1]) + cost_tol
-    print(f"(c) polishing step, {n} poses perturbed from a real frame, 2 px noise: time until 95% of the "
-          f"problems reach the cost both solvers reach (per problem the worse final cost + {cost_tol})")
+    print(
+        f"(c) polishing step, {n} poses perturbed from a real frame, 2 px noise: time until 95% of the "
+        f"problems reach the cost both solvers reach (per problem the worse final cost + {cost_tol})"
+    )
     print(f"    start cost: mean {start_cost.mean():.1f}, median {start_cost.median():.1f}")
     reached = {}
     for name, trace in traces.items():
         hit = [(t, it) for it, (t, cost) in enumerate(trace) if (cost <= target).double().mean() >= 0.95]
         reached[name] = hit[0] if hit else (math.inf, None)
         final = trace[-1][1]
-        print(f"    {name}: {len(trace) - 1} iterations in {trace[-1][0]:.2f} s, final cost mean {final.mean():.4f} "
-              f"median {final.median():.4f}; reached at iteration {reached[name][1]} after {reached[name][0]:.2f} s")
+        print(
+            f"    {name}: {len(trace) - 1} iterations in {trace[-1][0]:.2f} s, final cost mean {final.mean():.4f} "
+            f"median {final.median():.4f}; reached at iteration {reached[name][1]} after {reached[name][0]:.2f} s"
+        )
         marks = [k for k in (1, 2, 3, 5, 10, 20, 30, 50, 100, 200, 300) if k < len(trace)]
         print("      mean cost by iteration: " + ", ".join(f"{k}: {trace[k][1].mean():.3f}" for k in marks))
     t_lm, t_lb = reached["LM"][0], reached["L-BFGS"][0]
@@ -189,8 +209,10 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     sk, cam, kps, obj, q0, lo, hi = build(args.n, args.perturb)
-    print(f"ptrack bench_solver: torch {torch.__version__}, {args.threads} thread(s), N={args.n}, "
-          f"perturbation {args.perturb} rad")
+    print(
+        f"ptrack bench_solver: torch {torch.__version__}, {args.threads} thread(s), N={args.n}, "
+        f"perturbation {args.perturb} rad"
+    )
     bench_jacobians(sk, cam, kps, obj, q0, args.repeats)
     bench_batched_vs_sequential(sk, cam, kps, obj, q0, lo, hi, args.sequential, args.repeats)
     bench_polishing(sk, cam, kps, obj, q0, lo, hi, args.cost_tol, args.quick)

@@ -67,8 +67,9 @@ def run(variant: str, swing: Path, model: Path, out: Path) -> Path:
         config, extra = REPO / "configs" / "eval_golf.yaml", [f"motion.model_file={model}", *PCA_VARIANTS[variant]]
     else:
         config, extra = REPO / "configs" / f"eval_golf_{variant}.yaml", []
-    cfg = load_config(config, [f"data.amc={swing}", f"data.asf={asf_for(swing)}", f"out_dir={folder}",
-                               "progress=false", *extra])
+    cfg = load_config(
+        config, [f"data.amc={swing}", f"data.asf={asf_for(swing)}", f"out_dir={folder}", "progress=false", *extra]
+    )
     log.info("%s %s", variant, swing.stem)
     return execute(cfg, progress=False)
 
@@ -79,8 +80,9 @@ def swing_keys(swing: Path, stride: int) -> list[int]:
     motion = load_amc(swing, sk)
     cfg = load_config(REPO / "configs" / "eval_golf.yaml", run=False)
     with torch.no_grad():
-        keys = detect_key_postures(sk.forward_kinematics(motion.q.double()), sk, motion.fps, cfg.motion,
-                                   clip=swing.stem)
+        keys = detect_key_postures(
+            sk.forward_kinematics(motion.q.double()), sk, motion.fps, cfg.motion, clip=swing.stem
+        )
     return [int(k) // stride for k in keys]
 
 
@@ -90,32 +92,41 @@ def swing_end(swing: Path, stride: int) -> int:
     motion = load_amc(swing, sk)
     cfg = load_config(REPO / "configs" / "eval_golf.yaml", run=False)
     with torch.no_grad():
-        keys = detect_key_postures(sk.forward_kinematics(motion.q.double()), sk, motion.fps, cfg.motion,
-                                   clip=swing.stem)
+        keys = detect_key_postures(
+            sk.forward_kinematics(motion.q.double()), sk, motion.fps, cfg.motion, clip=swing.stem
+        )
     return int((int(keys[-1]) + TAIL_S * motion.fps) // stride)
 
 
 def span_metrics(folder: Path, stop: int) -> dict:
     """MPJPE, PA-MPJPE (17 keypoints, pelvis-aligned) and flip rate over frames [0, stop] of a run."""
     with np.load(folder / "result.npz") as z:
-        est = torch.from_numpy(z["joints"][:stop + 1]).double()
-        gt = torch.from_numpy(z["gt_joints"][:stop + 1]).double()
+        est = torch.from_numpy(z["joints"][: stop + 1]).double()
+        gt = torch.from_numpy(z["gt_joints"][: stop + 1]).double()
         R, t = torch.from_numpy(z["camera_R"]).double(), torch.from_numpy(z["camera_t"]).double()
     sk = Skeleton.from_asf(load_config(folder / "config.yaml").data.asf)
     kps = make_keypoints(sk)
     idx = kps.index()
     e, g = est[:, idx], gt[:, idx]
     flips = M.limb_flip_errors(e, g, kps.limbs, R, t)
-    return {"mpjpe_mm": float(M.mpjpe(e, g, root=0).mean()), "pa_mpjpe_mm": float(M.pa_mpjpe(e, g).mean()),
-            "flip_error_rate": float(flips.nanmean()), "frames": int(est.shape[0])}
+    return {
+        "mpjpe_mm": float(M.mpjpe(e, g, root=0).mean()),
+        "pa_mpjpe_mm": float(M.pa_mpjpe(e, g).mean()),
+        "flip_error_rate": float(flips.nanmean()),
+        "frames": int(est.shape[0]),
+    }
 
 
 def table(rows: dict[str, dict[str, dict]], variants: list[str], title: str) -> str:
     head = "| swing | " + " | ".join(f"{v} MPJPE / PA / flip" for v in variants) + " |"
     lines = [title, "", head, "|---" * (len(variants) + 1) + "|"]
     for swing, per in rows.items():
-        cells = [f"{per[v]['mpjpe_mm']:.1f} / {per[v]['pa_mpjpe_mm']:.1f} / {per[v]['flip_error_rate']:.3f}"
-                 if v in per else "–" for v in variants]
+        cells = [
+            f"{per[v]['mpjpe_mm']:.1f} / {per[v]['pa_mpjpe_mm']:.1f} / {per[v]['flip_error_rate']:.3f}"
+            if v in per
+            else "–"
+            for v in variants
+        ]
         lines.append(f"| {swing} | " + " | ".join(cells) + " |")
     means = []
     for v in variants:
@@ -199,15 +210,35 @@ def main(argv: list[str] | None = None) -> int:
             span.setdefault(swing.stem, {})[v] = span_metrics(folder, stop)
             fps[v].append(m["fps"])
     frames = {s: f"{whole[s][variants[0]]['frames']} / {span[s][variants[0]]['frames']}" for s in whole}
-    text = (table(span, variants, "Over the swing (to the end of the follow-through + 0.5 s):") + "\n"
-            + table(whole, variants, "Over the whole clip:") + "\n"
-            + "Frames (whole clip / swing): " + ", ".join(f"{s} {f}" for s, f in frames.items()) + "\n\n"
-            + "Mean fps (whole run, `seconds` of metrics.json): "
-            + ", ".join(f"{v} {np.mean(x):.1f}" for v, x in fps.items() if x) + "\n")
+    text = (
+        table(span, variants, "Over the swing (to the end of the follow-through + 0.5 s):")
+        + "\n"
+        + table(whole, variants, "Over the whole clip:")
+        + "\n"
+        + "Frames (whole clip / swing): "
+        + ", ".join(f"{s} {f}" for s, f in frames.items())
+        + "\n\n"
+        + "Mean fps (whole run, `seconds` of metrics.json): "
+        + ", ".join(f"{v} {np.mean(x):.1f}" for v, x in fps.items() if x)
+        + "\n"
+    )
     (out / "results.md").write_text(text, encoding="utf-8")
-    (out / "results.json").write_text(json.dumps({"span": span, "whole": {s: {v: {k: m[k] for k in (
-        "mpjpe_mm", "pa_mpjpe_mm", "flip_error_rate", "fps", "frames")} for v, m in per.items()}
-        for s, per in whole.items()}}, indent=1) + "\n")
+    (out / "results.json").write_text(
+        json.dumps(
+            {
+                "span": span,
+                "whole": {
+                    s: {
+                        v: {k: m[k] for k in ("mpjpe_mm", "pa_mpjpe_mm", "flip_error_rate", "fps", "frames")}
+                        for v, m in per.items()
+                    }
+                    for s, per in whole.items()
+                },
+            },
+            indent=1,
+        )
+        + "\n"
+    )
     print(text)
     if args.plot:
         plot(out / "pca" / args.plot, REPO / "docs" / "golf_swing.png")

@@ -87,36 +87,46 @@ def main() -> None:
     margin = math.radians(args.margin_deg)
     sk, clips = load_clips(cmu)
 
-    print(f"leave-one-subject-out check, margin {args.margin_deg:g} deg "
-          "(share of limited dof-frames outside limits made without the clip's subject):")
+    print(
+        f"leave-one-subject-out check, margin {args.margin_deg:g} deg "
+        "(share of limited dof-frames outside limits made without the clip's subject):"
+    )
     rates = held_out_rates(sk, clips, margin)
     for name, r in rates.items():
         print(f"  {name:8s} {100 * r:6.2f}%")
     vals = np.array(list(rates.values()))
-    print(f"  mean {100 * vals.mean():.2f}%, median {100 * np.median(vals):.2f}%, max {100 * vals.max():.2f}%, "
-          f"clips over 0.5%: {int((vals > 0.005).sum())} of {len(vals)}")
+    print(
+        f"  mean {100 * vals.mean():.2f}%, median {100 * np.median(vals):.2f}%, max {100 * vals.max():.2f}%, "
+        f"clips over 0.5%: {int((vals > 0.005).sum())} of {len(vals)}"
+    )
 
     lower, upper = bounds_from([q for _, q in clips.values()], sk, margin)
     table = {}
     for i, name in enumerate(sk.dof_names):
         if name.startswith("root."):
             continue
-        table[name] = None if not math.isfinite(lower[i]) else [round(math.degrees(lower[i]), 3),
-                                                               round(math.degrees(upper[i]), 3)]
+        table[name] = (
+            None
+            if not math.isfinite(lower[i])
+            else [round(math.degrees(lower[i]), 3), round(math.degrees(upper[i]), 3)]
+        )
     frames = sum(q.shape[0] for _, q in clips.values())
     doc = {
         "description": "Per-dof joint limits (degrees) that real CMU motion obeys: the smallest arc holding every "
-                       "captured value of the dof, widened by margin_deg on each side; null = unlimited "
-                       "(the widened arc covers the whole circle). Angles are periodic: a value is inside when "
-                       "some 360-degree shift of it is. Root dofs are not limited.",
+        "captured value of the dof, widened by margin_deg on each side; null = unlimited "
+        "(the widened arc covers the whole circle). Angles are periodic: a value is inside when "
+        "some 360-degree shift of it is. Root dofs are not limited.",
         "made_by": "scripts/make_limits.py",
         "date": date.today().isoformat(),
         "margin_deg": args.margin_deg,
         "source": "CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu), ASF/AMC, 120 fps",
         "clips": sorted(clips),
         "frames": frames,
-        "held_out_violation": {"mean": round(float(vals.mean()), 5), "max": round(float(vals.max()), 5),
-                               "per_clip": {k: round(v, 5) for k, v in rates.items()}},
+        "held_out_violation": {
+            "mean": round(float(vals.mean()), 5),
+            "max": round(float(vals.max()), 5),
+            "per_clip": {k: round(v, 5) for k, v in rates.items()},
+        },
         "limits_deg": table,
     }
     Path(args.out).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")

@@ -35,23 +35,27 @@ def circular_stats(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cmu", default=str(ROOT / ".." / "shared" / "data" / "cmu"), help="CMU data folder")
-    ap.add_argument("--exclude", default=str(ROOT / "configs" / "clips" / "dev.txt"),
-                    help="clips file whose subjects are left out")
+    ap.add_argument(
+        "--exclude", default=str(ROOT / "configs" / "clips" / "dev.txt"), help="clips file whose subjects are left out"
+    )
     ap.add_argument("--stride", type=int, default=4, help="frame stride")
     ap.add_argument("--out", default=str(ROOT / "ptrack" / "data" / "cmu_pose_prior.json"))
     args = ap.parse_args()
     sk, clips = load_clips(Path(args.cmu).resolve())
     held_out = sorted({p.parent.name for p in parse_clips(args.exclude)})
-    used = {name: q[::args.stride] for name, (subject, q) in clips.items() if subject not in held_out}
+    used = {name: q[:: args.stride] for name, (subject, q) in clips.items() if subject not in held_out}
     if not used:
         raise SystemExit("every clip's subject is excluded")
     mean, std = circular_stats(np.concatenate(list(used.values())))
-    table = {name: [round(math.degrees(mean[i]), 3), round(math.degrees(std[i]), 3)]
-             for i, name in enumerate(sk.dof_names) if not name.startswith("root.")}
+    table = {
+        name: [round(math.degrees(mean[i]), 3), round(math.degrees(std[i]), 3)]
+        for i, name in enumerate(sk.dof_names)
+        if not name.startswith("root.")
+    }
     frames = sum(q.shape[0] for q in used.values())
     doc = {
         "description": "Per-dof Gaussian pose prior (degrees): [circular mean, RMS wrapped distance to it] of the "
-                       "angles in real CMU motion. Root dofs have no prior.",
+        "angles in real CMU motion. Root dofs have no prior.",
         "made_by": "scripts/make_pose_prior.py",
         "date": date.today().isoformat(),
         "source": "CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu), ASF/AMC, 120 fps",
@@ -62,8 +66,10 @@ def main() -> None:
         "prior_deg": table,
     }
     Path(args.out).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}: {len(table)} dofs from {len(used)} clips ({frames} frames), subjects "
-          f"{', '.join(held_out)} held out")
+    print(
+        f"wrote {args.out}: {len(table)} dofs from {len(used)} clips ({frames} frames), subjects "
+        f"{', '.join(held_out)} held out"
+    )
 
 
 if __name__ == "__main__":

@@ -57,8 +57,8 @@ def rms_rates(amc: Path, fps: float) -> tuple[list[str], list[bool], np.ndarray,
     angular = np.asarray(sk.angular_dofs(), dtype=bool)
     d1 = np.diff(q, axis=0)
     d1 = np.where(angular, np.remainder(d1 + math.pi, 2 * math.pi) - math.pi, d1)
-    vel, acc = d1 / dt, np.diff(d1, axis=0) / dt ** 2
-    return list(sk.dof_names), list(angular), np.sqrt((vel ** 2).mean(0)), np.sqrt((acc ** 2).mean(0))
+    vel, acc = d1 / dt, np.diff(d1, axis=0) / dt**2
+    return list(sk.dof_names), list(angular), np.sqrt((vel**2).mean(0)), np.sqrt((acc**2).mean(0))
 
 
 def main() -> None:
@@ -87,8 +87,8 @@ def main() -> None:
             accel[n] = round(c, 3)
     doc = {
         "about": "per-dof smoothing scales of method: batch (velocity rad/s or m/s, acceleration rad/s^2 or "
-                 "m/s^2): the median over the clips of each clip's RMS finite-difference rate at fps; "
-                 "made by scripts/make_smoothing_prior.py",
+        "m/s^2): the median over the clips of each clip's RMS finite-difference rate at fps; "
+        "made by scripts/make_smoothing_prior.py",
         "made": date.today().isoformat(),
         "fps": args.fps,
         "clips": names_used,

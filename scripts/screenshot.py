@@ -83,8 +83,9 @@ def connect(port: int, viewer: subprocess.Popen, timeout: float):
             time.sleep(0.2)
 
 
-def screenshot(rrd: Path, out: Path, at_s: float | None = None, size: str = "1600x1000",
-               timeout: float = 120.0, colors: int = 0) -> Path:
+def screenshot(
+    rrd: Path, out: Path, at_s: float | None = None, size: str = "1600x1000", timeout: float = 120.0, colors: int = 0
+) -> Path:
     """Render `rrd` in a headless viewer of `size` (logical points) at `time` = `at_s` seconds (None:
     the middle) and write the PNG to `out`, with a palette of `colors` colours if > 0. Returns `out`."""
     exe = shutil.which("rerun")
@@ -97,9 +98,23 @@ def screenshot(rrd: Path, out: Path, at_s: float | None = None, size: str = "160
     with tempfile.TemporaryFile() as log:
         # its own process group: `rerun` may be a launcher (pip's rerun-sdk) that starts the viewer
         # binary as a child, which must be stopped too
-        viewer = subprocess.Popen([exe, "--headless", "--port", str(port), "--window-size", size,
-                                   "--hide-welcome-screen", "--memory-limit", "2GB"],
-                                  stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        viewer = subprocess.Popen(
+            [
+                exe,
+                "--headless",
+                "--port",
+                str(port),
+                "--window-size",
+                size,
+                "--hide-welcome-screen",
+                "--memory-limit",
+                "2GB",
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+        )
         try:
             client = connect(port, viewer, timeout)
             client.open(str(rrd.resolve()))

@@ -37,10 +37,17 @@ from ptrack.skeleton import Skeleton, load_amc
 ROOT = Path(__file__).resolve().parents[1]
 CEILING = math.radians(30.0)  # largest std of a dof before scaling (the trackers' kjs.ceiling_deg)
 # KJS experiments: (chain, link that may flip) -- link 0 = upper arm / thigh, link 1 = forearm / calf
-KJS_FLIPS = {"KJS1": (("larm", 0), ("rarm", 0), ("lleg", 1)),
-             "KJS2": (("lleg", 1), ("rleg", 1), ("rarm", 0))}
-SAMPLING = [("CSS", 4, "gaussian"), ("CSS", 8, "gaussian"), ("CSS", 16, "gaussian"), ("CSS", 1, "cauchy"),
-            ("SS", 4, "gaussian"), ("SS", 8, "gaussian"), ("SS", 16, "gaussian"), ("SS", 1, "cauchy")]
+KJS_FLIPS = {"KJS1": (("larm", 0), ("rarm", 0), ("lleg", 1)), "KJS2": (("lleg", 1), ("rleg", 1), ("rarm", 0))}
+SAMPLING = [
+    ("CSS", 4, "gaussian"),
+    ("CSS", 8, "gaussian"),
+    ("CSS", 16, "gaussian"),
+    ("CSS", 1, "cauchy"),
+    ("SS", 4, "gaussian"),
+    ("SS", 8, "gaussian"),
+    ("SS", 16, "gaussian"),
+    ("SS", 1, "cauchy"),
+]
 
 
 def frontal_azimuth(joints: torch.Tensor, names: list[str]) -> float:
@@ -65,8 +72,13 @@ class Study:
         lo, hi = self.sk.limits(dtype=torch.float64)
         self.lower, self.upper = lo, hi
         self.angular = torch.as_tensor(self.sk.angular_dofs())
-        objective = Objective({"reprojection": Reprojection(self.pixels, self.conf, sigma_px=1.0, loss="l2"),
-                               "limits": JointLimits(lo, hi, sigma=0.05)}, {"limits": 1.0})
+        objective = Objective(
+            {
+                "reprojection": Reprojection(self.pixels, self.conf, sigma_px=1.0, loss="l2"),
+                "limits": JointLimits(lo, hi, sigma=0.05),
+            },
+            {"limits": 1.0},
+        )
         self.linearize = objective_linearization(self.sk, objective, self.cam, self.kps)
         self.chains = {c.name: c for c in default_chains(self.sk)}
         self.plans = {n: ik_plan(self.sk, c) for n, c in self.chains.items()}
@@ -81,6 +93,7 @@ class Study:
 
     def polish(self, q, iterations):
         from ptrack.solvers import levenberg_marquardt
+
         return levenberg_marquardt(self.linearize, q, self.lower, self.upper, max_iter=iterations, tol=1e-8)
 
     def cost(self, q):
@@ -91,8 +104,9 @@ class Study:
         propose = spherical_proposal if kind == "SS" else css_proposal
         mean = self.q0[None] if mean is None else mean
         draws = propose(mean, chol[None], n, gen, tail=tail)
-        return project_to_limits(draws.samples.reshape(-1, self.q0.numel()), self.lower, self.upper, self.angular,
-                                 mode="clamp")
+        return project_to_limits(
+            draws.samples.reshape(-1, self.q0.numel()), self.lower, self.upper, self.angular, mode="clamp"
+        )
 
     def kjs(self, name, n, gen):
         """Leaves of the chosen flips from n // 8 starts (the start minimum + polished CSS draws)."""
@@ -135,15 +149,23 @@ class Study:
         idx = idx3 if idx3.numel() else idx[:0]  # distances and costs of minima: over the 3D-distinct ones
         white = torch.linalg.solve_triangular(self.chol1, (q_raw - self.q0).T, upper=False).T
         white_opt = torch.linalg.solve_triangular(self.chol1, d_opt.T, upper=False).T
-        return {"minima": int(n_q), "minima3d": int(idx3.numel()),
-                "dist_raw": float((q_raw - self.q0).norm(dim=-1).median()),
-                "dist_opt": float(d_opt[idx].norm(dim=-1).median()) if idx.numel() else float("nan"),
-                "std_raw": float(white.norm(dim=-1).median()),
-                "std_opt": float(white_opt[idx].norm(dim=-1).median()) if idx.numel() else float("nan"),
-                "cost_raw": float(c_raw.median()), "cost_opt": float(c_opt.median()),
-                "cost_minima": float(c_opt[idx].median()) if idx.numel() else float("nan"),
-                "hist": (d_opt[idx].norm(dim=-1), white_opt[idx].norm(dim=-1),
-                         (q_raw - self.q0).norm(dim=-1), white.norm(dim=-1))}
+        return {
+            "minima": int(n_q),
+            "minima3d": int(idx3.numel()),
+            "dist_raw": float((q_raw - self.q0).norm(dim=-1).median()),
+            "dist_opt": float(d_opt[idx].norm(dim=-1).median()) if idx.numel() else float("nan"),
+            "std_raw": float(white.norm(dim=-1).median()),
+            "std_opt": float(white_opt[idx].norm(dim=-1).median()) if idx.numel() else float("nan"),
+            "cost_raw": float(c_raw.median()),
+            "cost_opt": float(c_opt.median()),
+            "cost_minima": float(c_opt[idx].median()) if idx.numel() else float("nan"),
+            "hist": (
+                d_opt[idx].norm(dim=-1),
+                white_opt[idx].norm(dim=-1),
+                (q_raw - self.q0).norm(dim=-1),
+                white.norm(dim=-1),
+            ),
+        }
 
 
 def main():
@@ -178,10 +200,13 @@ def main():
         st = s.stats(q_raw, q_opt, c_raw, info.cost, args.distinct_deg)
         st.update(label=label, n=q_raw.shape[0], note=note, seconds=time.time() - t0)
         rows.append(st)
-        print(f"{label:28s} n={st['n']:5d} minima={st['minima']:5d}/{st['minima3d']:5d}"
-              f" dist {st['dist_raw']:.3f}/{st['dist_opt']:.3f}"
-              f" std {st['std_raw']:.2f}/{st['std_opt']:.2f} cost {st['cost_raw']:.3g}/{st['cost_opt']:.3g}"
-              f" ({st['seconds']:.0f} s)", flush=True)
+        print(
+            f"{label:28s} n={st['n']:5d} minima={st['minima']:5d}/{st['minima3d']:5d}"
+            f" dist {st['dist_raw']:.3f}/{st['dist_opt']:.3f}"
+            f" std {st['std_raw']:.2f}/{st['std_opt']:.2f} cost {st['cost_raw']:.3g}/{st['cost_opt']:.3g}"
+            f" ({st['seconds']:.0f} s)",
+            flush=True,
+        )
     write(args, s, rows, time.time() - t_start)
 
 
@@ -191,15 +216,21 @@ def write(args, s, rows, seconds):
     png = None
     try:
         import matplotlib
+
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+
         fig, axes = plt.subplots(2, 2, figsize=(11, 7))
         for r in rows:
             for ax, h in zip(axes.flat, (r["hist"][2], r["hist"][3], r["hist"][0], r["hist"][1])):
                 if h.numel():  # x range: up to the 95th percentile (Cauchy tails reach far)
                     ax.hist(h.clamp_max(h.quantile(0.95)).numpy(), bins=30, histtype="step", label=r["label"])
-        titles = ("raw samples: parameter distance (rad/m)", "raw samples: Mahalanobis distance (std)",
-                  "3D-distinct minima: parameter distance (rad/m)", "3D-distinct minima: Mahalanobis distance (std)")
+        titles = (
+            "raw samples: parameter distance (rad/m)",
+            "raw samples: Mahalanobis distance (std)",
+            "3D-distinct minima: parameter distance (rad/m)",
+            "3D-distinct minima: Mahalanobis distance (std)",
+        )
         for ax, t in zip(axes.flat, titles):
             ax.set_title(t, fontsize=9)
             ax.set_ylabel("count")
@@ -236,14 +267,22 @@ def write(args, s, rows, seconds):
         "",
         "| method | samples | distinct minima (q / 3D) | median dist raw / opt | median std raw / opt "
         "| median cost raw | median cost opt (all / minima) | note |",
-        "|---|---|---|---|---|---|---|---|"]
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        lines.append(f"| {r['label']} | {r['n']} | {r['minima']} / {r['minima3d']} "
-                     f"| {r['dist_raw']:.3f} / {r['dist_opt']:.3f} | "
-                     f"{r['std_raw']:.2f} / {r['std_opt']:.2f} | {r['cost_raw']:.3g} | "
-                     f"{r['cost_opt']:.3g} / {r['cost_minima']:.3g} | {r['note']} |")
-    lines += ["", "![histograms](table1_hist.png)" if png else
-              "(matplotlib is not installed: no histograms written.)", "", "## Reading", ""]
+        lines.append(
+            f"| {r['label']} | {r['n']} | {r['minima']} / {r['minima3d']} "
+            f"| {r['dist_raw']:.3f} / {r['dist_opt']:.3f} | "
+            f"{r['std_raw']:.2f} / {r['std_opt']:.2f} | {r['cost_raw']:.3g} | "
+            f"{r['cost_opt']:.3g} / {r['cost_minima']:.3g} | {r['note']} |"
+        )
+    lines += [
+        "",
+        "![histograms](table1_hist.png)" if png else "(matplotlib is not installed: no histograms written.)",
+        "",
+        "## Reading",
+        "",
+    ]
     md = out / "table1.md"  # the reading is written by hand: a rerun keeps the existing one
     old = md.read_text().split("## Reading\n", 1) if md.exists() else []
     reading = old[1].lstrip("\n") if len(old) == 2 else "(not written yet: compare the table with the paper's)\n"

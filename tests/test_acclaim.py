@@ -15,13 +15,42 @@ from ptrack.errors import InputError
 # Every file of ../shared/data/cmu, with the frame counts its README lists.
 CMU_SUBJECTS = ("01", "02", "05", "07", "09", "10", "16", "35", "49", "64", "118", "124", "131", "135")
 CMU_FRAMES = {
-    "01_01": 2751, "02_01": 343, "02_03": 173, "02_04": 483, "02_05": 1854, "02_07": 2251,
-    "05_02": 1123, "05_04": 1199, "05_07": 1191, "07_05": 517, "09_06": 141,
-    "10_01": 801, "10_02": 590, "10_03": 362, "16_01": 322, "16_03": 410, "16_05": 295,
-    "35_01": 358, "49_18": 1102, "49_19": 957,
-    "64_01": 448, "64_02": 493, "64_04": 412, "64_05": 387, "64_06": 529, "64_08": 364, "64_09": 452,
-    "118_01": 714, "118_02": 685, "118_03": 497, "124_01": 643,
-    "131_03": 1102, "131_07": 691, "131_09": 2293, "135_04": 1316, "135_07": 1472,
+    "01_01": 2751,
+    "02_01": 343,
+    "02_03": 173,
+    "02_04": 483,
+    "02_05": 1854,
+    "02_07": 2251,
+    "05_02": 1123,
+    "05_04": 1199,
+    "05_07": 1191,
+    "07_05": 517,
+    "09_06": 141,
+    "10_01": 801,
+    "10_02": 590,
+    "10_03": 362,
+    "16_01": 322,
+    "16_03": 410,
+    "16_05": 295,
+    "35_01": 358,
+    "49_18": 1102,
+    "49_19": 957,
+    "64_01": 448,
+    "64_02": 493,
+    "64_04": 412,
+    "64_05": 387,
+    "64_06": 529,
+    "64_08": 364,
+    "64_09": 452,
+    "118_01": 714,
+    "118_02": 685,
+    "118_03": 497,
+    "124_01": 643,
+    "131_03": 1102,
+    "131_07": 691,
+    "131_09": 2293,
+    "135_04": 1316,
+    "135_07": 1472,
 }
 LF_SUBJECTS = {"05", "07", "09", "131", "135"}  # the README's LF-ending skeletons; the rest are CRLF
 
@@ -127,7 +156,7 @@ def test_mini_asf_infinite_limits_and_radians(tmp_path):
 
 def _replace(lines: list[str], old: str, new: str) -> list[str]:
     i = _line_of(lines, old) - 1
-    return lines[:i] + [lines[i].replace(old, new)] + lines[i + 1:]
+    return lines[:i] + [lines[i].replace(old, new)] + lines[i + 1 :]
 
 
 def _at(text: str, delta: int = 0):
@@ -138,34 +167,52 @@ def _at(text: str, delta: int = 0):
 MALFORMED_ASF = {
     # name: (edit of MINI_ASF, the line the message must name, words the message must contain)
     "bad number in direction": (
-        lambda L: _replace(L, "direction 0 -1 0", "direction 0 -1.0.0 0"), _at("-1.0.0"), "numbers"),
+        lambda L: _replace(L, "direction 0 -1 0", "direction 0 -1.0.0 0"),
+        _at("-1.0.0"),
+        "numbers",
+    ),
     "too few numbers in direction": (
-        lambda L: _replace(L, "direction 0 -1 0", "direction 0 -1"), _at("direction 0 -1"), "expected 3"),
+        lambda L: _replace(L, "direction 0 -1 0", "direction 0 -1"),
+        _at("direction 0 -1"),
+        "expected 3",
+    ),
     "nan length": (lambda L: _replace(L, "length 3.0", "length nan"), _at("length nan"), "non-finite"),
     "limits count mismatch": (  # named at the bone's `begin` line
-        lambda L: [ln for ln in L if "(-60.0 70.0)" not in ln], _at("id 1", -1), "3 dofs but 2 limits"),
+        lambda L: [ln for ln in L if "(-60.0 70.0)" not in ln],
+        _at("id 1", -1),
+        "3 dofs but 2 limits",
+    ),
     "too many limits": (
-        lambda L: _replace(L, "limits (0.0 170.0)", "limits (0.0 170.0)\n    (1 2)"), _at("(1 2)"), "(1"),
+        lambda L: _replace(L, "limits (0.0 170.0)", "limits (0.0 170.0)\n    (1 2)"),
+        _at("(1 2)"),
+        "(1",
+    ),
     "limits reversed": (lambda L: _replace(L, "(0.0 170.0)", "(170.0 0.0)"), _at("(170.0 0.0)"), "above"),
-    "limits not a pair": (
-        lambda L: _replace(L, "(0.0 170.0)", "(0.0 170.0 3)"), _at("(0.0 170.0 3)"), "(lo hi)"),
+    "limits not a pair": (lambda L: _replace(L, "(0.0 170.0)", "(0.0 170.0 3)"), _at("(0.0 170.0 3)"), "(lo hi)"),
     "unknown dof": (lambda L: _replace(L, "dof rx ry rz", "dof rx ry rq"), _at("dof rx ry rq"), "rq"),
     "unknown bone field": (lambda L: _replace(L, "id 2", "colour 2"), _at("colour 2"), "colour"),
     "unknown bone in hierarchy": (lambda L: _replace(L, "hip knee", "hip kneee"), _at("hip kneee"), "kneee"),
     "unknown parent in hierarchy": (lambda L: _replace(L, "hip knee", "hipp knee"), _at("hipp knee"), "hipp"),
     "unclosed begin block": (  # hip's `end` removed: knee's `begin` comes inside hip's block
-        lambda L: L[: _line_of(L, "id 2") - 3] + L[_line_of(L, "id 2") - 2:], _at("id 2", -1), "'begin' inside"),
+        lambda L: L[: _line_of(L, "id 2") - 3] + L[_line_of(L, "id 2") - 2 :],
+        _at("id 2", -1),
+        "'begin' inside",
+    ),
     "unclosed last block": (  # knee's `end` removed: named at knee's `begin`
-        lambda L: L[: _line_of(L, ":hierarchy") - 2] + L[_line_of(L, ":hierarchy") - 1:],
-        _at("id 2", -1), "never closed"),
+        lambda L: L[: _line_of(L, ":hierarchy") - 2] + L[_line_of(L, ":hierarchy") - 1 :],
+        _at("id 2", -1),
+        "never closed",
+    ),
     "content before first keyword": (lambda L: ["hello"] + L, _at("hello"), "before the first"),
     "bad units length": (lambda L: _replace(L, "length 0.45", "length -0.45"), _at("length -0.45"), "positive"),
     "bad units angle": (lambda L: _replace(L, "angle deg", "angle grad"), _at("angle grad"), "deg or rad"),
-    "bad axis order": (
-        lambda L: _replace(L, "axis 0 0 20 XYZ", "axis 0 0 20 XYY"), _at("axis 0 0 20 XYY"), "XYY"),
+    "bad axis order": (lambda L: _replace(L, "axis 0 0 20 XYZ", "axis 0 0 20 XYY"), _at("axis 0 0 20 XYY"), "XYY"),
     "bad root order": (lambda L: _replace(L, "order TX TY", "order TX QY"), _at("order TX QY"), "root order"),
     "data outside a block": (
-        lambda L: _replace(L, ":bonedata", ":bonedata\n  name stray"), _at("name stray"), "outside"),
+        lambda L: _replace(L, ":bonedata", ":bonedata\n  name stray"),
+        _at("name stray"),
+        "outside",
+    ),
 }
 
 

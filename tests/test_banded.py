@@ -30,7 +30,7 @@ def random_banded(b: int, t_len: int, d: int, w: int, diagonal_coupling: bool, s
 
 
 def diagonal_blocks(m: torch.Tensor, t_len: int, d: int) -> torch.Tensor:
-    return torch.stack([m[..., t * d:(t + 1) * d, t * d:(t + 1) * d] for t in range(t_len)], dim=-3)
+    return torch.stack([m[..., t * d : (t + 1) * d, t * d : (t + 1) * d] for t in range(t_len)], dim=-3)
 
 
 @pytest.mark.parametrize("w", [1, 2, 3])
@@ -128,8 +128,13 @@ def curve_problem(b: int, t_len: int, seed: int = 0):
     acceleration prior: a small nonlinear least-squares problem whose normal equations are
     block-pentadiagonal. -> truth (B, T, 2), linearize(q, obs) -> (BandedLinearization, dense H), obs."""
     g = torch.Generator().manual_seed(seed)
-    truth = torch.stack([torch.linspace(0, 2, t_len, dtype=F64).expand(b, t_len),
-                         1.0 + 0.3 * torch.rand(b, t_len, generator=g, dtype=F64)], -1)
+    truth = torch.stack(
+        [
+            torch.linspace(0, 2, t_len, dtype=F64).expand(b, t_len),
+            1.0 + 0.3 * torch.rand(b, t_len, generator=g, dtype=F64),
+        ],
+        -1,
+    )
     obs = measure(truth) + 0.01 * torch.randn(b, t_len, 2, generator=g, dtype=F64)
     a = torch.tensor([3.0, 5.0], dtype=F64)  # acceleration weights per dof
 

@@ -43,13 +43,13 @@ def solve(*overrides: str):
 
 def mpjpe_mm(prep, est) -> float:
     idx = prep.problem.keypoints.index()
-    return float(M.mpjpe(est.joints.index_select(-2, idx), prep.gt_joints.to(est.joints).index_select(-2, idx),
-                         root=0).mean())
+    return float(
+        M.mpjpe(est.joints.index_select(-2, idx), prep.gt_joints.to(est.joints).index_select(-2, idx), root=0).mean()
+    )
 
 
 def test_noise_free_clip_is_recovered_from_keyframes():
-    _, prep, est = solve("observations.noise_px=0", "observations.missing=0", "keyframes.every_s=0.5",
-                         "dtype=float64")
+    _, prep, est = solve("observations.noise_px=0", "observations.missing=0", "keyframes.every_s=0.5", "dtype=float64")
     assert mpjpe_mm(prep, est) < 12.0
     # what is left is the smoothing prior's energy of the clip's own motion: ~18% of the start's with the
     # per-dof scales of real motion (batch.prior: cmu), ~5% with one scale for all dofs
@@ -79,11 +79,14 @@ def test_partial_angle_and_joint_keyframes(tmp_path):
     sk, gt_q, gt_j = prep.problem.skeleton, prep.gt_q, prep.gt_joints
     lf = [i for i, n in enumerate(sk.dof_names) if n.startswith(("lfemur", "ltibia"))]
     rhand = sk.joint_names.index("rwrist")
-    kf = {"units": "radians", "keyframes": [
-        {"frame": 0, "q": [float(v) for v in gt_q[0]]},
-        {"frame": 30, "dofs": {sk.dof_names[i]: float(gt_q[30, i]) for i in lf}, "sigma_deg": 0.5},
-        {"frame": 25, "joints": {"rwrist": [float(v) for v in gt_j[25, rhand]]}, "sigma_m": 0.005},
-    ]}
+    kf = {
+        "units": "radians",
+        "keyframes": [
+            {"frame": 0, "q": [float(v) for v in gt_q[0]]},
+            {"frame": 30, "dofs": {sk.dof_names[i]: float(gt_q[30, i]) for i in lf}, "sigma_deg": 0.5},
+            {"frame": 25, "joints": {"rwrist": [float(v) for v in gt_j[25, rhand]]}, "sigma_m": 0.005},
+        ],
+    }
     path = tmp_path / "keys.json"
     path.write_text(json.dumps(kf))
     angles, joints = read_keyframes(path, sk, prep.problem.observations.num_frames, 2.0, 0.02)
@@ -156,8 +159,17 @@ def test_accuracy_on_a_clip_not_tuned_on(cmu_file):
     40.6 / 36.4 mm), acceleration error 4.8 mm/f^2 against 46.2 for `method: frame` on the same
     observations; the other held-out clips are in docs/results.md."""
     amc, asf = cmu_file("35_01.amc"), cmu_file("35.asf")
-    cfg = load_config(BATCH, [f"data.amc={amc}", f"data.asf={asf}", "data.stop=360", "progress=false",
-                              "batch.uncertainty=false", "keyframes.every_s=1"])
+    cfg = load_config(
+        BATCH,
+        [
+            f"data.amc={amc}",
+            f"data.asf={asf}",
+            "data.stop=360",
+            "progress=false",
+            "batch.uncertainty=false",
+            "keyframes.every_s=1",
+        ],
+    )
     prep = prepare(cfg)
     est = estimate_batch(prep.problem, cfg, torch.Generator())
     idx = prep.problem.keypoints.index()
@@ -178,15 +190,18 @@ def _fail(capsys, out: Path, argv: list[str], *fragments: str) -> None:
     assert not out.exists()
 
 
-@pytest.mark.parametrize("text, suffix, fragments", [
-    ("keyframes:\n  - frame: 999\n    dofs: {lfemur.rx: 10}\n", ".yaml", ["frame 999", "outside the sequence"]),
-    ("keyframes:\n  - frame: 3\n    dofs: {lfemur.qq: 10}\n", ".yaml", ["unknown dof", "lfemur.qq"]),
-    ("keyframes:\n  - frame: 3\n    joints: {nose: [0, 1, 2]}\n", ".yaml", ["unknown joint", "nose"]),
-    ("keyframes:\n  - frame: 3\n    dofs: {lfemur.rx: 10}\n    sigma_deg: 0\n", ".yaml", ["sigma_deg", "> 0"]),
-    ("keyframes:\n  - frame: 3\n    joints: {lwrist: [0, 1, 2]}\n    sigma_m: -1\n", ".yaml", ["sigma_m"]),
-    ("keyframes: [ {frame: 3, dofs: {lfemur.rx: 1}\n", ".yaml", ["not valid YAML"]),
-    ('{"keyframes": [{"frame": 3,}]}', ".json", ["not valid JSON"]),
-])
+@pytest.mark.parametrize(
+    "text, suffix, fragments",
+    [
+        ("keyframes:\n  - frame: 999\n    dofs: {lfemur.rx: 10}\n", ".yaml", ["frame 999", "outside the sequence"]),
+        ("keyframes:\n  - frame: 3\n    dofs: {lfemur.qq: 10}\n", ".yaml", ["unknown dof", "lfemur.qq"]),
+        ("keyframes:\n  - frame: 3\n    joints: {nose: [0, 1, 2]}\n", ".yaml", ["unknown joint", "nose"]),
+        ("keyframes:\n  - frame: 3\n    dofs: {lfemur.rx: 10}\n    sigma_deg: 0\n", ".yaml", ["sigma_deg", "> 0"]),
+        ("keyframes:\n  - frame: 3\n    joints: {lwrist: [0, 1, 2]}\n    sigma_m: -1\n", ".yaml", ["sigma_m"]),
+        ("keyframes: [ {frame: 3, dofs: {lfemur.rx: 1}\n", ".yaml", ["not valid YAML"]),
+        ('{"keyframes": [{"frame": 3,}]}', ".json", ["not valid JSON"]),
+    ],
+)
 def test_bad_keyframe_files(tmp_path, capsys, text, suffix, fragments):
     path = tmp_path / f"keys{suffix}"
     path.write_text(text)
@@ -196,10 +211,20 @@ def test_bad_keyframe_files(tmp_path, capsys, text, suffix, fragments):
 
 def test_bad_init_from(tmp_path, capsys):
     out = tmp_path / "out"
-    _fail(capsys, out, ["run", str(BATCH), *SHORT, f"init_from={tmp_path}", f"out_dir={out}"], str(tmp_path),
-          "not a run folder")
+    _fail(
+        capsys,
+        out,
+        ["run", str(BATCH), *SHORT, f"init_from={tmp_path}", f"out_dir={out}"],
+        str(tmp_path),
+        "not a run folder",
+    )
     short = tmp_path / "short"
     assert main(["run", str(BATCH), "data.stop=120", *SHORT[1:], f"out_dir={short}"]) == 0
     _fail(capsys, out, ["run", str(BATCH), *SHORT, f"init_from={short}", f"out_dir={out}"], str(short), "frames")
-    _fail(capsys, out, ["run", str(BATCH), *SHORT, f"init_from={short}", "model.freeze=[]", f"out_dir={out}",
-                        "data.stop=120"], str(short), "dofs")
+    _fail(
+        capsys,
+        out,
+        ["run", str(BATCH), *SHORT, f"init_from={short}", "model.freeze=[]", f"out_dir={out}", "data.stop=120"],
+        str(short),
+        "dofs",
+    )

@@ -20,9 +20,7 @@ def _rot_y(angle: float) -> torch.Tensor:
 
 def _camera(dtype=torch.float64) -> Camera:
     K = torch.tensor([[500.0, 0.0, 320.0], [0.0, 400.0, 240.0], [0.0, 0.0, 1.0]])
-    return Camera(K=K, R=_rot_y(0.3), t=torch.tensor([0.1, -0.2, 4.0]), width=640, height=480).to(
-        dtype=dtype
-    )
+    return Camera(K=K, R=_rot_y(0.3), t=torch.tensor([0.1, -0.2, 4.0]), width=640, height=480).to(dtype=dtype)
 
 
 def _random_points(gen: torch.Generator, shape, cam: Camera, dtype=torch.float64) -> torch.Tensor:
@@ -77,8 +75,11 @@ def test_agrees_with_kornia_in_front():
 
 def test_array_likes_are_converted_and_dtypes_promoted():
     cam = Camera(
-        K=[[10, 0, 5], [0, 10, 5], [0, 0, 1]], R=torch.eye(3, dtype=torch.float64), t=[0, 0, 1],
-        width=10, height=10,
+        K=[[10, 0, 5], [0, 10, 5], [0, 0, 1]],
+        R=torch.eye(3, dtype=torch.float64),
+        t=[0, 0, 1],
+        width=10,
+        height=10,
     )
     assert cam.K.dtype == cam.R.dtype == cam.t.dtype == torch.float64
     assert cam.device == torch.device("cpu")
@@ -331,9 +332,7 @@ def test_look_at_azimuth_and_elevation_geometry():
     # positive elevation looks down: optical axis (third row of R) has a negative world-Y component
     assert look_at(target, d, 30.0, 20.0, 500.0, 64, 48).R[2, 1] < 0
     # azimuth 0, elevation 0: image x is world +X
-    torch.testing.assert_close(
-        look_at(target, d, 0.0, 0.0, 500.0, 64, 48).R[0], _f64([1.0, 0.0, 0.0])
-    )
+    torch.testing.assert_close(look_at(target, d, 0.0, 0.0, 500.0, 64, 48).R[0], _f64([1.0, 0.0, 0.0]))
 
 
 @pytest.mark.parametrize("az", [0.0, 90.0, 225.0])

@@ -76,8 +76,13 @@ def test_run_success(tmp_path, capsys):
     assert metrics == json.loads((out / "metrics.json").read_text())
     assert metrics["frames"] == 12 and metrics["mpjpe_mm"] > 0
     assert "Traceback" not in captured.err and "error" not in captured.err
-    assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "metrics.json", "result.bvh", "result.npz",
-                                                     "run.rrd"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "config.yaml",
+        "metrics.json",
+        "result.bvh",
+        "result.npz",
+        "run.rrd",
+    ]
 
 
 def test_run_from_observation_file(tmp_path, capsys, obs_arrays):
@@ -112,10 +117,13 @@ def test_missing_amc(tmp_path, capsys):
     _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.amc={tmp_path / 'gone.amc'}"), "gone.amc")
 
 
-@pytest.mark.parametrize("text", [
-    "hello world\n:bonedata\n begin\n name x\n",  # not ASF at all
-    None,  # a real ASF cut off in the middle of :bonedata
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "hello world\n:bonedata\n begin\n name x\n",  # not ASF at all
+        None,  # a real ASF cut off in the middle of :bonedata
+    ],
+)
 def test_malformed_asf(tmp_path, capsys, text):
     bad = tmp_path / "broken.asf"
     full = ASF.read_text()
@@ -147,13 +155,16 @@ def test_unknown_key(tmp_path, capsys):
     _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "camera.fov=60"), "camera.fov")
 
 
-@pytest.mark.parametrize("override, key", [
-    ("camera.focal_px=abc", "camera.focal_px"),
-    ("data.stride=1.5", "data.stride"),
-    ("data.stride=true", "data.stride"),
-    ("seed=null", "seed"),
-    ("data.stop=abc", "data.stop"),  # an int-or-null key given a string
-])
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("camera.focal_px=abc", "camera.focal_px"),
+        ("data.stride=1.5", "data.stride"),
+        ("data.stride=true", "data.stride"),
+        ("seed=null", "seed"),
+        ("data.stop=abc", "data.stop"),  # an int-or-null key given a string
+    ],
+)
 def test_wrong_type(tmp_path, capsys, override, key):
     _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", override), key)
 
@@ -171,11 +182,18 @@ def test_keypoints_npz_of_wrong_shape(tmp_path, capsys, obs_arrays):
     kp = obs_arrays["keypoints"]
     path = _save(tmp_path / "flat.npz", obs_arrays, keypoints=kp[..., :1])
     _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "flat.npz", "keypoints")
-    path = _save(tmp_path / "k16.npz", obs_arrays, keypoints=kp[:, :16], confidence=obs_arrays["confidence"][:, :16],
-                 keypoint_names=obs_arrays["keypoint_names"][:16])
+    path = _save(
+        tmp_path / "k16.npz",
+        obs_arrays,
+        keypoints=kp[:, :16],
+        confidence=obs_arrays["confidence"][:, :16],
+        keypoint_names=obs_arrays["keypoint_names"][:16],
+    )
     _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "keypoint")
-    path = _save(tmp_path / "short.npz", {k: v[:5] if k in ("keypoints", "confidence", "times") else v
-                                          for k, v in obs_arrays.items()})
+    path = _save(
+        tmp_path / "short.npz",
+        {k: v[:5] if k in ("keypoints", "confidence", "times") else v for k, v in obs_arrays.items()},
+    )
     _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "short.npz", "5 frames")
 
 
@@ -184,8 +202,7 @@ def test_nan_keypoints_with_confidence(tmp_path, capsys, obs_arrays):
     kp[3, 5] = np.nan
     assert obs_arrays["confidence"][3, 5] > 0
     path = _save(tmp_path / "nan.npz", obs_arrays, keypoints=kp)
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "nan.npz", "NaN",
-          "frame 3")
+    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "nan.npz", "NaN", "frame 3")
     # NaN where confidence is 0 is allowed
     conf = obs_arrays["confidence"].copy()
     conf[3, 5] = 0
@@ -256,8 +273,13 @@ def test_console_script_exit_code(tmp_path):
     if exe is None:
         pytest.skip("the ptrack console script is not installed")
     out = tmp_path / "o"
-    proc = subprocess.run([exe, *_run_argv(out, f"data.amc={tmp_path / 'gone.amc'}")], capture_output=True,
-                          text=True, timeout=120, cwd=tmp_path)
+    proc = subprocess.run(
+        [exe, *_run_argv(out, f"data.amc={tmp_path / 'gone.amc'}")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+    )
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines() == [f"ptrack: error: AMC file not found: {tmp_path / 'gone.amc'}"]
@@ -285,8 +307,9 @@ def test_estimator_failure_is_one_line_and_exit_1(tmp_path, capsys, monkeypatch)
 
 
 def _cli(*argv: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "ptrack.cli", *argv], capture_output=True, text=True, timeout=300,
-                          cwd=cwd)
+    return subprocess.run(
+        [sys.executable, "-m", "ptrack.cli", *argv], capture_output=True, text=True, timeout=300, cwd=cwd
+    )
 
 
 def test_flags_and_overrides_in_any_order(tmp_path):
@@ -296,8 +319,18 @@ def test_flags_and_overrides_in_any_order(tmp_path):
     proc = _cli("run", str(DEMO), "seed=3", "--quiet", *FAST, f"out_dir={out}", "data.amc=gone.amc", cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().splitlines() == [f"ptrack: error: AMC file not found: {tmp_path / 'gone.amc'}"]
-    proc = _cli("evaluate", str(DEMO), "--clips", str(AMC), "--out", str(out), "data.stop=40", "--quiet",
-                "camera.fov=60", cwd=tmp_path)
+    proc = _cli(
+        "evaluate",
+        str(DEMO),
+        "--clips",
+        str(AMC),
+        "--out",
+        str(out),
+        "data.stop=40",
+        "--quiet",
+        "camera.fov=60",
+        cwd=tmp_path,
+    )
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("ptrack: error: unknown config key 'camera.fov'"), proc.stderr
@@ -322,16 +355,26 @@ def test_unwritable_out_dir_is_one_line_before_the_run(tmp_path):
     proc = _cli("run", str(DEMO), *FAST, f"out_dir={out}", cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().splitlines() == [
-        f"ptrack: error: out_dir {out} cannot be made: {tmp_path / 'file'} is a file, not a folder"]
+        f"ptrack: error: out_dir {out} cannot be made: {tmp_path / 'file'} is a file, not a folder"
+    ]
     assert proc.stdout == "" and sorted(p.name for p in tmp_path.iterdir()) == ["file"]
 
 
-@pytest.mark.parametrize("args, line", [
-    (['model.freeze=["*"]'], "ptrack: error: config key 'model.freeze' ['*'] freezes every dof of " + str(ASF)
-     + "; nothing is left to estimate"),
-    (["seed=99999999999999999999999"],
-     "ptrack: error: config key 'seed' must be between -2**63 and 2**63 - 1, got 99999999999999999999999"),
-])
+@pytest.mark.parametrize(
+    "args, line",
+    [
+        (
+            ['model.freeze=["*"]'],
+            "ptrack: error: config key 'model.freeze' ['*'] freezes every dof of "
+            + str(ASF)
+            + "; nothing is left to estimate",
+        ),
+        (
+            ["seed=99999999999999999999999"],
+            "ptrack: error: config key 'seed' must be between -2**63 and 2**63 - 1, got 99999999999999999999999",
+        ),
+    ],
+)
 def test_former_tracebacks_are_one_line(tmp_path, args, line):
     out = tmp_path / "o"
     proc = _cli("run", str(DEMO), *FAST, *args, f"out_dir={out}", cwd=tmp_path)
@@ -358,19 +401,34 @@ def test_garbage_observation_file_is_not_an_npz(tmp_path):
 @pytest.mark.parametrize("key", ["missing", "dropped_frames"])
 def test_channel_rate_of_one_names_the_config_key(tmp_path, capsys, key):
     # the config accepts what the channel accepts: one interval, one message, naming the config key
-    line = _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.{key}=1.0"),
-                 f"config key 'observations.{key}' must be a number in [0, 1), got 1.0")
+    line = _fail(
+        capsys,
+        tmp_path / "o",
+        _run_argv(tmp_path / "o", f"observations.{key}=1.0"),
+        f"config key 'observations.{key}' must be a number in [0, 1), got 1.0",
+    )
     assert "ChannelConfig" not in line
 
 
 def test_observation_file_warns_about_ignored_channel_settings(tmp_path, obs_arrays):
     path = _save(tmp_path / "obs.npz", obs_arrays)
     out = tmp_path / "o"
-    proc = _cli("run", str(DEMO), *FAST, "frame.iterations=3", "frame.first_iterations=5", "observations.missing=0",
-                "observations.noise_px=5", f"observations.file={path}", f"out_dir={out}", cwd=tmp_path)
+    proc = _cli(
+        "run",
+        str(DEMO),
+        *FAST,
+        "frame.iterations=3",
+        "frame.first_iterations=5",
+        "observations.missing=0",
+        "observations.noise_px=5",
+        f"observations.file={path}",
+        f"out_dir={out}",
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr.strip().splitlines() == [
-        "ptrack: WARNING: observations.file is given, so observations.noise_px (for simulated observations) is ignored"]
+        "ptrack: WARNING: observations.file is given, so observations.noise_px (for simulated observations) is ignored"
+    ]
     assert out.is_dir()
 
 
@@ -380,11 +438,21 @@ def test_amc_override_runs_with_the_skeleton_beside_it(tmp_path):
     for f in (ASF, AMC):
         (sub / f.name).write_bytes(f.read_bytes())
     out = tmp_path / "o"
-    proc = _cli("run", str(DEMO), *FAST, "frame.iterations=3", "frame.first_iterations=5",
-                f"data.amc={sub / AMC.name}", f"out_dir={out}", cwd=tmp_path)
+    proc = _cli(
+        "run",
+        str(DEMO),
+        *FAST,
+        "frame.iterations=3",
+        "frame.first_iterations=5",
+        f"data.amc={sub / AMC.name}",
+        f"out_dir={out}",
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr
-    assert proc.stderr.strip().splitlines() == [f"ptrack: WARNING: data.amc is {sub / AMC.name}: using the skeleton "
-                                                f"beside it, {sub / ASF.name} (set data.asf to choose another)"]
+    assert proc.stderr.strip().splitlines() == [
+        f"ptrack: WARNING: data.amc is {sub / AMC.name}: using the skeleton "
+        f"beside it, {sub / ASF.name} (set data.asf to choose another)"
+    ]
     assert load_config(out / "config.yaml").data.asf == str(sub / ASF.name)
 
 
@@ -395,14 +463,16 @@ def test_camera_that_sees_little_warns_and_too_little_is_refused(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr.strip().splitlines() == [
         "ptrack: WARNING: the camera sees only 41% of the keypoints (visible_fraction 0.412): the estimate rests on "
-        "few observations"]
+        "few observations"
+    ]
     assert json.loads((out / "metrics.json").read_text())["visible_fraction"] == pytest.approx(7 / 17)
     out = tmp_path / "o2"
     proc = _cli("run", str(DEMO), *quick, "camera.focal_px=6000", f"out_dir={out}", cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().splitlines() == [
         "ptrack: error: the camera sees too little: 0 of 12 frames have at least a third of the keypoints visible "
-        "(3 are needed; visible_fraction 0.294); check camera.* or the observations"]
+        "(3 are needed; visible_fraction 0.294); check camera.* or the observations"
+    ]
     assert not out.exists()
 
 
@@ -418,17 +488,32 @@ def test_stdout_is_the_run_folder_or_the_json_and_progress_only_on_a_terminal(tm
     proc = _cli("run", str(DEMO), *quick, f"out_dir={tmp_path / 'j'}", "--json", cwd=tmp_path)
     assert proc.returncode == 0 and proc.stderr == ""
     assert json.loads(proc.stdout) == json.loads((tmp_path / "j" / "metrics.json").read_text())
-    proc = _cli("evaluate", str(DEMO), *quick, "--clips", str(AMC), "--out", str(tmp_path / "e"), "--json",
-                cwd=tmp_path)
+    proc = _cli(
+        "evaluate", str(DEMO), *quick, "--clips", str(AMC), "--out", str(tmp_path / "e"), "--json", cwd=tmp_path
+    )
     assert proc.returncode == 0, proc.stderr
     assert list(json.loads(proc.stdout)) == ["10_02"]
     assert proc.stderr.splitlines() == ["ptrack: INFO: clip 1 of 1: 10_02"]  # one short line per clip, no bar
 
 
 def test_closed_stdout_is_not_a_traceback(tmp_path):
-    proc = subprocess.Popen([sys.executable, "-m", "ptrack.cli", "run", str(DEMO), *FAST, "frame.iterations=3",
-                             "frame.first_iterations=5", f"out_dir={tmp_path / 'o'}", "--json"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "ptrack.cli",
+            "run",
+            str(DEMO),
+            *FAST,
+            "frame.iterations=3",
+            "frame.first_iterations=5",
+            f"out_dir={tmp_path / 'o'}",
+            "--json",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=tmp_path,
+    )
     proc.stdout.close()  # the reader has gone before the run prints
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=300) == 141, err
@@ -439,18 +524,25 @@ def test_closed_stdout_is_not_a_traceback(tmp_path):
 
 
 def test_help_and_version_do_not_load_torch(tmp_path):
-    code = ("import sys\nfrom ptrack.cli import main\n"
-            "for argv in (['--help'], ['--version'], ['run', '--help'], ['evaluate', '--help'],"
-            " ['replay', '--help']):\n"
-            "    try:\n        main(argv)\n    except SystemExit as e:\n        assert e.code == 0, (argv, e.code)\n"
-            "import ptrack\nprint(sorted(m for m in ('torch', 'numpy', 'yaml', 'rerun') if m in sys.modules))")
+    code = (
+        "import sys\nfrom ptrack.cli import main\n"
+        "for argv in (['--help'], ['--version'], ['run', '--help'], ['evaluate', '--help'],"
+        " ['replay', '--help']):\n"
+        "    try:\n        main(argv)\n    except SystemExit as e:\n        assert e.code == 0, (argv, e.code)\n"
+        "import ptrack\nprint(sorted(m for m in ('torch', 'numpy', 'yaml', 'rerun') if m in sys.modules))"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.splitlines()[-1] == "[]"
     assert f"ptrack {__import__('ptrack').__version__}" in proc.stdout
     # the package's names still come on first use
-    proc = subprocess.run([sys.executable, "-c", "import ptrack; print(ptrack.Skeleton.__module__, ptrack.InputError)"],
-                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    proc = subprocess.run(
+        [sys.executable, "-c", "import ptrack; print(ptrack.Skeleton.__module__, ptrack.InputError)"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+    )
     assert proc.stdout.split()[0] == "ptrack.skeleton", proc.stderr
 
 
@@ -473,8 +565,14 @@ def test_replay_without_a_display_says_how_to_view_the_run(tmp_path):
     run_dir.mkdir()
     (run_dir / "run.rrd").write_bytes(b"")
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    proc = subprocess.run([sys.executable, "-m", "ptrack.cli", "replay", str(run_dir)], capture_output=True, text=True,
-                          timeout=120, cwd=tmp_path, env=env)
+    proc = subprocess.run(
+        [sys.executable, "-m", "ptrack.cli", "replay", str(run_dir)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+        env=env,
+    )
     assert proc.returncode == 2 and proc.stdout == ""
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("ptrack: error: no display here"), proc.stderr
@@ -493,7 +591,7 @@ def test_replay_web_serves_on_localhost_and_prints_the_address(tmp_path, capsys,
 
     monkeypatch.setattr(subprocess, "run", fake_run)
     assert main(["replay", str(run_dir), "--web"]) == 0
-    (cmd, env), = calls
+    ((cmd, env),) = calls
     assert cmd[cmd.index("--bind") + 1] == "127.0.0.1" and "--serve-web" in cmd and str(run_dir / "run.rrd") in cmd
     assert env["RUST_LOG"] == "warn"  # no rerun banner
     out = capsys.readouterr().out

@@ -43,11 +43,13 @@ def _point_segment(x, a, b):
 def _reference(p0, p1, q0, q1):
     """Independent exact distance: the minimum of a convex quadratic over the unit square is at its
     interior critical point or on an edge (a point-to-segment distance)."""
-    edges = torch.stack([_point_segment(p0, q0, q1), _point_segment(p1, q0, q1),
-                         _point_segment(q0, p0, p1), _point_segment(q1, p0, p1)]).amin(0)
+    edges = torch.stack(
+        [_point_segment(p0, q0, q1), _point_segment(p1, q0, q1), _point_segment(q0, p0, p1), _point_segment(q1, p0, p1)]
+    ).amin(0)
     u, v, w = p1 - p0, q1 - q0, p0 - q0
-    m = torch.stack([torch.stack([(u * u).sum(-1), -(u * v).sum(-1)], -1),
-                     torch.stack([-(u * v).sum(-1), (v * v).sum(-1)], -1)], -2)
+    m = torch.stack(
+        [torch.stack([(u * u).sum(-1), -(u * v).sum(-1)], -1), torch.stack([-(u * v).sum(-1), (v * v).sum(-1)], -1)], -2
+    )
     rhs = torch.stack([-(u * w).sum(-1), (v * w).sum(-1)], -1)
     ok = torch.linalg.det(m).abs() > 1e-9 * (u * u).sum(-1) * (v * v).sum(-1)
     st = torch.linalg.solve(torch.where(ok[..., None, None], m, torch.eye(2, dtype=m.dtype)), rhs)
@@ -62,16 +64,19 @@ def _segments(n=4000, seed=0, dtype=D64):
     x = torch.randn(n, 4, 3, generator=g, dtype=dtype)
     k = n // 10
     x[:k, 3] = x[:k, 2] + 0.7 * (x[:k, 1] - x[:k, 0])  # parallel
-    x[k:2 * k, 2] = x[k:2 * k, 0] + 0.3 * (x[k:2 * k, 1] - x[k:2 * k, 0])  # collinear, overlapping
-    x[k:2 * k, 3] = x[k:2 * k, 0] + 1.6 * (x[k:2 * k, 1] - x[k:2 * k, 0])
-    x[2 * k:3 * k, 1] = x[2 * k:3 * k, 0]  # p is a point
-    x[3 * k:4 * k, 3] = x[3 * k:4 * k, 2]  # q is a point
-    x[4 * k:5 * k, 1] = x[4 * k:5 * k, 0]  # both points
-    x[4 * k:5 * k, 3] = x[4 * k:5 * k, 2]
-    mid = 0.5 * (x[5 * k:6 * k, 0] + x[5 * k:6 * k, 1])  # crossing: q passes through p's middle
-    x[5 * k:6 * k, 3] = 2 * mid - x[5 * k:6 * k, 2]
-    x[6 * k:7 * k, 3] = x[6 * k:7 * k, 2] + (x[6 * k:7 * k, 1] - x[6 * k:7 * k, 0]) \
-        + 1e-4 * torch.randn(k, 3, generator=g, dtype=dtype)  # nearly parallel
+    x[k : 2 * k, 2] = x[k : 2 * k, 0] + 0.3 * (x[k : 2 * k, 1] - x[k : 2 * k, 0])  # collinear, overlapping
+    x[k : 2 * k, 3] = x[k : 2 * k, 0] + 1.6 * (x[k : 2 * k, 1] - x[k : 2 * k, 0])
+    x[2 * k : 3 * k, 1] = x[2 * k : 3 * k, 0]  # p is a point
+    x[3 * k : 4 * k, 3] = x[3 * k : 4 * k, 2]  # q is a point
+    x[4 * k : 5 * k, 1] = x[4 * k : 5 * k, 0]  # both points
+    x[4 * k : 5 * k, 3] = x[4 * k : 5 * k, 2]
+    mid = 0.5 * (x[5 * k : 6 * k, 0] + x[5 * k : 6 * k, 1])  # crossing: q passes through p's middle
+    x[5 * k : 6 * k, 3] = 2 * mid - x[5 * k : 6 * k, 2]
+    x[6 * k : 7 * k, 3] = (
+        x[6 * k : 7 * k, 2]
+        + (x[6 * k : 7 * k, 1] - x[6 * k : 7 * k, 0])
+        + 1e-4 * torch.randn(k, 3, generator=g, dtype=dtype)
+    )  # nearly parallel
     return x
 
 
@@ -264,11 +269,20 @@ def test_zero_length_bone_merges_its_joints(sk10):
     assert frozenset(("upperneck", "lhumerus")) not in pairs  # 2 hops once lowerneck is a point
 
 
-@pytest.mark.parametrize("kwargs", [
-    dict(min_hops=0), dict(min_hops=1.5), dict(radius_scale=0.0), dict(sigma=-1.0),
-    dict(radii={"nobone": 0.1}), dict(radii=torch.ones(3)), dict(exclude=[("lfemur", "nobone")]),
-    dict(skip="*hand"), dict(margin=float("nan")),
-])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(min_hops=0),
+        dict(min_hops=1.5),
+        dict(radius_scale=0.0),
+        dict(sigma=-1.0),
+        dict(radii={"nobone": 0.1}),
+        dict(radii=torch.ones(3)),
+        dict(exclude=[("lfemur", "nobone")]),
+        dict(skip="*hand"),
+        dict(margin=float("nan")),
+    ],
+)
 def test_for_skeleton_errors(sk10, kwargs):
     with pytest.raises(InputError):
         SelfIntersection.for_skeleton(sk10, **kwargs)
@@ -351,8 +365,9 @@ def test_arm_through_torso_costs_clearly_more(sk10, joints_10_02):
         mid = 0.5 * (x[elbow] + x[wrist])
         r = _rotation_taking(mid - x[shoulder], x[sk10.joint_index("upperback")] - x[shoulder])
         x[arm] = (x[arm] - x[shoulder]) @ r.T + x[shoulder]
-        torch.testing.assert_close((x[arm] - x[shoulder]).norm(dim=-1),
-                                   (joints_10_02[f, arm] - joints_10_02[f, shoulder]).norm(dim=-1))
+        torch.testing.assert_close(
+            (x[arm] - x[shoulder]).norm(dim=-1), (joints_10_02[f, arm] - joints_10_02[f, shoulder]).norm(dim=-1)
+        )
         assert term.energy(ev(joints_10_02[f])) == 0
         assert term.energy(ev(x)) > 10.0  # measured 38-48: 6.7-6.9 cm deep at sigma 1 cm
         pen = term.penetration(x)

@@ -66,9 +66,23 @@ def test_observation_file_makes_amc_optional(tmp_path):
 
 
 REQUIRED_KEYS = (
-    "method", "seed", "out_dir", "data.asf", "data.amc", "data.start", "data.stop", "data.stride",
-    "camera.distance_m", "camera.azimuth_deg", "camera.elevation_deg", "camera.focal_px", "camera.width",
-    "camera.height", "observations.noise_px", "observations.missing", "observations.outliers",
+    "method",
+    "seed",
+    "out_dir",
+    "data.asf",
+    "data.amc",
+    "data.start",
+    "data.stop",
+    "data.stride",
+    "camera.distance_m",
+    "camera.azimuth_deg",
+    "camera.elevation_deg",
+    "camera.focal_px",
+    "camera.width",
+    "camera.height",
+    "observations.noise_px",
+    "observations.missing",
+    "observations.outliers",
 )
 
 
@@ -94,7 +108,9 @@ def test_shipped_configs_load():
 
 
 def test_yaml_and_dotted_overrides(tmp_path):
-    path = _write(tmp_path / "mine.yaml", f"""
+    path = _write(
+        tmp_path / "mine.yaml",
+        f"""
 seed: 3
 data:
   asf: {ASF}
@@ -104,9 +120,19 @@ camera:
   focal_px: 800
 observations:
   noise_px: 1.5
-""")
-    cfg = load_config(path, ["seed=7", "data.stop=100", "camera.azimuth_deg=-45", "observations.outliers=0.1",
-                             "model.freeze=[ '*toes' ]", "model.keypoints={head: head, pelvis: root}"])
+""",
+    )
+    cfg = load_config(
+        path,
+        [
+            "seed=7",
+            "data.stop=100",
+            "camera.azimuth_deg=-45",
+            "observations.outliers=0.1",
+            "model.freeze=[ '*toes' ]",
+            "model.keypoints={head: head, pelvis: root}",
+        ],
+    )
     assert cfg.name == "mine"
     assert cfg.seed == 7  # the override wins over the file
     assert cfg.data.stride == 2 and cfg.data.stop == 100 and cfg.data.start == 0
@@ -168,33 +194,39 @@ def test_section_given_a_scalar():
     _raises_naming("seed", DEMO, ["seed.x=1"])
 
 
-@pytest.mark.parametrize("override, key", [
-    ("camera.focal_px=abc", "camera.focal_px"),  # string for a float
-    ("observations.noise_px=[1, 2]", "observations.noise_px"),
-    ("data.stride=1.5", "data.stride"),  # float for an int
-    ("seed=2.0", "seed"),
-    ("data.stride=true", "data.stride"),  # bool for an int
-    ("camera.width=false", "camera.width"),
-    ("camera.focal_px=true", "camera.focal_px"),  # bool for a float
-    ("progress=1", "progress"),  # int for a bool
-    ("method=3", "method"),  # int for a string
-    ("camera.focal_px=null", "camera.focal_px"),  # null where not allowed
-    ("data.stride=null", "data.stride"),
-    ("method=null", "method"),
-    ("model.freeze=5", "model.freeze"),
-])
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("camera.focal_px=abc", "camera.focal_px"),  # string for a float
+        ("observations.noise_px=[1, 2]", "observations.noise_px"),
+        ("data.stride=1.5", "data.stride"),  # float for an int
+        ("seed=2.0", "seed"),
+        ("data.stride=true", "data.stride"),  # bool for an int
+        ("camera.width=false", "camera.width"),
+        ("camera.focal_px=true", "camera.focal_px"),  # bool for a float
+        ("progress=1", "progress"),  # int for a bool
+        ("method=3", "method"),  # int for a string
+        ("camera.focal_px=null", "camera.focal_px"),  # null where not allowed
+        ("data.stride=null", "data.stride"),
+        ("method=null", "method"),
+        ("model.freeze=5", "model.freeze"),
+    ],
+)
 def test_wrong_type_names_the_key(override, key):
     _raises_naming(key, DEMO, [override])
 
 
-@pytest.mark.parametrize("override, key", [
-    ("data.stop=abc", "data.stop"),  # string for an int-or-null
-    ("data.stop=1.5", "data.stop"),
-    ("out_dir=5", "out_dir"),  # int for a string-or-null
-    ("observations.file=[a, b]", "observations.file"),
-    ("model.keypoints=[head]", "model.keypoints"),  # list for a dict-or-null
-    ("model.keypoints={head: 3}", "model.keypoints"),  # dict-or-null with a wrong value type
-])
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("data.stop=abc", "data.stop"),  # string for an int-or-null
+        ("data.stop=1.5", "data.stop"),
+        ("out_dir=5", "out_dir"),  # int for a string-or-null
+        ("observations.file=[a, b]", "observations.file"),
+        ("model.keypoints=[head]", "model.keypoints"),  # list for a dict-or-null
+        ("model.keypoints={head: 3}", "model.keypoints"),  # dict-or-null with a wrong value type
+    ],
+)
 def test_wrong_type_for_nullable_key_names_the_key(override, key):
     # Optional (`X | None`) keys go through the union branch of _check_type; a wrong type there must
     # still be an InputError naming the key, not a crash.
@@ -211,9 +243,10 @@ def test_wrong_type_in_yaml_file(tmp_path):
 
 def test_yaml_paths_relative_to_yaml_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(REPO)  # a cwd different from the YAML's folder
-    path = _write(tmp_path / "cfgs" / "p.yaml",
-                  "data:\n  asf: ../mocap/10.asf\n  amc: clips/10_02.amc\n"
-                  "observations:\n  file: obs.npz\nout_dir: ../runs/one\n")
+    path = _write(
+        tmp_path / "cfgs" / "p.yaml",
+        "data:\n  asf: ../mocap/10.asf\n  amc: clips/10_02.amc\nobservations:\n  file: obs.npz\nout_dir: ../runs/one\n",
+    )
     cfg = load_config(path)
     assert cfg.data.asf == str(tmp_path / "mocap" / "10.asf")
     assert cfg.data.amc == str(tmp_path / "cfgs" / "clips" / "10_02.amc")
@@ -242,23 +275,26 @@ def test_absolute_paths_kept(tmp_path):
 # ---------------------------------------------------------------- value checks
 
 
-@pytest.mark.parametrize("override, key", [
-    ("data.stride=0", "data.stride"),
-    ("data.stride=-2", "data.stride"),
-    ("data.stop=0", "data.stop"),  # stop <= start
-    ("data.start=-1", "data.start"),
-    ("observations.noise_px=-0.5", "observations.noise_px"),
-    ("observations.missing=1.5", "observations.missing"),
-    ("observations.outliers=-0.1", "observations.outliers"),
-    ("method=kjs_magic", "method"),
-    ("camera.focal_px=0", "camera.focal_px"),
-    ("camera.distance_m=-1", "camera.distance_m"),
-    ("camera.width=0", "camera.width"),
-    ("dtype=float16", "dtype"),
-    ("frame.init=zero", "frame.init"),
-    ("frame.iterations=0", "frame.iterations"),
-    ("costs.sigma_px=0", "costs.sigma_px"),
-])
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("data.stride=0", "data.stride"),
+        ("data.stride=-2", "data.stride"),
+        ("data.stop=0", "data.stop"),  # stop <= start
+        ("data.start=-1", "data.start"),
+        ("observations.noise_px=-0.5", "observations.noise_px"),
+        ("observations.missing=1.5", "observations.missing"),
+        ("observations.outliers=-0.1", "observations.outliers"),
+        ("method=kjs_magic", "method"),
+        ("camera.focal_px=0", "camera.focal_px"),
+        ("camera.distance_m=-1", "camera.distance_m"),
+        ("camera.width=0", "camera.width"),
+        ("dtype=float16", "dtype"),
+        ("frame.init=zero", "frame.init"),
+        ("frame.iterations=0", "frame.iterations"),
+        ("costs.sigma_px=0", "costs.sigma_px"),
+    ],
+)
 def test_value_checks_name_the_key(override, key):
     _raises_naming(key, DEMO, [override])
 
@@ -299,9 +335,18 @@ def test_non_utf8_yaml_is_refused(tmp_path):
 
 
 def test_dump_yaml_round_trips(tmp_path):
-    cfg = load_config(DEMO, ["seed=5", "data.stop=48", f"out_dir={tmp_path / 'out'}", "observations.outliers=0.2",
-                             "model.keypoints={head: head, l_knee: lfemur, r_knee: rfemur}",
-                             "costs.loss=huber", "frame.init=rest"])
+    cfg = load_config(
+        DEMO,
+        [
+            "seed=5",
+            "data.stop=48",
+            f"out_dir={tmp_path / 'out'}",
+            "observations.outliers=0.2",
+            "model.keypoints={head: head, l_knee: lfemur, r_knee: rfemur}",
+            "costs.loss=huber",
+            "frame.init=rest",
+        ],
+    )
     text = dump_yaml(cfg)
     assert isinstance(yaml.safe_load(text), dict)
     path = _write(tmp_path / "elsewhere" / "config.yaml", text)
@@ -342,7 +387,8 @@ def test_amc_override_takes_the_skeleton_beside_it(tmp_path, caplog):
     assert cfg.data.asf == str(sub / "10.asf") and cfg.data.amc == str(sub / "10_02.amc")
     assert [r.getMessage() for r in caplog.records] == [
         f"data.amc is {sub / '10_02.amc'}: using the skeleton beside it, {sub / '10.asf'} "
-        "(set data.asf to choose another)"]
+        "(set data.asf to choose another)"
+    ]
     caplog.clear()  # both given: as given, silently
     cfg = load_config(REPO / "configs" / "demo.yaml", [f"data.amc={sub / '10_02.amc'}", f"data.asf={ASF}"])
     assert cfg.data.asf == str(ASF) and caplog.records == []
@@ -356,7 +402,8 @@ def test_amc_override_without_a_skeleton_beside_it_keeps_the_config_one(tmp_path
     assert cfg.data.asf == str(ASF)
     assert [r.getMessage() for r in caplog.records] == [
         f"data.amc is {tmp_path / '10_02.amc'} but no skeleton is beside it: keeping data.asf {ASF} "
-        "(set data.asf to choose)"]
+        "(set data.asf to choose)"
+    ]
 
 
 def _readme_config_keys() -> set[str]:
@@ -385,8 +432,11 @@ def _readme_config_keys() -> set[str]:
 
 def test_readme_config_table_names_every_key():
     documented = _readme_config_keys()
-    missing = [key for key in _leaves(RunConfig) if key not in documented
-               and not any(d.endswith("*") and key.startswith(d[:-1]) for d in documented)]
+    missing = [
+        key
+        for key in _leaves(RunConfig)
+        if key not in documented and not any(d.endswith("*") and key.startswith(d[:-1]) for d in documented)
+    ]
     assert missing == [], f"config keys missing from the README's config table: {missing}"
 
 

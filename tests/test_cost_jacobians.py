@@ -61,12 +61,15 @@ def test_objective_jacobian_matches_autograd(scene):
     x[2, sk.dof_names.index("lhumerus.rz")] += 1.6  # swing the arm across the body
     collision = SelfIntersection.for_skeleton(sk)
     assert (collision.residual(evaluate_pose(sk, cam, kps, x)) > 0).any()
-    objective = Objective({
-        "reprojection": Reprojection(obs, conf, sigma_px=2.0, loss="cauchy", scale=3.0),
-        "limits": JointLimits(lower, upper, sigma=0.02),
-        "prior": PosePrior(q, 0.1),
-        "collision": collision,
-    }, {"limits": 2.0, "collision": 0.5})
+    objective = Objective(
+        {
+            "reprojection": Reprojection(obs, conf, sigma_px=2.0, loss="cauchy", scale=3.0),
+            "limits": JointLimits(lower, upper, sigma=0.02),
+            "prior": PosePrior(q, 0.1),
+            "collision": collision,
+        },
+        {"limits": 2.0, "collision": 0.5},
+    )
     lin = objective_linearization(sk, objective, cam, kps)(x)
     torch.testing.assert_close(lin.jacobian, _autograd(sk, kps, cam, objective, x), atol=1e-8, rtol=1e-7)
     torch.testing.assert_close(lin.residuals, objective.residuals(evaluate_pose(sk, cam, kps, x)))
@@ -136,8 +139,14 @@ def test_heavy_tailed_prior(scene):
         r = heavy.energy(ev) / gauss.energy(ev)
         assert ((r > ratio[0]) & (r <= ratio[1] + 1e-12)).all(), r
     observed = cam.project(sk.forward_kinematics(q[0]).index_select(-2, kps.index())).pixels  # (K, 2)
-    objective = Objective({"prior": heavy, "reprojection": Reprojection(
-        observed, torch.ones(observed.shape[0], dtype=q.dtype), loss="cauchy", scale=3.0)})
+    objective = Objective(
+        {
+            "prior": heavy,
+            "reprojection": Reprojection(
+                observed, torch.ones(observed.shape[0], dtype=q.dtype), loss="cauchy", scale=3.0
+            ),
+        }
+    )
     lin = objective_linearization(sk, objective, cam, kps)(far)
     torch.testing.assert_close(lin.jacobian, _autograd(sk, kps, cam, objective, far), atol=1e-9, rtol=1e-9)
     folded = objective_linearization(sk, objective, cam, kps, fold=True)(far)

@@ -144,8 +144,7 @@ def test_reprojection_trajectory_shapes():
     assert term.residual(ev(pixels=pix)).shape == (5, 24)
     assert term.energy(ev(pixels=pix)).shape == (5,)
     assert term.robust_weights(ev(pixels=pix)).shape == (5, 24)
-    per_frame = sum(Reprojection(obs[t], torch.ones(4)).energy(ev(pixels=pix[:, t]))
-                    for t in range(3))
+    per_frame = sum(Reprojection(obs[t], torch.ones(4)).energy(ev(pixels=pix[:, t])) for t in range(3))
     torch.testing.assert_close(term.energy(ev(pixels=pix)), per_frame)
 
 
@@ -193,8 +192,9 @@ def test_joint_limits_zero_inside_quadratic_outside():
         expected = torch.tensor(0.5 * (delta / 0.1) ** 2, dtype=D64)
         torch.testing.assert_close(term.energy(ev(q=above)), expected)
         torch.testing.assert_close(term.energy(ev(q=below)), expected)
-    torch.testing.assert_close(term.residual(ev(q=torch.tensor([1.3, -0.5], dtype=D64))),
-                               torch.tensor([3.0, -5.0], dtype=D64))
+    torch.testing.assert_close(
+        term.residual(ev(q=torch.tensor([1.3, -0.5], dtype=D64))), torch.tensor([3.0, -5.0], dtype=D64)
+    )
 
 
 def test_joint_limits_infinite_bounds():
@@ -217,13 +217,13 @@ def test_joint_limits_batched_and_time_axis():
     assert traj.residual(ev(q=q)).shape == (4, 15)
     torch.testing.assert_close(traj.energy(ev(q=q)), frame.energy(ev(q=q)).sum(-1))
     per_dof = JointLimits(lo, hi, sigma=torch.tensor([0.1, 0.2, 0.4]))
-    torch.testing.assert_close(per_dof.residual(ev(q=torch.tensor([2.0, 2.0, 2.0], dtype=D64))),
-                               torch.tensor([10.0, 5.0, 2.5], dtype=D64))
+    torch.testing.assert_close(
+        per_dof.residual(ev(q=torch.tensor([2.0, 2.0, 2.0], dtype=D64))), torch.tensor([10.0, 5.0, 2.5], dtype=D64)
+    )
 
 
 def test_joint_limits_gradcheck():
-    term = JointLimits(torch.tensor([-1.0, 0.0, -math.inf]), torch.tensor([1.0, 0.5, 0.0]),
-                       sigma=0.3, time_axis=True)
+    term = JointLimits(torch.tensor([-1.0, 0.0, -math.inf]), torch.tensor([1.0, 0.5, 0.0]), sigma=0.3, time_axis=True)
     q = torch.tensor([[[1.4, -0.3, 0.7], [0.2, 0.9, -2.0]]], dtype=D64, requires_grad=True)
     assert gradcheck(lambda x: term.energy(ev(q=x)), (q,))
 
@@ -278,16 +278,14 @@ def test_smoothness_none_sigmas_and_dof_scale():
 
 def test_smoothness_on_joints():
     joints = torch.randn(2, 4, 5, 3, generator=gen(12), dtype=D64)
-    term = Smoothness(dt=1 / 30, sigma_velocity=1.0, sigma_acceleration=1.0, on="joints",
-                      dof_scale=torch.ones(5))
+    term = Smoothness(dt=1 / 30, sigma_velocity=1.0, sigma_acceleration=1.0, on="joints", dof_scale=torch.ones(5))
     assert term.energy(ev(joints=joints)).shape == (2,)
     still = joints[:, :1].expand(2, 4, 5, 3)
     assert (term.energy(ev(joints=still)) == 0).all()
 
 
 def test_smoothness_gradcheck():
-    term = Smoothness(dt=0.2, sigma_velocity=0.5, sigma_acceleration=2.0,
-                      dof_scale=torch.tensor([1.0, 0.3]))
+    term = Smoothness(dt=0.2, sigma_velocity=0.5, sigma_acceleration=2.0, dof_scale=torch.tensor([1.0, 0.3]))
     q = torch.randn(2, 5, 2, generator=gen(13), dtype=D64, requires_grad=True)
     assert gradcheck(lambda x: term.energy(ev(q=x)), (q,))
 
@@ -388,8 +386,7 @@ def test_keyframe_input_errors():
     with pytest.raises(InputError, match="covariance"):
         Keyframe(torch.tensor([0]), torch.zeros(1, 2), torch.ones(3))
     with pytest.raises(InputError, match="mask"):
-        Keyframe(torch.tensor([0]), torch.zeros(1, 2), torch.ones(2),
-                 mask=torch.ones(1, 3, dtype=torch.bool))
+        Keyframe(torch.tensor([0]), torch.zeros(1, 2), torch.ones(2), mask=torch.ones(1, 3, dtype=torch.bool))
     term = Keyframe(torch.tensor([7]), torch.zeros(1, 2), torch.ones(2))
     with pytest.raises(InputError, match="keyframe time 7"):
         term.energy(ev(q=torch.zeros(5, 2)))
@@ -402,8 +399,7 @@ def test_joint_keyframe_hand_computed_and_gradcheck():
     term = JointKeyframe(torch.tensor([1, 3]), target, mask, sigma_m=0.1)
     joints = torch.randn(2, 4, 3, 3, generator=gen(25), dtype=D64, requires_grad=True)
     energy = term.energy(ev(joints=joints))
-    expected = (0.5 * ((joints[:, 1, [0, 2]] / 0.1) ** 2).sum((-1, -2))
-                + 0.5 * ((joints[:, 3] / 0.1) ** 2).sum((-1, -2)))
+    expected = 0.5 * ((joints[:, 1, [0, 2]] / 0.1) ** 2).sum((-1, -2)) + 0.5 * ((joints[:, 3] / 0.1) ** 2).sum((-1, -2))
     torch.testing.assert_close(energy, expected)
     assert term.residual(ev(joints=joints)).shape == (2, 18)
     assert gradcheck(lambda x: term.energy(ev(joints=x)), (joints,))
@@ -516,8 +512,10 @@ def test_silhouette_pixel_centres_follow_the_camera():
     # pixel (u, v) covers [u, u+1) x [v, v+1), centre (u + 0.5, v + 0.5), as in Camera and
     # render_silhouettes: a one-pixel mask reads 0 at its centre, 1 one pixel to the right, ...
     term = Silhouette(one_pixel_mask(20, 10), bones=((0, 1),), samples_per_bone=2)
-    pts = torch.tensor([[20.5, 10.5], [21.5, 10.5], [19.5, 10.5], [20.5, 11.5], [20.5, 12.5],
-                        [23.5, 14.5], [17.5, 6.5], [21.5, 11.5]], dtype=D64)
+    pts = torch.tensor(
+        [[20.5, 10.5], [21.5, 10.5], [19.5, 10.5], [20.5, 11.5], [20.5, 12.5], [23.5, 14.5], [17.5, 6.5], [21.5, 11.5]],
+        dtype=D64,
+    )
     expected = torch.tensor([0.0, 1.0, 1.0, 1.0, 2.0, 5.0, 5.0, math.sqrt(2.0)], dtype=D64)
     torch.testing.assert_close(read(term, pts), expected, rtol=0.0, atol=1e-9)
     # at every pixel centre of a random mask the term reads its distance transform exactly
@@ -525,8 +523,7 @@ def test_silhouette_pixel_centres_follow_the_camera():
     term = Silhouette(masks, bones=((0, 1),), samples_per_bone=2)
     v, u = torch.meshgrid(torch.arange(13, dtype=D64), torch.arange(17, dtype=D64), indexing="ij")
     centres = torch.stack([u, v], dim=-1).reshape(-1, 2) + 0.5
-    torch.testing.assert_close(read(term, centres), distance_transform(masks).flatten(),
-                               rtol=0.0, atol=1e-9)
+    torch.testing.assert_close(read(term, centres), distance_transform(masks).flatten(), rtol=0.0, atol=1e-9)
 
 
 def test_silhouette_outside_image_reads_border_plus_distance():
@@ -536,15 +533,12 @@ def test_silhouette_outside_image_reads_border_plus_distance():
     corner = Silhouette(one_pixel_mask(0, 0), bones=((0, 1),), samples_per_bone=2)
     edge = Silhouette(one_pixel_mask(31, 5), bones=((0, 1),), samples_per_bone=2)
     pts = torch.tensor([[-2.5, -3.5], [0.2, 0.5], [0.5, -0.5]], dtype=D64)
-    torch.testing.assert_close(read(corner, pts), torch.tensor([5.0, 0.3, 1.0], dtype=D64),
-                               rtol=0.0, atol=1e-9)
+    torch.testing.assert_close(read(corner, pts), torch.tensor([5.0, 0.3, 1.0], dtype=D64), rtol=0.0, atol=1e-9)
     pts = torch.tensor([[35.5, 5.5], [34.5, 9.5], [32.0, 5.5]], dtype=D64)
-    torch.testing.assert_close(read(edge, pts), torch.tensor([4.0, 4.0 + 3.0, 0.5], dtype=D64),
-                               rtol=0.0, atol=1e-9)
+    torch.testing.assert_close(read(edge, pts), torch.tensor([4.0, 4.0 + 3.0, 0.5], dtype=D64), rtol=0.0, atol=1e-9)
     box = Silhouette(box_mask(), bones=((0, 1),), samples_per_bone=2)  # columns 6..13, rows 5..14
     pts = torch.tensor([[-10.0, 10.5], [30.0, 10.0], [10.0, -4.5]], dtype=D64)
-    torch.testing.assert_close(read(box, pts), torch.tensor([16.5, 16.5, 10.0], dtype=D64),
-                               rtol=0.0, atol=1e-9)
+    torch.testing.assert_close(read(box, pts), torch.tensor([16.5, 16.5, 10.0], dtype=D64), rtol=0.0, atol=1e-9)
 
 
 def test_silhouette_trajectory_batch_and_empty_frame():
@@ -561,8 +555,7 @@ def test_silhouette_trajectory_batch_and_empty_frame():
 
 
 def test_silhouette_gradcheck():
-    term = Silhouette(box_mask(), bones=((0, 1), (1, 2)), samples_per_bone=3, loss="huber",
-                      scale=2.0)
+    term = Silhouette(box_mask(), bones=((0, 1), (1, 2)), samples_per_bone=3, loss="huber", scale=2.0)
     jp = torch.tensor([[[18.3, 7.7], [9.2, 3.1]], [[-2.6, 8.4], [11.1, 17.8]]], dtype=D64)
     third = torch.tensor([[[20.45, 16.2]], [[4.15, 9.35]]], dtype=D64)
     jp = torch.cat([jp, third], dim=1).requires_grad_()
@@ -654,7 +647,8 @@ def test_objective_input_errors():
         Objective({})
     with pytest.raises(InputError, match="not a cost term"):
         Objective({"x": 3.0})
-    mixed = Objective({"frame_limits": JointLimits(-torch.ones(2), torch.ones(2)),
-                       "smooth": Smoothness(dt=0.1, sigma_velocity=1.0)})
+    mixed = Objective(
+        {"frame_limits": JointLimits(-torch.ones(2), torch.ones(2)), "smooth": Smoothness(dt=0.1, sigma_velocity=1.0)}
+    )
     with pytest.raises(InputError, match="batch shape"):
         mixed(ev(q=torch.zeros(3, 4, 2, dtype=D64)))

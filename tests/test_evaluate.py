@@ -80,8 +80,7 @@ def test_clip_list_file_with_relative_paths(tmp_path, capsys):
     lists = tmp_path / "lists"
     lists.mkdir()
     clips = lists / "mine.txt"
-    clips.write_text("# my clips, relative to this file\n\n../mocap/10/10_02.amc   # kick\n"
-                     "   ../mocap/10/10_77.amc\n")
+    clips.write_text("# my clips, relative to this file\n\n../mocap/10/10_02.amc   # kick\n   ../mocap/10/10_77.amc\n")
     out = tmp_path / "eval"
     assert main(["evaluate", str(EVAL), *QUICK, "--clips", str(clips), "--out", str(out), "--quiet"]) == 0
     assert capsys.readouterr().out == f"{out / 'results.md'}\n"  # stdout: only the table's path
@@ -185,9 +184,11 @@ def test_asf_for(tmp_path):
 
 
 def test_markdown_table():
-    rows = [("a", {"frames": 10, "mpjpe_mm": 20.0, "reprojection_error_px": 1.0, "seconds": 2.0}),
-            ("b", "too short"),
-            ("c", {"frames": 20, "mpjpe_mm": 40.0, "reprojection_error_px": None, "seconds": 4.0})]
+    rows = [
+        ("a", {"frames": 10, "mpjpe_mm": 20.0, "reprojection_error_px": 1.0, "seconds": 2.0}),
+        ("b", "too short"),
+        ("c", {"frames": 20, "mpjpe_mm": 40.0, "reprojection_error_px": None, "seconds": 4.0}),
+    ]
     md = markdown_table("cfg", "frame", rows)
     assert md.startswith("Config `cfg`, method `frame`.\n\n")
     table = _table(md)
@@ -228,8 +229,10 @@ def test_estimator_failure_is_reported_per_clip(tmp_path, monkeypatch):
 
 
 def test_markdown_table_shows_the_visible_fraction():
-    rows = [("a", {"frames": 10, "reprojection_error_px": 0.5, "visible_fraction": 0.25}),
-            ("b", {"frames": 10, "reprojection_error_px": 1.5, "visible_fraction": 1.0})]
+    rows = [
+        ("a", {"frames": 10, "reprojection_error_px": 0.5, "visible_fraction": 0.25}),
+        ("b", {"frames": 10, "reprojection_error_px": 1.5, "visible_fraction": 1.0}),
+    ]
     table = _table(markdown_table("cfg", "frame", rows))
     assert table[0] == ["clip", "frames", "reproj px", "visible"]
     assert table[2] == ["a", "10", "0.50", "0.25"] and table[4] == ["**mean (2 clips)**", "10.0", "1.00", "0.62"]

@@ -43,7 +43,7 @@ def read_bvh(text: str):
             stack.pop()
             i += 1
         elif t == "OFFSET":
-            offsets.append([float(x) for x in tok[i + 1:i + 4]])
+            offsets.append([float(x) for x in tok[i + 1 : i + 4]])
             i += 4
         elif t == "CHANNELS":
             channels[len(names) - 1] = int(tok[i + 1])
@@ -52,7 +52,7 @@ def read_bvh(text: str):
             i += 1
     frames = int(tok[tok.index("Frames:") + 1])
     frame_time = float(tok[tok.index("Time:") + 1])
-    values = np.asarray(tok[tok.index("Time:") + 2:], dtype=np.float64).reshape(frames, -1)
+    values = np.asarray(tok[tok.index("Time:") + 2 :], dtype=np.float64).reshape(frames, -1)
     return names, parents, np.asarray(offsets), channels, frame_time, values
 
 

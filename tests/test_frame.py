@@ -21,8 +21,15 @@ from ptrack.run import Prepared, prepare
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "configs" / "demo.yaml"
-FAST = ["data.stop=48", "data.stride=4", "frame.iterations=15", "frame.first_iterations=60", "progress=false",
-        "observations.noise_px=2", "observations.missing=0"]
+FAST = [
+    "data.stop=48",
+    "data.stride=4",
+    "frame.iterations=15",
+    "frame.first_iterations=60",
+    "progress=false",
+    "observations.noise_px=2",
+    "observations.missing=0",
+]
 T = 12  # frames 0, 4, ..., 44
 
 # Measured on the bundled clip 10_02 (frames 0-44, stride 4, seed 0, noise 2 px, keyframe init):
@@ -213,8 +220,15 @@ def test_urdf_model_is_trackable(tmp_path):
     joints = model.forward_kinematics(q)
     kps = make_keypoints(model)  # the CMU joint names are link names of the URDF
     cam = camera_for_motion(joints, 6.0, 30.0, 10.0, 1000.0, 640, 480)
-    obs, _ = simulate_observations(joints, kps.index(), cam, torch.arange(q.shape[0]) / 30.0,
-                                   ChannelConfig(noise_px=2.0), torch.Generator().manual_seed(0), kps.names)
+    obs, _ = simulate_observations(
+        joints,
+        kps.index(),
+        cam,
+        torch.arange(q.shape[0]) / 30.0,
+        ChannelConfig(noise_px=2.0),
+        torch.Generator().manual_seed(0),
+        kps.names,
+    )
     problem = Problem(model, kps, obs, Keyframes(frames=torch.zeros(1, dtype=torch.long), q=q[:1]))
     cfg = RunConfig(frame=FrameMethodConfig(iterations=15, first_iterations=60))
     est = estimate_frames(problem, cfg, torch.Generator().manual_seed(1))
@@ -232,8 +246,7 @@ def test_keyframe_is_kept_as_given_not_clamped(cmu_file):
     """Under the CMU ASF limits the truth's first pose of 64_01 lies outside them. The keyframe must
     stay as given: with no limit term and no pixel noise, frame 0 comes back on the truth (before the
     fix the start was clamped into the limits, 24.5 mm away on the keypoints, and the prior held it there)."""
-    prep, cfg = _golf(cmu_file, "model.limits=asf", "costs.limits_weight=0", "observations.noise_px=0",
-                      "dtype=float64")
+    prep, cfg = _golf(cmu_file, "model.limits=asf", "costs.limits_weight=0", "observations.noise_px=0", "dtype=float64")
     lower, upper = prep.problem.skeleton.limits(dtype=torch.float64)
     assert M.joint_limit_violations(prep.gt_q[:1], lower, upper).per_frame[0] > 0  # the premise
     est = _run(prep, cfg)

@@ -24,10 +24,21 @@ REPO = Path(__file__).resolve().parents[1]
 ASF = (REPO / "ptrack" / "data" / "10.asf").read_bytes()
 AMC = (REPO / "ptrack" / "data" / "10_02.amc").read_bytes()[:4000]
 
-settings.register_profile("suite", max_examples=60, deadline=None, derandomize=True, database=None,
-                          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
-settings.register_profile("long", max_examples=5000, deadline=None, database=None,
-                          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+settings.register_profile(
+    "suite",
+    max_examples=60,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+settings.register_profile(
+    "long",
+    max_examples=5000,
+    deadline=None,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "suite"))
 
 
@@ -36,7 +47,8 @@ def _mutations(base: bytes):
     return st.one_of(
         st.binary(max_size=400),
         st.tuples(st.integers(0, len(base)), st.integers(0, 40), st.binary(max_size=40)).map(
-            lambda t: base[:t[0]] + t[2] + base[t[0] + t[1]:]),
+            lambda t: base[: t[0]] + t[2] + base[t[0] + t[1] :]
+        ),
         st.integers(0, len(base)).map(lambda n: base[:n]),
     )
 
@@ -68,11 +80,28 @@ def test_observations_npz_reader(tmp_path_factory, data):
 
 
 _yaml_values = st.recursive(
-    st.one_of(st.none(), st.booleans(), st.integers(-10**30, 10**30), st.floats(), st.text(max_size=8)),
+    st.one_of(st.none(), st.booleans(), st.integers(-(10**30), 10**30), st.floats(), st.text(max_size=8)),
     lambda inner: st.one_of(st.lists(inner, max_size=3), st.dictionaries(st.text(max_size=8), inner, max_size=3)),
-    max_leaves=8)
-_keys = st.sampled_from(["method", "seed", "out_dir", "name", "data", "data.stride", "data.stop", "camera.focal_px",
-                         "observations.missing", "model.freeze", "model.keypoints", "kjs.modes", "batch.tol", "x.y"])
+    max_leaves=8,
+)
+_keys = st.sampled_from(
+    [
+        "method",
+        "seed",
+        "out_dir",
+        "name",
+        "data",
+        "data.stride",
+        "data.stop",
+        "camera.focal_px",
+        "observations.missing",
+        "model.freeze",
+        "model.keypoints",
+        "kjs.modes",
+        "batch.tol",
+        "x.y",
+    ]
+)
 
 
 def _nested(flat: dict) -> dict:
@@ -86,8 +115,12 @@ def _nested(flat: dict) -> dict:
     return out
 
 
-@given(st.one_of(st.text(max_size=200), st.dictionaries(_keys, _yaml_values, max_size=4).map(
-    lambda d: yaml.safe_dump(_nested(d)))))
+@given(
+    st.one_of(
+        st.text(max_size=200),
+        st.dictionaries(_keys, _yaml_values, max_size=4).map(lambda d: yaml.safe_dump(_nested(d))),
+    )
+)
 def test_config_loader(tmp_path_factory, text):
     p = tmp_path_factory.mktemp("cfg") / "c.yaml"
     p.write_bytes(text.encode("utf-8", errors="replace"))

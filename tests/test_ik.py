@@ -62,7 +62,12 @@ def _wrapped(a: torch.Tensor) -> torch.Tensor:
 def test_plans_of_cmu_chains(sk):
     kinds = {c.name: ik_plan(sk, c) for c in default_chains(sk)}
     assert {k: p.kind for k, p in kinds.items()} == {
-        "larm": "limb", "rarm": "limb", "lleg": "limb", "rleg": "limb", "head": "swing"}
+        "larm": "limb",
+        "rarm": "limb",
+        "lleg": "limb",
+        "rleg": "limb",
+        "head": "swing",
+    }
     names = [sk.dof_names[d] for d in kinds["larm"].dofs]
     assert names == ["lhumerus.rz", "lhumerus.ry", "lhumerus.rx", "lradius.rx"]
     assert [sk.dof_names[d] for d in kinds["lleg"].dofs] == ["lfemur.rz", "lfemur.ry", "lfemur.rx", "ltibia.rx"]
@@ -125,8 +130,12 @@ def _check_reproduces_fk(sk, q, seed=0, tol=1e-6):
             # straight (mocap has exactly straight knees), where the twist is the start's
             bent = torch.sin(q[:, plan.dofs[3]]).abs() > 1e-3
             assert float(bent.float().mean()) > 0.5
-            torch.testing.assert_close(_wrapped(solved[bent][:, list(plan.dofs)] - q[bent][:, list(plan.dofs)]),
-                                       torch.zeros(int(bent.sum()), 4, dtype=q.dtype), atol=1e-6, rtol=0)
+            torch.testing.assert_close(
+                _wrapped(solved[bent][:, list(plan.dofs)] - q[bent][:, list(plan.dofs)]),
+                torch.zeros(int(bent.sum()), 4, dtype=q.dtype),
+                atol=1e-6,
+                rtol=0,
+            )
             assert float((fk - joints)[bent].norm(dim=-1).max()) < tol
         # dofs outside the chain are untouched
         others = [d for d in range(sk.num_dofs) if d not in plan.dofs]
@@ -175,8 +184,9 @@ def test_straight_limb_keeps_the_current_twist(sk, poses):
     targets = joints[:, None, list(chain.joints)]
     # from the pose itself: the same angles come back (the general formula would invent a twist)
     res = chain_ik(plan, q, targets)
-    torch.testing.assert_close(_wrapped(res.angles[:, 0] - q[:, list(plan.dofs)]),
-                               torch.zeros(20, 4, dtype=q.dtype), atol=1e-9, rtol=0)
+    torch.testing.assert_close(
+        _wrapped(res.angles[:, 0] - q[:, list(plan.dofs)]), torch.zeros(20, 4, dtype=q.dtype), atol=1e-9, rtol=0
+    )
     # from a start with other femur angles: the smallest turn of the start's femur onto the target
     start = _perturbed(q, femur, 0.4, 1)
     res = chain_ik(plan, start, targets)
@@ -187,8 +197,9 @@ def test_straight_limb_keeps_the_current_twist(sk, poses):
     turn = rot_new[:, m] @ rot_start[:, m].transpose(-1, -2)  # world rotation applied to the femur
     d_start = fk_start[:, m] - fk_start[:, chain.joints[0]]
     d_new = fk_new[:, m] - fk_new[:, chain.joints[0]]
-    axis = torch.stack([turn[:, 2, 1] - turn[:, 1, 2], turn[:, 0, 2] - turn[:, 2, 0],
-                        turn[:, 1, 0] - turn[:, 0, 1]], -1)
+    axis = torch.stack(
+        [turn[:, 2, 1] - turn[:, 1, 2], turn[:, 0, 2] - turn[:, 2, 0], turn[:, 1, 0] - turn[:, 0, 1]], -1
+    )
     # a smallest rotation turns about d_start x d_new: its axis is normal to both directions
     torch.testing.assert_close((axis * d_start).sum(-1), torch.zeros(20, dtype=q.dtype), atol=1e-9, rtol=0)
     torch.testing.assert_close((axis * d_new).sum(-1), torch.zeros(20, dtype=q.dtype), atol=1e-9, rtol=0)
@@ -201,8 +212,12 @@ def test_head_swing_keeps_twists_and_inner_joints(sk, poses):
     joints = sk.forward_kinematics(poses)
     res = chain_ik(plan, poses, joints[:, None, list(chain.joints)])
     # targets are the pose's own joints: nothing turns
-    torch.testing.assert_close(_wrapped(res.angles[:, 0] - poses[:, list(plan.dofs)]),
-                               torch.zeros(poses.shape[0], 6, dtype=poses.dtype), atol=1e-9, rtol=0)
+    torch.testing.assert_close(
+        _wrapped(res.angles[:, 0] - poses[:, list(plan.dofs)]),
+        torch.zeros(poses.shape[0], 6, dtype=poses.dtype),
+        atol=1e-9,
+        rtol=0,
+    )
     upper = sk.dof_names.index("upperneck.rx")
     assert upper not in plan.dofs  # the joint inside the thorax -> upper neck link keeps its angles
 
@@ -330,8 +345,9 @@ def test_product_ik(sk, poses):
     idx = [j for c in chains for j in c.joints]
     torch.testing.assert_close(fk[..., idx, :], want[..., idx, :], atol=1e-9, rtol=0)
     torch.testing.assert_close(res.positions, want[..., idx, :], atol=1e-9, rtol=0)
-    keep = (results[0].keep[:, prod.leaf[:, 0]] & results[1].keep[:, prod.leaf[:, 1]]
-            & results[2].keep[:, prod.leaf[:, 2]])
+    keep = (
+        results[0].keep[:, prod.leaf[:, 0]] & results[1].keep[:, prod.leaf[:, 1]] & results[2].keep[:, prod.leaf[:, 2]]
+    )
     assert torch.equal(res.keep, keep)
     with pytest.raises(InputError, match="2 results for 3 chains"):
         product_ik(poses, results[:2], prod)

@@ -107,7 +107,8 @@ def test_closed_form_can_be_declined(cmu):
     head = default_chains(cmu, ["head"])[0]
     # the iterative head also turns the upper neck inside the thorax -> upper neck link
     assert [cmu.dof_names[d] for d in ik_plan(cmu, head, closed_form=False).dofs] == [
-        f"{j}.{a}" for j in ("lowerneck", "upperneck", "head") for a in ("rz", "ry", "rx")]
+        f"{j}.{a}" for j in ("lowerneck", "upperneck", "head") for a in ("rz", "ry", "rx")
+    ]
 
 
 @pytest.mark.parametrize("model", ["arm", "cmu"])
@@ -194,8 +195,7 @@ def test_kept_leaves_of_urdf_trees_reproject(arm):
     err = (px - pixels[:, None, list(chain.joints)]).norm(dim=-1).amax(-1)
     assert float(err[kept].max()) < 1e-3
     # leaf 0 is the hypothesis itself, and flipped leaves do move the chain
-    torch.testing.assert_close(res.positions[:, 0], arm.forward_kinematics(q)[:, list(chain.joints)],
-                               atol=1e-6, rtol=0)
+    torch.testing.assert_close(res.positions[:, 0], arm.forward_kinematics(q)[:, list(chain.joints)], atol=1e-6, rtol=0)
     moved = (res.positions[:, 1:] - res.positions[:, :1]).norm(dim=-1).amax(-1)
     assert float(moved[kept[:, 1:]].min()) > 1e-3
     # the leaves solved here combine with other chains' as a product, like closed-form ones
@@ -325,8 +325,9 @@ def test_unlimited_dofs_stay_in_their_window(tmp_path):
     """A continuous shoulder yaw: its angle comes back in [-pi, pi), also after the bounded fit of
     "project" mode (which bounds only the limited dofs)."""
     pytest.importorskip("pytorch_kinematics")
-    text = ARM_URDF.replace('<joint name="shoulder_yaw" type="revolute">',
-                            '<joint name="shoulder_yaw" type="continuous">')
+    text = ARM_URDF.replace(
+        '<joint name="shoulder_yaw" type="revolute">', '<joint name="shoulder_yaw" type="continuous">'
+    )
     text = text.replace('<limit lower="-2.0" upper="2.0" effort="1" velocity="1"/>', "")  # the yaw's
     path = tmp_path / "continuous.urdf"
     path.write_text(text)

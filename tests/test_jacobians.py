@@ -58,11 +58,20 @@ def _random_tree(seed: int, j: int = 9) -> Skeleton:
     offset_parent = rng.normal(size=(j, 3))
     offset_parent[0] = 0.0
     return Skeleton(
-        name=f"tree{seed}", joint_names=tuple(f"j{i}" for i in range(j)), parents=tuple(parents),
-        axes=axes, axis_dof=axis_dof, rest_rotation=rest, offset_parent=offset_parent,
-        offset_local=rng.normal(size=(j, 3)), lengths=rng.uniform(0.2, 1.5, size=j),
-        root_position=rng.normal(size=3), translation_dof=translation_dof,
-        dof_names=tuple(f"q{k}" for k in range(d)), lower=np.full(d, -math.inf), upper=np.full(d, math.inf),
+        name=f"tree{seed}",
+        joint_names=tuple(f"j{i}" for i in range(j)),
+        parents=tuple(parents),
+        axes=axes,
+        axis_dof=axis_dof,
+        rest_rotation=rest,
+        offset_parent=offset_parent,
+        offset_local=rng.normal(size=(j, 3)),
+        lengths=rng.uniform(0.2, 1.5, size=j),
+        root_position=rng.normal(size=3),
+        translation_dof=translation_dof,
+        dof_names=tuple(f"q{k}" for k in range(d)),
+        lower=np.full(d, -math.inf),
+        upper=np.full(d, math.inf),
         frozen_axes=np.where(driven, 0.0, rng.uniform(-1, 1, size=(j, 3))),
     )
 
@@ -75,8 +84,9 @@ def test_joint_jacobian_matches_autograd_on_real_cmu_poses(cmu):
     torch.testing.assert_close(jac, _autograd_joint_jacobian(cmu, q), rtol=0, atol=1e-10)
 
 
-@pytest.mark.parametrize("patterns,value", [(REDUCE, 0.0), (["*clavicle", "lfemur.rz", "root.t*"], 0.3)],
-                         ids=["no_hands", "frozen_at_0.3"])
+@pytest.mark.parametrize(
+    "patterns,value", [(REDUCE, 0.0), (["*clavicle", "lfemur.rz", "root.t*"], 0.3)], ids=["no_hands", "frozen_at_0.3"]
+)
 def test_joint_jacobian_on_reduced_models(cmu, patterns, value):
     sk = cmu.freeze(patterns, value=value)
     q = _poses(sk)
@@ -131,8 +141,13 @@ def pose_problem(cmu):
     g = torch.Generator().manual_seed(3)
     obs = cam.project(joints[200, kps.index()]).pixels + 2.0 * torch.randn(kps.num_keypoints, 2, generator=g, dtype=F64)
     conf = torch.rand(kps.num_keypoints, generator=g, dtype=F64) + 0.5
-    obj = Objective({"reprojection": Reprojection(obs, conf, sigma_px=2.0, loss="cauchy", scale=2.0),
-                     "limits": JointLimits(lo, hi, sigma=0.05)}, weights={"limits": 3.0})
+    obj = Objective(
+        {
+            "reprojection": Reprojection(obs, conf, sigma_px=2.0, loss="cauchy", scale=2.0),
+            "limits": JointLimits(lo, hi, sigma=0.05),
+        },
+        weights={"limits": 3.0},
+    )
     q = q_all[200] + 0.2 * torch.randn(6, sk.num_dofs, generator=g, dtype=F64)
     return sk, cam, kps, obj, q
 

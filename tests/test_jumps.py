@@ -95,8 +95,9 @@ def test_default_chains_need_cmu_names(sk):
 def test_check_independent(sk):
     larm = make_chain(sk, CMU_CHAINS["larm"], "larm")
     shoulder = make_chain(sk, ("thorax", "lclavicle", "lhumerus"), "shoulder")
-    with pytest.raises(InputError, match="'shoulder' and 'larm' are not independent: 'shoulder' moves "
-                                         "'larm''s root 'lclavicle'"):
+    with pytest.raises(
+        InputError, match="'shoulder' and 'larm' are not independent: 'shoulder' moves 'larm''s root 'lclavicle'"
+    ):
         check_independent(sk, [larm, shoulder])
     with pytest.raises(InputError, match="'larm' and 'larm' are not independent: both move 'lhumerus'"):
         check_independent(sk, [larm, larm])
@@ -115,15 +116,17 @@ def test_every_leaf_reprojects_and_keeps_lengths(sk, scene):
         assert tree.positions.shape == (q.shape[0], leaves, n + 1, 3)
         assert torch.equal(tree.flips, torch.arange(leaves))
         # bone lengths of the hypothesis, on every leaf (infeasible ones too: nearest sphere point)
-        torch.testing.assert_close(_lengths(tree.positions), _lengths(joints[:, None, idx]).expand(-1, leaves, -1),
-                                   atol=1e-6, rtol=0)
+        torch.testing.assert_close(
+            _lengths(tree.positions), _lengths(joints[:, None, idx]).expand(-1, leaves, -1), atol=1e-6, rtol=0
+        )
         # feasible links reproject onto the observations
         err = (cam.project(tree.positions[..., 1:, :]).pixels - pixels[:, None, idx[1:]]).norm(dim=-1)
         assert float(err[~tree.infeasible].max()) < 1e-4
         # leaf 0 is the hypothesis itself; the root never moves
         torch.testing.assert_close(tree.positions[:, 0], joints[:, idx], atol=1e-9, rtol=0)
-        torch.testing.assert_close(tree.positions[:, :, 0], joints[:, None, idx[0]].expand(-1, leaves, -1),
-                                   atol=0, rtol=0)
+        torch.testing.assert_close(
+            tree.positions[:, :, 0], joints[:, None, idx[0]].expand(-1, leaves, -1), atol=0, rtol=0
+        )
         # a unique flipped leaf really moved the flipped joints
         moved = (tree.positions[:, 1:] - tree.positions[:, :1]).norm(dim=-1).amax(-1)
         assert bool((moved[tree.unique[:, 1:]] > 1e-3).all())
@@ -159,7 +162,7 @@ def _ray_sphere(pixel_point: torch.Tensor, centre: torch.Tensor, radius: torch.T
     d = torch.nn.functional.normalize(pixel_point - o, dim=-1)
     m = ((centre - o) * d).sum(-1)
     h2 = ((centre - o) ** 2).sum(-1) - m * m
-    disc = radius ** 2 - h2
+    disc = radius**2 - h2
     s = disc.clamp_min(0).sqrt()
     ts = torch.stack([m - s, m + s], -1)
     return o + ts[..., None] * d[..., None, :], disc > 0
@@ -307,7 +310,7 @@ def test_dtypes(sk, scene, dtype, px_tol, m_tol):
     chain = default_chains(sk, ["rleg"])[0]
     tree = interpretation_tree(chain, joints.to(dtype), cam.to(dtype=dtype), pixels.to(dtype), conf.to(dtype))
     assert tree.positions.dtype == tree.penalty.dtype == dtype
-    err = (cam.project(tree.positions.double()[..., 1:, :]).pixels - pixels[:, None, list(chain.joints[1:])])
+    err = cam.project(tree.positions.double()[..., 1:, :]).pixels - pixels[:, None, list(chain.joints[1:])]
     assert float(err.norm(dim=-1)[~tree.infeasible].max()) < px_tol
     ref = interpretation_tree(chain, joints, cam, pixels, conf)
     both = ~tree.infeasible.any(-1) & ~ref.infeasible.any(-1)
@@ -346,8 +349,9 @@ def test_product_of_trees(sk, scene):
     # the combined index is the bitmask: chain c's leaf is its bits
     assert prod.leaf[0b10_01_11].tolist() == [0b11, 0b01, 0b10]
     assert flip_names(prod, 0b10_01_11) == ["larm:lhumerus", "larm:lradius", "head:upperneck", "rleg:rtibia"]
-    unique = (trees[0].unique[:, prod.leaf[:, 0]] & trees[1].unique[:, prod.leaf[:, 1]]
-              & trees[2].unique[:, prod.leaf[:, 2]])
+    unique = (
+        trees[0].unique[:, prod.leaf[:, 0]] & trees[1].unique[:, prod.leaf[:, 1]] & trees[2].unique[:, prod.leaf[:, 2]]
+    )
     assert torch.equal(prod.unique, unique)
     penalty = sum(t.penalty[:, prod.leaf[:, c]] for c, t in enumerate(trees))
     torch.testing.assert_close(prod.penalty, penalty)

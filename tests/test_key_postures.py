@@ -44,14 +44,17 @@ def test_parse_rule():
     assert parse_rule("last max speed before x within 2s").within_s == 2.0
 
 
-@pytest.mark.parametrize("rules, message", [
-    ({"a": "max height"}, "at least 2 key postures"),
-    ({"a": "max height", "b": "highest"}, "cannot read rule 'highest'"),
-    ({"a": "max height", "b": "rest"}, "cannot read rule 'rest'"),
-    ({"a": "max height", "b": "max height within 1 s"}, "cannot read rule"),
-    ({"a": "max height", "b": "min height after c"}, "unknown key posture 'c'"),
-    ({"a": "max height after b", "b": "min height after a"}, "in a cycle"),
-])
+@pytest.mark.parametrize(
+    "rules, message",
+    [
+        ({"a": "max height"}, "at least 2 key postures"),
+        ({"a": "max height", "b": "highest"}, "cannot read rule 'highest'"),
+        ({"a": "max height", "b": "rest"}, "cannot read rule 'rest'"),
+        ({"a": "max height", "b": "max height within 1 s"}, "cannot read rule"),
+        ({"a": "max height", "b": "min height after c"}, "unknown key posture 'c'"),
+        ({"a": "max height after b", "b": "min height after a"}, "in a cycle"),
+    ],
+)
 def test_bad_rules(rules, message):
     with pytest.raises(InputError, match=message):
         parse_rules(rules)
@@ -68,10 +71,9 @@ def _independent_postures(sk: Skeleton, joints: Tensor) -> np.ndarray:
     away = np.linalg.norm(hand - hand[0], axis=1)
     gone = int(np.nonzero(away > 0.10)[0][0])  # 10 cm from the address: the takeaway is under way
     start = int(np.nonzero(step[:gone] < 0.01)[0][-1])  # the last still moment before it
-    hit = top + int(np.argmin(away[top:fastest + 60]))  # the hands back at the address
-    end = hit + 10 + int(np.argmin(step[hit + 10:hit + 96]))  # the finish: the hands' slowest after the hit
+    hit = top + int(np.argmin(away[top : fastest + 60]))  # the hands back at the address
+    end = hit + 10 + int(np.argmin(step[hit + 10 : hit + 96]))  # the finish: the hands' slowest after the hit
     return np.array([start, top, hit, end])
-
 
 
 def test_golf_key_postures_on_the_dev_swings(swings):

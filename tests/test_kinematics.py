@@ -88,8 +88,9 @@ def _assert_matches_reference(sk: Skeleton, asf: AsfFile, amc_path, frames: slic
 @pytest.mark.parametrize("subject,clip", SUBJECT_CLIPS)
 def test_fk_matches_independent_acclaim_reference(cmu_file, subject, clip, generic):
     asf_path = cmu_file(f"{subject}.asf")
-    _assert_matches_reference(Skeleton.from_asf(asf_path), parse_asf(asf_path), cmu_file(f"{clip}.amc"),
-                              slice(0, None, 60), generic)
+    _assert_matches_reference(
+        Skeleton.from_asf(asf_path), parse_asf(asf_path), cmu_file(f"{clip}.amc"), slice(0, None, 60), generic
+    )
 
 
 @pytest.mark.parametrize("generic", [False, True], ids=["default", "generic"])
@@ -106,9 +107,9 @@ def test_fk_non_xyz_dof_order(tmp_path, asf_64, amc_64_01, generic):
     p.write_bytes((text[:i] + block + text[j:]).encode())
     sk = Skeleton.from_asf(p)
     k = sk.dof_names.index("lfemur.rz")
-    assert sk.dof_names[k:k + 3] == ("lfemur.rz", "lfemur.ry", "lfemur.rx")
-    np.testing.assert_allclose(sk.lower[k:k + 3], np.radians([-60.0, -70.0, -160.0]))
-    np.testing.assert_allclose(sk.upper[k:k + 3], np.radians([70.0, 70.0, 20.0]))
+    assert sk.dof_names[k : k + 3] == ("lfemur.rz", "lfemur.ry", "lfemur.rx")
+    np.testing.assert_allclose(sk.lower[k : k + 3], np.radians([-60.0, -70.0, -160.0]))
+    np.testing.assert_allclose(sk.upper[k : k + 3], np.radians([70.0, 70.0, 20.0]))
     _assert_matches_reference(sk, parse_asf(p), amc_64_01, slice(0, None, 90), generic)
 
 
@@ -121,8 +122,7 @@ def test_closed_form_and_generic_paths_agree(sk, q_clip):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
     r = sk.freeze(["*fingers", "*toes", "lfemur.ry"], value=0.4)
     qr = r.reduce(q, sk)
-    torch.testing.assert_close(forward_kinematics(r, qr), forward_kinematics(r, qr, generic=True),
-                               rtol=0, atol=1e-12)
+    torch.testing.assert_close(forward_kinematics(r, qr), forward_kinematics(r, qr, generic=True), rtol=0, atol=1e-12)
     q1 = _random_q(sk, (3,), seed=20).requires_grad_(True)
     q2 = q1.detach().clone().requires_grad_(True)
     forward_kinematics(sk, q1).square().sum().backward()
@@ -441,8 +441,9 @@ def test_hessian_vector_product_batched_with_create_graph(sk):
     hvps = []
     for generic in (False, True):
         x = q.clone().requires_grad_(True)
-        (g,) = torch.autograd.grad((forward_kinematics(model, x, generic=generic).square() * weights).sum(), x,
-                                   create_graph=True)
+        (g,) = torch.autograd.grad(
+            (forward_kinematics(model, x, generic=generic).square() * weights).sum(), x, create_graph=True
+        )
         (hv,) = torch.autograd.grad((g * v).sum(), x)
         hvps.append(hv)
     assert hvps[1].abs().max() > 1e-3

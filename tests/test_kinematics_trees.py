@@ -144,8 +144,12 @@ SHAPES = {
     "chain": [-1, 0, 1, 2, 3],
     "star": [-1, 0, 0, 0, 0],
 }
-RANDOM_TREES = [(seed, j, style) for seed, (j, style) in enumerate(
-    [(n, s) for s in ("uniform", "chain", "star", "early") for n in (2, 3, 6, 12, 25)])]
+RANDOM_TREES = [
+    (seed, j, style)
+    for seed, (j, style) in enumerate(
+        [(n, s) for s in ("uniform", "chain", "star", "early") for n in (2, 3, 6, 12, 25)]
+    )
+]
 
 
 def _trees(frames: bool):
@@ -173,8 +177,13 @@ def test_fk_of_random_trees_matches_recursive_reference(frames):
             joints, rots = forward_kinematics(sk, q, rotations=True, generic=generic)
             torch.testing.assert_close(joints, ref_j, rtol=0, atol=1e-12, msg=lambda m: f"{name} {generic}: {m}")
             torch.testing.assert_close(rots, ref_r, rtol=0, atol=1e-12, msg=lambda m: f"{name} {generic}: {m}")
-            torch.testing.assert_close(forward_kinematics(sk, q, generic=generic), ref_j, rtol=0, atol=1e-12,
-                                       msg=lambda m: f"{name} {generic} positions only: {m}")
+            torch.testing.assert_close(
+                forward_kinematics(sk, q, generic=generic),
+                ref_j,
+                rtol=0,
+                atol=1e-12,
+                msg=lambda m: f"{name} {generic} positions only: {m}",
+            )
 
 
 @pytest.mark.parametrize("frames", [True, False], ids=["frames", "free_axes"])
@@ -195,8 +204,13 @@ def test_fk_gradients_of_random_trees_match_autograd_through_reference(frames):
                 out = forward_kinematics(sk, x, rotations=rotations, generic=generic)
                 joints = out[0] if rotations else out
                 (joints * upstream).sum().backward()
-                torch.testing.assert_close(x.grad, expected, rtol=0, atol=1e-10,
-                                           msg=lambda m: f"{name} generic={generic} rotations={rotations}: {m}")
+                torch.testing.assert_close(
+                    x.grad,
+                    expected,
+                    rtol=0,
+                    atol=1e-10,
+                    msg=lambda m: f"{name} generic={generic} rotations={rotations}: {m}",
+                )
         lengths = torch.as_tensor(sk.lengths).clone().requires_grad_(True)
         (forward_kinematics(sk, q[0], lengths=lengths) * upstream[0]).sum().backward()
         ln_ref = torch.as_tensor(sk.lengths).clone().requires_grad_(True)
@@ -258,14 +272,24 @@ def _asf_text(hierarchy: list[str], bones: dict[str, tuple[str, float]]) -> str:
 
 ASF_CASES = {
     # the review's file: level 2 (c) hangs from the first joint of level 1 (a, b)
-    "n1": (["root a b", "a c", "c d"],
-           {"a": ("0 1 0", 1.0), "b": ("1 0 0", 5.0), "c": ("0 1 0", 1.0), "d": ("0 1 0", 1.0)},
-           {"a": (0, 1, 0), "b": (5, 0, 0), "c": (0, 2, 0), "d": (0, 3, 0)}),
+    "n1": (
+        ["root a b", "a c", "c d"],
+        {"a": ("0 1 0", 1.0), "b": ("1 0 0", 5.0), "c": ("0 1 0", 1.0), "d": ("0 1 0", 1.0)},
+        {"a": (0, 1, 0), "b": (5, 0, 0), "c": (0, 2, 0), "d": (0, 3, 0)},
+    ),
     # level 2 (c, f) hangs from the first two joints of level 1 (a, b, e)
-    "n2": (["root a b e", "a c", "b f", "c d"],
-           {"a": ("0 1 0", 1.0), "b": ("1 0 0", 5.0), "e": ("0 0 1", 2.0), "c": ("0 1 0", 1.0),
-            "f": ("0 0 1", 1.0), "d": ("0 1 0", 1.0)},
-           {"a": (0, 1, 0), "b": (5, 0, 0), "e": (0, 0, 2), "c": (0, 2, 0), "f": (5, 0, 1), "d": (0, 3, 0)}),
+    "n2": (
+        ["root a b e", "a c", "b f", "c d"],
+        {
+            "a": ("0 1 0", 1.0),
+            "b": ("1 0 0", 5.0),
+            "e": ("0 0 1", 2.0),
+            "c": ("0 1 0", 1.0),
+            "f": ("0 0 1", 1.0),
+            "d": ("0 1 0", 1.0),
+        },
+        {"a": (0, 1, 0), "b": (5, 0, 0), "e": (0, 0, 2), "c": (0, 2, 0), "f": (5, 0, 1), "d": (0, 3, 0)},
+    ),
 }
 
 
@@ -279,8 +303,13 @@ def test_asf_whose_level_hangs_from_the_first_joints_of_a_longer_level(tmp_path:
     for generic in (False, True):
         joints = forward_kinematics(sk, zero, generic=generic)
         for name, expected in rest.items():
-            np.testing.assert_allclose(joints[sk.joint_index(name)].numpy(), np.asarray(expected) * INCH_M,
-                                       rtol=0, atol=1e-12, err_msg=f"{name} generic={generic}")
+            np.testing.assert_allclose(
+                joints[sk.joint_index(name)].numpy(),
+                np.asarray(expected) * INCH_M,
+                rtol=0,
+                atol=1e-12,
+                err_msg=f"{name} generic={generic}",
+            )
     q = torch.randn(4, sk.num_dofs, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     ref = _reference_batch(sk, q)
     for generic in (False, True):

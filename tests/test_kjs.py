@@ -101,8 +101,9 @@ def test_frames_without_keypoints_are_carried():
     obs = prep.problem.observations
     conf = obs.confidence.clone()
     conf[4:6] = 0.0
-    blind = Problem(prep.problem.skeleton, prep.problem.keypoints, dataclasses.replace(obs, confidence=conf),
-                    prep.problem.keyframes)
+    blind = Problem(
+        prep.problem.skeleton, prep.problem.keypoints, dataclasses.replace(obs, confidence=conf), prep.problem.keyframes
+    )
     est = track(blind, cfg, torch.Generator().manual_seed(0), KJS)
     assert torch.isfinite(est.q).all()
     assert torch.equal(est.hypotheses[4], est.hypotheses[3])  # carried by the (constant-position) dynamics
@@ -121,14 +122,17 @@ def test_chain_votes_follow_the_covariance(kjs_run):
     assert int(votes[1].argmax()) == 0 and float(votes[1, 0]) > 0.99
 
 
-@pytest.mark.parametrize("override, key", [
-    ("kjs.chains=[larm,tail]", "kjs.chains"),
-    ("kjs.modes=0", "kjs.modes"),
-    ("kjs.samples=4", "kjs.samples"),
-    ("kjs.scale=-1", "kjs.scale"),
-    ("kjs.tail=uniform", "kjs.tail"),
-    ("kjs.init=guess", "kjs.init"),
-])
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("kjs.chains=[larm,tail]", "kjs.chains"),
+        ("kjs.modes=0", "kjs.modes"),
+        ("kjs.samples=4", "kjs.samples"),
+        ("kjs.scale=-1", "kjs.scale"),
+        ("kjs.tail=uniform", "kjs.tail"),
+        ("kjs.init=guess", "kjs.init"),
+    ],
+)
 def test_bad_settings_are_one_line_errors(tmp_path, capsys, override, key):
     out = tmp_path / "run"
     rc = main(["run", str(KJS_YAML), "data.stop=12", override, f"out_dir={out}", "--quiet"])
@@ -149,13 +153,16 @@ def test_tree_init_when_every_flip_is_pruned(cmu_file):
     broke the limits and the tracker crashed with no candidate left; the fitted pose itself always stays
     a candidate. (The camera frames the whole 3 s, so the problem is cut to 4 frames after `prepare`.)"""
     amc = cmu_file("09_06.amc")
-    cfg = load_config(REPO / "configs" / "eval_kjs.yaml", [f"data.amc={amc}", f"data.asf={amc.parent / '09.asf'}",
-                                                           "kjs.init=tree", "progress=false"])
+    cfg = load_config(
+        REPO / "configs" / "eval_kjs.yaml",
+        [f"data.amc={amc}", f"data.asf={amc.parent / '09.asf'}", "kjs.init=tree", "progress=false"],
+    )
     prep = prepare(cfg)
     obs = prep.problem.observations
     short = dataclasses.replace(obs, keypoints=obs.keypoints[:4], confidence=obs.confidence[:4], times=obs.times[:4])
-    est = track(Problem(prep.problem.skeleton, prep.problem.keypoints, short), cfg, torch.Generator().manual_seed(0),
-                KJS)
+    est = track(
+        Problem(prep.problem.skeleton, prep.problem.keypoints, short), cfg, torch.Generator().manual_seed(0), KJS
+    )
     assert torch.isfinite(est.hypotheses).all() and est.hypotheses.shape[:2] == (4, K)
 
 
@@ -179,8 +186,9 @@ def test_tree_start_headings(kjs_run):
     torch.testing.assert_close(turns.sort().values, torch.arange(8) * torch.pi / 4, atol=1e-4, rtol=0)
     spine = X[::3, thorax] - X[::3, 0]  # a turn about Y keeps its height and its horizontal length
     torch.testing.assert_close(spine[:, 1], spine[:1, 1].expand(8), atol=1e-5, rtol=0)
-    torch.testing.assert_close(spine[:, [0, 2]].norm(dim=-1), spine[:1, [0, 2]].norm(dim=-1).expand(8), atol=1e-5,
-                               rtol=0)
+    torch.testing.assert_close(
+        spine[:, [0, 2]].norm(dim=-1), spine[:1, [0, 2]].norm(dim=-1).expand(8), atol=1e-5, rtol=0
+    )
     leaned = X[1::3, thorax] - X[1::3, 0]
     assert float((leaned[:, [0, 2]].norm(dim=-1) - spine[:, [0, 2]].norm(dim=-1)).min()) > 0.1  # 0.5 rad of lean
 

@@ -21,8 +21,11 @@ from ptrack.skeleton import Skeleton, load_amc
 REPO = Path(__file__).resolve().parents[1]
 ASF = REPO / "ptrack" / "data" / "10.asf"
 DEG = math.pi / 180.0
-DEV_CLIPS = [ln.split("#")[0].strip().split("/")[-1] for ln in
-             (REPO / "configs" / "clips" / "dev.txt").read_text().splitlines() if ln.split("#")[0].strip()]
+DEV_CLIPS = [
+    ln.split("#")[0].strip().split("/")[-1]
+    for ln in (REPO / "configs" / "clips" / "dev.txt").read_text().splitlines()
+    if ln.split("#")[0].strip()
+]
 GOLF_CLIPS = [f"64_0{i}.amc" for i in (1, 2, 4, 5, 6, 8, 9)]
 
 
@@ -113,12 +116,15 @@ def test_dofs_missing_from_the_file_keep_their_own_limits(tmp_path, caplog):
     assert "keeps its own limits" in caplog.text
 
 
-@pytest.mark.parametrize("text, fragment", [
-    ("not json", "must be JSON"),
-    ('{"other": 1}', "limits_deg"),
-    ('{"limits_deg": {"a.rx": [3, 1]}}', "'a.rx'"),
-    ('{"limits_deg": {"a.rx": "wide"}}', "'a.rx'"),
-])
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("not json", "must be JSON"),
+        ('{"other": 1}', "limits_deg"),
+        ('{"limits_deg": {"a.rx": [3, 1]}}', "'a.rx'"),
+        ('{"limits_deg": {"a.rx": "wide"}}', "'a.rx'"),
+    ],
+)
 def test_malformed_limits_file(tmp_path, text, fragment):
     p = tmp_path / "bad.json"
     p.write_text(text)

@@ -50,8 +50,9 @@ def test_viterbi_matches_brute_force():
 
     def total(path):
         c = sum(float(unary[t, k]) for t, k in enumerate(path))
-        return c + sum(0.5 * float((q[t, path[t]] - q[t - 1, path[t - 1]]).square().sum()) / sigma ** 2
-                       for t in range(1, T))
+        return c + sum(
+            0.5 * float((q[t, path[t]] - q[t - 1, path[t - 1]]).square().sum()) / sigma**2 for t in range(1, T)
+        )
 
     best = min(itertools.product(range(K), repeat=T), key=total)
     assert viterbi(unary, q, sigma).tolist() == list(best)

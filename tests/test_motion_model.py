@@ -243,8 +243,9 @@ def test_config_section(tmp_path):
 
 
 def _cli(*argv: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "ptrack.cli", *argv], capture_output=True, text=True, timeout=300,
-                          cwd=cwd)
+    return subprocess.run(
+        [sys.executable, "-m", "ptrack.cli", *argv], capture_output=True, text=True, timeout=300, cwd=cwd
+    )
 
 
 def test_cli_fit_motion(tmp_path, cmu_dir):
@@ -289,12 +290,25 @@ def test_cli_bad_inputs(tmp_path, cmu_file, capsys):
     short.parent.mkdir()
     short.write_text("".join(lines[:end]))
     (tmp_path / "data" / "64.asf").write_text(cmu_file("64.asf").read_text())
-    _fails(tmp_path, f"motion.clips=[{one}, {short}]", "motion.components=1",
-           message="64_99.amc: key posture 'start' (rest before top) not found")
-    _fails(tmp_path, "motion.components=7", capsys=capsys,
-           message="'motion.components' (7) must be at most the number of training clips minus one (6)")
-    _fails(tmp_path, "motion.clips=[gone.amc, gone2.amc]", "motion.components=1", capsys=capsys,
-           message="training clip not found")
+    _fails(
+        tmp_path,
+        f"motion.clips=[{one}, {short}]",
+        "motion.components=1",
+        message="64_99.amc: key posture 'start' (rest before top) not found",
+    )
+    _fails(
+        tmp_path,
+        "motion.components=7",
+        capsys=capsys,
+        message="'motion.components' (7) must be at most the number of training clips minus one (6)",
+    )
+    _fails(
+        tmp_path,
+        "motion.clips=[gone.amc, gone2.amc]",
+        "motion.components=1",
+        capsys=capsys,
+        message="training clip not found",
+    )
     _fails(tmp_path, "motion.samples=1", capsys=capsys, message="'motion.samples' must be >= 2")
     _fails(tmp_path, "motion.key_postures.top=highest", capsys=capsys, message="cannot read rule 'highest'")
     (tmp_path / "file").write_text("")

@@ -22,8 +22,7 @@ FPS = 30.0
 def _figure(T: int, dtype=torch.float32) -> torch.Tensor:
     """(T, 6, 3) a small stick figure swaying around (0, 1, 0), metres, Y up."""
     rest = torch.tensor(
-        [[0.0, 1.0, 0.0], [0.15, 0.5, 0.0], [-0.15, 0.5, 0.0]]
-        + [[0.4, 1.0, 0.1], [-0.4, 1.0, 0.1], [0.0, 1.7, 0.0]],
+        [[0.0, 1.0, 0.0], [0.15, 0.5, 0.0], [-0.15, 0.5, 0.0]] + [[0.4, 1.0, 0.1], [-0.4, 1.0, 0.1], [0.0, 1.7, 0.0]],
         dtype=dtype,
     )
     phase = torch.arange(T, dtype=dtype)[:, None, None] / FPS
@@ -73,8 +72,7 @@ def _simulate_kick(kick, channel, dtype=torch.float64, seed=0):
     times = torch.arange(joints.shape[0], dtype=dtype) / 120.0
     kps = kick["kps"]
     g = torch.Generator().manual_seed(seed)
-    return simulate_observations(joints, kps.index(), kick["camera"], times, channel, g, kps.names,
-                                 kps.swap_pairs)
+    return simulate_observations(joints, kps.index(), kick["camera"], times, channel, g, kps.names, kps.swap_pairs)
 
 
 # -- simulate_observations ------------------------------------------------------------------------
@@ -223,9 +221,7 @@ def test_without_partners_outliers_keep_their_rate_as_displacements():
     assert abs(info.outlier_mask.double().mean().item() - 0.3) < 0.04
 
 
-@pytest.mark.parametrize(
-    "outliers, swap_fraction", [(0.2, 0.0), (0.3, 0.2), (0.3, 0.5), (0.3, 1.0), (0.6, 0.8)]
-)
+@pytest.mark.parametrize("outliers, swap_fraction", [(0.2, 0.0), (0.3, 0.2), (0.3, 0.5), (0.3, 1.0), (0.6, 0.8)])
 def test_realised_swap_share_and_outlier_rate_on_real_clip(kick, outliers, swap_fraction):
     """The CMU kick, 17 keypoints (6 left/right pairs, 5 unpaired), 30% missing: 590 frames give
     ~7000 kept keypoints, so the share of swaps among outliers has std < 0.015."""
@@ -347,8 +343,13 @@ def test_gradcheck_keypoints_wrt_joints():
 
     def f(j):
         obs, _ = simulate_observations(
-            j, torch.arange(6), _camera(), torch.arange(3.0) / FPS, ChannelConfig(noise_px=1.0),
-            torch.Generator().manual_seed(0), NAMES,
+            j,
+            torch.arange(6),
+            _camera(),
+            torch.arange(3.0) / FPS,
+            ChannelConfig(noise_px=1.0),
+            torch.Generator().manual_seed(0),
+            NAMES,
         )
         return obs.keypoints
 

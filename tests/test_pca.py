@@ -32,8 +32,16 @@ def heldout_model(cmu_file, tmp_path_factory) -> Path:
 
 
 def _setup(cmu_file, model: Path, *extra: str):
-    cfg = load_config(GOLF, [f"data.amc={cmu_file(f'64_{HELD_OUT}.amc')}", f"data.asf={cmu_file('64.asf')}",
-                             f"motion.model_file={model}", "dtype=float64", *extra])
+    cfg = load_config(
+        GOLF,
+        [
+            f"data.amc={cmu_file(f'64_{HELD_OUT}.amc')}",
+            f"data.asf={cmu_file('64.asf')}",
+            f"motion.model_file={model}",
+            "dtype=float64",
+            *extra,
+        ],
+    )
     prep = prepare(cfg)
     return cfg, prep, P._setup(prep.problem, cfg)
 
@@ -68,23 +76,36 @@ def test_root_rotation_round_trip_and_window_jacobian(cmu_file, heldout_model):
     frames = torch.arange(40, 43)
     _, mu = P.initial_timing(s)
     g = torch.Generator().manual_seed(1)
-    x = torch.cat([0.3 * torch.randn(m, generator=g, dtype=torch.float64), mu[frames],
-                   (0.05 * torch.randn(f, 6, generator=g, dtype=torch.float64) + torch.tensor(
-                       [-0.3, 1.0, 0.1, 0, 0, 0], dtype=torch.float64)).flatten()])[None]
+    x = torch.cat(
+        [
+            0.3 * torch.randn(m, generator=g, dtype=torch.float64),
+            mu[frames],
+            (
+                0.05 * torch.randn(f, 6, generator=g, dtype=torch.float64)
+                + torch.tensor([-0.3, 1.0, 0.1, 0, 0, 0], dtype=torch.float64)
+            ).flatten(),
+        ]
+    )[None]
     ref = rot[:3][None]
-    pred = P.Prediction(torch.zeros(m, dtype=torch.float64), mu[frames], torch.zeros(f, 3, dtype=torch.float64),
-                        timing=mu[frames])
+    pred = P.Prediction(
+        torch.zeros(m, dtype=torch.float64), mu[frames], torch.zeros(f, 3, dtype=torch.float64), timing=mu[frames]
+    )
     lin = P._window_linearization(s, frames, ref, pred, P._silhouette(s, frames))
     out = lin(x)
     assert out.residuals.shape[0] == 1 and out.jacobian.shape == (1, out.residuals.shape[1], m + 7 * f)
-    g6 = x[0, m + f:].reshape(f, 6)
-    q = P.poses_of(s, x[0, :m].expand(f, m), x[0, m:m + f], P._exp(g6[:, 3:])[0] @ ref[0], g6[:, :3])
+    g6 = x[0, m + f :].reshape(f, 6)
+    q = P.poses_of(s, x[0, :m].expand(f, m), x[0, m : m + f], P._exp(g6[:, 3:])[0] @ ref[0], g6[:, :3])
     proj = prep.problem.observations.camera.project(prep.problem.skeleton.forward_kinematics(q)[:, s.tracked])
     r = (proj.pixels - s.observed[frames]) * s.weight[frames][..., None]
-    assert torch.allclose(out.residuals[0, :r.numel()], r.flatten(), atol=1e-8)
+    assert torch.allclose(out.residuals[0, : r.numel()], r.flatten(), atol=1e-8)
     eps = 1e-6
-    fd = torch.stack([(lin(x + eps * torch.eye(x.shape[1], dtype=x.dtype)[k]).residuals - out.residuals)[0] / eps
-                      for k in range(x.shape[1])], -1)
+    fd = torch.stack(
+        [
+            (lin(x + eps * torch.eye(x.shape[1], dtype=x.dtype)[k]).residuals - out.residuals)[0] / eps
+            for k in range(x.shape[1])
+        ],
+        -1,
+    )
     scale = out.jacobian.abs().amax()
     assert float((fd - out.jacobian[0]).abs().amax()) < 1e-4 * scale
 
@@ -92,9 +113,19 @@ def test_root_rotation_round_trip_and_window_jacobian(cmu_file, heldout_model):
 def test_heldout_swing_tracked_under_40mm(cmu_file, heldout_model, tmp_path, capsys):
     """The issue's check: a swing the model never saw, noise_px 2, no keyframes, silhouettes on."""
     out = tmp_path / "run"
-    rc = main(["run", str(GOLF), f"data.amc={cmu_file(f'64_{HELD_OUT}.amc')}", f"data.asf={cmu_file('64.asf')}",
-               f"motion.model_file={heldout_model}", "observations.noise_px=2", "seed=0", "progress=false",
-               f"out_dir={out}"])
+    rc = main(
+        [
+            "run",
+            str(GOLF),
+            f"data.amc={cmu_file(f'64_{HELD_OUT}.amc')}",
+            f"data.asf={cmu_file('64.asf')}",
+            f"motion.model_file={heldout_model}",
+            "observations.noise_px=2",
+            "seed=0",
+            "progress=false",
+            f"out_dir={out}",
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["method"] == "pca" and metrics["frames"] > 90
@@ -114,10 +145,16 @@ def _fail(capsys, out: Path, argv: list[str], *fragments: str) -> None:
         assert not any(".partial" in p.name for p in out.parent.iterdir())
 
 
-@pytest.mark.parametrize("override,key", [("pca.window=0", "pca.window"), ("pca.joint_weight=-1", "pca.joint_weight"),
-                                          ("pca.silhouette_weight=-0.5", "pca.silhouette_weight"),
-                                          ("pca.joints=[l_knee,elbow]", "pca.joints"),
-                                          ("pca.timing_sigma=0", "pca.timing_sigma")])
+@pytest.mark.parametrize(
+    "override,key",
+    [
+        ("pca.window=0", "pca.window"),
+        ("pca.joint_weight=-1", "pca.joint_weight"),
+        ("pca.silhouette_weight=-0.5", "pca.silhouette_weight"),
+        ("pca.joints=[l_knee,elbow]", "pca.joints"),
+        ("pca.timing_sigma=0", "pca.timing_sigma"),
+    ],
+)
 def test_bad_pca_values(tmp_path, capsys, override, key):
     out = tmp_path / "run"
     _fail(capsys, out, ["run", str(GOLF), override, f"out_dir={out}"], key)
@@ -127,9 +164,16 @@ def test_model_file_of_another_skeleton_or_corrupt(cmu_file, heldout_model, tmp_
     from ptrack.motion_model import load_motion_model
 
     model = load_motion_model(heldout_model)
-    other = MotionModel(dof_names=model.dof_names, skeleton_dof_names=model.skeleton_dof_names[:-3] + ("a", "b", "c"),
-                        mean=model.mean, components=model.components, explained=model.explained,
-                        key_names=model.key_names, key_times=model.key_times, sigma=model.sigma)
+    other = MotionModel(
+        dof_names=model.dof_names,
+        skeleton_dof_names=model.skeleton_dof_names[:-3] + ("a", "b", "c"),
+        mean=model.mean,
+        components=model.components,
+        explained=model.explained,
+        key_names=model.key_names,
+        key_times=model.key_times,
+        sigma=model.sigma,
+    )
     bad_skeleton = save_motion_model(other, tmp_path / "other.npz")
     corrupt = tmp_path / "corrupt.npz"
     corrupt.write_bytes(b"PK\x03\x04 this is not a motion model")

@@ -63,12 +63,15 @@ def test_mean_pose_is_nearer_real_motion_than_the_zero_pose(model):
     assert at_mean < 0.6 * at_zero, (float(at_mean), float(at_zero))
 
 
-@pytest.mark.parametrize("text, needle", [
-    ("{not json", "prior_deg"),
-    ('{"other": 1}', "prior_deg"),
-    ('{"prior_deg": {"lfemur.rx": [1.0]}}', "lfemur.rx"),
-    ('{"prior_deg": {"lfemur.rx": [1.0, -2.0]}}', "lfemur.rx"),
-])
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        ("{not json", "prior_deg"),
+        ('{"other": 1}', "prior_deg"),
+        ('{"prior_deg": {"lfemur.rx": [1.0]}}', "lfemur.rx"),
+        ('{"prior_deg": {"lfemur.rx": [1.0, -2.0]}}', "lfemur.rx"),
+    ],
+)
 def test_bad_files(tmp_path, text, needle):
     p = tmp_path / "prior.json"
     p.write_text(text)

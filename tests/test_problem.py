@@ -24,8 +24,15 @@ def setup():
     joints = sk.forward_kinematics(q)
     cam = camera_for_motion(joints, 6.0, 30.0, 10.0, 1000.0, 640, 480).to(dtype=torch.float64)
     kps = make_keypoints(sk)
-    obs, _ = simulate_observations(joints, kps.index(), cam, torch.arange(4, dtype=torch.float64) / 30,
-                                   ChannelConfig(noise_px=0.0), torch.Generator().manual_seed(0), kps.names)
+    obs, _ = simulate_observations(
+        joints,
+        kps.index(),
+        cam,
+        torch.arange(4, dtype=torch.float64) / 30,
+        ChannelConfig(noise_px=0.0),
+        torch.Generator().manual_seed(0),
+        kps.names,
+    )
     return sk, q, cam, kps, obs
 
 

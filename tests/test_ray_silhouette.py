@@ -74,8 +74,9 @@ def _cmu_scene(dtype=F64):
     joints = sk.forward_kinematics(q)
     cam = camera_for_motion(joints, 5.0, 30.0, 10.0, 800.0, 320, 240)
     bones = torch.as_tensor(sk.bones())
-    radii = capsule_radii([sk.joint_names[j] for _, j in sk.bones()],
-                          torch.as_tensor(sk.lengths[bones[:, 1]], dtype=dtype))
+    radii = capsule_radii(
+        [sk.joint_names[j] for _, j in sk.bones()], torch.as_tensor(sk.lengths[bones[:, 1]], dtype=dtype)
+    )
     return sk, q, joints, cam, bones, radii
 
 
@@ -102,8 +103,10 @@ def test_term_zero_on_own_silhouette_and_jacobian():
     for dof in (0, 4, 10):
         q3 = q2.clone()
         q3[:, dof] += eps
-        fd = (term.residual(PoseEval(q=q3, joints=sk.forward_kinematics(q3), pixels=x[..., :1, :2],
-                                      depth=x[..., :1, 2])) - r) / eps
+        fd = (
+            term.residual(PoseEval(q=q3, joints=sk.forward_kinematics(q3), pixels=x[..., :1, :2], depth=x[..., :1, 2]))
+            - r
+        ) / eps
         assert torch.allclose(fd, jac[:, dof], atol=1e-3), dof
 
 
@@ -117,5 +120,6 @@ def test_mask_samples_grid_and_thinning():
     with pytest.raises(InputError):
         mask_samples(m.float())
     with pytest.raises(InputError):
-        RaySilhouette(torch.zeros(4, 3), torch.ones(4, dtype=torch.bool), torch.zeros(3), ((0, 1),),
-                      torch.tensor([-1.0]))
+        RaySilhouette(
+            torch.zeros(4, 3), torch.ones(4, dtype=torch.bool), torch.zeros(3), ((0, 1),), torch.tensor([-1.0])
+        )

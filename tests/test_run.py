@@ -34,9 +34,19 @@ QUICK = [*FAST, "frame.iterations=3", "frame.first_iterations=5"]  # for runs wh
 T = 12
 FREEZE = ["*fingers", "*thumb", "*hand", "*toes"]
 OUTPUTS = ["config.yaml", "metrics.json", "result.bvh", "result.npz", "run.rrd"]
-METRIC_KEYS = ("seconds", "frames", "mpjpe_mm", "pa_mpjpe_mm", "mpjpe_abs_mm", "accel_error_mm_per_frame2",
-               "accel_error_abs_mm_per_frame2", "flip_error_rate", "reprojection_error_px",
-               "joint_limit_violation_fraction", "gt_joint_limit_violation_fraction")
+METRIC_KEYS = (
+    "seconds",
+    "frames",
+    "mpjpe_mm",
+    "pa_mpjpe_mm",
+    "mpjpe_abs_mm",
+    "accel_error_mm_per_frame2",
+    "accel_error_abs_mm_per_frame2",
+    "flip_error_rate",
+    "reprojection_error_px",
+    "joint_limit_violation_fraction",
+    "gt_joint_limit_violation_fraction",
+)
 
 
 def _cfg(out: Path, *extra: str, fast=FAST):
@@ -144,9 +154,16 @@ def test_config_yaml_loads_back(run_dir):
 
 def test_recording(run_dir, result):
     rows = _entities(run_dir / "run.rrd")
-    for e in ("world/estimate/joints", "world/estimate/bones", "world/ground_truth/joints",
-              "world/camera/image/observed", "metrics/mpjpe_mm", "metrics/reprojection_error_px",
-              "metrics/pa_mpjpe_mm", "metrics/cost"):
+    for e in (
+        "world/estimate/joints",
+        "world/estimate/bones",
+        "world/ground_truth/joints",
+        "world/camera/image/observed",
+        "metrics/mpjpe_mm",
+        "metrics/reprojection_error_px",
+        "metrics/pa_mpjpe_mm",
+        "metrics/cost",
+    ):
         assert rows[(e, False)] == T, f"{e}: {rows[(e, False)]} rows"
     assert rows[("world/camera", True)] > 0
     assert not any(e.startswith("world/camera/image/silhouette") for e, _ in rows)
@@ -203,8 +220,7 @@ def test_run_from_observation_file_without_motion(tmp_path):
     obs = prepare(_cfg(tmp_path / "unused", fast=QUICK)).problem.observations
     path = tmp_path / "obs.npz"
     obs.save_npz(path)
-    out = execute(_cfg(tmp_path / "no_gt", f"observations.file={path}", 'data.amc=""', "frame.init=rest",
-                       fast=QUICK))
+    out = execute(_cfg(tmp_path / "no_gt", f"observations.file={path}", 'data.amc=""', "frame.init=rest", fast=QUICK))
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames"] == T and math.isfinite(m["reprojection_error_px"])
     assert "mpjpe_mm" not in m  # no ground truth
@@ -368,15 +384,22 @@ def test_non_finite_estimate_fails_the_run_and_writes_nothing(tmp_path, monkeypa
     """An estimate with every odd frame NaN must not score like a complete one (nanmean did that)."""
     monkeypatch.setitem(ESTIMATORS, "frame", _nan_every_other_frame)
     out = tmp_path / "nan"
-    with pytest.raises(EstimationError, match=r"non-finite poses in 6 of 12 frames \(nonfinite_frames=6; first at "
-                                              r"frame indices \[1, 3, 5, 7, 9\]\)"):
+    with pytest.raises(
+        EstimationError,
+        match=r"non-finite poses in 6 of 12 frames \(nonfinite_frames=6; first at "
+        r"frame indices \[1, 3, 5, 7, 9\]\)",
+    ):
         execute(_cfg(out, fast=QUICK))
     assert not out.exists() and _leftovers(tmp_path) == []
 
 
 def test_json_never_holds_nan():
-    assert json_safe({"a": float("nan"), "b": [1.0, float("inf"), {"c": -float("inf")}], "d": 2, "e": "x"}) == \
-        {"a": None, "b": [1.0, None, {"c": None}], "d": 2, "e": "x"}
+    assert json_safe({"a": float("nan"), "b": [1.0, float("inf"), {"c": -float("inf")}], "d": 2, "e": "x"}) == {
+        "a": None,
+        "b": [1.0, None, {"c": None}],
+        "d": 2,
+        "e": "x",
+    }
 
 
 def test_metrics_json_writes_null_for_undefined_metrics(tmp_path, monkeypatch):

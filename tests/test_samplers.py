@@ -218,8 +218,9 @@ def test_student_log_density_matches_torch_in_1d_and_scipy_in_nd():
         d = css_proposal(mean, sc.chol[None], 100, gen(11), tail=tail, dof=dof)
         ref = stats.multivariate_t(mean[0].numpy(), sc.covariance.numpy(), df=df).logpdf(d.samples[0].numpy())
         np.testing.assert_allclose(d.log_density[0].numpy(), ref, rtol=1e-10)
-        torch.testing.assert_close(proposal_log_density(d.samples, mean, sc.chol[None], tail=tail, dof=dof)[..., 0],
-                                   d.log_density)
+        torch.testing.assert_close(
+            proposal_log_density(d.samples, mean, sc.chol[None], tail=tail, dof=dof)[..., 0], d.log_density
+        )
 
 
 def test_log_densities_integrate_to_one():
@@ -290,8 +291,9 @@ def test_batched_shapes_and_counts():
     # equal counts give the uniform layout's draws, flattened
     e = css_proposal(mean, chol, [S] * M, gen(16))
     assert torch.equal(e.samples, d.samples.reshape(M * S, D)) and torch.equal(e.component, d.component.flatten())
-    torch.testing.assert_close(f.log_density, proposal_log_density(f.samples[:, None], mean, chol)[
-        torch.arange(S + 2), 0, f.component])
+    torch.testing.assert_close(
+        f.log_density, proposal_log_density(f.samples[:, None], mean, chol)[torch.arange(S + 2), 0, f.component]
+    )
     assert css_proposal(mean, chol, [0, 0, 0], gen(0)).samples.shape == (0, D)
     assert spherical_proposal(mean, chol, 0, gen(0)).samples.shape == (M, 0, D)
     assert proposal_log_density(torch.zeros(5, 2, D, dtype=F64), mean, chol).shape == (5, 2, M)
@@ -329,22 +331,25 @@ def test_projection_keeps_samples_within_limits_and_inside_ones_untouched(mode):
 
 
 def test_clamp_and_reflect_values():
-    q = torch.tensor([[1.25, -0.5, 0.75, 9.0, 0.6, 3.5],
-                      [-3.5, 2.0, -1.0, -9.0, 0.4, 6.5]], dtype=F64)
+    q = torch.tensor([[1.25, -0.5, 0.75, 9.0, 0.6, 3.5], [-3.5, 2.0, -1.0, -9.0, 0.4, 6.5]], dtype=F64)
     clamped = project_to_limits(q, LOWER, UPPER)
-    torch.testing.assert_close(clamped, torch.tensor([[1.0, 0.0, 0.0, 9.0, 0.5, 3.0],
-                                                      [-1.0, 2.0, -1.0, -9.0, 0.5, 3.0]], dtype=F64))
+    torch.testing.assert_close(
+        clamped, torch.tensor([[1.0, 0.0, 0.0, 9.0, 0.5, 3.0], [-1.0, 2.0, -1.0, -9.0, 0.5, 3.0]], dtype=F64)
+    )
     reflected = project_to_limits(q, LOWER, UPPER, mode="reflect")
     # 1.25 -> 0.75; -3.5 folds off both walls of [-1, 1] -> 0.5; one-sided walls mirror; zero width
     # -> the bound; 6.5 in [2, 3] folds to 2.5
-    torch.testing.assert_close(reflected, torch.tensor([[0.75, 0.5, -0.75, 9.0, 0.5, 2.5],
-                                                        [0.5, 2.0, -1.0, -9.0, 0.5, 2.5]], dtype=F64))
+    torch.testing.assert_close(
+        reflected, torch.tensor([[0.75, 0.5, -0.75, 9.0, 0.5, 2.5], [0.5, 2.0, -1.0, -9.0, 0.5, 2.5]], dtype=F64)
+    )
     for mode in ("clamp", "reflect"):
         nan = project_to_limits(torch.full((1, 6), math.nan, dtype=F64), LOWER, UPPER, mode=mode)
         assert torch.isnan(nan).all()
         inf = project_to_limits(torch.tensor([[math.inf] * 6, [-math.inf] * 6], dtype=F64), LOWER, UPPER, mode=mode)
-        torch.testing.assert_close(inf, torch.stack([torch.minimum(UPPER, torch.tensor(math.inf)),
-                                                     torch.maximum(LOWER, torch.tensor(-math.inf))]))
+        torch.testing.assert_close(
+            inf,
+            torch.stack([torch.minimum(UPPER, torch.tensor(math.inf)), torch.maximum(LOWER, torch.tensor(-math.inf))]),
+        )
 
 
 def test_reflect_does_not_pile_samples_on_the_boundary():
@@ -363,8 +368,13 @@ def test_projection_wraps_angles_into_their_arc_first(mode):
     lower = torch.tensor([2.5, -1.0, -math.inf], dtype=F64)  # an arc across +-pi; a plain arc; unlimited
     upper = torch.tensor([3.5, 1.0, math.inf], dtype=F64)
     angular = torch.tensor([True, True, True])
-    q = torch.tensor([[-3.0, 0.5 + tau, 7.0],     # -3.0 is 3.28 on the circle: inside [2.5, 3.5]
-                      [-2.6, -1.1 - tau, -7.0]], dtype=F64)  # -2.6 is 3.68: 0.18 past 3.5
+    q = torch.tensor(
+        [
+            [-3.0, 0.5 + tau, 7.0],  # -3.0 is 3.28 on the circle: inside [2.5, 3.5]
+            [-2.6, -1.1 - tau, -7.0],
+        ],
+        dtype=F64,
+    )  # -2.6 is 3.68: 0.18 past 3.5
     p = project_to_limits(q, lower, upper, angular, mode=mode)
     assert p[0, 0] == pytest.approx(-3.0 + tau) and p[0, 1] == pytest.approx(0.5)
     assert p[0, 2] == 7.0 and p[1, 2] == -7.0

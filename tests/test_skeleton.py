@@ -131,7 +131,7 @@ def test_load_amc_units(sk, motion, amc_64_01):
     assert q[0, 1].item() == pytest.approx(17.8741 * M_PER_UNIT, rel=1e-12)
     np.testing.assert_allclose(q[0, 3:6].numpy(), np.radians([-78.4182, 86.296, -96.1138]), rtol=1e-12)
     i = sk.dof_names.index("lfemur.rx")
-    np.testing.assert_allclose(q[0, i:i + 3].numpy(), np.radians([-31.3742, 5.01646, -9.07132]), rtol=1e-12)
+    np.testing.assert_allclose(q[0, i : i + 3].numpy(), np.radians([-31.3742, 5.01646, -9.07132]), rtol=1e-12)
     assert q[0, sk.dof_names.index("rfingers.rx")].item() == pytest.approx(math.radians(7.12502))
     np.testing.assert_array_equal(motion.frames, np.arange(1, 449))
     assert motion.fps == CMU_FPS == 120.0
@@ -226,8 +226,9 @@ def test_freeze_with_value_matches_full_model(sk, q_clip):
     q_set = q_clip.clone()
     for n in ("ltoes.rx", "rtoes.rx", "lfemur.rz"):
         q_set[:, sk.dof_names.index(n)] = 0.3
-    torch.testing.assert_close(r.forward_kinematics(r.reduce(q_clip, sk)), sk.forward_kinematics(q_set),
-                               rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        r.forward_kinematics(r.reduce(q_clip, sk)), sk.forward_kinematics(q_set), rtol=0, atol=1e-12
+    )
 
 
 def test_expand_fills_frozen_value(sk, q_clip):

@@ -105,8 +105,9 @@ def test_lm_box_constraints_match_scipy_with_bounds(arms):
     for i in range(5):
         fun, jac = arms.scipy_problem(i)
         start = np.clip(arms.q0[i].numpy(), lower[i].numpy(), upper[i].numpy())
-        ref = so.least_squares(fun, start, jac=jac, bounds=(lower[i].numpy(), upper[i].numpy()),
-                               method="trf", **SCIPY_TIGHT)
+        ref = so.least_squares(
+            fun, start, jac=jac, bounds=(lower[i].numpy(), upper[i].numpy()), method="trf", **SCIPY_TIGHT
+        )
         np.testing.assert_allclose(q[i].numpy(), ref.x, rtol=0, atol=1e-6)
     # KKT: the free dofs' gradient vanishes, the bound dof's pushes outward
     assert info.gradient[:, [0, 2]].abs().max() < 1e-8
@@ -174,21 +175,31 @@ def test_lm_irls_matches_scipy_robust_least_squares():
 
     def linearize(p):
         r = model(p) - y
-        jac = torch.stack([torch.exp(p[:, 1:2] * x), p[:, :1] * x * torch.exp(p[:, 1:2] * x),
-                           torch.ones_like(r)], -1)
+        jac = torch.stack([torch.exp(p[:, 1:2] * x), p[:, :1] * x * torch.exp(p[:, 1:2] * x), torch.ones_like(r)], -1)
         return Linearization(r, jac, w_of(r.square(), c), 0.5 * cauchy(r.square(), c).sum(-1))
 
     p0 = torch.tensor([[1.0, 0.0, 0.0]], dtype=F64).expand(n, 3)
     p, info = levenberg_marquardt(linearize, p0, **TIGHT)
     assert info.converged.all()
     for i in range(n):
-        ref = so.least_squares(lambda a: (model(torch.as_tensor(a)[None]) - y[i]).numpy()[0], p0[i].numpy(),
-                               loss="cauchy", f_scale=c, method="trf", **SCIPY_TIGHT)
+        ref = so.least_squares(
+            lambda a: (model(torch.as_tensor(a)[None]) - y[i]).numpy()[0],
+            p0[i].numpy(),
+            loss="cauchy",
+            f_scale=c,
+            method="trf",
+            **SCIPY_TIGHT,
+        )
         np.testing.assert_allclose(p[i].numpy(), ref.x, rtol=0, atol=1e-6)
         np.testing.assert_allclose(info.cost[i].item(), ref.cost, rtol=1e-9)
     # and the same through weights_fn / energy_fn instead of a Linearization
-    p2, _ = levenberg_marquardt(lambda a: linearize(a)[:2], p0, **TIGHT,
-                                weights_fn=lambda a: linearize(a).weights, energy_fn=lambda a: linearize(a).energy)
+    p2, _ = levenberg_marquardt(
+        lambda a: linearize(a)[:2],
+        p0,
+        **TIGHT,
+        weights_fn=lambda a: linearize(a).weights,
+        energy_fn=lambda a: linearize(a).energy,
+    )
     torch.testing.assert_close(p2, p, rtol=0, atol=1e-12)
 
 
@@ -206,8 +217,9 @@ def test_lm_input_errors(arms):
 
 
 def test_lm_keeps_dtype_and_device(arms):
-    q, info = levenberg_marquardt(lambda x: tuple(t.float() for t in arms.linearize(x.double())),
-                                  arms.q0.float(), max_iter=5)
+    q, info = levenberg_marquardt(
+        lambda x: tuple(t.float() for t in arms.linearize(x.double())), arms.q0.float(), max_iter=5
+    )
     assert q.dtype == info.cost.dtype == info.hessian.dtype == torch.float32
 
 
@@ -236,8 +248,14 @@ def test_lbfgs_box_matches_scipy_minimize(arms):
             return e.item(), t.grad[0].numpy()
 
         start = np.clip(arms.q0[i].numpy(), lower[i].numpy(), upper[i].numpy())
-        ref = so.minimize(fg, start, jac=True, method="L-BFGS-B", bounds=list(zip(lower[i].numpy(), upper[i].numpy())),
-                          options=dict(ftol=1e-15, gtol=1e-12, maxiter=500))
+        ref = so.minimize(
+            fg,
+            start,
+            jac=True,
+            method="L-BFGS-B",
+            bounds=list(zip(lower[i].numpy(), upper[i].numpy())),
+            options=dict(ftol=1e-15, gtol=1e-12, maxiter=500),
+        )
         np.testing.assert_allclose(q[i].numpy(), ref.x, rtol=0, atol=1e-6)
 
 
@@ -283,9 +301,14 @@ def test_lm_fits_cmu_pose_to_noiseless_keypoints():
     cam = camera_for_motion(joints, 6.0, 30.0, 10.0, 1000.0, 640, 480).to(dtype=F64)
     kps = make_keypoints(sk)
     observed = cam.project(joints[300, kps.index()]).pixels
-    obj = Objective({"reprojection": Reprojection(observed, torch.ones(kps.num_keypoints, dtype=F64), sigma_px=1.0,
-                                                  loss="cauchy", scale=5.0),
-                     "limits": JointLimits(lo, hi, sigma=0.05)})
+    obj = Objective(
+        {
+            "reprojection": Reprojection(
+                observed, torch.ones(kps.num_keypoints, dtype=F64), sigma_px=1.0, loss="cauchy", scale=5.0
+            ),
+            "limits": JointLimits(lo, hi, sigma=0.05),
+        }
+    )
     g = torch.Generator().manual_seed(0)
     noise = 0.1 * torch.randn(16, sk.num_dofs, generator=g, dtype=F64)
     noise[:, :3] *= 0.5

@@ -50,14 +50,14 @@ ARM_URDF = f"""<?xml version="1.0"?>
   <joint name="shoulder" type="revolute">
     <parent link="base"/>
     <child link="upper"/>
-    <origin xyz="{' '.join(map(str, SHOULDER_XYZ))}" rpy="{' '.join(map(str, SHOULDER_RPY))}"/>
-    <axis xyz="{' '.join(map(str, SHOULDER_AXIS))}"/>
+    <origin xyz="{" ".join(map(str, SHOULDER_XYZ))}" rpy="{" ".join(map(str, SHOULDER_RPY))}"/>
+    <axis xyz="{" ".join(map(str, SHOULDER_AXIS))}"/>
     <limit lower="-1.0" upper="2.0" effort="1" velocity="1"/>
   </joint>
   <joint name="wrist" type="fixed">
     <parent link="upper"/>
     <child link="tip"/>
-    <origin xyz="{' '.join(map(str, WRIST_XYZ))}" rpy="{' '.join(map(str, WRIST_RPY))}"/>
+    <origin xyz="{" ".join(map(str, WRIST_XYZ))}" rpy="{" ".join(map(str, WRIST_RPY))}"/>
   </joint>
 </robot>
 """
@@ -156,13 +156,14 @@ def test_arm_matches_pytorch_kinematics(arm_path):
 
 def test_arm_gradcheck(arm_path):
     arm = Skeleton.from_urdf(arm_path, floating_base=True)
-    q = (torch.rand(2, 7, generator=torch.Generator().manual_seed(1), dtype=torch.float64) - 0.5)
+    q = torch.rand(2, 7, generator=torch.Generator().manual_seed(1), dtype=torch.float64) - 0.5
     assert torch.autograd.gradcheck(lambda x: arm.forward_kinematics(x, rotations=True), (q.requires_grad_(),))
 
 
 def test_continuous_joint_is_unlimited(tmp_path):
     text = ARM_URDF.replace('type="revolute"', 'type="continuous"').replace(
-        '<limit lower="-1.0" upper="2.0" effort="1" velocity="1"/>', "")
+        '<limit lower="-1.0" upper="2.0" effort="1" velocity="1"/>', ""
+    )
     p = tmp_path / "cont.urdf"
     p.write_text(text)
     arm = Skeleton.from_urdf(p, floating_base=False)
@@ -195,13 +196,16 @@ def test_unsupported_joint_type(tmp_path):
         Skeleton.from_urdf(p)
 
 
-@pytest.mark.parametrize("text", [
-    '<robot name="x"><link name="a"/><joint name="j" type="fixed"><parent link="a"/>',
-    "this is not xml",
-    "",
-    "<robot name='x'><link name='a'/><link name='b'/><joint name='j' type='revolute'>"
-    "<parent link='a'/><child link='missing'/></joint></robot>",
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        '<robot name="x"><link name="a"/><joint name="j" type="fixed"><parent link="a"/>',
+        "this is not xml",
+        "",
+        "<robot name='x'><link name='a'/><link name='b'/><joint name='j' type='revolute'>"
+        "<parent link='a'/><child link='missing'/></joint></robot>",
+    ],
+)
 def test_malformed_urdf(tmp_path, text):
     p = tmp_path / "bad.urdf"
     p.write_text(text)
@@ -286,8 +290,9 @@ def test_roundtrip_with_the_default_arguments(tmp_path, sk, amc_64_01):
     assert sorted(back.dof_names) == sorted(sk.dof_names)
     q = sk.load_amc(amc_64_01).q[::60]
     jb = back.forward_kinematics(q[:, [sk.dof_names.index(n) for n in back.dof_names]])
-    torch.testing.assert_close(jb[:, [back.joint_names.index(n) for n in sk.joint_names]], sk.forward_kinematics(q),
-                               rtol=0, atol=1e-9)
+    torch.testing.assert_close(
+        jb[:, [back.joint_names.index(n) for n in sk.joint_names]], sk.forward_kinematics(q), rtol=0, atol=1e-9
+    )
 
 
 def test_default_is_a_floating_base_for_a_fixed_arm(arm_path):
@@ -299,8 +304,9 @@ def test_default_is_a_floating_base_for_a_fixed_arm(arm_path):
 
 def _load_yourdfpy(path):
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-        return yourdfpy.URDF.load(str(path), load_meshes=False, build_collision_scene_graph=False,
-                                  load_collision_meshes=False)
+        return yourdfpy.URDF.load(
+            str(path), load_meshes=False, build_collision_scene_graph=False, load_collision_meshes=False
+        )
 
 
 def _random_q(sk: Skeleton, rng: np.random.Generator) -> np.ndarray:
@@ -326,11 +332,12 @@ def _fk_error_vs_yourdfpy(sk: Skeleton, path, n: int = 3, seed: int = 0, exporte
         g, t = np.eye(3), np.zeros(3)
         if "root.tx" in sk.dof_names and not exported:
             k = sk.dof_names.index("root.tx")
-            t, g = q[k:k + 3], euler_matrix_np(tuple(q[k + 3:k + 6]), "XYZ")
+            t, g = q[k : k + 3], euler_matrix_np(tuple(q[k + 3 : k + 6]), "XYZ")
         for i, link in enumerate(sk.joint_names):
             m = u.get_transform(frame_to=link, frame_from=u.base_link)
-            worst = max(worst, np.abs(g @ m[:3, 3] + t - joints[i].numpy()).max(),
-                        np.abs(g @ m[:3, :3] - rots[i].numpy()).max())
+            worst = max(
+                worst, np.abs(g @ m[:3, 3] + t - joints[i].numpy()).max(), np.abs(g @ m[:3, :3] - rots[i].numpy()).max()
+            )
     return worst
 
 
@@ -361,8 +368,10 @@ def _robot(*joints: str, links=None) -> str:
 
 
 def _joint(name, kind, parent, child, xyz="0 0 0", rpy="0 0 0", axis="1 0 0", extra=""):
-    return (f'<joint name="{name}" type="{kind}"><parent link="{parent}"/><child link="{child}"/>'
-            f'<origin xyz="{xyz}" rpy="{rpy}"/><axis xyz="{axis}"/>{extra}</joint>')
+    return (
+        f'<joint name="{name}" type="{kind}"><parent link="{parent}"/><child link="{child}"/>'
+        f'<origin xyz="{xyz}" rpy="{rpy}"/><axis xyz="{axis}"/>{extra}</joint>'
+    )
 
 
 # -- the corpus: URDF files that others wrote ----------------------------------------------------
@@ -404,14 +413,38 @@ def test_import_is_quiet(capfd, caplog):
 
 # -- defect 1: prismatic joints anywhere, with their limits ---------------------------------------
 
-LIFT = (_joint("base_to_wheel", "continuous", "base", "wheel", xyz="0.1 0 0", axis="0 1 0")
-        + _joint("torso_fixed", "fixed", "base", "torso_fixed_link", xyz="-0.06 0 0.2")
-        + _joint("torso_lift", "prismatic", "torso_fixed_link", "torso", xyz="0 0 0.6", rpy="0 0 0.4", axis="0 0 1",
-                 extra='<limit lower="0" upper="0.35" effort="1" velocity="1"/>')
-        + _joint("head", "revolute", "torso", "head_link", xyz="0.2 0 0.3", axis="0 1 0",
-                 extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>')
-        + _joint("finger", "prismatic", "head_link", "finger_link", xyz="0.05 0 0", axis="0 0.6 0.8",
-                 extra='<limit lower="-0.02" upper="0.04" effort="1" velocity="1"/>'))
+LIFT = (
+    _joint("base_to_wheel", "continuous", "base", "wheel", xyz="0.1 0 0", axis="0 1 0")
+    + _joint("torso_fixed", "fixed", "base", "torso_fixed_link", xyz="-0.06 0 0.2")
+    + _joint(
+        "torso_lift",
+        "prismatic",
+        "torso_fixed_link",
+        "torso",
+        xyz="0 0 0.6",
+        rpy="0 0 0.4",
+        axis="0 0 1",
+        extra='<limit lower="0" upper="0.35" effort="1" velocity="1"/>',
+    )
+    + _joint(
+        "head",
+        "revolute",
+        "torso",
+        "head_link",
+        xyz="0.2 0 0.3",
+        axis="0 1 0",
+        extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>',
+    )
+    + _joint(
+        "finger",
+        "prismatic",
+        "head_link",
+        "finger_link",
+        xyz="0.05 0 0",
+        axis="0 0.6 0.8",
+        extra='<limit lower="-0.02" upper="0.04" effort="1" velocity="1"/>',
+    )
+)
 
 
 def test_prismatic_torso_lift_moves_only_its_subtree(tmp_path):
@@ -475,8 +508,7 @@ def test_freezing_a_slide(tmp_path):
 def test_continuous_joint_with_a_limit_element_is_unlimited(tmp_path):
     """A continuous joint with <limit effort velocity> (no lower/upper) is unlimited, and is
     re-exported as continuous."""
-    text = _robot(_joint("spin", "continuous", "a", "b", axis="0 0 1",
-                         extra='<limit effort="10" velocity="3"/>'))
+    text = _robot(_joint("spin", "continuous", "a", "b", axis="0 0 1", extra='<limit effort="10" velocity="3"/>'))
     m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
     assert m.lower.tolist() == [-math.inf] and m.upper.tolist() == [math.inf]
     robot = ET.fromstring(m.to_urdf())
@@ -485,8 +517,10 @@ def test_continuous_joint_with_a_limit_element_is_unlimited(tmp_path):
 
 def test_pybullet_unlimited_convention(tmp_path):
     """pybullet writes lower > upper (e.g. lower=1 upper=-1) for an unlimited joint."""
-    text = _robot(_joint("r", "revolute", "a", "b", extra='<limit lower="1" upper="-1" effort="1" velocity="1"/>'),
-                  _joint("s", "prismatic", "b", "c", extra='<limit lower="1" upper="-1" effort="1" velocity="1"/>'))
+    text = _robot(
+        _joint("r", "revolute", "a", "b", extra='<limit lower="1" upper="-1" effort="1" velocity="1"/>'),
+        _joint("s", "prismatic", "b", "c", extra='<limit lower="1" upper="-1" effort="1" velocity="1"/>'),
+    )
     m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
     assert np.all(m.lower == -math.inf) and np.all(m.upper == math.inf)
 
@@ -497,9 +531,18 @@ def test_pybullet_unlimited_convention(tmp_path):
 def test_export_of_a_model_rooted_at_world(tmp_path):
     """UR, xArm7 and Z1 root their tree at a link named 'world': the export has unique links, one
     root, and reads back (ptrack, and yourdfpy when installed)."""
-    text = _robot(_joint("world_joint", "fixed", "world", "base_link", xyz="0 0 0.1"),
-                  _joint("shoulder", "revolute", "base_link", "upper", xyz="0 0 0.2", axis="0 0 1",
-                         extra='<limit lower="-3" upper="3" effort="1" velocity="1"/>'))
+    text = _robot(
+        _joint("world_joint", "fixed", "world", "base_link", xyz="0 0 0.1"),
+        _joint(
+            "shoulder",
+            "revolute",
+            "base_link",
+            "upper",
+            xyz="0 0 0.2",
+            axis="0 0 1",
+            extra='<limit lower="-3" upper="3" effort="1" velocity="1"/>',
+        ),
+    )
     for floating in (False, True):
         m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=floating)
         assert m.joint_names[0] == "world"
@@ -519,9 +562,19 @@ def test_export_of_a_model_rooted_at_world(tmp_path):
 def test_export_at_pitch_half_pi(tmp_path, pitch):
     """Origins at the gimbal lock of URDF's roll-pitch-yaw export exactly (they were off by up to
     180 degrees, 707 mm on this arm)."""
-    text = _robot(_joint("j", "revolute", "a", "b", xyz="0.2 0.3 0.4", rpy=f"0.3 {pitch!r} -0.7", axis="0 1 0",
-                         extra='<limit lower="-2" upper="2" effort="1" velocity="1"/>'),
-                  _joint("f", "fixed", "b", "c", xyz="0.5 0 0", rpy=f"-1.1 {-pitch!r} 0.2"))
+    text = _robot(
+        _joint(
+            "j",
+            "revolute",
+            "a",
+            "b",
+            xyz="0.2 0.3 0.4",
+            rpy=f"0.3 {pitch!r} -0.7",
+            axis="0 1 0",
+            extra='<limit lower="-2" upper="2" effort="1" velocity="1"/>',
+        ),
+        _joint("f", "fixed", "b", "c", xyz="0.5 0 0", rpy=f"-1.1 {-pitch!r} 0.2"),
+    )
     m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
     p = _write(tmp_path, m.to_urdf(), "back.urdf")
     assert _roundtrip_error(m, Skeleton.from_urdf(p)) < 1e-12
@@ -531,17 +584,53 @@ def test_export_at_pitch_half_pi(tmp_path, pitch):
 
 # -- defect 5: mimic joints ------------------------------------------------------------------------
 
-MIMIC = (_joint("lead", "revolute", "base", "l1", xyz="0 0 0.1", axis="0 0 1",
-                extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>')
-         + _joint("follow", "revolute", "base", "f1", xyz="0.1 0 0", axis="0 1 0",
-                  extra='<limit lower="-3" upper="3" effort="1" velocity="1"/>'
-                        '<mimic joint="lead" multiplier="-2" offset="0.3"/>')
-         + _joint("follow2", "continuous", "f1", "f2", xyz="0.1 0 0", axis="1 0 0",
-                  extra='<mimic joint="lead" multiplier="0.5" offset="-0.1"/>')
-         + _joint("grip", "prismatic", "l1", "g1", xyz="0 0.05 0", axis="0 1 0",
-                  extra='<limit lower="0" upper="0.04" effort="1" velocity="1"/>')
-         + _joint("grip2", "prismatic", "l1", "g2", xyz="0 -0.05 0", axis="0 -1 0",
-                  extra='<limit lower="0" upper="0.04" effort="1" velocity="1"/><mimic joint="grip" offset="0.01"/>'))
+MIMIC = (
+    _joint(
+        "lead",
+        "revolute",
+        "base",
+        "l1",
+        xyz="0 0 0.1",
+        axis="0 0 1",
+        extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>',
+    )
+    + _joint(
+        "follow",
+        "revolute",
+        "base",
+        "f1",
+        xyz="0.1 0 0",
+        axis="0 1 0",
+        extra='<limit lower="-3" upper="3" effort="1" velocity="1"/><mimic joint="lead" multiplier="-2" offset="0.3"/>',
+    )
+    + _joint(
+        "follow2",
+        "continuous",
+        "f1",
+        "f2",
+        xyz="0.1 0 0",
+        axis="1 0 0",
+        extra='<mimic joint="lead" multiplier="0.5" offset="-0.1"/>',
+    )
+    + _joint(
+        "grip",
+        "prismatic",
+        "l1",
+        "g1",
+        xyz="0 0.05 0",
+        axis="0 1 0",
+        extra='<limit lower="0" upper="0.04" effort="1" velocity="1"/>',
+    )
+    + _joint(
+        "grip2",
+        "prismatic",
+        "l1",
+        "g2",
+        xyz="0 -0.05 0",
+        axis="0 -1 0",
+        extra='<limit lower="0" upper="0.04" effort="1" velocity="1"/><mimic joint="grip" offset="0.01"/>',
+    )
+)
 
 
 def test_mimic_joints_follow_their_leader(tmp_path):
@@ -559,11 +648,15 @@ def test_mimic_joints_follow_their_leader(tmp_path):
 def test_a_chain_of_mimics(tmp_path):
     """c mimics b, which mimics a: q_c = 0.5 (-2 q_a + 0.3) - 0.1 (yourdfpy would hold c at its offset)."""
     lim = '<limit lower="-3" upper="3" effort="1" velocity="1"/>'
-    text = _robot(_joint("a", "revolute", "l0", "l1", axis="0 0 1", extra=lim),
-                  _joint("b", "revolute", "l1", "l2", axis="0 0 1",
-                         extra=lim + '<mimic joint="a" multiplier="-2" offset="0.3"/>'),
-                  _joint("c", "revolute", "l2", "l3", axis="0 0 1",
-                         extra=lim + '<mimic joint="b" multiplier="0.5" offset="-0.1"/>'))
+    text = _robot(
+        _joint("a", "revolute", "l0", "l1", axis="0 0 1", extra=lim),
+        _joint(
+            "b", "revolute", "l1", "l2", axis="0 0 1", extra=lim + '<mimic joint="a" multiplier="-2" offset="0.3"/>'
+        ),
+        _joint(
+            "c", "revolute", "l2", "l3", axis="0 0 1", extra=lim + '<mimic joint="b" multiplier="0.5" offset="-0.1"/>'
+        ),
+    )
     m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
     assert m.dof_names == ("a",)
     r = m.forward_kinematics(torch.tensor([0.4], dtype=torch.float64), rotations=True)[1]
@@ -587,26 +680,43 @@ def test_mimic_roundtrip_and_gradients(tmp_path):
     assert torch.autograd.gradcheck(lambda x: m.forward_kinematics(x), (q,))
 
 
-@pytest.mark.parametrize("extra,match", [
-    ('<mimic joint="b_to_c"/>', "loop"),
-    ('<mimic joint="fixed_one"/>', "fixed joint"),
-])
+@pytest.mark.parametrize(
+    "extra,match",
+    [
+        ('<mimic joint="b_to_c"/>', "loop"),
+        ('<mimic joint="fixed_one"/>', "fixed joint"),
+    ],
+)
 def test_bad_mimic(tmp_path, extra, match):
     lim = '<limit lower="-1" upper="1" effort="1" velocity="1"/>'
-    text = _robot(_joint("a_to_b", "revolute", "a", "b", extra=lim + extra),
-                  _joint("b_to_c", "revolute", "b", "c",
-                         extra='<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="a_to_b"/>'),
-                  _joint("fixed_one", "fixed", "c", "d"))
+    text = _robot(
+        _joint("a_to_b", "revolute", "a", "b", extra=lim + extra),
+        _joint(
+            "b_to_c",
+            "revolute",
+            "b",
+            "c",
+            extra='<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="a_to_b"/>',
+        ),
+        _joint("fixed_one", "fixed", "c", "d"),
+    )
     with pytest.raises(InputError, match=match):
         Skeleton.from_urdf(_write(tmp_path, text))
 
 
 def test_mimic_of_a_missing_joint_is_held_at_its_offset(tmp_path, caplog):
     """As yourdfpy does (example-robot-data's alex_psyonic_hands.urdf has such joints), with a warning."""
-    text = _robot(_joint("a_to_b", "revolute", "a", "b", axis="0 0 1",
-                         extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>'
-                               '<mimic joint="nope" offset="0.5"/>'),
-                  _joint("b_to_c", "fixed", "b", "c", xyz="1 0 0"))
+    text = _robot(
+        _joint(
+            "a_to_b",
+            "revolute",
+            "a",
+            "b",
+            axis="0 0 1",
+            extra='<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="nope" offset="0.5"/>',
+        ),
+        _joint("b_to_c", "fixed", "b", "c", xyz="1 0 0"),
+    )
     with caplog.at_level("WARNING", logger="ptrack.urdf"):
         m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
     assert m.num_dofs == 0 and "nope" in caplog.text
@@ -617,23 +727,33 @@ def test_mimic_of_a_missing_joint_is_held_at_its_offset(tmp_path, caplog):
 # -- defect 6: files urdfdom accepts ---------------------------------------------------------------
 
 
-@pytest.mark.parametrize("text", [
-    # an XML declaration after a comment
-    '<!-- generated -->\n<?xml version="1.0" encoding="utf-8"?>\n' + _robot(_joint("j", "fixed", "a", "b")),
-    _robot(_joint("j", "fixed", "a", "b")).replace("<robot name='t'>", "<robot name='t' version='0.0'>"),
-    # several geometry children, a transmission, a texture without a filename, gazebo and unknown tags
-    "<robot name='t'><material name='m'><texture/></material>"
-    "<link name='a'><visual><geometry><box size='1 1 1'/><sphere radius='1'/></geometry>"
-    "<material name='m'/></visual>"
-    "<collision><geometry><mesh filename='package://x/y.stl'/><cylinder radius='1' length='2'/></geometry>"
-    "</collision>"
-    "<inertial><mass value='1'/></inertial><contact><lateral_friction value='1'/></contact></link>"
-    "<link name='b'/>" + _joint("j", "revolute", "a", "b", extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>'
-                                "<dynamics damping='1'/><safety_controller k_velocity='1'/><calibration rising='0'/>")
-    + "<transmission name='t1'><type>transmission_interface/SimpleTransmission</type><joint name='j'/>"
-    "<actuator name='m1'><mechanicalReduction>1</mechanicalReduction></actuator></transmission>"
-    "<gazebo reference='a'><mu1>0.2</mu1></gazebo><whatever/></robot>",
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        # an XML declaration after a comment
+        '<!-- generated -->\n<?xml version="1.0" encoding="utf-8"?>\n' + _robot(_joint("j", "fixed", "a", "b")),
+        _robot(_joint("j", "fixed", "a", "b")).replace("<robot name='t'>", "<robot name='t' version='0.0'>"),
+        # several geometry children, a transmission, a texture without a filename, gazebo and unknown tags
+        "<robot name='t'><material name='m'><texture/></material>"
+        "<link name='a'><visual><geometry><box size='1 1 1'/><sphere radius='1'/></geometry>"
+        "<material name='m'/></visual>"
+        "<collision><geometry><mesh filename='package://x/y.stl'/><cylinder radius='1' length='2'/></geometry>"
+        "</collision>"
+        "<inertial><mass value='1'/></inertial><contact><lateral_friction value='1'/></contact></link>"
+        "<link name='b'/>"
+        + _joint(
+            "j",
+            "revolute",
+            "a",
+            "b",
+            extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>'
+            "<dynamics damping='1'/><safety_controller k_velocity='1'/><calibration rising='0'/>",
+        )
+        + "<transmission name='t1'><type>transmission_interface/SimpleTransmission</type><joint name='j'/>"
+        "<actuator name='m1'><mechanicalReduction>1</mechanicalReduction></actuator></transmission>"
+        "<gazebo reference='a'><mu1>0.2</mu1></gazebo><whatever/></robot>",
+    ],
+)
 def test_files_urdfdom_accepts_load_quietly(tmp_path, capfd, text):
     m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
     assert m.joint_names == ("a", "b")
@@ -641,17 +761,22 @@ def test_files_urdfdom_accepts_load_quietly(tmp_path, capfd, text):
     assert out == "" and err == ""
 
 
-@pytest.mark.parametrize("text,match", [
-    ("<robot name='x'><link name='a'/><link name='a'/></robot>", "'a' is not unique"),
-    ("<robot name='x'><link name='a'/><link name='b'/></robot>", "2 root links"),
-    ("<robot name='x'></robot>", "no <link>"),
-    ("<model name='x'><link name='a'/></model>", "<model>"),
-    (_robot(_joint("j", "revolute", "a", "b", axis="0 0 0")), "axis is zero"),
-    (_robot(_joint("j", "revolute", "a", "b", xyz="1, 2, 3")), "xyz='1, 2, 3'"),
-    (_robot(_joint("j", "planar", "a", "b")), "'planar'"),
-    (_robot(_joint("j", "fixed", "a", "b"), _joint("k", "fixed", "c", "b"), links=["a", "b", "c"]),
-     "child of two joints"),
-])
+@pytest.mark.parametrize(
+    "text,match",
+    [
+        ("<robot name='x'><link name='a'/><link name='a'/></robot>", "'a' is not unique"),
+        ("<robot name='x'><link name='a'/><link name='b'/></robot>", "2 root links"),
+        ("<robot name='x'></robot>", "no <link>"),
+        ("<model name='x'><link name='a'/></model>", "<model>"),
+        (_robot(_joint("j", "revolute", "a", "b", axis="0 0 0")), "axis is zero"),
+        (_robot(_joint("j", "revolute", "a", "b", xyz="1, 2, 3")), "xyz='1, 2, 3'"),
+        (_robot(_joint("j", "planar", "a", "b")), "'planar'"),
+        (
+            _robot(_joint("j", "fixed", "a", "b"), _joint("k", "fixed", "c", "b"), links=["a", "b", "c"]),
+            "child of two joints",
+        ),
+    ],
+)
 def test_files_urdfdom_refuses(tmp_path, text, match):
     with pytest.raises(InputError, match=match):
         Skeleton.from_urdf(_write(tmp_path, text, "bad.urdf"))
@@ -661,8 +786,11 @@ def test_files_urdfdom_refuses(tmp_path, text, match):
 
 
 def test_single_link_file(tmp_path):
-    p = _write(tmp_path, "<robot name='ball'><link name='ball'><visual><geometry><sphere radius='0.1'/>"
-                         "</geometry></visual></link></robot>")
+    p = _write(
+        tmp_path,
+        "<robot name='ball'><link name='ball'><visual><geometry><sphere radius='0.1'/>"
+        "</geometry></visual></link></robot>",
+    )
     m = Skeleton.from_urdf(p, floating_base=False)
     assert m.joint_names == ("ball",) and m.num_dofs == 0
     assert m.forward_kinematics(torch.zeros(2, 0, dtype=torch.float64)).shape == (2, 1, 3)
@@ -674,8 +802,9 @@ def test_single_link_file(tmp_path):
 
 def test_model_without_dofs(tmp_path):
     """Fixed joints only: FK takes q of shape (..., 0), gradients included; to_urdf round-trips."""
-    m = Skeleton.from_urdf(_write(tmp_path, _robot(_joint("j", "fixed", "a", "b", xyz="1 0 0", rpy="0 0 1"))),
-                           floating_base=False)
+    m = Skeleton.from_urdf(
+        _write(tmp_path, _robot(_joint("j", "fixed", "a", "b", xyz="1 0 0", rpy="0 0 1"))), floating_base=False
+    )
     q = torch.zeros(4, 0, dtype=torch.float64, requires_grad=True)
     j, r = m.forward_kinematics(q, rotations=True)
     assert j.shape == (4, 2, 3) and j[0, 1].tolist() == [1.0, 0.0, 0.0]
@@ -735,15 +864,22 @@ def test_geometric_jacobian_refuses_slides_and_mimics(tmp_path):
             joint_jacobian(m, torch.zeros(m.num_dofs, dtype=torch.float64))
 
 
-@pytest.mark.parametrize("extra,match", [
-    ('<limit lower="nan" upper="1" effort="1" velocity="1"/>', "lower='nan'"),
-    ('<limit lower="-1" upper="x" effort="1" velocity="1"/>', "upper='x'"),
-    ('<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="a_to_b" multiplier="inf"/>',
-     "multiplier='inf'"),
-])
+@pytest.mark.parametrize(
+    "extra,match",
+    [
+        ('<limit lower="nan" upper="1" effort="1" velocity="1"/>', "lower='nan'"),
+        ('<limit lower="-1" upper="x" effort="1" velocity="1"/>', "upper='x'"),
+        (
+            '<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="a_to_b" multiplier="inf"/>',
+            "multiplier='inf'",
+        ),
+    ],
+)
 def test_numbers_that_are_not(tmp_path, extra, match):
-    text = _robot(_joint("a_to_b", "revolute", "a", "b", extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>'),
-                  _joint("b_to_c", "revolute", "b", "c", extra=extra))
+    text = _robot(
+        _joint("a_to_b", "revolute", "a", "b", extra='<limit lower="-1" upper="1" effort="1" velocity="1"/>'),
+        _joint("b_to_c", "revolute", "b", "c", extra=extra),
+    )
     with pytest.raises(InputError, match=match):
         Skeleton.from_urdf(_write(tmp_path, text))
 
@@ -761,19 +897,47 @@ except ImportError:  # a test dependency; without it only the fuzz test below is
     st = None
 
 _FUZZ_BASE = (CORPUS_DIR / "example_robot_data" / "panda_description" / "panda.urdf").read_text()
-_FUZZ_VALUES = ["nan", "inf", "-inf", "", "1 2", "0 0 0 0", "1e400", "-0", "x", "1 -1", "0 0 0", "world",
-                "panda_link0", "panda_finger_joint1", "revolute", "prismatic", "continuous", "fixed", "floating"]
+_FUZZ_VALUES = [
+    "nan",
+    "inf",
+    "-inf",
+    "",
+    "1 2",
+    "0 0 0 0",
+    "1e400",
+    "-0",
+    "x",
+    "1 -1",
+    "0 0 0",
+    "world",
+    "panda_link0",
+    "panda_finger_joint1",
+    "revolute",
+    "prismatic",
+    "continuous",
+    "fixed",
+    "floating",
+]
 
 
 if st is None:
+
     @pytest.mark.skip(reason="hypothesis is not installed (pip install -e '.[test]')")
     def test_fuzzed_urdf_loads_or_raises_input_error():
         pass
 else:
-    @settings(max_examples=60, deadline=None, derandomize=True, database=None,
-              suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
-    @given(edits=st.lists(st.tuples(st.integers(0, 10_000), st.sampled_from(_FUZZ_VALUES)), min_size=1, max_size=4),
-           cut=st.one_of(st.none(), st.tuples(st.integers(0, len(_FUZZ_BASE)), st.integers(0, 60))))
+
+    @settings(
+        max_examples=60,
+        deadline=None,
+        derandomize=True,
+        database=None,
+        suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+    )
+    @given(
+        edits=st.lists(st.tuples(st.integers(0, 10_000), st.sampled_from(_FUZZ_VALUES)), min_size=1, max_size=4),
+        cut=st.one_of(st.none(), st.tuples(st.integers(0, len(_FUZZ_BASE)), st.integers(0, 60))),
+    )
     def test_fuzzed_urdf_loads_or_raises_input_error(tmp_path, edits, cut):
         """Panda's URDF with attribute values replaced (and a slice cut out): it loads, with finite FK
         and limits that are numbers, or raises InputError; never another exception."""
@@ -783,9 +947,9 @@ else:
         for k, value in edits:
             attrs = list(re.finditer(r'="([^"]*)"', text))
             m = attrs[k % len(attrs)]
-            text = text[:m.start(1)] + value + text[m.end(1):]
+            text = text[: m.start(1)] + value + text[m.end(1) :]
         if cut is not None:
-            text = text[:cut[0]] + text[cut[0] + cut[1]:]
+            text = text[: cut[0]] + text[cut[0] + cut[1] :]
         try:
             sk = Skeleton.from_urdf(_write(tmp_path, text, "fuzz.urdf"))
         except InputError:

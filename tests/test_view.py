@@ -30,9 +30,15 @@ T, J, N, W, H = 6, 5, 3, 80, 60
 # which view classes draw an archetype (2D archetypes also show in a 3D view through a pinhole)
 VIEW_CLASSES = {
     "Scalars": {"TimeSeries"},
-    "Points3D": {"3D"}, "LineStrips3D": {"3D"}, "Arrows3D": {"3D"}, "ViewCoordinates": {"3D"},
-    "Transform3D": {"3D"}, "Pinhole": {"3D", "2D"},
-    "Points2D": {"2D", "3D"}, "LineStrips2D": {"2D", "3D"}, "SegmentationImage": {"2D", "3D"},
+    "Points3D": {"3D"},
+    "LineStrips3D": {"3D"},
+    "Arrows3D": {"3D"},
+    "ViewCoordinates": {"3D"},
+    "Transform3D": {"3D"},
+    "Pinhole": {"3D", "2D"},
+    "Points2D": {"2D", "3D"},
+    "LineStrips2D": {"2D", "3D"},
+    "SegmentationImage": {"2D", "3D"},
     "AnnotationContext": {"2D", "3D"},
 }
 
@@ -63,22 +69,39 @@ def _log(full: bool = True) -> RunLog:
     if full:
         weights = np.tile([0.5, 0.3, 0.2], (T, 1))
         weights[:, 2] = np.nan  # h2 has no finite weight: not logged, not plotted
-        kw = dict(hypotheses=estimate[:, None] + 0.05 * rng.standard_normal((T, N, J, 3)),
-                  hypothesis_weights=weights, hypothesis_costs=np.tile([1.0, 2.0, 3.0], (T, 1)),
-                  hypothesis_directions=0.01 * rng.standard_normal((T, N, J, 3)),
-                  jumps={"larm": np.arange(T), "rleg": np.ones(T)},
-                  masks=np.zeros((T, H, W), dtype=bool), ground_truth=base[None].repeat(T, 0))
+        kw = dict(
+            hypotheses=estimate[:, None] + 0.05 * rng.standard_normal((T, N, J, 3)),
+            hypothesis_weights=weights,
+            hypothesis_costs=np.tile([1.0, 2.0, 3.0], (T, 1)),
+            hypothesis_directions=0.01 * rng.standard_normal((T, N, J, 3)),
+            jumps={"larm": np.arange(T), "rleg": np.ones(T)},
+            masks=np.zeros((T, H, W), dtype=bool),
+            ground_truth=base[None].repeat(T, 0),
+        )
     return RunLog(
-        joint_names=tuple(f"j{i}" for i in range(J)), parents=(-1,) + tuple(range(J - 1)),
-        frames=np.arange(T) * 4 + 1, times=np.arange(T) * 4 / 120.0, estimate=estimate,
-        ground_truth=kw.pop("ground_truth", None), camera=camera,
-        observed=reprojected + rng.standard_normal(reprojected.shape), confidence=confidence,
-        reprojected=reprojected, keypoint_names=("pelvis", "spine", "head"), keypoint_joints=kp,
-        scalars={"mpjpe_mm": np.linspace(10, 20, T), "pa_mpjpe_mm": np.linspace(5, 9, T),
-                 "reprojection_error_px": np.ones(T), "flip_error_rate": np.zeros(T),
-                 "accel_error_mm_per_frame2": np.r_[np.nan, np.ones(T - 2), np.nan],
-                 "cost": np.ones(T), "cost_smooth": np.ones(T), "never": np.full(T, np.nan),
-                 "custom_score": np.arange(T, dtype=float)},
+        joint_names=tuple(f"j{i}" for i in range(J)),
+        parents=(-1,) + tuple(range(J - 1)),
+        frames=np.arange(T) * 4 + 1,
+        times=np.arange(T) * 4 / 120.0,
+        estimate=estimate,
+        ground_truth=kw.pop("ground_truth", None),
+        camera=camera,
+        observed=reprojected + rng.standard_normal(reprojected.shape),
+        confidence=confidence,
+        reprojected=reprojected,
+        keypoint_names=("pelvis", "spine", "head"),
+        keypoint_joints=kp,
+        scalars={
+            "mpjpe_mm": np.linspace(10, 20, T),
+            "pa_mpjpe_mm": np.linspace(5, 9, T),
+            "reprojection_error_px": np.ones(T),
+            "flip_error_rate": np.zeros(T),
+            "accel_error_mm_per_frame2": np.r_[np.nan, np.ones(T - 2), np.nan],
+            "cost": np.ones(T),
+            "cost_smooth": np.ones(T),
+            "never": np.full(T, np.nan),
+            "custom_score": np.arange(T, dtype=float),
+        },
         **kw,
     )
 
@@ -113,8 +136,11 @@ class Recording:
                     if ":" in n:
                         parts[chunk.entity_path.lstrip("/")][n.split(":", 1)[1]] = batch.column(n).to_pylist()[-1]
         self.parts = parts
-        self.views = {path: dict(part, **parts.get(f"{path}/ViewContents", {}))
-                      for path, part in parts.items() if "class_identifier" in part}
+        self.views = {
+            path: dict(part, **parts.get(f"{path}/ViewContents", {}))
+            for path, part in parts.items()
+            if "class_identifier" in part
+        }
 
     @property
     def root(self) -> str:
@@ -172,7 +198,10 @@ def test_blueprint_is_stored_with_the_recording(full):
     assert len(views) == len(rec.views)  # every view is placed in the layout
     # the 3D scene, a 3D close-up and the camera view side by side, the plots under them
     assert [(v["class_identifier"][0], v["space_origin"][0]) for v in views[:3]] == [
-        ("3D", "/world"), ("3D", "/world"), ("2D", "/world/camera")]
+        ("3D", "/world"),
+        ("3D", "/world"),
+        ("2D", "/world/camera"),
+    ]
     assert {v["class_identifier"][0] for v in views[3:]} == {"TimeSeries"}
     scene, closeup = views[0], views[1]
     assert _matches(scene, "world/camera") and not _matches(closeup, "world/camera/image/observed")
@@ -294,9 +323,24 @@ def _vulkan_driver() -> bool:
 def test_screenshot_script_renders_the_view(tmp_path):
     write_recording(tmp_path / "run.rrd", _log(full=True))
     out = tmp_path / "shot.png"
-    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "screenshot.py"), str(tmp_path), str(out),
-                           "--time", "0.1", "--size", "962x601", "--timeout", "90"],
-                          check=False, capture_output=True, text=True, timeout=180)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "scripts" / "screenshot.py"),
+            str(tmp_path),
+            str(out),
+            "--time",
+            "0.1",
+            "--size",
+            "962x601",
+            "--timeout",
+            "90",
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     from PIL import Image
 
@@ -305,13 +349,20 @@ def test_screenshot_script_renders_the_view(tmp_path):
     # the viewer is gone with the script (`rerun` may be a launcher with the viewer as its child)
     ps = subprocess.run(["ps", "-eo", "args"], check=True, capture_output=True, text=True).stdout
     assert not [line for line in ps.splitlines() if "--headless" in line and "962x601" in line]
+
     def share(color, region):  # share of pixels within 40 of `color` in a region of the window
         return float((np.abs(region - np.asarray(color)).sum(-1) < 40).mean())
+
     top = image[: int(0.55 * 601)]
     # the estimate's orange and the observed keypoints' yellow are drawn in the top row's views
     assert share((255, 140, 30), top) > 1e-4
     assert share((255, 220, 0), top) > 1e-5
     # bad argument: no recording there
-    bad = subprocess.run([sys.executable, str(ROOT / "scripts" / "screenshot.py"), str(tmp_path / "none"),
-                          str(out)], check=False, capture_output=True, text=True, timeout=60)
+    bad = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "screenshot.py"), str(tmp_path / "none"), str(out)],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert bad.returncode == 2 and "no rerun recording" in bad.stderr

@@ -75,8 +75,10 @@ def _run_log(full: bool = True, frames: int = T, joints: int = J) -> RunLog:
         confidence=confidence,
         reprojected=reprojected,
         keypoint_names=tuple(f"k{i}" for i in range(J_)),
-        scalars={"mpjpe": np.where(np.arange(T_) == 1, np.nan, 0.1 * np.arange(1, T_ + 1)),
-                 "cost": np.arange(T_, dtype=float)},
+        scalars={
+            "mpjpe": np.where(np.arange(T_) == 1, np.nan, 0.1 * np.arange(1, T_ + 1)),
+            "cost": np.arange(T_, dtype=float),
+        },
         **kw,
     )
 
@@ -121,14 +123,23 @@ def full(tmp_path_factory) -> tuple[RunLog, Rec]:
 
 def test_entity_layout(full):
     _, rec = full
-    expected = {
-        "world", "world/camera",
-        "world/ground_truth/joints", "world/ground_truth/bones",
-        "world/estimate/joints", "world/estimate/bones",
-        "world/camera/image/observed", "world/camera/image/reprojected",
-        "world/camera/image/silhouette", "metrics/mpjpe", "metrics/cost",
-    } | {f"world/hypotheses/h{n}/{c}" for n in range(N) for c in ("bones", "weight", "cost", "direction")} \
-      | {"jumps/larm", "jumps/rleg"}
+    expected = (
+        {
+            "world",
+            "world/camera",
+            "world/ground_truth/joints",
+            "world/ground_truth/bones",
+            "world/estimate/joints",
+            "world/estimate/bones",
+            "world/camera/image/observed",
+            "world/camera/image/reprojected",
+            "world/camera/image/silhouette",
+            "metrics/mpjpe",
+            "metrics/cost",
+        }
+        | {f"world/hypotheses/h{n}/{c}" for n in range(N) for c in ("bones", "weight", "cost", "direction")}
+        | {"jumps/larm", "jumps/rleg"}
+    )
     assert expected <= rec.entities
     assert not any(e.startswith("world/hypotheses/h3") for e in rec.entities)
     assert rec.static["world"]["ViewCoordinates:xyz"] == [
@@ -142,9 +153,13 @@ def test_frame_and_time_timelines(full):
     assert len(rows) == T
     assert [r["frame"] for r in rows] == log.frames.tolist()
     np.testing.assert_allclose([r["time"] for r in rows], log.times * 1e9, atol=1.0)  # ns
-    for entity in ("world/estimate/bones", "world/ground_truth/joints",
-                   "world/camera/image/observed", "world/camera/image/reprojected",
-                   "world/hypotheses/h1/bones"):
+    for entity in (
+        "world/estimate/bones",
+        "world/ground_truth/joints",
+        "world/camera/image/observed",
+        "world/camera/image/reprojected",
+        "world/hypotheses/h1/bones",
+    ):
         assert [r["frame"] for r in rec.temporal[entity]] == log.frames.tolist(), entity
 
 
@@ -158,8 +173,10 @@ def test_estimate_and_ground_truth_positions_roundtrip(full):
     assert bones.shape == (T, J - 1, 2, 3)
     np.testing.assert_allclose(bones[:, :, 0], log.estimate[:, :-1], atol=1e-6)  # parent end
     np.testing.assert_allclose(bones[:, :, 1], log.estimate[:, 1:], atol=1e-6)  # child end
-    assert rec.static["world/estimate/joints"]["Points3D:colors"] != \
-        rec.static["world/ground_truth/joints"]["Points3D:colors"]
+    assert (
+        rec.static["world/estimate/joints"]["Points3D:colors"]
+        != rec.static["world/ground_truth/joints"]["Points3D:colors"]
+    )
 
 
 def test_camera_pose_and_pinhole(full):
@@ -252,8 +269,14 @@ def test_optional_parts_absent(tmp_path):
     path = tmp_path / "minimal.rrd"
     write_recording(path, log)
     rec = Rec(path)
-    assert {"world", "world/camera", "world/estimate/joints", "world/estimate/bones",
-            "world/camera/image/observed", "metrics/mpjpe"} <= rec.entities
+    assert {
+        "world",
+        "world/camera",
+        "world/estimate/joints",
+        "world/estimate/bones",
+        "world/camera/image/observed",
+        "metrics/mpjpe",
+    } <= rec.entities
     assert not any(e.startswith(("world/ground_truth", "world/hypotheses")) for e in rec.entities)
     assert "world/camera/image/silhouette" not in rec.entities
     assert len(rec.temporal["world/estimate/joints"]) == T
@@ -285,8 +308,12 @@ def test_joint_std_and_solver_cost(tmp_path):
 def test_single_joint_and_uniform_weights_and_torch_inputs(tmp_path):
     base = _run_log(full=True, joints=1)
     log = dataclasses.replace(
-        base, parents=(-1,), hypothesis_weights=None, hypothesis_costs=None,
-        estimate=torch.as_tensor(base.estimate, dtype=torch.float32), scalars={},
+        base,
+        parents=(-1,),
+        hypothesis_weights=None,
+        hypothesis_costs=None,
+        estimate=torch.as_tensor(base.estimate, dtype=torch.float32),
+        scalars={},
     )
     assert isinstance(log.estimate, np.ndarray) and log.estimate.dtype == np.float32
     path = tmp_path / "one.rrd"
@@ -296,8 +323,9 @@ def test_single_joint_and_uniform_weights_and_torch_inputs(tmp_path):
     assert "world/hypotheses/h0/cost" not in rec.entities
     weights = [r["Scalars:scalars"][0] for r in rec.temporal["world/hypotheses/h2/weight"]]
     np.testing.assert_allclose(weights, [1 / N] * T)
-    np.testing.assert_allclose(np.array(rec.column("world/estimate/joints", "Points3D:positions")),
-                               base.estimate, atol=1e-6)
+    np.testing.assert_allclose(
+        np.array(rec.column("world/estimate/joints", "Points3D:positions")), base.estimate, atol=1e-6
+    )
 
 
 def test_global_recording_untouched(tmp_path):
@@ -339,8 +367,10 @@ def test_long_run_is_fast(tmp_path):
     base = _run_log(full=False, frames=600, joints=31)
     rng = np.random.default_rng(1)
     log = dataclasses.replace(
-        base, hypotheses=base.estimate[:, None] + 0.01 * rng.standard_normal((600, 8, 31, 3)),
-        hypothesis_weights=rng.uniform(size=(600, 8)), hypothesis_costs=rng.uniform(size=(600, 8)),
+        base,
+        hypotheses=base.estimate[:, None] + 0.01 * rng.standard_normal((600, 8, 31, 3)),
+        hypothesis_weights=rng.uniform(size=(600, 8)),
+        hypothesis_costs=rng.uniform(size=(600, 8)),
         scalars={"m": rng.uniform(size=600)},
     )
     start = time.perf_counter()

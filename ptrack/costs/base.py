@@ -16,6 +16,7 @@ log = logging.getLogger(__name__)
 
 Loss = Callable[[Tensor, float], Tensor]
 
+
 class PoseEval(NamedTuple):
     """What the cost terms read about a batch of poses (one frame, or a trajectory with T last).
 
@@ -114,7 +115,6 @@ def robust_loss_derivative(name: str) -> Loss:
 # Validation helpers (construction time only: they may sync).
 
 
-
 def _positive(name: str, value) -> None:
     t = torch.as_tensor(value, dtype=torch.float64)
     if not (torch.isfinite(t).all() and (t > 0).all()):
@@ -128,8 +128,7 @@ def _shape(x: Tensor) -> tuple[int, ...]:
 def _times(name: str, times) -> Tensor:
     t = torch.as_tensor(times)
     if t.ndim != 1 or t.is_floating_point() or t.dtype == torch.bool:
-        raise InputError(f"{name}.times must be a 1-D integer tensor (F,), got {t.dtype} "
-                         f"{_shape(t)}")
+        raise InputError(f"{name}.times must be a 1-D integer tensor (F,), got {t.dtype} {_shape(t)}")
     if (t < 0).any():
         raise InputError(f"{name}.times must be >= 0, got {t.tolist()}")
     return t.long()
@@ -140,15 +139,15 @@ def _mask(name: str, mask, shape: tuple[int, ...]) -> Tensor:
         return torch.ones(shape, dtype=torch.bool)
     m = torch.as_tensor(mask)
     if m.dtype != torch.bool or _shape(m) != shape:
-        raise InputError(f"{name} must be a bool tensor of shape {shape}, got {m.dtype} "
-                         f"{_shape(m)}")
+        raise InputError(f"{name} must be a bool tensor of shape {shape}, got {m.dtype} {_shape(m)}")
     return m
 
 
 def _frame_count(name: str, x: Tensor, times_max: int, time_dim: int) -> None:
     if x.ndim < -time_dim or x.shape[time_dim] <= times_max:
-        raise InputError(f"{name}: keyframe time {times_max} is outside a trajectory of shape "
-                         f"{_shape(x)} (time axis {time_dim})")
+        raise InputError(
+            f"{name}: keyframe time {times_max} is outside a trajectory of shape {_shape(x)} (time axis {time_dim})"
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -169,6 +168,7 @@ class _LeastSquares:
     """Mixin: energy = 0.5 |r|^2 and IRLS weights all one."""
 
     if TYPE_CHECKING:  # provided by the term that mixes this in
+
         def residual(self, ev: PoseEval) -> Tensor: ...
 
     def energy(self, ev: PoseEval) -> Tensor:
@@ -188,6 +188,7 @@ class _Robust:
     scale: float
 
     if TYPE_CHECKING:  # provided by the term that mixes this in
+
         def residual(self, ev: PoseEval) -> Tensor: ...
 
     def _squared(self, ev: PoseEval) -> tuple[Tensor, Tensor]:

@@ -107,8 +107,7 @@ def _closest_parameters(u: Tensor, v: Tensor, w: Tensor) -> tuple[Tensor, Tensor
     return s, t
 
 
-def _joint_classes(bones: Sequence[tuple[int, int]], zero_length: Sequence[bool],
-                   n_joints: int) -> list[int]:
+def _joint_classes(bones: Sequence[tuple[int, int]], zero_length: Sequence[bool], n_joints: int) -> list[int]:
     """Joint -> representative joint (J,): the two ends of every zero-length bone are one joint."""
     rep = list(range(n_joints))
 
@@ -149,10 +148,8 @@ def _hop_distances(bones: Sequence[tuple[int, int]], n_joints: int) -> list[list
 
 def _index_tensor(name: str, value, cols: int) -> Tensor:
     t = torch.as_tensor(value)
-    if t.ndim != 2 or t.shape[1] != cols or t.is_floating_point() or t.is_complex() \
-            or t.dtype == torch.bool:
-        raise InputError(f"SelfIntersection.{name} must be an integer tensor (n, {cols}), got "
-                         f"{t.dtype} {_shape(t)}")
+    if t.ndim != 2 or t.shape[1] != cols or t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
+        raise InputError(f"SelfIntersection.{name} must be an integer tensor (n, {cols}), got {t.dtype} {_shape(t)}")
     if (t < 0).any():
         raise InputError(f"SelfIntersection.{name} must be >= 0")
     return t.long()
@@ -184,14 +181,14 @@ class SelfIntersection(_LeastSquares):
         seg, pairs = _index_tensor("segments", self.segments, 2), _index_tensor("pairs", self.pairs, 2)
         radii = as_float_tensor(self.radii, "radii")
         if radii.shape != seg.shape[:1] or not (torch.isfinite(radii).all() and (radii >= 0).all()):
-            raise InputError(f"SelfIntersection.radii must be finite, >= 0 and of shape "
-                             f"({seg.shape[0]},) like segments, got {_shape(radii)}")
+            raise InputError(
+                f"SelfIntersection.radii must be finite, >= 0 and of shape "
+                f"({seg.shape[0]},) like segments, got {_shape(radii)}"
+            )
         if (pairs >= seg.shape[0]).any():
-            raise InputError(f"SelfIntersection.pairs must index the {seg.shape[0]} segments, got "
-                             f"{int(pairs.max())}")
+            raise InputError(f"SelfIntersection.pairs must index the {seg.shape[0]} segments, got {int(pairs.max())}")
         if self.names and len(self.names) != seg.shape[0]:
-            raise InputError(f"SelfIntersection.names has {len(self.names)} entries for "
-                             f"{seg.shape[0]} segments")
+            raise InputError(f"SelfIntersection.names has {len(self.names)} entries for {seg.shape[0]} segments")
         _positive("SelfIntersection.sigma", self.sigma)
         _positive("SelfIntersection.eps", self.eps)
         try:
@@ -221,8 +218,10 @@ class SelfIntersection(_LeastSquares):
         if joints.ndim < 2 or joints.shape[-1] != 3:
             raise InputError(f"SelfIntersection: joints must be (..., J, 3), got {_shape(joints)}")
         if joints.shape[-2] < self._joints_needed:
-            raise InputError(f"SelfIntersection: segments use joint {self._joints_needed - 1} but "
-                             f"joints {_shape(joints)} has J={joints.shape[-2]}")
+            raise InputError(
+                f"SelfIntersection: segments use joint {self._joints_needed - 1} but "
+                f"joints {_shape(joints)} has J={joints.shape[-2]}"
+            )
         ends = joints.index_select(-2, self._ends.to(joints.device)).unflatten(-2, (4, -1))
         p0, p1, q0, q1 = ends.movedim((-3, -1), (0, 1)).contiguous()  # (4, 3, ..., P)
         return self._reach.to(joints) - _distance(p1 - p0, q1 - q0, p0 - q0, self.eps)
@@ -279,8 +278,11 @@ class SelfIntersection(_LeastSquares):
         ends = ends.movedim((-3, -1), (0, 1))  # (4, 3, ..., P)
         near = self._near(ends)
         if near.numel() == 0:  # nothing close anywhere in the batch (the usual case)
-            return (joints.new_zeros(joints.shape[:-2]), joints.new_zeros(*joints.shape[:-2], d, d),
-                    joints.new_zeros(*joints.shape[:-2], d))
+            return (
+                joints.new_zeros(joints.shape[:-2]),
+                joints.new_zeros(*joints.shape[:-2], d, d),
+                joints.new_zeros(*joints.shape[:-2], d),
+            )
         batch = joints.shape[:-2]
         p0, p1, q0, q1 = ends.index_select(-1, near).flatten(2, -2)  # (3, B, H) each, B poses
         u, v, w = p1 - p0, q1 - q0, p0 - q0
@@ -304,10 +306,16 @@ class SelfIntersection(_LeastSquares):
         return energy.reshape(batch), h.reshape(*batch, d, d), g.reshape(*batch, d)
 
     @staticmethod
-    def for_skeleton(sk: Skeleton, radii: Tensor | Mapping[str, float] | None = None,
-                     min_hops: int = 2, sigma: float = 0.01, margin: float = 0.0,
-                     radius_scale: float = 0.5, skip: Sequence[str] = DEFAULT_SKIP,
-                     exclude: Sequence[tuple[str, str]] = ()) -> SelfIntersection:
+    def for_skeleton(
+        sk: Skeleton,
+        radii: Tensor | Mapping[str, float] | None = None,
+        min_hops: int = 2,
+        sigma: float = 0.01,
+        margin: float = 0.0,
+        radius_scale: float = 0.5,
+        skip: Sequence[str] = DEFAULT_SKIP,
+        exclude: Sequence[tuple[str, str]] = (),
+    ) -> SelfIntersection:
         """The term for a skeleton (defaults measured on CMU motion: see the module docstring).
 
         One capsule per bone of non-zero length, named by its child joint, from `sk.bones()`.
@@ -318,12 +326,12 @@ class SelfIntersection(_LeastSquares):
         bones matching a `skip` pattern (fnmatch, case-insensitive) and the `exclude` name pairs.
         """
         if isinstance(min_hops, bool) or int(min_hops) != min_hops or min_hops < 1:
-            raise InputError(f"SelfIntersection.for_skeleton: min_hops must be an integer >= 1, "
-                             f"got {min_hops!r}")
+            raise InputError(f"SelfIntersection.for_skeleton: min_hops must be an integer >= 1, got {min_hops!r}")
         _positive("SelfIntersection.radius_scale", radius_scale)
         if isinstance(skip, str):
-            raise InputError(f"SelfIntersection.for_skeleton: skip must be a sequence of "
-                             f"patterns, got the string {skip!r}")
+            raise InputError(
+                f"SelfIntersection.for_skeleton: skip must be a sequence of patterns, got the string {skip!r}"
+            )
         bones = sk.bones()
         names = [sk.joint_names[c] for _, c in bones]
         lengths = torch.as_tensor(sk.lengths, dtype=torch.float64)[[c for _, c in bones]]
@@ -332,29 +340,40 @@ class SelfIntersection(_LeastSquares):
             unknown = sorted(set(radii) - set(names))
             if unknown:
                 raise InputError(f"SelfIntersection.for_skeleton: radii name unknown bones {unknown}")
-            base = torch.tensor([float(radii.get(n, r)) for n, r in zip(names, base.tolist())],
-                                dtype=torch.float64)
+            base = torch.tensor([float(radii.get(n, r)) for n, r in zip(names, base.tolist())], dtype=torch.float64)
         elif radii is not None:
             base = as_float_tensor(radii, "radii").to(torch.float64)
             if base.shape != (len(bones),):
-                raise InputError(f"SelfIntersection.for_skeleton: radii must have shape "
-                                 f"({len(bones)},), one per bone of sk.bones(), got {_shape(base)}")
+                raise InputError(
+                    f"SelfIntersection.for_skeleton: radii must have shape "
+                    f"({len(bones)},), one per bone of sk.bones(), got {_shape(base)}"
+                )
         excluded = set()
         for pair in exclude:
             if isinstance(pair, str) or len(pair) != 2 or any(n not in names for n in pair):
-                raise InputError(f"SelfIntersection.for_skeleton: exclude entry {pair!r} must be two "
-                                 f"bone names of the skeleton")
+                raise InputError(
+                    f"SelfIntersection.for_skeleton: exclude entry {pair!r} must be two bone names of the skeleton"
+                )
             excluded.add(frozenset(pair))
         zero = (lengths <= 0).tolist()
         rep = _joint_classes(bones, zero, sk.num_joints)
         hops = _hop_distances([(rep[p], rep[c]) for p, c in bones], sk.num_joints)
-        keep = [i for i, n in enumerate(names) if not zero[i]
-                and not any(fnmatch.fnmatch(n.lower(), pat.lower()) for pat in skip)]
-        pairs = [(a, b) for a in range(len(keep)) for b in range(a + 1, len(keep))
-                 if hops[keep[a]][keep[b]] > min_hops
-                 and frozenset((names[keep[a]], names[keep[b]])) not in excluded]
+        keep = [
+            i
+            for i, n in enumerate(names)
+            if not zero[i] and not any(fnmatch.fnmatch(n.lower(), pat.lower()) for pat in skip)
+        ]
+        pairs = [
+            (a, b)
+            for a in range(len(keep))
+            for b in range(a + 1, len(keep))
+            if hops[keep[a]][keep[b]] > min_hops and frozenset((names[keep[a]], names[keep[b]])) not in excluded
+        ]
         return SelfIntersection(
             segments=torch.tensor([bones[i] for i in keep], dtype=torch.long).reshape(-1, 2),
             radii=(base[keep] * radius_scale).to(torch.get_default_dtype()),
             pairs=torch.tensor(pairs, dtype=torch.long).reshape(-1, 2),
-            sigma=sigma, margin=margin, names=tuple(names[i] for i in keep))
+            sigma=sigma,
+            margin=margin,
+            names=tuple(names[i] for i in keep),
+        )

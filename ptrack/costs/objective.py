@@ -28,8 +28,10 @@ class ObjectiveValue(NamedTuple):
 def _same_batch(what: str, shapes: Mapping[str, torch.Size]) -> None:
     if len(set(shapes.values())) > 1:
         got = {name: tuple(s) for name, s in shapes.items()}
-        raise InputError(f"Objective terms disagree on the batch shape of their {what}: {got} "
-                         f"(trajectory terms need JointLimits(time_axis=True))")
+        raise InputError(
+            f"Objective terms disagree on the batch shape of their {what}: {got} "
+            f"(trajectory terms need JointLimits(time_axis=True))"
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,22 +48,17 @@ class Objective:
         if not self.terms:
             raise InputError("Objective needs at least one term")
         for name, term in self.terms.items():
-            if not all(callable(getattr(term, m, None))
-                       for m in ("residual", "energy", "robust_weights")):
-                raise InputError(f"Objective term {name!r} is not a cost term: "
-                                 f"{type(term).__name__}")
+            if not all(callable(getattr(term, m, None)) for m in ("residual", "energy", "robust_weights")):
+                raise InputError(f"Objective term {name!r} is not a cost term: {type(term).__name__}")
         weights = dict(self.weights or {})
         unknown = sorted(set(weights) - set(self.terms))
         if unknown:
-            raise InputError(f"Objective weights name unknown terms {unknown}; terms are "
-                             f"{sorted(self.terms)}")
+            raise InputError(f"Objective weights name unknown terms {unknown}; terms are {sorted(self.terms)}")
         for name, value in weights.items():
             if not (math.isfinite(float(value)) and float(value) >= 0):
-                raise InputError(f"Objective weight {name!r} must be finite and >= 0, "
-                                 f"got {value!r}")
+                raise InputError(f"Objective weight {name!r} must be finite and >= 0, got {value!r}")
         object.__setattr__(self, "terms", MappingProxyType(dict(self.terms)))
-        object.__setattr__(self, "weights",
-                           MappingProxyType({n: float(weights.get(n, 1.0)) for n in self.terms}))
+        object.__setattr__(self, "weights", MappingProxyType({n: float(weights.get(n, 1.0)) for n in self.terms}))
 
     @property
     def _weights(self) -> Mapping[str, float]:

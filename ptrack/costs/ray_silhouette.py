@@ -58,8 +58,8 @@ def mask_samples(masks: Tensor, step: int = 4, max_samples: int = 128) -> tuple[
     pixels = torch.zeros(t_count, s, 2)
     valid = torch.zeros(t_count, s, dtype=torch.bool)
     for t, c in enumerate(chosen):
-        pixels[t, :c.shape[0]] = c
-        valid[t, :c.shape[0]] = True
+        pixels[t, : c.shape[0]] = c
+        valid[t, : c.shape[0]] = True
     return pixels.to(masks.device), valid.to(masks.device)
 
 
@@ -136,10 +136,16 @@ class RaySilhouette(_LeastSquares):
         if valid.dtype != torch.bool or valid.shape != dirs.shape[:-1]:
             raise InputError(f"RaySilhouette.valid must be bool {_shape(dirs)[:-1]}, got {valid.dtype} {_shape(valid)}")
         bones = torch.as_tensor(self.bones)
-        if bones.ndim != 2 or bones.shape[1] != 2 or bones.shape[0] == 0 or bones.is_floating_point() \
-                or bool((bones < 0).any()):
-            raise InputError("RaySilhouette.bones must be non-empty (start, end) joint index pairs, "
-                             f"got {self.bones!r}")
+        if (
+            bones.ndim != 2
+            or bones.shape[1] != 2
+            or bones.shape[0] == 0
+            or bones.is_floating_point()
+            or bool((bones < 0).any())
+        ):
+            raise InputError(
+                f"RaySilhouette.bones must be non-empty (start, end) joint index pairs, got {self.bones!r}"
+            )
         radii = torch.as_tensor(self.radii, dtype=dirs.dtype)
         if radii.shape != (bones.shape[0],) or not bool((radii > 0).all()):
             raise InputError(f"RaySilhouette.radii must be ({bones.shape[0]},) positive, got {_shape(radii)}")
@@ -152,11 +158,16 @@ class RaySilhouette(_LeastSquares):
 
     def _distance(self, joints: Tensor) -> RayDistance:
         n_o = self.directions.ndim - 2
-        if joints.ndim < n_o + 2 or joints.shape[joints.ndim - n_o - 2:-2] != self.directions.shape[:-2] \
-                or joints.shape[-2] <= int(self._bones.max()):
-            raise InputError(f"RaySilhouette: ev.joints {_shape(joints)} must be (..., "
-                             f"{''.join(f'{x}, ' for x in self.directions.shape[:-2])}J, 3) with J > "
-                             f"{int(self._bones.max())}")
+        if (
+            joints.ndim < n_o + 2
+            or joints.shape[joints.ndim - n_o - 2 : -2] != self.directions.shape[:-2]
+            or joints.shape[-2] <= int(self._bones.max())
+        ):
+            raise InputError(
+                f"RaySilhouette: ev.joints {_shape(joints)} must be (..., "
+                f"{''.join(f'{x}, ' for x in self.directions.shape[:-2])}J, 3) with J > "
+                f"{int(self._bones.max())}"
+            )
         bones = self._bones.to(joints.device)
         a, b = joints.index_select(-2, bones[:, 0]), joints.index_select(-2, bones[:, 1])
         return ray_capsule_distance(self.origin.to(joints), self.directions.to(joints), a, b, self.radii.to(joints))

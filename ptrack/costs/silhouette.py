@@ -69,24 +69,31 @@ class Silhouette(_Robust):
     def __post_init__(self) -> None:
         masks = torch.as_tensor(self.masks)
         if masks.dtype != torch.bool or masks.ndim < 2 or min(masks.shape[-2:]) < 2:
-            raise InputError(f"Silhouette.masks must be a bool tensor (*O, H, W) with H, W >= 2, "
-                             f"got {masks.dtype} {_shape(masks)}")
+            raise InputError(
+                f"Silhouette.masks must be a bool tensor (*O, H, W) with H, W >= 2, got {masks.dtype} {_shape(masks)}"
+            )
         bones = torch.as_tensor(self.bones)
-        if bones.ndim != 2 or bones.shape[1] != 2 or bones.shape[0] == 0 \
-                or bones.is_floating_point() or (bones < 0).any():
-            raise InputError(f"Silhouette.bones must be non-empty (parent, child) pairs of joint "
-                             f"indices >= 0, got {self.bones!r}")
+        if (
+            bones.ndim != 2
+            or bones.shape[1] != 2
+            or bones.shape[0] == 0
+            or bones.is_floating_point()
+            or (bones < 0).any()
+        ):
+            raise InputError(
+                f"Silhouette.bones must be non-empty (parent, child) pairs of joint indices >= 0, got {self.bones!r}"
+            )
         if int(self.samples_per_bone) != self.samples_per_bone or self.samples_per_bone < 2:
-            raise InputError(f"Silhouette.samples_per_bone must be an integer >= 2, got "
-                             f"{self.samples_per_bone!r}")
+            raise InputError(f"Silhouette.samples_per_bone must be an integer >= 2, got {self.samples_per_bone!r}")
         _positive("Silhouette.sigma_px", self.sigma_px)
         _positive("Silhouette.scale", self.scale)
         robust_loss(self.loss)
         dt = distance_transform(masks)
         present = masks.flatten(-2).any(-1)
         if not present.all():
-            log.warning("Silhouette: %d of %d masks are empty and count as missing",
-                        int((~present).sum()), present.numel())
+            log.warning(
+                "Silhouette: %d of %d masks are empty and count as missing", int((~present).sum()), present.numel()
+            )
         object.__setattr__(self, "masks", masks)
         object.__setattr__(self, "_dt", torch.where(present[..., None, None], dt, 0.0))
         object.__setattr__(self, "_present", present)
@@ -96,20 +103,28 @@ class Silhouette(_Robust):
         """ev.joint_pixels (..., *O, J, 2) -> (..., |O|*B*S): distance outside mask / sigma_px."""
         jp = ev.joint_pixels
         if jp is None:
-            raise InputError("Silhouette needs PoseEval.joint_pixels (..., J, 2), the projected "
-                             "pixels of all skeleton joints, but it is None")
+            raise InputError(
+                "Silhouette needs PoseEval.joint_pixels (..., J, 2), the projected "
+                "pixels of all skeleton joints, but it is None"
+            )
         frames, (h, w) = self.masks.shape[:-2], self.masks.shape[-2:]
         n_o = len(frames)
-        if jp.ndim < n_o + 2 or jp.shape[-1] != 2 or jp.shape[jp.ndim - n_o - 2:-2] != frames \
-                or jp.shape[-2] <= int(self._bones.max()):
-            raise InputError(f"Silhouette: ev.joint_pixels {_shape(jp)} must be (..., "
-                             f"{', '.join(map(str, frames)) + ', ' if n_o else ''}J, 2) with J > "
-                             f"{int(self._bones.max())}")
+        if (
+            jp.ndim < n_o + 2
+            or jp.shape[-1] != 2
+            or jp.shape[jp.ndim - n_o - 2 : -2] != frames
+            or jp.shape[-2] <= int(self._bones.max())
+        ):
+            raise InputError(
+                f"Silhouette: ev.joint_pixels {_shape(jp)} must be (..., "
+                f"{', '.join(map(str, frames)) + ', ' if n_o else ''}J, 2) with J > "
+                f"{int(self._bones.max())}"
+            )
         bones = self._bones.to(jp.device)
         parent, child = jp.index_select(-2, bones[:, 0]), jp.index_select(-2, bones[:, 1])
         t = torch.linspace(0.0, 1.0, self.samples_per_bone, dtype=jp.dtype, device=jp.device)
         pts = parent[..., None, :] + t[:, None] * (child - parent)[..., None, :]
-        batch, n_frames = jp.shape[:jp.ndim - n_o - 2], math.prod(frames)
+        batch, n_frames = jp.shape[: jp.ndim - n_o - 2], math.prod(frames)
         pts = pts.reshape(-1, n_frames, pts.shape[-3] * pts.shape[-2], 2).transpose(0, 1)
         u, v = pts.unbind(-1)
         uc, vc = u.clamp(0.5, w - 0.5), v.clamp(0.5, h - 0.5)  # the hull of pixel centres

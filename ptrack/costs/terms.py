@@ -52,18 +52,21 @@ class Reprojection(_Robust):
     def __post_init__(self) -> None:
         obs, conf = as_float_tensor(self.observed, "observed"), as_float_tensor(self.confidence, "confidence")
         if obs.ndim < 2 or obs.shape[-1] != 2 or obs.shape[-2] == 0:
-            raise InputError(f"Reprojection.observed must have shape (*O, K, 2) with K >= 1, "
-                             f"got {_shape(obs)}")
+            raise InputError(f"Reprojection.observed must have shape (*O, K, 2) with K >= 1, got {_shape(obs)}")
         if conf.shape != obs.shape[:-1]:
-            raise InputError(f"Reprojection.confidence must have shape {_shape(obs)[:-1]} to "
-                             f"match observed {_shape(obs)}, got {_shape(conf)}")
+            raise InputError(
+                f"Reprojection.confidence must have shape {_shape(obs)[:-1]} to "
+                f"match observed {_shape(obs)}, got {_shape(conf)}"
+            )
         if not (torch.isfinite(conf).all() and (conf >= 0).all()):
             raise InputError("Reprojection.confidence must be finite and >= 0")
         valid = conf > 0
         bad = valid & ~torch.isfinite(obs).all(-1)
         if bad.any():
-            raise InputError(f"Reprojection.observed has NaN/inf at keypoints with confidence > 0, "
-                             f"indices {bad.nonzero().tolist()[:5]}")
+            raise InputError(
+                f"Reprojection.observed has NaN/inf at keypoints with confidence > 0, "
+                f"indices {bad.nonzero().tolist()[:5]}"
+            )
         _positive("Reprojection.sigma_px", self.sigma_px)
         _positive("Reprojection.scale", self.scale)
         robust_loss(self.loss)
@@ -76,8 +79,9 @@ class Reprojection(_Robust):
         """ev.pixels (..., *O, K, 2) -> (..., |O|*K*2) whitened pixel residuals."""
         p, n = ev.pixels, self.observed.ndim
         if p.ndim < n or p.shape[-n:] != self.observed.shape:
-            raise InputError(f"Reprojection: ev.pixels {_shape(p)} must end in observed's shape "
-                             f"{_shape(self.observed)}")
+            raise InputError(
+                f"Reprojection: ev.pixels {_shape(p)} must end in observed's shape {_shape(self.observed)}"
+            )
         r = (p - self._target.to(p)) * self._sqrt_conf.to(p)[..., None]
         return r.flatten(-n)
 
@@ -106,16 +110,14 @@ class JointLimits(_LeastSquares):
     def __post_init__(self) -> None:
         lo, hi = as_float_tensor(self.lower, "lower"), as_float_tensor(self.upper, "upper")
         if lo.ndim != 1 or lo.shape != hi.shape:
-            raise InputError(f"JointLimits.lower and .upper must both have shape (D,), got "
-                             f"{_shape(lo)} and {_shape(hi)}")
-        if lo.isnan().any() or hi.isnan().any() or (lo > hi).any() or (lo == math.inf).any() \
-                or (hi == -math.inf).any():
-            raise InputError("JointLimits bounds must be non-NaN with lower <= upper, lower < inf "
-                             "and upper > -inf")
+            raise InputError(
+                f"JointLimits.lower and .upper must both have shape (D,), got {_shape(lo)} and {_shape(hi)}"
+            )
+        if lo.isnan().any() or hi.isnan().any() or (lo > hi).any() or (lo == math.inf).any() or (hi == -math.inf).any():
+            raise InputError("JointLimits bounds must be non-NaN with lower <= upper, lower < inf and upper > -inf")
         sigma = as_float_tensor(self.sigma, "sigma")
         if sigma.ndim > 1 or (sigma.ndim == 1 and sigma.shape != lo.shape):
-            raise InputError(f"JointLimits.sigma must be a float or shape {_shape(lo)}, got "
-                             f"{_shape(sigma)}")
+            raise InputError(f"JointLimits.sigma must be a float or shape {_shape(lo)}, got {_shape(sigma)}")
         _positive("JointLimits.sigma", sigma)
         object.__setattr__(self, "lower", lo)
         object.__setattr__(self, "upper", hi)
@@ -131,8 +133,9 @@ class JointLimits(_LeastSquares):
         """ev.q (..., D) or (..., T, D) with time_axis -> (..., D) or (..., T*D)."""
         q = ev.q
         if q.ndim < 1 + self.time_axis or q.shape[-1] != self.lower.shape[0]:
-            raise InputError(f"JointLimits: ev.q {_shape(q)} must be (..., {'T, ' * self.time_axis}"
-                             f"{self.lower.shape[0]})")
+            raise InputError(
+                f"JointLimits: ev.q {_shape(q)} must be (..., {'T, ' * self.time_axis}{self.lower.shape[0]})"
+            )
         below = torch.clamp(q - self.lower.to(q), max=0.0)
         above = torch.clamp(q - self.upper.to(q), min=0.0)
         r = (below + above) / self._sigma.to(q)
@@ -180,20 +183,21 @@ class Smoothness(_LeastSquares):
         if self.dof_scale is not None:
             scale = as_float_tensor(self.dof_scale, "dof_scale")
             if scale.ndim != 1 or not (torch.isfinite(scale).all() and (scale >= 0).all()):
-                raise InputError(f"Smoothness.dof_scale must be a finite, >= 0 vector, got "
-                                 f"shape {_shape(scale)}")
+                raise InputError(f"Smoothness.dof_scale must be a finite, >= 0 vector, got shape {_shape(scale)}")
             object.__setattr__(self, "dof_scale", scale)
 
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.q (..., T, D) or ev.joints (..., T, J, 3) -> (..., M)."""
         x, n = (ev.q, 2) if self.on == "q" else (ev.joints, 3)
         if x.ndim < n or (n == 3 and x.shape[-1] != 3):
-            raise InputError(f"Smoothness(on={self.on!r}) needs a trajectory (..., T, "
-                             f"{'D' if n == 2 else 'J, 3'}), got {_shape(x)}")
+            raise InputError(
+                f"Smoothness(on={self.on!r}) needs a trajectory (..., T, {'D' if n == 2 else 'J, 3'}), got {_shape(x)}"
+            )
         if self.dof_scale is not None:
             if self.dof_scale.shape[0] != x.shape[-n + 1]:
-                raise InputError(f"Smoothness.dof_scale {_shape(self.dof_scale)} does not match "
-                                 f"{self.on} of shape {_shape(x)}")
+                raise InputError(
+                    f"Smoothness.dof_scale {_shape(self.dof_scale)} does not match {self.on} of shape {_shape(x)}"
+                )
             x = x * (self.dof_scale.to(x) if n == 2 else self.dof_scale.to(x)[:, None])
         parts = []
         if self.sigma_velocity is not None:
@@ -230,8 +234,7 @@ class Keyframe(_LeastSquares):
     def __post_init__(self) -> None:
         times, target = _times("Keyframe", self.times), as_float_tensor(self.target, "target")
         if target.ndim != 2 or target.shape[0] != times.shape[0]:
-            raise InputError(f"Keyframe.target must have shape (F={times.shape[0]}, D), got "
-                             f"{_shape(target)}")
+            raise InputError(f"Keyframe.target must have shape (F={times.shape[0]}, D), got {_shape(target)}")
         n_f, d = target.shape
         mask = _mask("Keyframe.mask", self.mask, (n_f, d))
         if not torch.isfinite(target[mask]).all():
@@ -240,21 +243,25 @@ class Keyframe(_LeastSquares):
         diagonal = self.diagonal
         if diagonal is None:
             if cov.ndim == 2 and n_f == d:
-                raise InputError(f"Keyframe.covariance {_shape(cov)} is ambiguous with F == D == "
-                                 f"{d}: pass diagonal=True (per-keyframe variances) or False")
+                raise InputError(
+                    f"Keyframe.covariance {_shape(cov)} is ambiguous with F == D == "
+                    f"{d}: pass diagonal=True (per-keyframe variances) or False"
+                )
             diagonal = cov.ndim == 1 or (cov.ndim == 2 and cov.shape == (n_f, d) and n_f != d)
         m = mask.double()
         if diagonal:
             if _shape(cov) not in ((d,), (n_f, d)):
-                raise InputError(f"Keyframe.covariance (diagonal) must be (D,) or (F, D) = "
-                                 f"({n_f}, {d}), got {_shape(cov)}")
+                raise InputError(
+                    f"Keyframe.covariance (diagonal) must be (D,) or (F, D) = ({n_f}, {d}), got {_shape(cov)}"
+                )
             if cov.isnan().any() or (cov <= 0).any():
                 raise InputError("Keyframe.covariance variances must be > 0 (inf = unset)")
             whiten = torch.diag_embed(m * cov.expand(n_f, d).rsqrt())
         else:
             if _shape(cov) not in ((d, d), (n_f, d, d)):
-                raise InputError(f"Keyframe.covariance must be (D, D) or (F, D, D) with D={d}, "
-                                 f"F={n_f}, got {_shape(cov)}")
+                raise InputError(
+                    f"Keyframe.covariance must be (D, D) or (F, D, D) with D={d}, F={n_f}, got {_shape(cov)}"
+                )
             cov = cov.expand(n_f, d, d)
             if not torch.isfinite(cov).all() or not torch.allclose(cov, cov.mT, atol=1e-9):
                 raise InputError("Keyframe.covariance must be finite and symmetric")
@@ -262,8 +269,10 @@ class Keyframe(_LeastSquares):
             eye = torch.eye(d, dtype=cov.dtype).expand_as(cov)
             chol, info = torch.linalg.cholesky_ex(torch.where(keep, cov, eye))
             if (info != 0).any():
-                raise InputError(f"Keyframe.covariance of the kept dofs is not positive definite "
-                                 f"for keyframes {(info != 0).nonzero().flatten().tolist()}")
+                raise InputError(
+                    f"Keyframe.covariance of the kept dofs is not positive definite "
+                    f"for keyframes {(info != 0).nonzero().flatten().tolist()}"
+                )
             # Kept and masked dofs are uncoupled in the patched matrix, so its inverse factor is
             # L_S^{-1} on the kept block; zeroing the masked rows leaves exactly that.
             inv = torch.linalg.solve_triangular(chol, eye, upper=False)
@@ -305,8 +314,9 @@ class JointKeyframe(_LeastSquares):
         times = _times("JointKeyframe", self.times)
         target = as_float_tensor(self.target_joints, "target_joints")
         if target.ndim != 3 or target.shape[0] != times.shape[0] or target.shape[2] != 3:
-            raise InputError(f"JointKeyframe.target_joints must have shape (F={times.shape[0]}, J, "
-                             f"3), got {_shape(target)}")
+            raise InputError(
+                f"JointKeyframe.target_joints must have shape (F={times.shape[0]}, J, 3), got {_shape(target)}"
+            )
         mask = _mask("JointKeyframe.mask", self.mask, _shape(target)[:2])
         if not torch.isfinite(target[mask]).all():
             raise InputError("JointKeyframe.target_joints has NaN/inf at joints the mask keeps")
@@ -322,8 +332,7 @@ class JointKeyframe(_LeastSquares):
         """ev.joints (..., T, J, 3) -> (..., F*J*3)."""
         x = ev.joints
         if x.ndim < 3 or x.shape[-2:] != self.target_joints.shape[1:]:
-            raise InputError(f"JointKeyframe: ev.joints {_shape(x)} must be (..., T, "
-                             f"{self.target_joints.shape[1]}, 3)")
+            raise InputError(f"JointKeyframe: ev.joints {_shape(x)} must be (..., T, {self.target_joints.shape[1]}, 3)")
         _frame_count("JointKeyframe", x, self._last, -3)
         e = x.index_select(-3, self.times.to(x.device)) - self._target.to(x)
         return (e * self._weight.to(x)).flatten(-3)

@@ -11,8 +11,21 @@ from ptrack.estimators.frame import estimate_frames
 from ptrack.estimators.kjs import estimate_css, estimate_kjs, estimate_ss
 from ptrack.estimators.pca import estimate_pca
 
-ESTIMATORS = {"frame": estimate_frames, "kjs": estimate_kjs, "css": estimate_css, "ss": estimate_ss,
-              "batch": estimate_batch, "pca": estimate_pca}
+ESTIMATORS = {
+    "frame": estimate_frames,
+    "kjs": estimate_kjs,
+    "css": estimate_css,
+    "ss": estimate_ss,
+    "batch": estimate_batch,
+    "pca": estimate_pca,
+}
 
-__all__ = ["ESTIMATORS", "estimate_batch", "estimate_css", "estimate_frames", "estimate_kjs", "estimate_pca",
-           "estimate_ss"]
+__all__ = [
+    "ESTIMATORS",
+    "estimate_batch",
+    "estimate_css",
+    "estimate_frames",
+    "estimate_kjs",
+    "estimate_pca",
+    "estimate_ss",
+]

@@ -105,12 +105,13 @@ def smoothing_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Ten
     for n, a in smooth:
         if t_len <= n:
             continue
-        coef = torch.tensor([(-1) ** (n - j) * math.comb(n, j) for j in range(n + 1)], dtype=like.dtype,
-                            device=like.device)
+        coef = torch.tensor(
+            [(-1) ** (n - j) * math.comb(n, j) for j in range(n + 1)], dtype=like.dtype, device=like.device
+        )
         rows = t_len - n  # residual i covers frames i .. i+n
         for j in range(n + 1):
             for k in range(j + 1):
-                band[k + (j - k):rows + j, j - k] += coef[j] * coef[k] * a.square()
+                band[k + (j - k) : rows + j, j - k] += coef[j] * coef[k] * a.square()
     return band
 
 
@@ -120,19 +121,28 @@ def _band_matvec(band: Tensor, q: Tensor) -> Tensor:
     t_len = q.shape[-2]
     for k in range(1, min(band.shape[1] - 1, t_len - 1) + 1):
         c = band[k:, k]
-        out = out + torch.nn.functional.pad(c * q[:, :-k], (0, 0, k, 0)) + \
-            torch.nn.functional.pad(c * q[:, k:], (0, 0, 0, k))
+        out = (
+            out
+            + torch.nn.functional.pad(c * q[:, :-k], (0, 0, k, 0))
+            + torch.nn.functional.pad(c * q[:, k:], (0, 0, 0, k))
+        )
     return out
 
 
-def trajectory_objective(problem: Problem, cfg, dtype: torch.dtype, device: torch.device,
-                         smoothing: bool = True, limits: bool = True) -> Trajectory:
+def trajectory_objective(
+    problem: Problem, cfg, dtype: torch.dtype, device: torch.device, smoothing: bool = True, limits: bool = True
+) -> Trajectory:
     """The batch objective of `problem` under config `cfg` (costs.*, batch.*, keyframes.*).
     smoothing / limits False drop those terms (the ablation)."""
     sk, obs, cc, bc = problem.skeleton, problem.observations, cfg.costs, cfg.batch
     t_len, d = obs.num_frames, sk.num_dofs
-    reproj = Reprojection(obs.keypoints.to(device=device, dtype=dtype), obs.confidence.to(device=device, dtype=dtype),
-                          sigma_px=cc.sigma_px, loss=cc.loss, scale=cc.robust_scale)
+    reproj = Reprojection(
+        obs.keypoints.to(device=device, dtype=dtype),
+        obs.confidence.to(device=device, dtype=dtype),
+        sigma_px=cc.sigma_px,
+        loss=cc.loss,
+        scale=cc.robust_scale,
+    )
     lower, upper = sk.limits(dtype=dtype, device=device)
     if not limits:
         lower, upper = torch.full_like(lower, -math.inf), torch.full_like(upper, math.inf)
@@ -150,12 +160,14 @@ def trajectory_objective(problem: Problem, cfg, dtype: torch.dtype, device: torc
         sigma = [(sigma_m if is_t else sigma_angle) for is_t in trans.tolist()]
         # the prior's scale replaces the scalar of the dofs it names, in the terms that are on
         sigma = [per_dof.get(name, s) if s is not None else None for name, s in zip(sk.dof_names, sigma)]
-        return torch.tensor([0.0 if s is None else 1.0 / (dt ** n * s) for s in sigma], dtype=dtype, device=device)
+        return torch.tensor([0.0 if s is None else 1.0 / (dt**n * s) for s in sigma], dtype=dtype, device=device)
 
     smooth = []
     if smoothing:
-        for n, sa, sm, key in ((1, bc.velocity_sigma, bc.velocity_sigma_m, "velocity"),
-                               (2, bc.accel_sigma, bc.accel_sigma_m, "accel")):
+        for n, sa, sm, key in (
+            (1, bc.velocity_sigma, bc.velocity_sigma_m, "velocity"),
+            (2, bc.accel_sigma, bc.accel_sigma_m, "accel"),
+        ):
             a = weights(sa, sm, n, table.get(key, {}))
             if a is not None:
                 smooth.append((n, a))
@@ -173,8 +185,11 @@ def trajectory_objective(problem: Problem, cfg, dtype: torch.dtype, device: torc
         target = wrap_to_limits(target, *sk.limits(dtype=dtype, device=device), angular)
         kf_frames, kf_target, kf_weight = frames, target, torch.where(mask, 1.0 / sigma, 0.0)
     else:
-        kf_frames, kf_target, kf_weight = (torch.zeros(0, dtype=torch.long, device=device),
-                                           like.new_zeros(0, d), like.new_zeros(0, d))
+        kf_frames, kf_target, kf_weight = (
+            torch.zeros(0, dtype=torch.long, device=device),
+            like.new_zeros(0, d),
+            like.new_zeros(0, d),
+        )
     jk = problem.joint_keyframes
     j = sk.num_joints
     if jk is not None:
@@ -188,8 +203,22 @@ def trajectory_objective(problem: Problem, cfg, dtype: torch.dtype, device: torc
     for name, fr in (("keyframe", kf_frames), ("joint keyframe", jk_frames)):
         if fr.numel() and (int(fr.min()) < 0 or int(fr.max()) >= t_len):
             raise InputError(f"a {name} at frame {int(fr.max())} lies outside the {t_len} reconstructed frames")
-    return Trajectory(problem, reproj, lower, upper, math.sqrt(cc.limits_weight) / cc.limits_sigma, tuple(smooth),
-                      band, kf_frames, kf_target, kf_weight, angular, jk_frames, jk_target, jk_weight)
+    return Trajectory(
+        problem,
+        reproj,
+        lower,
+        upper,
+        math.sqrt(cc.limits_weight) / cc.limits_sigma,
+        tuple(smooth),
+        band,
+        kf_frames,
+        kf_target,
+        kf_weight,
+        angular,
+        jk_frames,
+        jk_target,
+        jk_weight,
+    )
 
 
 def _wrapped(diff: Tensor, angular: Tensor) -> Tensor:
@@ -197,8 +226,9 @@ def _wrapped(diff: Tensor, angular: Tensor) -> Tensor:
     return torch.where(angular, torch.remainder(diff + math.pi, 2 * math.pi) - math.pi, diff)
 
 
-def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True
-             ) -> tuple[dict[str, Tensor], Tensor | None, Tensor | None]:
+def evaluate(
+    obj: Trajectory, q: Tensor, with_jacobian: bool = True
+) -> tuple[dict[str, Tensor], Tensor | None, Tensor | None]:
     """Per-frame energies of each term, and the per-frame Gauss-Newton pieces.
 
     q (B, T, D) -> terms {name: (B, T)} (reprojection, limits, smooth, keyframes; each smoothing
@@ -242,7 +272,7 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True
     h = jw.mT @ jr  # (B, T, D, D): one batched product per frame
     g = (jw.mT @ r.flatten(-2)[..., None])[..., 0]
     outside = ((q < obj.lower) | (q > obj.upper)).to(q.dtype)
-    diag = outside * obj.limits_scale ** 2
+    diag = outside * obj.limits_scale**2
     g = g + lim * obj.limits_scale
     kf_w2 = obj.kf_weight.square()
     diag = diag.index_add(1, obj.kf_frames, kf_w2.expand(b_len, -1, -1))
@@ -299,12 +329,16 @@ def load_init(run_dir: str | Path, problem: Problem, dtype: torch.dtype, device:
         raise InputError(f"init_from {path}: unreadable run result ({' '.join(str(e).split())})") from None
     sk, obs = problem.skeleton, problem.observations
     if names != list(sk.dof_names):
-        raise InputError(f"init_from {run_dir}: its dofs ({len(names)}) are not this model's ({sk.num_dofs}); "
-                         f"the run must use the same skeleton and model.freeze")
+        raise InputError(
+            f"init_from {run_dir}: its dofs ({len(names)}) are not this model's ({sk.num_dofs}); "
+            f"the run must use the same skeleton and model.freeze"
+        )
     own = obs.times.detach().double().cpu().numpy()
     if q.shape != (obs.num_frames, sk.num_dofs) or times.shape != own.shape or not np.allclose(times, own, atol=1e-6):
-        raise InputError(f"init_from {run_dir}: its {q.shape[0]} frames are not this run's {obs.num_frames} frames "
-                         f"(data.start/stop/stride and batch.upsample must match)")
+        raise InputError(
+            f"init_from {run_dir}: its {q.shape[0]} frames are not this run's {obs.num_frames} frames "
+            f"(data.start/stop/stride and batch.upsample must match)"
+        )
     if not np.isfinite(q).all():
         raise InputError(f"init_from {run_dir}: its trajectory has non-finite values")
     return torch.as_tensor(q, dtype=dtype, device=device)
@@ -314,8 +348,11 @@ def interpolate_keyframes(problem: Problem, lower: Tensor, upper: Tensor) -> Ten
     """A start from the full angle keyframes: linear between them, constant beyond. -> (T, D)."""
     kf = problem.keyframes
     t_len = problem.observations.num_frames
-    full = None if kf is None else (torch.ones(kf.frames.shape, dtype=torch.bool) if kf.mask is None
-                                    else kf.mask.all(-1).cpu())
+    full = (
+        None
+        if kf is None
+        else (torch.ones(kf.frames.shape, dtype=torch.bool) if kf.mask is None else kf.mask.all(-1).cpu())
+    )
     if kf is None or full is None or not bool(full.any()):
         raise InputError("batch.init is 'keyframes' but no keyframe gives every dof")
     frames = kf.frames.cpu()[full]
@@ -359,9 +396,13 @@ def warp_to_keyframes(q: Tensor, obj: Trajectory) -> Tensor:
     return q + torch.as_tensor(offset, dtype=q.dtype, device=q.device)
 
 
-def estimate_batch(problem: Problem, cfg, generator: torch.Generator,
-                   progress: Callable[[Iterable], Iterable] = lambda x: x,
-                   callback: Callable[[int, Tensor, Tensor], None] | None = None) -> Estimate:
+def estimate_batch(
+    problem: Problem,
+    cfg,
+    generator: torch.Generator,
+    progress: Callable[[Iterable], Iterable] = lambda x: x,
+    callback: Callable[[int, Tensor, Tensor], None] | None = None,
+) -> Estimate:
     """The MAP trajectory (module docstring). Deterministic given its start (uses no randomness).
     Solved in float64 on the observations' device; the Estimate is in the observations' dtype.
 
@@ -371,8 +412,13 @@ def estimate_batch(problem: Problem, cfg, generator: torch.Generator,
         return _estimate(problem, cfg, generator, progress, callback)
 
 
-def _estimate(problem: Problem, cfg, generator: torch.Generator, progress: Callable[[Iterable], Iterable],
-              callback: Callable[[int, Tensor, Tensor], None] | None) -> Estimate:
+def _estimate(
+    problem: Problem,
+    cfg,
+    generator: torch.Generator,
+    progress: Callable[[Iterable], Iterable],
+    callback: Callable[[int, Tensor, Tensor], None] | None,
+) -> Estimate:
     bc = cfg.batch
     obs = problem.observations
     out_dtype, device = obs.keypoints.dtype, obs.keypoints.device
@@ -387,20 +433,39 @@ def _estimate(problem: Problem, cfg, generator: torch.Generator, progress: Calla
         from ptrack.estimators.frame import estimate_frames
 
         kf = problem.keyframes
-        full0 = kf is not None and any(bool(kf.mask is None or kf.mask[i].all()) for i in
-                                       torch.nonzero(kf.frames == 0).flatten().tolist())
+        full0 = kf is not None and any(
+            bool(kf.mask is None or kf.mask[i].all()) for i in torch.nonzero(kf.frames == 0).flatten().tolist()
+        )
         frame_cfg = cfg if full0 else dataclasses.replace(cfg, frame=dataclasses.replace(cfg.frame, init="rest"))
         q0 = estimate_frames(problem, frame_cfg, generator, progress).q
     q0 = wrap_to_limits(q0.detach().to(dtype), lower, upper, obj.angular)
-    q, info = banded_levenberg_marquardt(linearization(obj), q0[None], lower, upper, max_iter=bc.iterations,
-                                         tol=bc.tol, gtol=bc.tol * 1e-2, damping=bc.damping, callback=callback)
-    log.info("batch: %d iterations, cost %.6g -> %.6g", int(info.iterations[0]), float(info.history[0, 0]),
-             float(info.cost[0]))
+    q, info = banded_levenberg_marquardt(
+        linearization(obj),
+        q0[None],
+        lower,
+        upper,
+        max_iter=bc.iterations,
+        tol=bc.tol,
+        gtol=bc.tol * 1e-2,
+        damping=bc.damping,
+        callback=callback,
+    )
+    log.info(
+        "batch: %d iterations, cost %.6g -> %.6g",
+        int(info.iterations[0]),
+        float(info.history[0, 0]),
+        float(info.cost[0]),
+    )
     with torch.no_grad():
         terms, _, _ = evaluate(obj, q, with_jacobian=False)
         joints = problem.skeleton.forward_kinematics(q[0])
         std = joint_std(obj, q, info.hessian)[0] if bc.uncertainty else None
     terms = {name: v[0].to(out_dtype) for name, v in terms.items()}
-    return Estimate(q=q[0].to(out_dtype), joints=joints.to(out_dtype), cost=torch.stack(list(terms.values())).sum(0),
-                    terms=terms, joint_std=None if std is None else std.to(out_dtype),
-                    solver_cost=info.history[:, 0].to(out_dtype))
+    return Estimate(
+        q=q[0].to(out_dtype),
+        joints=joints.to(out_dtype),
+        cost=torch.stack(list(terms.values())).sum(0),
+        terms=terms,
+        joint_std=None if std is None else std.to(out_dtype),
+        solver_cost=info.history[:, 0].to(out_dtype),
+    )

@@ -51,8 +51,9 @@ def rest_pose_in_view(problem: Problem, dtype: torch.dtype) -> Tensor:
     return q
 
 
-def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
-                    progress: Callable[[Iterable], Iterable] = lambda x: x) -> Estimate:
+def estimate_frames(
+    problem: Problem, cfg, generator: torch.Generator, progress: Callable[[Iterable], Iterable] = lambda x: x
+) -> Estimate:
     """Per-frame L-BFGS fits (see module docstring). Deterministic: uses no randomness."""
     fc, cc = cfg.frame, cfg.costs
     obs = problem.observations
@@ -62,8 +63,11 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
     lower, upper = sk.limits(dtype=dtype, device=device)
     limits = JointLimits(lower, upper, sigma=cc.limits_sigma)
     smooth_pair = Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma)
-    smooth = smooth_pair if cc.accel_sigma is None else \
-        Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma, sigma_acceleration=cc.accel_sigma)
+    smooth = (
+        smooth_pair
+        if cc.accel_sigma is None
+        else Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma, sigma_acceleration=cc.accel_sigma)
+    )
 
     if fc.init == "keyframe":
         q0 = first_keyframe(problem, "frame.init", lower, upper)  # kept as given (Problem warns off limits)
@@ -75,8 +79,9 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
     qs, costs = [], []
     terms: dict[str, list[Tensor]] = {"reprojection": [], "limits": [], "smooth": []}
     for t in progress(range(obs.num_frames)):
-        reproj = Reprojection(obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss,
-                              scale=cc.robust_scale)
+        reproj = Reprojection(
+            obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss, scale=cc.robust_scale
+        )
         # frame 0 with a keyframe: the velocity term on (keyframe, q) acts as the keyframe prior
         past = history[-2:] if t > 0 or fc.init != "keyframe" else [q_prev]
         if cc.accel_sigma is None:
@@ -97,9 +102,15 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
                 e["smooth"] = torch.zeros((), dtype=dtype, device=device)
             return e
 
-        opt = torch.optim.LBFGS([q], lr=1.0, max_iter=fc.first_iterations if t == 0 else fc.iterations,
-                                line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12,
-                                history_size=20)
+        opt = torch.optim.LBFGS(
+            [q],
+            lr=1.0,
+            max_iter=fc.first_iterations if t == 0 else fc.iterations,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=1e-9,
+            tolerance_change=1e-12,
+            history_size=20,
+        )
 
         def closure() -> Tensor:
             opt.zero_grad()
@@ -121,5 +132,6 @@ def estimate_frames(problem: Problem, cfg, generator: torch.Generator,
     q_all = torch.stack(qs)
     with torch.no_grad():
         joints = sk.forward_kinematics(q_all)
-    return Estimate(q=q_all, joints=joints, cost=torch.stack(costs),
-                    terms={k: torch.stack(v) for k, v in terms.items()})
+    return Estimate(
+        q=q_all, joints=joints, cost=torch.stack(costs), terms={k: torch.stack(v) for k, v in terms.items()}
+    )

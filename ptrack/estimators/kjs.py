@@ -145,24 +145,28 @@ def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
     mean, std, known = pose_prior(sk, lower, upper, angular)
     known = known & ~root
     prior_sigma = torch.where(known, std.clamp_min(math.radians(k.floor_deg)), torch.full_like(std, 1e6))
-    return Setup(problem, cfg, lower, upper, angular, collision, chains, plans, chain_dofs, root,
-                 (mean, std, known), prior_sigma)
+    return Setup(
+        problem, cfg, lower, upper, angular, collision, chains, plans, chain_dofs, root, (mean, std, known), prior_sigma
+    )
 
 
 # ---------------------------------------------------------------- the frame's objective
 
 
-def _objective(s: Setup, t: int, mean: Tensor | None, sigma: float | Tensor | None = None,
-               tracking: bool = False) -> Objective:
+def _objective(
+    s: Setup, t: int, mean: Tensor | None, sigma: float | Tensor | None = None, tracking: bool = False
+) -> Objective:
     """Robust reprojection on frame t + limits + collision (+ the prior around `mean` (N, D), std `sigma`,
     by default the dynamics' `kjs.prior_sigma`; + with `tracking`, the CMU pose prior weighted by
     `kjs.pose_prior_weight`)."""
     cc, k = s.cfg.costs, s.cfg.kjs
     obs = s.problem.observations
     terms: dict[str, CostTerm] = {
-        "reprojection": Reprojection(obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss,
-                                     scale=cc.robust_scale),
-        "limits": JointLimits(s.lower, s.upper, sigma=cc.limits_sigma)}
+        "reprojection": Reprojection(
+            obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss, scale=cc.robust_scale
+        ),
+        "limits": JointLimits(s.lower, s.upper, sigma=cc.limits_sigma),
+    }
     weights = {"limits": cc.limits_weight}
     if s.collision is not None:
         terms["collision"] = s.collision
@@ -179,14 +183,22 @@ def _objective(s: Setup, t: int, mean: Tensor | None, sigma: float | Tensor | No
     return Objective(terms, weights)
 
 
-def _polish(s: Setup, t: int, q: Tensor, mean: Tensor | None, iterations: int,
-            sigma: float | Tensor | None = None, tracking: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+def _polish(
+    s: Setup,
+    t: int,
+    q: Tensor,
+    mean: Tensor | None,
+    iterations: int,
+    sigma: float | Tensor | None = None,
+    tracking: bool = False,
+) -> tuple[Tensor, Tensor, Tensor]:
     """Local optimisation of N hypotheses on frame t. q, mean: (N, D) -> q (N, D), cost (N,), hessian (N, D, D)."""
     prob = s.problem
     sk, cam, kps = prob.skeleton, prob.observations.camera, prob.keypoints
     objective = _objective(s, t, mean, sigma, tracking)
     linearize = objective_linearization(sk, objective, cam, kps, fold=True)
     if s.cfg.kjs.polisher == "lbfgs" and iterations > 0:
+
         def energy(x: Tensor) -> Tensor:
             return objective(pose_eval_from_joints(cam, kps, x, sk.forward_kinematics(x))).total
 
@@ -198,8 +210,12 @@ def _polish(s: Setup, t: int, q: Tensor, mean: Tensor | None, iterations: int,
 
 def _cholesky(s: Setup, hessian: Tensor) -> Tensor:
     k = s.cfg.kjs
-    return scaled_covariance(hessian, k.scale, max_std=math.radians(k.ceiling_deg) / math.sqrt(k.scale),
-                             min_std=math.radians(k.floor_deg) / math.sqrt(k.scale)).chol
+    return scaled_covariance(
+        hessian,
+        k.scale,
+        max_std=math.radians(k.ceiling_deg) / math.sqrt(k.scale),
+        min_std=math.radians(k.floor_deg) / math.sqrt(k.scale),
+    ).chol
 
 
 # ---------------------------------------------------------------- sampling
@@ -236,8 +252,9 @@ def _chain_votes(s: Setup, chol: Tensor) -> Tensor:
     return votes / votes.sum(-1, keepdim=True).clamp_min(torch.finfo(var.dtype).tiny)
 
 
-def _jump(s: Setup, t: int, q: Tensor, parent: Tensor, modes: Modes, gen: torch.Generator,
-          per_sample: int) -> tuple[Tensor, Tensor, Tensor]:
+def _jump(
+    s: Setup, t: int, q: Tensor, parent: Tensor, modes: Modes, gen: torch.Generator, per_sample: int
+) -> tuple[Tensor, Tensor, Tensor]:
     """Kinematic jumps of samples q (S, D) on frame t: each flips `per_sample` chains chosen by its mode's
     covariance vote. -> leaves q (L_all, D) (the samples' own leaf 0 included), parent mode (L_all,),
     flipped leaves kept per chain (C,)."""
@@ -248,8 +265,9 @@ def _jump(s: Setup, t: int, q: Tensor, parent: Tensor, modes: Modes, gen: torch.
         return q, parent, counts
     px, conf = joint_observations(prob.keypoints, obs.keypoints[t], obs.confidence[t], sk.num_joints)
     probs = _chain_votes(s, modes.chol)[parent]  # (S, C)
-    picks = torch.multinomial(probs.double().cpu(), min(per_sample, len(s.chains)), replacement=False,
-                              generator=gen).to(q.device)  # (S, c)
+    picks = torch.multinomial(
+        probs.double().cpu(), min(per_sample, len(s.chains)), replacement=False, generator=gen
+    ).to(q.device)  # (S, c)
     out_q, out_parent = [q], [parent]
     joints = sk.forward_kinematics(q)
     for c, (chain, plan) in enumerate(zip(s.chains, s.plans)):
@@ -270,8 +288,9 @@ def _jump(s: Setup, t: int, q: Tensor, parent: Tensor, modes: Modes, gen: torch.
 # ---------------------------------------------------------------- one tracking step
 
 
-def _select(s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, prior_weight: Tensor, origin: Tensor,
-            count: int) -> tuple[Tensor, Tensor]:
+def _select(
+    s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, prior_weight: Tensor, origin: Tensor, count: int
+) -> tuple[Tensor, Tensor]:
     """Distinct minima among polished hypotheses, the `count` heaviest first: -> indices (M,) and their
     normalised weights (M,). prior_weight (N,): weight of the mode each came from."""
     k = s.cfg.kjs
@@ -313,7 +332,7 @@ def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generat
     q = torch.cat([predicted, q])
     parent = torch.cat([idx, parent])
     # the dynamics' spread widens with each mode's own last motion: a fast limb may move as far again
-    sigma = torch.sqrt(k.prior_sigma ** 2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
+    sigma = torch.sqrt(k.prior_sigma**2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
     # polish everything briefly, then the most promising distinct minima to convergence
     q, cost, hessian = _polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent], tracking=True)
     best, _ = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], 4 * k.modes)
@@ -365,7 +384,7 @@ def _root_starts(s: Setup, q: Tensor, yaws: int, tilts: tuple[float, ...]) -> Te
     side = [k for k in driven if k != up]
     starts = []
     for i in range(yaws):
-        for tilt in (tilts if side else (0.0,)):
+        for tilt in tilts if side else (0.0,):
             x = q.clone()
             x[int(sk.axis_dof[0, up])] += 2 * math.pi * i / yaws * (1.0 if world[1, up] >= 0 else -1.0)
             if side:
@@ -382,12 +401,14 @@ def _init_tree(s: Setup) -> Tensor:
     sk, obs = prob.skeleton, prob.observations
     k = s.cfg.kjs
     rest = torch.clamp(rest_pose_in_view(prob, s.lower.dtype), s.lower, s.upper)
-    q = project_to_limits(_root_starts(s, rest, k.init_yaws, (0.0, 0.5, -0.5)), s.lower, s.upper, s.angular,
-                          mode="reflect")
+    q = project_to_limits(
+        _root_starts(s, rest, k.init_yaws, (0.0, 0.5, -0.5)), s.lower, s.upper, s.angular, mode="reflect"
+    )
     lo = torch.where(s.root, s.lower, q[0])
     hi = torch.where(s.root, s.upper, q[0])
-    q, _ = levenberg_marquardt(objective_linearization(sk, _objective(s, 0, None), obs.camera, prob.keypoints, True),
-                               q, lo, hi, max_iter=30)
+    q, _ = levenberg_marquardt(
+        objective_linearization(sk, _objective(s, 0, None), obs.camera, prob.keypoints, True), q, lo, hi, max_iter=30
+    )
     mean, sigma = _start_prior(s, q)
     q, cost, _ = _polish(s, 0, q, mean, 30, sigma)
     # distinct in 3D (no joint 5 cm apart): headings 2 pi apart, or the two Euler triples of one
@@ -432,10 +453,12 @@ def _pad(modes: Modes, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     if m >= k:
         return modes.q, modes.weight, modes.cost, modes.chol
     fill = k - m
-    return (torch.cat([modes.q, modes.q[:1].expand(fill, -1)]),
-            torch.cat([modes.weight, modes.weight.new_zeros(fill)]),
-            torch.cat([modes.cost, modes.cost[:1].expand(fill)]),
-            torch.cat([modes.chol, modes.chol[:1].expand(fill, -1, -1)]))
+    return (
+        torch.cat([modes.q, modes.q[:1].expand(fill, -1)]),
+        torch.cat([modes.weight, modes.weight.new_zeros(fill)]),
+        torch.cat([modes.cost, modes.cost[:1].expand(fill)]),
+        torch.cat([modes.chol, modes.chol[:1].expand(fill, -1, -1)]),
+    )
 
 
 def principal_directions(sk, q: Tensor, chol: Tensor, scale: float) -> Tensor:
@@ -451,8 +474,13 @@ def principal_directions(sk, q: Tensor, chol: Tensor, scale: float) -> Tensor:
     return sk.forward_kinematics(q + dq) - sk.forward_kinematics(q)
 
 
-def track(problem: Problem, cfg, generator: torch.Generator, strategy: Strategy,
-          progress: Callable[[Iterable], Iterable] = lambda x: x) -> Estimate:
+def track(
+    problem: Problem,
+    cfg,
+    generator: torch.Generator,
+    strategy: Strategy,
+    progress: Callable[[Iterable], Iterable] = lambda x: x,
+) -> Estimate:
     """Run the tracker `strategy` over every frame of `problem` (see the module docstring), on one
     intra-op thread (`ptrack.banded.one_thread`): its products are small batched ones, and
     `scripts/bench_kjs.py` measured 6.1 fps on one thread and on two on an idle 2-core machine, but
@@ -461,8 +489,9 @@ def track(problem: Problem, cfg, generator: torch.Generator, strategy: Strategy,
         return _track(problem, cfg, generator, strategy, progress)
 
 
-def _track(problem: Problem, cfg, generator: torch.Generator, strategy: Strategy,
-           progress: Callable[[Iterable], Iterable]) -> Estimate:
+def _track(
+    problem: Problem, cfg, generator: torch.Generator, strategy: Strategy, progress: Callable[[Iterable], Iterable]
+) -> Estimate:
     s = _setup(problem, cfg, strategy)
     sk, obs = problem.skeleton, problem.observations
     k = cfg.kjs
@@ -489,10 +518,17 @@ def _track(problem: Problem, cfg, generator: torch.Generator, strategy: Strategy
         hyp_joints = sk.forward_kinematics(hq)
         joints = hyp_joints[frames, path]
         directions = principal_directions(sk, hq, torch.stack(ls), k.scale)
-    return Estimate(q=q, joints=joints, cost=hc[frames, path], terms={"mode_cost": hc[frames, path]},
-                    hypotheses=hyp_joints, hypothesis_weights=hw, hypothesis_costs=hc,
-                    hypothesis_directions=directions,
-                    jumps={c.name: x for c, x in zip(s.chains, torch.stack(jumps).T)} if strategy.jumps else None)
+    return Estimate(
+        q=q,
+        joints=joints,
+        cost=hc[frames, path],
+        terms={"mode_cost": hc[frames, path]},
+        hypotheses=hyp_joints,
+        hypothesis_weights=hw,
+        hypothesis_costs=hc,
+        hypothesis_directions=directions,
+        jumps={c.name: x for c, x in zip(s.chains, torch.stack(jumps).T)} if strategy.jumps else None,
+    )
 
 
 def estimate_kjs(problem, cfg, generator, progress=lambda x: x) -> Estimate:

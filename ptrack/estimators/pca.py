@@ -90,8 +90,10 @@ def motion_model_for(cfg, skeleton: Skeleton) -> MotionModel:
         log.info("pca: motion model %s", path)
         return load_motion_model(path, skeleton)
     if not cfg.motion.clips:
-        raise InputError(f"no motion model at {path} (config key 'motion.model_file') and no training clips to fit "
-                         f"one (config key 'motion.clips'); run `ptrack fit-motion` or set motion.clips")
+        raise InputError(
+            f"no motion model at {path} (config key 'motion.model_file') and no training clips to fit "
+            f"one (config key 'motion.clips'); run `ptrack fit-motion` or set motion.clips"
+        )
     clips = read_clips(clip_paths(cfg.motion.clips))
     model = fit_motion_model(clips, cfg.motion)
     save_motion_model(model, path)
@@ -137,16 +139,20 @@ def _setup(problem: Problem, cfg) -> Setup:
     model_dofs = dof_index(model, sk).to(device)
     root = [int(d) for d in (*sk.translation_dof, *sorted(sk.axis_dof[0].tolist())) if d >= 0]
     if len(root) != 6:
-        raise InputError(f"method pca needs a root with 3 translation and 3 rotation dofs; {sk.name!r} has "
-                         f"{len(root)} (check model.freeze)")
+        raise InputError(
+            f"method pca needs a root with 3 translation and 3 rotation dofs; {sk.name!r} has "
+            f"{len(root)} (check model.freeze)"
+        )
     other = sorted(set(range(sk.num_dofs)) - set(root) - set(model_dofs.tolist()))
     if other:
-        log.warning("pca: %d dofs are not in the motion model and held at zero (e.g. %s)", len(other),
-                    sk.dof_names[other[0]])
+        log.warning(
+            "pca: %d dofs are not in the motion model and held at zero (e.g. %s)", len(other), sk.dof_names[other[0]]
+        )
     missing = [j for j in p.joints if j not in kps.names]
     if missing:
-        raise InputError(f"config key 'pca.joints': unknown keypoint {missing[0]!r} "
-                         f"(keypoints: {', '.join(kps.names)})")
+        raise InputError(
+            f"config key 'pca.joints': unknown keypoint {missing[0]!r} (keypoints: {', '.join(kps.names)})"
+        )
     kp = [kps.names.index(j) for j in p.joints]
     tracked = torch.as_tensor([kps.joints[k] for k in kp], dtype=torch.long, device=device)
     observed = obs.keypoints[:, kp].to(dtype)
@@ -155,13 +161,17 @@ def _setup(problem: Problem, cfg) -> Setup:
     weight = conf.sqrt() / cfg.costs.sigma_px
     bones = tuple((int(a), int(b)) for a, b in sk.bones())
     bone_t = torch.as_tensor(bones, dtype=torch.long)
-    radii = capsule_radii([sk.joint_names[b] for _, b in bones],
-                          torch.as_tensor(sk.lengths[bone_t[:, 1]], dtype=dtype)).to(device)
+    radii = capsule_radii(
+        [sk.joint_names[b] for _, b in bones], torch.as_tensor(sk.lengths[bone_t[:, 1]], dtype=dtype)
+    ).to(device)
     rays = valid = None
     if p.silhouette_weight > 0:
         if obs.masks is None:
-            log.warning("pca: pca.silhouette_weight is %g but the observations have no silhouettes "
-                        "(observations.silhouettes); tracking the joints only", p.silhouette_weight)
+            log.warning(
+                "pca: pca.silhouette_weight is %g but the observations have no silhouettes "
+                "(observations.silhouettes); tracking the joints only",
+                p.silhouette_weight,
+            )
         else:
             pixels, valid = mask_samples(obs.masks, p.silhouette_step_px, p.silhouette_samples)
             _, rays = obs.camera.rays(pixels.to(dtype))
@@ -169,15 +179,32 @@ def _setup(problem: Problem, cfg) -> Setup:
     axes = sk.axes[0]
     coord = [int(abs(a).argmax()) for a in axes]
     if any(not (abs(a[c] - 1.0) < 1e-9) for a, c in zip(axes, coord)):
-        raise InputError(f"method pca needs a root turning about the coordinate axes; {sk.name!r}'s root axes are "
-                         f"{axes.tolist()}")
+        raise InputError(
+            f"method pca needs a root turning about the coordinate axes; {sk.name!r}'s root axes are {axes.tolist()}"
+        )
     order = "".join("XYZ"[c] for c in reversed(coord))
     slot_of = {int(d): k for k, d in enumerate(sk.axis_dof[0].tolist()) if d >= 0}
     root_xyz = tuple(coord[slot_of[d]] for d in root[3:])
     with torch.no_grad():
         _, rest = sk.forward_kinematics(torch.zeros(sk.num_dofs, dtype=dtype, device=device), rotations=True)
-    return Setup(problem, cfg, model, model_dofs, torch.as_tensor(root, device=device), tracked, observed, weight,
-                 rays, valid, bones, radii, model.sigma.to(dtype=dtype, device=device), order, root_xyz, rest[0])
+    return Setup(
+        problem,
+        cfg,
+        model,
+        model_dofs,
+        torch.as_tensor(root, device=device),
+        tracked,
+        observed,
+        weight,
+        rays,
+        valid,
+        bones,
+        radii,
+        model.sigma.to(dtype=dtype, device=device),
+        order,
+        root_xyz,
+        rest[0],
+    )
 
 
 # ---------------------------------------------------------------- poses of a state
@@ -286,8 +313,9 @@ class Prediction:
     timing: Tensor | None = None  # (f,) the frames' start times, held by the prior of std pca.timing_sigma
 
 
-def _window_linearization(s: Setup, frames: Tensor, ref: Tensor, pred: Prediction,
-                          silhouette: RaySilhouette | None) -> Callable[[Tensor], Linearization]:
+def _window_linearization(
+    s: Setup, frames: Tensor, ref: Tensor, pred: Prediction, silhouette: RaySilhouette | None
+) -> Callable[[Tensor], Linearization]:
     """The LM `linearize` of one window: state x (N, m + 7 f) = [alpha, mu, (translation, rotation vector)
     per frame] -> residuals, Jacobian, IRLS weights, energy. ref (N|1, f, 3, 3): the frames' reference
     root rotations; a frame's rotation is exp(w) ref."""
@@ -306,7 +334,7 @@ def _window_linearization(s: Setup, frames: Tensor, ref: Tensor, pred: Predictio
 
     def linearize(x: Tensor) -> Linearization:
         n, npar = x.shape
-        alpha, mu, g = x[:, :m], x[:, m:m + f], x[:, m + f:].reshape(n, f, 6)
+        alpha, mu, g = x[:, :m], x[:, m : m + f], x[:, m + f :].reshape(n, f, 6)
         trans, w = g[..., :3], g[..., 3:]
         q, dq = _body(s, alpha, mu)
         xb, dxb_dq = joint_jacobian(sk, q)  # (N, f, J, 3), (N, f, J, 3, D)
@@ -315,7 +343,7 @@ def _window_linearization(s: Setup, frames: Tensor, ref: Tensor, pred: Predictio
         rot = r_w @ ref
         joints, dj_body = _world(s, xb, dxb, rot, trans)
         dj = x.new_zeros(*joints.shape, npar)
-        dj[..., :m + f] = dj_body
+        dj[..., : m + f] = dj_body
         eye3 = torch.eye(3, dtype=x.dtype, device=x.device)
         dj[:, fr[:, None], :, :, t_cols] = eye3[:, None, None, :]  # (f, 3 columns, N, J, 3): every joint moves
         lever = joints - trans[..., None, :] - xb[..., :1, :]  # (N, f, J, 3) from the root
@@ -341,9 +369,9 @@ def _window_linearization(s: Setup, frames: Tensor, ref: Tensor, pred: Predictio
         if sqrt_prior > 0:
             plain.append((sqrt_prior * alpha / s.alpha_sigma, sqrt_prior * eye[:m] / s.alpha_sigma[:, None]))
         if pred.mu is not None:
-            plain.append(((mu - pred.mu) / p.time_sigma, eye[m:m + f] / p.time_sigma))
+            plain.append(((mu - pred.mu) / p.time_sigma, eye[m : m + f] / p.time_sigma))
         if pred.timing is not None and p.timing_sigma is not None:
-            plain.append(((mu - pred.timing) / p.timing_sigma, eye[m:m + f] / p.timing_sigma))
+            plain.append(((mu - pred.timing) / p.timing_sigma, eye[m : m + f] / p.timing_sigma))
         if pred.trans is not None:
             plain.append(((trans - pred.trans).reshape(n, -1) / p.root_sigma_m, eye[t_cols.flatten()] / p.root_sigma_m))
         if pred.rotation:
@@ -364,8 +392,9 @@ def _silhouette(s: Setup, frames: Tensor) -> RaySilhouette | None:
         return None
     assert s.ray_valid is not None  # set with rays
     cam = s.problem.observations.camera
-    return RaySilhouette(s.rays[frames], s.ray_valid[frames], cam.center, s.bones, s.radii,
-                         sigma_m=s.cfg.pca.silhouette_sigma_m)
+    return RaySilhouette(
+        s.rays[frames], s.ray_valid[frames], cam.center, s.bones, s.radii, sigma_m=s.cfg.pca.silhouette_sigma_m
+    )
 
 
 def _state(alpha: Tensor, mu: Tensor, trans: Tensor) -> Tensor:
@@ -373,20 +402,21 @@ def _state(alpha: Tensor, mu: Tensor, trans: Tensor) -> Tensor:
     return torch.cat([alpha, mu, torch.cat([trans, torch.zeros_like(trans)], -1).flatten()])[None]
 
 
-def _bounds(s: Setup, f: int, like: Tensor, alpha: Tensor | None = None,
-            mu: Tensor | None = None) -> tuple[Tensor, Tensor]:
+def _bounds(
+    s: Setup, f: int, like: Tensor, alpha: Tensor | None = None, mu: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """Box of a window's state: mu in [0, 1], alpha within pca.alpha_bound training stds; alpha and mu held
     (lower = upper) where given."""
     m = s.m
     lo = torch.full((m + 7 * f,), -math.inf, dtype=like.dtype, device=like.device)
     hi = torch.full_like(lo, math.inf)
-    lo[m:m + f], hi[m:m + f] = 0.0, 1.0
+    lo[m : m + f], hi[m : m + f] = 0.0, 1.0
     bound = s.cfg.pca.alpha_bound * s.alpha_sigma
     lo[:m], hi[:m] = -bound, bound
     if alpha is not None:
         lo[:m], hi[:m] = alpha, alpha
     if mu is not None:
-        lo[m:m + f], hi[m:m + f] = mu, mu
+        lo[m : m + f], hi[m : m + f] = mu, mu
     return lo, hi
 
 
@@ -398,13 +428,16 @@ def initial_timing(s: Setup) -> tuple[Tensor, Tensor]:
     obs, kps = s.problem.observations, s.problem.keypoints
     wrists = [kps.names.index(k) for k in ("l_wrist", "r_wrist") if k in kps.names]
     if not wrists:
-        raise InputError("method pca finds the key postures from the 2D wrists: the keypoint set needs "
-                         "l_wrist or r_wrist (config key 'model.keypoints')")
+        raise InputError(
+            "method pca finds the key postures from the 2D wrists: the keypoint set needs "
+            "l_wrist or r_wrist (config key 'model.keypoints')"
+        )
     times = obs.times.detach().cpu().double()
     fps = float(1.0 / (times[1:] - times[:-1]).median()) if times.numel() > 1 else 30.0
     rules = dataclasses.replace(s.cfg.motion, smooth_s=s.cfg.pca.key_smooth_s)
-    keys = detect_key_postures_2d(obs.keypoints[:, wrists].detach().cpu(), fps, rules,
-                                  valid=(obs.confidence[:, wrists] > 0).cpu())
+    keys = detect_key_postures_2d(
+        obs.keypoints[:, wrists].detach().cpu(), fps, rules, valid=(obs.confidence[:, wrists] > 0).cpu()
+    )
     mu = initial_times(keys, s.model.key_times, obs.num_frames)
     return keys, mu.to(dtype=obs.keypoints.dtype, device=obs.keypoints.device)
 
@@ -440,19 +473,21 @@ def place_root(s: Setup, mu0: Tensor) -> tuple[Tensor, Tensor]:
     x0 = torch.cat([_state(alpha, mu0.reshape(1), t[None]) for t in trans])
     lo, hi = _bounds(s, 1, x0, alpha=alpha, mu=mu0.reshape(1))
     frames = torch.tensor([frame], device=device)
-    lin = _window_linearization(s, frames, ref[:, None], Prediction(None, None, None, rotation=False),
-                                _silhouette(s, frames))
+    lin = _window_linearization(
+        s, frames, ref[:, None], Prediction(None, None, None, rotation=False), _silhouette(s, frames)
+    )
     x, info = levenberg_marquardt(lin, x0, lo, hi, max_iter=30, tol=1e-8)
     best = int(torch.argmin(torch.where(torch.isfinite(info.cost), info.cost, math.inf)))
-    rot = _exp(x[best, m + 4:m + 7])[0] @ ref[best]
-    return rot, x[best, m + 1:m + 4]
+    rot = _exp(x[best, m + 4 : m + 7])[0] @ ref[best]
+    return rot, x[best, m + 1 : m + 4]
 
 
 # ---------------------------------------------------------------- tracking
 
 
-def estimate_pca(problem: Problem, cfg, generator: torch.Generator,
-                 progress: Callable[[Iterable], Iterable] = lambda x: x) -> Estimate:
+def estimate_pca(
+    problem: Problem, cfg, generator: torch.Generator, progress: Callable[[Iterable], Iterable] = lambda x: x
+) -> Estimate:
     """Track the whole sequence with the PCA motion model (see the module docstring). Deterministic."""
     s = _setup(problem, cfg)
     p = cfg.pca
@@ -488,17 +523,16 @@ def estimate_pca(problem: Problem, cfg, generator: torch.Generator,
             known = start + f
             mu_hat, rot_hat, trans_hat = mu[frames].clone(), rot[frames].clone(), trans[frames].clone()
             if start > 0:  # time runs forward: no frame of the window before the frame that left it last
-                lo[m:m + f] = mu[start - 1]
+                lo[m : m + f] = mu[start - 1]
                 mu_hat = torch.maximum(mu_hat, mu[start - 1])
             pred = Prediction(a_prev, mu_hat, trans_hat, timing=mu_init[frames])
             lin = _window_linearization(s, frames, rot_hat[None], pred, _silhouette(s, frames))
-            x, _ = levenberg_marquardt(lin, _state(a_prev, mu_hat, trans_hat), lo, hi, max_iter=p.iterations,
-                                       tol=1e-6)
+            x, _ = levenberg_marquardt(lin, _state(a_prev, mu_hat, trans_hat), lo, hi, max_iter=p.iterations, tol=1e-6)
             x = x[0]
             a_prev = x[:m]
-            g = x[m + f:].reshape(f, 6)
+            g = x[m + f :].reshape(f, 6)
             alpha[frames] = a_prev
-            mu[frames] = x[m:m + f]
+            mu[frames] = x[m : m + f]
             trans[frames] = g[:, :3]
             rot[frames] = _orthonormal(_exp(g[:, 3:])[0] @ rot_hat)
     q = poses_of(s, alpha, mu, rot, trans)
@@ -507,11 +541,13 @@ def estimate_pca(problem: Problem, cfg, generator: torch.Generator,
         # per frame, the observation terms of the final poses (the prediction terms belong to windows)
         proj = obs.camera.project(joints[:, s.tracked])
         r = (proj.pixels - s.observed) * s.weight[..., None]
-        terms = {"joints": 0.5 * p.joint_weight * robust_loss(cfg.costs.loss)(r.square().sum(-1),
-                                                                              cfg.costs.robust_scale).sum(-1)}
+        terms = {
+            "joints": 0.5
+            * p.joint_weight
+            * robust_loss(cfg.costs.loss)(r.square().sum(-1), cfg.costs.robust_scale).sum(-1)
+        }
         if s.rays is not None:
             assert s.ray_valid is not None  # set with rays
-            sil = RaySilhouette(s.rays, s.ray_valid, obs.camera.center, s.bones, s.radii,
-                                sigma_m=p.silhouette_sigma_m)
+            sil = RaySilhouette(s.rays, s.ray_valid, obs.camera.center, s.bones, s.radii, sigma_m=p.silhouette_sigma_m)
             terms["silhouette"] = 0.5 * p.silhouette_weight * sil.residual_per_frame(joints).square().sum(-1)
     return Estimate(q=q.detach(), joints=joints, cost=sum(terms.values()), terms=terms)
