@@ -15,7 +15,9 @@ world axis  a = G_parent R(a_i1, th_i1) ... R(a_i(k-1), th_i(k-1)) a_ik  through
 (the joint's origin: for ASF bones the parent bone's end point, for the root its translated rest
 position). The part of the offset fixed in the parent's frame (u_i) puts o_i, not p_i, on the axis.
 So for every joint y in the subtree of i (i included), d p_y / d th_ik = a x (p_y - o_i), and a
-root translation dof moves every joint by its unit vector. Everything comes from one FK pass with
+root translation dof moves every joint by its unit vector. A URDF prismatic joint i (p_i gains
+G_i s_i q_slide) moves its whole subtree by G_i s_i per unit of its dof; a mimic slot turns by
+its multiplier per unit of its leader's dof, so its column is scaled by it. Everything comes from one FK pass with
 world rotations: the pivots are o_i = p_i - length_i G_i w_i.
 
 Residual Jacobians. A one-frame objective is r(q) = f(q, X(q)) with X the joints; its Jacobian is
@@ -39,6 +41,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -61,11 +64,6 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
     c = sk._cache.get(key)
     if c is not None:
         return c
-    if sk.has_slides_or_mimics:
-        raise InputError(
-            f"skeleton {sk.name!r} has prismatic joints below its root or mimic joints, which the "
-            "geometric Jacobian does not handle yet (forward_kinematics and its autograd gradient do)"
-        )
     j = sk.num_joints
     anc = torch.zeros(j, j, dtype=torch.bool)  # anc[y, i]: i is y or an ancestor of y
     for y in range(j):
@@ -81,6 +79,13 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
     pair_joint, pair_slot = torch.nonzero(anc[:, joint_of], as_tuple=True)  # (P,) each
     # flat index into (J, 3, D) of entry k of pair p: (y * 3 + k) * D + dof
     pair_index = ((pair_joint[:, None] * 3 + torch.arange(3)) * d + slot_dof[driven][pair_slot][:, None]).flatten()
+    scale = torch.as_tensor(sk.axis_scale, dtype=dtype)  # (J, 3) a mimic slot's multiplier, else 1
+    # URDF prismatic joints: joint i slides its subtree along G_i s_i, one dof; (joint y, slider i) pairs
+    sliders = torch.as_tensor(np.flatnonzero(sk.slide_dof >= 0), dtype=torch.long)
+    slide_joint, slide_src = torch.nonzero(anc[:, sliders], as_tuple=True)
+    slide_src = sliders[slide_src]
+    slide_dof = torch.as_tensor(sk.slide_dof, dtype=torch.long)[slide_src]
+    slide_index = ((slide_joint[:, None] * 3 + torch.arange(3)) * d + slide_dof[:, None]).flatten()
     c = {
         "axes": torch.as_tensor(sk.axes, dtype=dtype, device=device),  # (J, 3, 3)
         "slot_index": torch.as_tensor(sk.axis_dof.clip(0), dtype=torch.long, device=device),  # (J, 3)
@@ -97,6 +102,13 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
         "pair_index": pair_index.to(device),  # (3 P,)
         "trans_axis": torch.nonzero(trans >= 0).flatten().to(device),  # world axes with a dof
         "trans_dof": trans[trans >= 0].to(device),
+        # angle per unit of the slot's dof (0 for undriven slots): theta = mask * q + frozen, as in FK
+        "mask": torch.where(driven, scale, torch.zeros_like(scale)).to(device),
+        "pair_scale": scale[driven][pair_slot].to(device),  # (P,)
+        "plain": bool((scale[driven] == 1).all()),
+        "slide_src": slide_src.to(device),  # (Q,) the prismatic joint of each (joint, slider) pair
+        "slide_axis": torch.as_tensor(sk.slide_axis, dtype=dtype, device=device),  # (J, 3) in G_i's frame
+        "slide_index": slide_index.to(device),  # (3 Q,)
     }
     sk._cache[key] = c
     return c
@@ -125,8 +137,8 @@ def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
     joints, rot = sk.forward_kinematics(q, rotations=True)
     c = _constants(sk, q.dtype, q.device)
     batch = q.shape[:-1]
-    # slot angles (..., J, 3): driven ones from q, the others at their frozen value
-    theta = torch.where(c["driven"], q.index_select(-1, c["slot_index"].flatten()).unflatten(-1, (-1, 3)), c["frozen"])
+    # slot angles (..., J, 3): mask * q + frozen (driven: q, or a mimic's multiplier * q + offset)
+    theta = q.index_select(-1, c["slot_index"].flatten()).unflatten(-1, (-1, 3)) * c["mask"] + c["frozen"]
     a1, a2, a3 = c["axes"].unbind(-2)  # (J, 3) each: the slots' axes in the parent frame
     v2 = _turn(a1, theta[..., 0], a2)
     v3 = _turn(a1, theta[..., 0], _turn(a2, theta[..., 1], a3))
@@ -140,12 +152,19 @@ def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
     # for each (joint y, slot s) pair with y in the subtree of s's joint: a_s x (p_y - o_s)
     pair_a = a.index_select(-2, c["pair_slot"])  # (..., P, 3)
     lever = joints.index_select(-2, c["pair_joint"]) - o.index_select(-2, c["pair_slot"])
-    vals = _cross(pair_a, lever).flatten(-2)  # (..., 3 P), entries (p, k)
+    vals = _cross(pair_a, lever)  # (..., P, 3)
+    if not c["plain"]:  # mimic slots turn by their multiplier per unit of the leader's dof
+        vals = vals * c["pair_scale"][:, None]
+    vals = vals.flatten(-2)  # (..., 3 P), entries (p, k)
     jac = q.new_zeros(*batch, joints.shape[-2] * 3 * sk.num_dofs)
     if c["injective"]:
         jac.index_copy_(-1, c["pair_index"], vals)
     else:
         jac.index_add_(-1, c["pair_index"], vals)
+    if c["slide_src"].numel():  # a prismatic joint i moves every joint of its subtree by G_i s_i
+        src = c["slide_src"]
+        direction = torch.einsum("...qab,qb->...qa", rot.index_select(-3, src), c["slide_axis"].index_select(0, src))
+        jac.index_add_(-1, c["slide_index"], direction.flatten(-2))
     jac = jac.unflatten(-1, (joints.shape[-2], 3, sk.num_dofs))
     if c["trans_dof"].numel():
         jac[..., c["trans_axis"], c["trans_dof"]] = 1.0

@@ -853,15 +853,26 @@ def test_a_base_moved_by_three_prismatic_joints_is_not_floated(tmp_path):
     assert "root.tx" not in Skeleton.from_urdf(p).dof_names
 
 
-def test_geometric_jacobian_refuses_slides_and_mimics(tmp_path):
-    """ptrack.jacobians does not know slides or mimic multipliers yet: it says so instead of
-    returning a wrong Jacobian."""
+def test_geometric_jacobian_of_slides_and_mimics(tmp_path):
+    """ptrack.jacobians on prismatic joints below the root (a slider moves its subtree along its axis)
+    and mimic joints (a follower turns by multiplier per unit of its leader): equal to autograd
+    through FK, on the small repro models and on corpus robots that have both (Panda's fingers,
+    TIAGo's torso lift, xArm's gripper, Talos, r2d2), with and without a floating base."""
     from ptrack.jacobians import joint_jacobian
 
-    for text in (_robot(LIFT), _robot(MIMIC)):
-        m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
-        with pytest.raises(InputError, match="geometric Jacobian"):
-            joint_jacobian(m, torch.zeros(m.num_dofs, dtype=torch.float64))
+    models = [Skeleton.from_urdf(_write(tmp_path, text), floating_base=False) for text in (_robot(LIFT), _robot(MIMIC))]
+    for name in ("panda.urdf", "tiago.urdf", "r2d2.urdf", "talos_full_v2.urdf", "xarm6_with_gripper.urdf"):
+        path = sorted(CORPUS_DIR.rglob(name))[0]
+        models += [Skeleton.from_urdf(path, floating_base=fb) for fb in (False, True)]
+    gen = torch.Generator().manual_seed(0)
+    for m in models:
+        assert m.has_slides_or_mimics
+        lo, hi = m.limits(dtype=torch.float64)
+        lo, hi = lo.clamp(min=-3.0), hi.clamp(max=3.0)
+        q = lo + (hi - lo) * torch.rand(3, m.num_dofs, dtype=torch.float64, generator=gen)
+        _, jac = joint_jacobian(m, q)
+        auto = torch.autograd.functional.jacobian(lambda x: m.forward_kinematics(x).sum(0), q).permute(2, 0, 1, 3)
+        torch.testing.assert_close(jac, auto, atol=1e-12, rtol=1e-12)
 
 
 @pytest.mark.parametrize(
