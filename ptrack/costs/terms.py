@@ -404,25 +404,19 @@ class HeavyTailedPrior(_Robust):
     loss: str = "cauchy"
     scale: float = 3.0
     _group: ClassVar[int] = 1
+    _gaussian: PosePrior = field(init=False, repr=False)  # the same residual, checks and Jacobian
 
     def __post_init__(self) -> None:
-        prior = PosePrior(self.mean, self.sigma)  # the same checks on mean and sigma
+        gaussian = PosePrior(self.mean, self.sigma)
         robust_loss(self.loss)
         _positive("HeavyTailedPrior.scale", self.scale)
-        object.__setattr__(self, "mean", prior.mean)
-        object.__setattr__(self, "sigma", prior.sigma)
-
-    @property
-    def _sigma(self) -> Tensor:
-        """sigma as `__post_init__` stored it: a tensor."""
-        assert isinstance(self.sigma, Tensor)
-        return self.sigma
+        object.__setattr__(self, "_gaussian", gaussian)
+        object.__setattr__(self, "mean", gaussian.mean)
+        object.__setattr__(self, "sigma", gaussian.sigma)
 
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.q (..., D) -> (..., D)."""
-        if ev.q.shape[-1] != self.mean.shape[-1]:
-            raise InputError(f"HeavyTailedPrior: ev.q {_shape(ev.q)} must end in D={self.mean.shape[-1]}")
-        return (ev.q - self.mean.to(ev.q)) / self._sigma.to(ev.q)
+        return self._gaussian.residual(ev)
 
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
         """(..., D) -> (..., D, D) = diag(1 / sigma)."""
@@ -430,4 +424,4 @@ class HeavyTailedPrior(_Robust):
 
     def diagonal_jacobian(self, ev: PoseEval) -> Tensor:
         """(..., D) -> (..., D): the Jacobian's diagonal, 1 / sigma (it has no other entries)."""
-        return (1.0 / self._sigma.to(ev.q)).expand(ev.q.shape)
+        return self._gaussian.diagonal_jacobian(ev)
