@@ -212,9 +212,9 @@ class SelfIntersection(_LeastSquares):
         names = self.names or ("",) * self.segments.shape[0]
         return [(names[a], names[b]) for a, b in self.pairs.tolist()]
 
-    def penetration(self, joints: Tensor) -> Tensor:
-        """joints (..., J, 3) -> (..., P) metres: radius_a + radius_b - d_ab per checked pair
-        (negative when apart; the margin is not subtracted)."""
+    def _segment_ends(self, joints: Tensor) -> Tensor:
+        """joints (..., J, 3) -> (4, 3, ..., P): capsule a's start, end, capsule b's start, end of every
+        checked pair, coordinates second (the layout `_distance` reads); shape errors raised here."""
         if joints.ndim < 2 or joints.shape[-1] != 3:
             raise InputError(f"SelfIntersection: joints must be (..., J, 3), got {_shape(joints)}")
         if joints.shape[-2] < self._joints_needed:
@@ -223,7 +223,12 @@ class SelfIntersection(_LeastSquares):
                 f"joints {_shape(joints)} has J={joints.shape[-2]}"
             )
         ends = joints.index_select(-2, self._ends.to(joints.device)).unflatten(-2, (4, -1))
-        p0, p1, q0, q1 = ends.movedim((-3, -1), (0, 1)).contiguous()  # (4, 3, ..., P)
+        return ends.movedim((-3, -1), (0, 1))
+
+    def penetration(self, joints: Tensor) -> Tensor:
+        """joints (..., J, 3) -> (..., P) metres: radius_a + radius_b - d_ab per checked pair
+        (negative when apart; the margin is not subtracted)."""
+        p0, p1, q0, q1 = self._segment_ends(joints).contiguous()  # (3, ..., P) each
         return self._reach.to(joints) - _distance(p1 - p0, q1 - q0, p0 - q0, self.eps)
 
     def residual(self, ev: PoseEval) -> Tensor:
@@ -234,10 +239,7 @@ class SelfIntersection(_LeastSquares):
         """jac.joints (..., J, 3, D) -> (..., P, D) in closed form: with the closest points held
         (Danskin), d d_ab / d end = +-(1 - s or s) n along the unit gap n, zero for pairs apart."""
         joints = ev.joints
-        if joints.ndim < 2 or joints.shape[-1] != 3 or joints.shape[-2] < self._joints_needed:
-            self.penetration(joints)  # raises the shape error
-        ends = joints.index_select(-2, self._ends.to(joints.device)).unflatten(-2, (4, -1))
-        p0, p1, q0, q1 = ends.movedim((-3, -1), (0, 1))  # (3, ..., P) each
+        p0, p1, q0, q1 = self._segment_ends(joints)  # (3, ..., P) each
         u, v, w = p1 - p0, q1 - q0, p0 - q0
         with torch.no_grad():
             s, t = _closest_parameters(u, v, w)
@@ -271,11 +273,8 @@ class SelfIntersection(_LeastSquares):
         only (`_near`; the rows of the others are zero): jac.joints (..., J, 3, D) -> energy (...,),
         J^T J (..., D, D), J^T r (..., D). The same values as stacking `residual` and `jacobian`."""
         joints = ev.joints
-        if joints.ndim < 2 or joints.shape[-1] != 3 or joints.shape[-2] < self._joints_needed:
-            self.penetration(joints)  # raises the shape error
         d = jac.joints.shape[-1]
-        ends = joints.index_select(-2, self._ends.to(joints.device)).unflatten(-2, (4, -1))
-        ends = ends.movedim((-3, -1), (0, 1))  # (4, 3, ..., P)
+        ends = self._segment_ends(joints)  # (4, 3, ..., P)
         near = self._near(ends)
         if near.numel() == 0:  # nothing close anywhere in the batch (the usual case)
             return (
