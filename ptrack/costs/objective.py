@@ -118,7 +118,9 @@ class Objective:
         Their share comes back as two more outputs, fold_h (..., D, D) and fold_g (..., D); the
         stacked rows hold the other terms only."""
         rs, ws, es, stacked = [], [], [], []
-        diag_h = diag_g = fold_h = fold_g = None
+        diag_h: list[Tensor] = []  # folded terms' shares: J^T J diagonals (..., D), full (..., D, D), J^T r
+        full_h: list[Tensor] = []
+        fold_gs: list[Tensor] = []
         for name, term in self.terms.items():
             w = self._weights[name]
             if fold:
@@ -126,12 +128,8 @@ class Objective:
                 if part is not None:
                     energy, h, g, diagonal = part
                     es.append(w * energy)
-                    if diagonal:
-                        diag_h = w * h if diag_h is None else diag_h + w * h
-                        diag_g = w * g if diag_g is None else diag_g + w * g
-                    else:
-                        fold_h = w * h if fold_h is None else fold_h + w * h
-                        fold_g = w * g if fold_g is None else fold_g + w * g
+                    (diag_h if diagonal else full_h).append(w * h)
+                    fold_gs.append(w * g)
                     continue
             stacked.append(name)
             if isinstance(term, _LeastSquares):
@@ -147,11 +145,10 @@ class Objective:
         energy = torch.stack(es).sum(0)
         if not fold:
             return torch.cat(rs, -1), self.jacobian(ev, jac), torch.cat(ws, -1), energy
-        if diag_h is not None:
-            assert diag_g is not None  # set together with diag_h
-            diag = torch.diag_embed(diag_h)
-            fold_h = diag if fold_h is None else fold_h + diag
-            fold_g = diag_g if fold_g is None else fold_g + diag_g
+        if diag_h:
+            full_h.append(torch.diag_embed(torch.stack(diag_h).sum(0)))
+        fold_h = torch.stack(full_h).sum(0) if full_h else None
+        fold_g = torch.stack(fold_gs).sum(0) if fold_gs else None
         if not rs:  # every term folded: no stacked rows at all
             empty = ev.q.new_zeros(*ev.q.shape[:-1], 0)
             return empty, empty[..., None].expand(*empty.shape, ev.q.shape[-1]), empty, energy, fold_h, fold_g
