@@ -87,6 +87,7 @@ from ptrack.jumps import (
     _sunit,
     path_below,
 )
+from ptrack.kinematics import euler_zyx
 from ptrack.limits import TAU
 from ptrack.skeleton import Skeleton
 from ptrack.solvers import levenberg_marquardt
@@ -361,24 +362,9 @@ def _slot_angles(pj: dict, qs: Tensor) -> Tensor:
 
 
 def _seuler(theta: Tensor) -> Tensor:
-    """Rz(z) Ry(y) Rx(x) for theta (3, *M) = (z, y, x) -> (3, 3, *M) (as `kinematics.euler_zyx`)."""
-    s, c = torch.sin(theta), torch.cos(theta)
-    sz, sy, sx = s
-    cz, cy, cx = c
-    czsy, szsy = cz * sy, sz * sy
-    return torch.stack(
-        [
-            cz * cy,
-            czsy * sx - sz * cx,
-            czsy * cx + sz * sx,
-            sz * cy,
-            szsy * sx + cz * cx,
-            szsy * cx - cz * sx,
-            -sy,
-            cy * sx,
-            cy * cx,
-        ]
-    ).unflatten(0, (3, 3))
+    """Rz(z) Ry(y) Rx(x) for theta (3, *M) = (z, y, x) -> (3, 3, *M): `kinematics.euler_zyx` in this
+    module's coordinates-first layout."""
+    return euler_zyx(theta.movedim(0, -1)).movedim((-2, -1), (0, 1)).contiguous()
 
 
 def _local(pj: dict, theta: Tensor) -> Tensor:
