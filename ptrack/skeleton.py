@@ -169,7 +169,8 @@ class Skeleton:
 
     @staticmethod
     def from_urdf(path: str | Path, floating_base: bool | None = None) -> Skeleton:
-        """Any URDF articulated model (ptrack's own reader of the kinematic elements: `ptrack.urdf`).
+        """Any URDF articulated model (ptrack's own reader of the kinematic elements: `ptrack.urdf`),
+        from a file path or from URDF text (a string starting with '<', e.g. `to_urdf()`'s).
 
         One joint per link, at the link's frame, in depth-first order from the root link. Revolute
         and continuous joints become rotation dofs, prismatic joints sliding dofs (anywhere in the

@@ -253,7 +253,10 @@ def _moves_its_base(model: UrdfModel, children: dict[str, list[UrdfJoint]]) -> b
 
 
 def skeleton_from_urdf(path: str | Path, floating_base: bool | None = None) -> Skeleton:
-    """Build a Skeleton from a URDF file (see `Skeleton.from_urdf`)."""
+    """Build a Skeleton from a URDF file, or from URDF text such as `to_urdf`'s (a string that starts
+    with '<'); see `Skeleton.from_urdf`."""
+    if isinstance(path, str) and path.lstrip("\ufeff \t\r\n").startswith("<"):
+        return skeleton_from_model(parse_urdf(path, "<URDF text>"), floating_base=floating_base, source="<URDF text>")
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"URDF file not found: {p}")
