@@ -127,16 +127,9 @@ def _turn(axis: Tensor, angle: Tensor, v: Tensor) -> Tensor:
     return v * co + _cross(axis, v) * s + axis * ((axis * v).sum(-1, keepdim=True) * (1 - co))
 
 
-def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
-    """Joint positions and their geometric Jacobian w.r.t. the pose, from one FK pass.
-
-    q: (..., D) -> joints (..., J, 3) metres, jac (..., J, 3, D) with jac[..., y, :, d] = d p_y / d q_d
-    (see the module docstring). Follows q's dtype and device. Not differentiable itself (it is a
-    first derivative; use autograd through `forward_kinematics` for second derivatives).
-    """
-    joints, rot = sk.forward_kinematics(q, rotations=True)
-    c = _constants(sk, q.dtype, q.device)
-    batch = q.shape[:-1]
+def _slot_axes(c: dict, q: Tensor, joints: Tensor, rot: Tensor) -> tuple[Tensor, Tensor]:
+    """World axis a_s (..., S, 3) and pivot o_s (..., S, 3) of every driven slot s, from one FK pass's
+    joints (..., J, 3) and world rotations (..., J, 3, 3) of q (..., D); c: `_constants`."""
     # slot angles (..., J, 3): mask * q + frozen (driven: q, or a mimic's multiplier * q + offset)
     theta = q.index_select(-1, c["slot_index"].flatten()).unflatten(-1, (-1, 3)) * c["mask"] + c["frozen"]
     a1, a2, a3 = c["axes"].unbind(-2)  # (J, 3) each: the slots' axes in the parent frame
@@ -149,6 +142,20 @@ def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
     pivots = joints - torch.einsum("...jab,jb->...ja", rot, c["w"])  # o_i = p_i - l_i G_i w_i
     a = world_axes.flatten(-3, -2).index_select(-2, c["slot_flat"])  # (..., S, 3)
     o = pivots.index_select(-2, c["slot_joint"])  # (..., S, 3)
+    return a, o
+
+
+def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
+    """Joint positions and their geometric Jacobian w.r.t. the pose, from one FK pass.
+
+    q: (..., D) -> joints (..., J, 3) metres, jac (..., J, 3, D) with jac[..., y, :, d] = d p_y / d q_d
+    (see the module docstring). Follows q's dtype and device. Not differentiable itself (it is a
+    first derivative; use autograd through `forward_kinematics` for second derivatives).
+    """
+    joints, rot = sk.forward_kinematics(q, rotations=True)
+    c = _constants(sk, q.dtype, q.device)
+    batch = q.shape[:-1]
+    a, o = _slot_axes(c, q, joints, rot)
     # for each (joint y, slot s) pair with y in the subtree of s's joint: a_s x (p_y - o_s)
     pair_a = a.index_select(-2, c["pair_slot"])  # (..., P, 3)
     lever = joints.index_select(-2, c["pair_joint"]) - o.index_select(-2, c["pair_slot"])
@@ -169,6 +176,65 @@ def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
     if c["trans_dof"].numel():
         jac[..., c["trans_axis"], c["trans_dof"]] = 1.0
     return joints, jac
+
+
+def point_jacobian(sk: Skeleton, q: Tensor, joint: Tensor, local: Tensor) -> tuple[Tensor, Tensor]:
+    """Points rigidly attached to joints' frames and their geometric Jacobian w.r.t. the pose, one FK pass.
+
+    q (..., D); joint (..., P) long: the skeleton joint y whose frame carries each point; local (..., P, 3):
+    the point in that frame (origin p_y, axes y's world rotation G_y). joint and local broadcast against
+    q's batch dims. -> points x = p_y + G_y local (..., P, 3) metres and jac (..., P, 3, D) = d x / d q.
+
+    The point moves with y's body: every slot s of y or of an ancestor turns it about the slot's world
+    axis a_s through the pivot o_s (d x / d th_s = a_s x (x - o_s), as for the joints; mimic slots
+    scaled by their multiplier), a prismatic ancestor slides it along G_i s_i, a root translation dof
+    moves it by its unit vector. Follows q's dtype and device.
+    """
+    joints, rot = sk.forward_kinematics(q, rotations=True)
+    c = _constants(sk, q.dtype, q.device)
+    a, o = _slot_axes(c, q, joints, rot)
+    key = ("point_jacobian", q.dtype, str(q.device))
+    pc = sk._cache.get(key)
+    if pc is None:  # (J, S) slot s turns joint y's body; (S, D) each slot's dof with its multiplier; same for sliders
+        j, d = sk.num_joints, sk.num_dofs
+        n_slot = int(c["slot_joint"].numel())
+        anc = torch.zeros(j, n_slot, dtype=torch.bool, device=q.device)
+        anc[c["pair_joint"], c["pair_slot"]] = True
+        slot_dof = c["slot_index"].flatten()[c["slot_flat"]]
+        select = torch.zeros(n_slot, d, dtype=q.dtype, device=q.device)
+        select[torch.arange(n_slot, device=q.device), slot_dof] = c["mask"].flatten()[c["slot_flat"]]
+        sliders = torch.as_tensor(np.flatnonzero(sk.slide_dof >= 0), dtype=torch.long, device=q.device)
+        slide_anc = torch.zeros(j, sliders.numel(), dtype=torch.bool, device=q.device)
+        for k, i in enumerate(sliders.tolist()):
+            for y in range(j):
+                z = y
+                while z >= 0 and z != i:
+                    z = sk.parents[z]
+                slide_anc[y, k] = z == i
+        slide_select = torch.zeros(sliders.numel(), d, dtype=q.dtype, device=q.device)
+        slide_dof = torch.as_tensor(sk.slide_dof, dtype=torch.long, device=q.device)
+        slide_select[torch.arange(sliders.numel(), device=q.device), slide_dof[sliders]] = 1.0
+        pc = {"anc": anc, "select": select, "sliders": sliders, "slide_anc": slide_anc, "slide_select": slide_select}
+        sk._cache[key] = pc
+    batch = torch.broadcast_shapes(q.shape[:-1], joint.shape[:-1], local.shape[:-2])
+    n_pts = joint.shape[-1]
+    joint = joint.to(q.device).expand(*batch, n_pts)
+    joints = joints.expand(*batch, *joints.shape[-2:])
+    rot = rot.expand(*batch, *rot.shape[-3:])
+    p_y = joints.gather(-2, joint[..., None].expand(*batch, n_pts, 3))
+    g_y = rot.gather(-3, joint[..., None, None].expand(*batch, n_pts, 3, 3))
+    points = p_y + (g_y @ local.to(q)[..., None])[..., 0]
+    a, o = a[..., None, :, :], o[..., None, :, :]  # (..., 1, S, 3)
+    vals = _cross(a, points[..., None, :] - o) * pc["anc"][joint][..., None]  # (..., P, S, 3)
+    jac = vals.mT @ pc["select"]  # (..., P, 3, D)
+    if pc["sliders"].numel():
+        src = pc["sliders"]
+        direction = torch.einsum("...qab,qb->...qa", rot.index_select(-3, src), c["slide_axis"].index_select(0, src))
+        slide = direction[..., None, :, :] * pc["slide_anc"][joint][..., None]  # (..., P, Q, 3)
+        jac = jac + slide.mT @ pc["slide_select"]
+    if c["trans_dof"].numel():
+        jac[..., c["trans_axis"], c["trans_dof"]] = 1.0
+    return points, jac
 
 
 def residual_jacobian(

@@ -13,7 +13,7 @@ import torch
 from ptrack.camera import camera_for_motion
 from ptrack.costs import JointLimits, Objective, PoseEval, Reprojection
 from ptrack.errors import InputError
-from ptrack.jacobians import joint_jacobian, objective_linearization, residual_jacobian
+from ptrack.jacobians import joint_jacobian, objective_linearization, point_jacobian, residual_jacobian
 from ptrack.keypoints import make_keypoints
 from ptrack.limits import wrap_to_limits
 from ptrack.problem import evaluate_pose
@@ -116,6 +116,49 @@ def test_joint_jacobian_any_leading_dims_and_dtype(cmu):
     j32, jac32 = joint_jacobian(cmu, q.float())
     assert j32.dtype == jac32.dtype == torch.float32
     torch.testing.assert_close(jac32.double(), flat, rtol=0, atol=1e-4)
+
+
+def _autograd_point_jacobian(sk: Skeleton, q: torch.Tensor, joint: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
+    """q (N, D), joint (N, P), local (N, P, 3) -> d (p_joint + G_joint local) / d q (N, P, 3, D) through FK."""
+
+    def points(x: torch.Tensor) -> torch.Tensor:
+        joints, rot = sk.forward_kinematics(x, rotations=True)
+        rows = torch.arange(x.shape[0])[:, None]
+        return joints[rows, joint] + (rot[rows, joint] @ local[..., None])[..., 0]
+
+    jac = torch.autograd.functional.jacobian(lambda x: points(x).sum(0), q)  # (P, 3, N, D) summed over N
+    return jac.permute(2, 0, 1, 3)
+
+
+@pytest.mark.parametrize("model", ["cmu", "reduced", "tree0", "tree3", "panda"])
+def test_point_jacobian_matches_autograd(cmu, model):
+    """Points rigidly attached to joint frames: positions and geometric Jacobian equal FK and autograd through
+    it (float64), on CMU (all dofs, reduced), random URDF-like trees and a URDF with sliders and mimics."""
+    gen = torch.Generator().manual_seed(3)
+    if model in ("cmu", "reduced"):
+        sk = cmu if model == "cmu" else cmu.freeze(REDUCE)
+        q = _poses(sk, 3)
+    elif model == "panda":
+        sk = Skeleton.from_urdf(Path(__file__).parent / "data/urdf/example_robot_data/panda_description/panda.urdf")
+        assert sk.has_slides_or_mimics
+        q = 0.5 * torch.randn(3, sk.num_dofs, generator=gen, dtype=F64)
+    else:
+        sk = _random_tree(int(model[-1]))
+        q = torch.randn(3, sk.num_dofs, generator=gen, dtype=F64)
+    joint = torch.randint(0, sk.num_joints, (3, 7), generator=gen)
+    local = 0.2 * torch.randn(3, 7, 3, generator=gen, dtype=F64)
+    points, jac = point_jacobian(sk, q, joint, local)
+    assert points.shape == (3, 7, 3) and jac.shape == (3, 7, 3, sk.num_dofs)
+    joints, rot = sk.forward_kinematics(q, rotations=True)
+    rows = torch.arange(3)[:, None]
+    torch.testing.assert_close(points, joints[rows, joint] + (rot[rows, joint] @ local[..., None])[..., 0])
+    torch.testing.assert_close(jac, _autograd_point_jacobian(sk, q, joint, local), rtol=0, atol=1e-10)
+    # at local 0 the points are the joints themselves: the joint Jacobian's rows
+    _, at_joint = point_jacobian(sk, q, joint, torch.zeros_like(local))
+    torch.testing.assert_close(at_joint, joint_jacobian(sk, q)[1][rows, joint], rtol=0, atol=1e-12)
+    # joint and local broadcast against q's batch dims
+    _, shared = point_jacobian(sk, q, joint[0], local[0])
+    torch.testing.assert_close(shared[0], jac[0], rtol=0, atol=0)
 
 
 def test_root_translation_columns_are_unit_vectors(cmu):
