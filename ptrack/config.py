@@ -52,6 +52,13 @@ class ObservationsConfig:
     occlusion_bursts: float = 0.0  # expected bursts per keypoint per second
     dropped_frames: float = 0.0  # fraction of whole frames dropped
     silhouettes: bool = False  # render capsule-model silhouettes
+    # point correspondences between consecutive frames (ptrack/correspondences.py), used by method pca: an npz of
+    # real ones, or this many simulated per frame on the capsule model (0: none) with the noise std of their
+    # second point and a share of wrong matches (displaced like keypoint outliers, by outlier_px)
+    correspondence_file: str | None = None
+    correspondences: int = 0
+    correspondence_noise_px: float = 1.0
+    correspondence_outliers: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -172,6 +179,14 @@ class PcaMethodConfig:
     joints: tuple[str, ...] = ("l_knee", "r_knee", "l_ankle", "r_ankle", "l_wrist", "r_wrist", "head")
     joint_weight: float = 1.0  # w of the joint projections (pixels / costs.sigma_px, robust by costs.loss)
     silhouette_weight: float = 1.0  # w of the foreground term (section 4.1); 0 = joints only
+    # w of each correspondence (section 4.3; pixels / costs.sigma_px, robust by costs.loss) where the observations
+    # have them (observations.correspondences or .correspondence_file); 0 = unused. Leave-one-out over the 7 golf
+    # swings, 40 pairs per frame: 1 let the tracker drift away on 64_05 (docs/results.md)
+    correspondence_weight: float = 0.3
+    # a pair counts only where p1's line of sight passes at least this far (metres) from every capsule's surface
+    # in the estimate of frame t-1 (near an outline, an estimate a little off puts p1 on another part, whose
+    # motion then misleads; 0 kept the most pairs but let 64_05 drift away at 2 px noise)
+    correspondence_margin_m: float = 0.03
     silhouette_sigma_m: float = 0.02  # a ray this far (metres) from the model counts as one sigma
     silhouette_samples: int = 96  # foreground samples per frame (a regular grid, evenly thinned)
     silhouette_step_px: int = 4  # grid step of the samples, pixels
@@ -279,6 +294,7 @@ _PATH_KEYS = {
     "data.asf",
     "data.amc",
     "observations.file",
+    "observations.correspondence_file",
     "out_dir",
     "keyframes.file",
     "init_from",
@@ -520,6 +536,22 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         error = channel_range_error(k, getattr(cfg.observations, k))
         if error:
             raise InputError(f"config key 'observations.{k}' {error}")
+    o = cfg.observations
+    if o.correspondences < 0:
+        raise InputError(f"config key 'observations.correspondences' must be >= 0, got {o.correspondences}")
+    if not 0 <= o.correspondence_noise_px < float("inf"):
+        raise InputError(
+            f"config key 'observations.correspondence_noise_px' must be >= 0, got {o.correspondence_noise_px}"
+        )
+    if not 0 <= o.correspondence_outliers <= 1:
+        raise InputError(
+            f"config key 'observations.correspondence_outliers' must be in [0, 1], got {o.correspondence_outliers}"
+        )
+    if o.correspondence_file and o.correspondences:
+        raise InputError(
+            "config keys 'observations.correspondence_file' and 'observations.correspondences' are both set: "
+            "give a file of correspondences or simulate them, not both"
+        )
     from ptrack.limits import SOURCES as LIMIT_SOURCES
 
     if cfg.model.limits not in LIMIT_SOURCES:
@@ -616,7 +648,13 @@ def validate_pca(p: PcaMethodConfig, keypoints: dict[str, str] | None = None, na
     for key in ("step", "silhouette_samples", "silhouette_step_px", "init_yaws"):
         if getattr(p, key) < 1:
             raise InputError(f"config key 'pca.{key}' must be >= 1, got {getattr(p, key)}")
-    for key in ("joint_weight", "silhouette_weight", "alpha_prior_weight"):
+    for key in (
+        "joint_weight",
+        "silhouette_weight",
+        "correspondence_weight",
+        "correspondence_margin_m",
+        "alpha_prior_weight",
+    ):
         if not getattr(p, key) >= 0:
             raise InputError(f"config key 'pca.{key}' must be >= 0, got {getattr(p, key)}")
     if p.timing_sigma is not None and not p.timing_sigma > 0:

@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from ptrack.camera import Camera
+from ptrack.correspondences import Correspondences
 from ptrack.costs import PoseEval
 from ptrack.errors import InputError
 from ptrack.keypoints import KeypointSet
@@ -81,6 +82,8 @@ class Problem:
     observations: Observations
     keyframes: Keyframes | None = None
     joint_keyframes: JointKeyframes | None = None
+    # point pairs between consecutive frames (section 4.3 of Urtasun et al.; read by method pca)
+    correspondences: Correspondences | None = None
 
     def __post_init__(self) -> None:
         if self.observations.num_keypoints != self.keypoints.num_keypoints:
@@ -94,6 +97,8 @@ class Problem:
             )
         if self.keyframes is not None:
             warn_keyframes_outside_limits(self.skeleton, self.keyframes)
+        if self.correspondences is not None:
+            self.correspondences.check_frames(self.observations.num_frames)
 
 
 def first_keyframe(problem: Problem, key: str, lower: Tensor, upper: Tensor) -> Tensor:

@@ -35,6 +35,7 @@ import torch
 from ptrack import metrics as M
 from ptrack.camera import camera_for_motion
 from ptrack.config import RunConfig, dump_yaml
+from ptrack.correspondences import Correspondences, simulate_correspondences
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators import ESTIMATORS
 from ptrack.export import write_bvh
@@ -86,6 +87,7 @@ def prepare(cfg: RunConfig) -> Prepared:
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
 
     motion = gt_q = gt_joints = None
+    correspondences: Correspondences | None = None
     upsample = cfg.batch.upsample if cfg.method == "batch" else 1  # batch: frames between the observed ones
     if upsample > 1 and cfg.observations.file:
         raise InputError("batch.upsample > 1 needs simulated observations (data.amc), not observations.file")
@@ -131,10 +133,10 @@ def prepare(cfg: RunConfig) -> Prepared:
             swap_fraction=o.swap_fraction,
         )
         masks = None
+        bones = torch.as_tensor(full.bones(), dtype=torch.long)  # the capsule model of silhouettes and correspondences
+        names = [full.joint_names[b] for _, b in full.bones()]
+        radii = capsule_radii(names, torch.as_tensor(full.lengths[bones[:, 1]], dtype=dtype))
         if o.silhouettes:
-            bones = torch.as_tensor(full.bones(), dtype=torch.long)
-            names = [full.joint_names[b] for _, b in full.bones()]
-            radii = capsule_radii(names, torch.as_tensor(full.lengths[bones[:, 1]], dtype=dtype))
             masks = render_silhouettes(gt_joints, bones, radii, camera)
         times = torch.as_tensor(motion.times, dtype=dtype)
         obs, info = simulate_observations(
@@ -142,6 +144,20 @@ def prepare(cfg: RunConfig) -> Prepared:
         )
         visible = info.visible
         frames = motion.frames
+        if o.correspondences:  # drawn after the keypoints' channel: turning them on leaves its draws as they were
+            _, rotations = full.forward_kinematics(q_full, rotations=True)
+            correspondences, _ = simulate_correspondences(
+                gt_joints,
+                rotations,
+                bones,
+                radii,
+                camera,
+                o.correspondences,
+                gen,
+                noise_px=o.correspondence_noise_px,
+                outliers=o.correspondence_outliers,
+                outlier_px=o.outlier_px,
+            )
         if upsample > 1:  # 2D on every upsample-th reconstructed frame only
             seen = (torch.arange(obs.num_frames) % upsample == 0).to(obs.confidence)
             obs = dataclasses.replace(obs, confidence=obs.confidence * seen[:, None])
@@ -154,7 +170,7 @@ def prepare(cfg: RunConfig) -> Prepared:
         ignored = [
             f"observations.{f.name}"
             for f in dataclasses.fields(cfg.observations)
-            if f.name != "file" and getattr(cfg.observations, f.name) != f.default
+            if f.name not in ("file", "correspondence_file") and getattr(cfg.observations, f.name) != f.default
         ]
         if ignored:
             log.warning(
@@ -162,6 +178,12 @@ def prepare(cfg: RunConfig) -> Prepared:
                 ", ".join(ignored),
                 "is" if len(ignored) == 1 else "are",
             )
+    if cfg.observations.correspondence_file:
+        correspondences = Correspondences.load_npz(cfg.observations.correspondence_file, obs.num_frames)
+    if correspondences is not None:
+        correspondences = correspondences.to(device=device, dtype=dtype)
+        if cfg.method != "pca":
+            log.warning("method %s does not use the point correspondences (only method pca does)", cfg.method)
     check_visibility(visible)
     obs = obs.to(device=device, dtype=dtype)
     keyframes = joint_keyframes = None
@@ -181,7 +203,12 @@ def prepare(cfg: RunConfig) -> Prepared:
             torch.Generator(device="cpu").manual_seed(cfg.seed + 2),
         )
     problem = Problem(
-        skeleton=model, keypoints=kps, observations=obs, keyframes=keyframes, joint_keyframes=joint_keyframes
+        skeleton=model,
+        keypoints=kps,
+        observations=obs,
+        keyframes=keyframes,
+        joint_keyframes=joint_keyframes,
+        correspondences=correspondences,
     )
     return Prepared(
         full=full,

@@ -5,6 +5,7 @@ MPJPE < 40 mm, and bad input (model files, pca.* values) as one `ptrack: error:`
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -182,3 +183,75 @@ def test_model_file_of_another_skeleton_or_corrupt(cmu_file, heldout_model, tmp_
     _fail(capsys, out, [*base, f"motion.model_file={bad_skeleton}", f"out_dir={out}"], "another skeleton")
     _fail(capsys, out, [*base, f"motion.model_file={corrupt}", f"out_dir={out}"], "corrupt", str(corrupt))
     assert np.load(heldout_model)["mean"].shape[1] == len(model.dof_names)  # the good file is untouched
+
+
+def test_window_correspondence_rows_match_autograd(cmu_file, heldout_model):
+    """The correspondence rows of a window (p1 backprojected on the poses before the window's frames, the
+    body-fixed points moved with the window's state) against autograd through the decoder, FK and the
+    camera, float64."""
+    _cfg, prep, s = _setup(
+        cmu_file,
+        heldout_model,
+        "observations.correspondences=6",
+        "pca.silhouette_weight=0",
+        "pca.correspondence_margin_m=0",
+        "seed=3",
+    )
+    assert s.corr is not None and s.rays is None
+    sk, cam = prep.problem.skeleton, prep.problem.observations.camera
+    m, f = s.m, 3
+    frames = torch.arange(40, 43)
+    _, mu = P.initial_timing(s)
+    rot = P._rotation_of(s, prep.gt_q[frames][:, s.root_dofs[3:]])
+    g = torch.Generator().manual_seed(2)
+    trans = prep.gt_q[frames][:, s.root_dofs[:3]] + 0.02 * torch.randn(f, 3, generator=g, dtype=torch.float64)
+    w = 0.05 * torch.randn(f, 3, generator=g, dtype=torch.float64)
+    x = torch.cat(
+        [0.3 * torch.randn(m, generator=g, dtype=torch.float64), mu[frames], torch.cat([trans, w], -1).flatten()]
+    )
+    joints_prev, rot_prev = sk.forward_kinematics(prep.gt_q[frames - 1], rotations=True)
+    pairs = P._window_pairs(s, frames, joints_prev, rot_prev)
+    assert pairs is not None and int((pairs.weight > 0).sum()) >= 12
+    pred = P.Prediction(None, None, None, rotation=False)
+    out = P._window_linearization(s, frames, rot[None], pred, None, pairs)(x[None])
+    rows = slice(f * s.tracked.numel() * 2, f * s.tracked.numel() * 2 + pairs.weight.numel() * 2)
+
+    def residuals(state: torch.Tensor) -> torch.Tensor:
+        alpha, mu_w, g6 = state[:m], state[m : m + f], state[m + f :].reshape(f, 6)
+        q, _ = P._body(s, alpha[None], mu_w[None])
+        xb, rb = sk.forward_kinematics(q[0], rotations=True)  # (f, J, 3), (f, J, 3, 3)
+        fr = torch.arange(f)[:, None]
+        joint, local = pairs.anchors.joint, pairs.anchors.local
+        pts = xb[fr, joint] + (rb[fr, joint] @ local[..., None])[..., 0]
+        r0 = xb[:, :1]
+        world = g6[:, None, :3] + r0 + (pts - r0) @ (P._exp(g6[:, 3:])[0] @ rot).mT
+        r = (cam.project(world).pixels - pairs.target) * pairs.weight[..., None]
+        return math.sqrt(s.cfg.pca.correspondence_weight) * torch.where(pairs.weight[..., None] > 0, r, 0.0).flatten()
+
+    torch.testing.assert_close(out.residuals[0, rows], residuals(x), rtol=0, atol=1e-9)
+    auto = torch.autograd.functional.jacobian(residuals, x)
+    scale = float(auto.abs().max())
+    assert float((out.jacobian[0, rows] - auto).abs().max()) < 1e-6 * scale
+
+
+def test_heldout_swing_with_correspondences_under_40mm(cmu_file, heldout_model, tmp_path, capsys):
+    """The tracker with simulated correspondences (and the foreground term) on a swing the model never saw."""
+    out = tmp_path / "run"
+    rc = main(
+        [
+            "run",
+            str(GOLF),
+            f"data.amc={cmu_file(f'64_{HELD_OUT}.amc')}",
+            f"data.asf={cmu_file('64.asf')}",
+            f"motion.model_file={heldout_model}",
+            "observations.correspondences=40",
+            "seed=0",
+            "progress=false",
+            f"out_dir={out}",
+        ]
+    )
+    assert rc == 0, capsys.readouterr().err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["mpjpe_mm"] < 40, metrics["mpjpe_mm"]
+    with np.load(out / "result.npz") as z:
+        assert z["frames"].shape[0] == metrics["frames"]

@@ -14,6 +14,8 @@ stands near their singularity). Its energy (eq. 7) is
     w_joint  sum rho(|proj(joint) - observed|^2 / sigma_px^2)   tracked joints (knees, ankles, wrists, head)
     + w_fg   sum (ray-to-model distance / sigma_m)^2             foreground samples (section 4.1,
                                                                  `ptrack.costs.ray_silhouette`)
+    + w_corr sum rho(|proj(x_i) - p2_i|^2 / sigma_px^2)         point correspondences (section 4.3,
+                                                                 `ptrack.costs.correspondence`)
     + |(G - G^) / sigma_G|^2 + |(mu - mu^) / sigma_mu|^2 + |(alpha - alpha^) / (s sigma_alpha)|^2
     + w_prior |alpha / sigma_alpha|^2 + |(mu - mu_0) / sigma_timing|^2
 
@@ -28,6 +30,14 @@ Each window is one Levenberg-Marquardt solve of `ptrack.solvers` with a closed-f
 decoder is linear in alpha and piecewise linear in mu, the joints' Jacobian is the geometric one
 (`ptrack.jacobians.joint_jacobian`), the projections' is the camera's, and the silhouette term's comes
 from the envelope theorem. A frame's result is its value in the last window that holds it.
+
+Correspondences (p1 in frame t-1, p2 in frame t; `Problem.correspondences`), where given: before each
+window's solve, every pair whose frame t is in the window has p1 backprojected onto the capsule model of
+the current estimate of frame t-1 (the window's starting state, or the final estimate for the frame
+before the window; a line of sight that misses the model drops the pair for this window) and attached to
+the hit capsule's frame; x_i is that body-fixed point moved with frame t's pose in the window, whose
+Jacobian is the geometric one of a point on the segment (`ptrack.jacobians.point_jacobian`). The pair's
+weight (1 for simulated ones) scales its squared residual.
 
 Start (section 5.1), with no 3D input: the four key postures are found in the 2D wrist track
 (`ptrack.key_postures.detect_key_postures_2d`, rules `motion.key_postures`), every frame's normalised
@@ -54,9 +64,10 @@ import torch
 from torch import Tensor
 
 from ptrack.costs import robust_loss, robust_loss_derivative
+from ptrack.costs.correspondence import Anchors, anchor_points, backproject, reprojection_rows
 from ptrack.costs.ray_silhouette import RaySilhouette, mask_samples
 from ptrack.errors import InputError
-from ptrack.jacobians import joint_jacobian
+from ptrack.jacobians import joint_jacobian, point_jacobian
 from ptrack.key_postures import detect_key_postures_2d, initial_times
 from ptrack.motion_model import (
     MotionModel,
@@ -125,6 +136,9 @@ class Setup:
     root_order: str  # the root's Euler order for `matrix_to_euler_np` ("XYZ": x applied first)
     root_xyz: tuple[int, ...]  # (3,) coordinate axis (0 x, 1 y, 2 z) of each of root_dofs[3:]
     root_rest: Tensor  # (3, 3) the root's world rotation at zero angles (the ASF root orientation)
+    # correspondences by second frame t (None: none, or pca.correspondence_weight 0): p1 (T, P, 2) pixels in
+    # frame t-1, p2 (T, P, 2) in frame t, weight (T, P) sqrt(pair weight) / sigma_px (0: padding)
+    corr: tuple[Tensor, Tensor, Tensor] | None = None
 
     @property
     def m(self) -> int:
@@ -187,6 +201,10 @@ def _setup(problem: Problem, cfg) -> Setup:
     root_xyz = tuple(coord[slot_of[d]] for d in root[3:])
     with torch.no_grad():
         _, rest = sk.forward_kinematics(torch.zeros(sk.num_dofs, dtype=dtype, device=device), rotations=True)
+    corr = None
+    if problem.correspondences is not None and p.correspondence_weight > 0:
+        p1, p2, w = problem.correspondences.to(device=device, dtype=dtype).by_frame(obs.num_frames)
+        corr = (p1, p2, w.sqrt() / cfg.costs.sigma_px)
     return Setup(
         problem,
         cfg,
@@ -204,6 +222,7 @@ def _setup(problem: Problem, cfg) -> Setup:
         order,
         root_xyz,
         rest[0],
+        corr,
     )
 
 
@@ -313,12 +332,28 @@ class Prediction:
     timing: Tensor | None = None  # (f,) the frames' start times, held by the prior of std pca.timing_sigma
 
 
+@dataclass(frozen=True)
+class WindowPairs:
+    """The correspondences of a window of f frames, P per frame: body-fixed points (anchors (f, P)) to be
+    seen at target (f, P, 2) pixels in their frame, with weight (f, P) (sqrt(pair weight) / sigma_px, 0 for
+    padding and pairs whose p1 missed the model)."""
+
+    anchors: Anchors
+    target: Tensor
+    weight: Tensor
+
+
 def _window_linearization(
-    s: Setup, frames: Tensor, ref: Tensor, pred: Prediction, silhouette: RaySilhouette | None
+    s: Setup,
+    frames: Tensor,
+    ref: Tensor,
+    pred: Prediction,
+    silhouette: RaySilhouette | None,
+    pairs: WindowPairs | None = None,
 ) -> Callable[[Tensor], Linearization]:
     """The LM `linearize` of one window: state x (N, m + 7 f) = [alpha, mu, (translation, rotation vector)
     per frame] -> residuals, Jacobian, IRLS weights, energy. ref (N|1, f, 3, 3): the frames' reference
-    root rotations; a frame's rotation is exp(w) ref."""
+    root rotations; a frame's rotation is exp(w) ref. pairs: the window's correspondences (`_window_pairs`)."""
     p, cc = s.cfg.pca, s.cfg.costs
     m, f = s.m, frames.shape[0]
     sk, cam = s.problem.skeleton, s.problem.observations.camera
@@ -326,6 +361,8 @@ def _window_linearization(
     rho, drho = robust_loss(cc.loss), robust_loss_derivative(cc.loss)
     scale = cc.robust_scale
     sqrt_joint, sqrt_fg = math.sqrt(p.joint_weight), math.sqrt(p.silhouette_weight)
+    sqrt_corr = math.sqrt(p.correspondence_weight)
+    n_joints = sk.num_joints
     alpha_pred_sigma = p.alpha_sigma * s.alpha_sigma
     sqrt_prior = math.sqrt(p.alpha_prior_weight)
     fr = torch.arange(f, device=frames.device)
@@ -338,7 +375,10 @@ def _window_linearization(
         trans, w = g[..., :3], g[..., 3:]
         q, dq = _body(s, alpha, mu)
         xb, dxb_dq = joint_jacobian(sk, q)  # (N, f, J, 3), (N, f, J, 3, D)
-        dxb = dxb_dq @ dq[:, :, None]  # (N, f, J, 3, m + f)
+        if pairs is not None:  # the pairs' body-fixed points ride along as extra "joints" J .. J + P - 1
+            xp, dxp_dq = point_jacobian(sk, q, pairs.anchors.joint, pairs.anchors.local)  # (N, f, P, 3(, D))
+            xb, dxb_dq = torch.cat([xb, xp], -2), torch.cat([dxb_dq, dxp_dq], -3)
+        dxb = dxb_dq @ dq[:, :, None]  # (N, f, J (+ P), 3, m + f)
         r_w, jl = _exp(w)
         rot = r_w @ ref
         joints, dj_body = _world(s, xb, dxb, rot, trans)
@@ -359,6 +399,15 @@ def _window_linearization(
         jac = [sqrt_joint * j_kp.reshape(n, -1, npar)]
         wts = [drho(sq, scale)[..., None].expand_as(r_kp).reshape(n, -1)]
         energy = 0.5 * p.joint_weight * rho(sq, scale).flatten(1).sum(-1)
+        if pairs is not None:  # correspondences: robust reprojection of the moved points against p2
+            x_c, dx_c = joints[..., n_joints:, :], dj[..., n_joints:, :, :]
+            r_c, j_c = reprojection_rows(cam, x_c, dx_c, pairs.target, pairs.weight)
+            sq_c = r_c.square().sum(-1)
+            res.append(sqrt_corr * r_c.reshape(n, -1))
+            jac.append(sqrt_corr * j_c.reshape(n, -1, npar))
+            wts.append(drho(sq_c, scale)[..., None].expand_as(r_c).reshape(n, -1))
+            energy = energy + 0.5 * p.correspondence_weight * rho(sq_c, scale).flatten(1).sum(-1)
+            joints, dj = joints[..., :n_joints, :], dj[..., :n_joints, :, :]
         plain = []  # least-squares blocks: (residual (N, M), jacobian (N, M, P) or (M, P))
         if silhouette is not None:
             r_fg, j_fg = silhouette.linearize_joints(joints, dj)
@@ -395,6 +444,48 @@ def _silhouette(s: Setup, frames: Tensor) -> RaySilhouette | None:
     return RaySilhouette(
         s.rays[frames], s.ray_valid[frames], cam.center, s.bones, s.radii, sigma_m=s.cfg.pca.silhouette_sigma_m
     )
+
+
+def _world_frames(s: Setup, alpha: Tensor, mu: Tensor, rot: Tensor, trans: Tensor) -> tuple[Tensor, Tensor]:
+    """World joints (k, J, 3) and joint rotations (k, J, 3, 3) of k frames' states: alpha (k, m), mu (k,), root
+    rotations (k, 3, 3), translations (k, 3) (the body turned about its root as in `_window_linearization`)."""
+    q, _ = _body(s, alpha, mu[:, None])
+    xb, rb = s.problem.skeleton.forward_kinematics(q[:, 0], rotations=True)
+    r0 = xb[:, :1]
+    return trans[:, None] + r0 + (xb - r0) @ rot.mT, rot[:, None] @ rb
+
+
+def _backproject(s: Setup, p1: Tensor, joints: Tensor, rotations: Tensor) -> Anchors:
+    """Anchors (k, P) of pixels p1 (k, P, 2) on the capsule model of poses joints (k, J, 3), rotations (k, J, 3, 3)."""
+    bones = torch.as_tensor(s.bones, dtype=torch.long, device=joints.device)
+    cam = s.problem.observations.camera
+    return backproject(cam, p1, joints[:, None], rotations[:, None], bones, s.radii)
+
+
+def _window_pairs(s: Setup, frames: Tensor, joints_prev: Tensor, rotations_prev: Tensor) -> WindowPairs | None:
+    """The correspondences whose second frame is in the window `frames` (f,), backprojected on the poses of the
+    frames before them: joints_prev (f, J, 3), rotations_prev (f, J, 3, 3) (anything for frame 0, which has no
+    pairs). None when the run has no correspondences."""
+    if s.corr is None:
+        return None
+    p1, p2, w = (x[frames] for x in s.corr)
+    anchors = _backproject(s, p1, joints_prev, rotations_prev)
+    keep = anchors.valid & (anchors.clearance >= s.cfg.pca.correspondence_margin_m)
+    return WindowPairs(anchors, p2, torch.where(keep, w, torch.zeros_like(w)))
+
+
+def correspondence_residuals(s: Setup, joints: Tensor, rotations: Tensor) -> Tensor | None:
+    """Per frame t and pair, the correspondence residuals (T, P, 2) (whitened pixels) of a trajectory's world
+    joints (T, J, 3) and rotations (T, J, 3, 3): p1 backprojected at frame t-1, moved with frame t. Frame 0
+    and pairs that miss the model are 0. None without correspondences."""
+    if s.corr is None:
+        return None
+    p1, p2, w = s.corr
+    prev = (torch.arange(joints.shape[0], device=joints.device) - 1).clamp_min(0)
+    anchors = _backproject(s, p1, joints[prev], rotations[prev])
+    x = anchor_points(anchors, joints[:, None], rotations[:, None])
+    r = (s.problem.observations.camera.project(x).pixels - p2) * w[..., None]
+    return torch.where((anchors.valid & (w > 0))[..., None], r, torch.zeros_like(r))
 
 
 def _state(alpha: Tensor, mu: Tensor, trans: Tensor) -> Tensor:
@@ -526,7 +617,17 @@ def estimate_pca(
                 lo[m : m + f] = mu[start - 1]
                 mu_hat = torch.maximum(mu_hat, mu[start - 1])
             pred = Prediction(a_prev, mu_hat, trans_hat, timing=mu_init[frames])
-            lin = _window_linearization(s, frames, rot_hat[None], pred, _silhouette(s, frames))
+            pairs = None
+            if s.corr is not None:  # backprojected on the window's starting state (frame start - 1: its estimate)
+                k = torch.arange(max(start - 1, 0), start + f - 1, device=device)
+                in_window = k >= start
+                a_k = torch.where(in_window[:, None], a_prev, alpha[k])
+                mu_k = torch.where(in_window, mu_hat[(k - start).clamp_min(0)], mu[k])
+                x_prev, r_prev = _world_frames(s, a_k, mu_k, rot[k], trans[k])
+                if start == 0:  # frame 0 has no pairs: any pose stands before it
+                    x_prev, r_prev = torch.cat([x_prev[:1], x_prev]), torch.cat([r_prev[:1], r_prev])
+                pairs = _window_pairs(s, frames, x_prev, r_prev)
+            lin = _window_linearization(s, frames, rot_hat[None], pred, _silhouette(s, frames), pairs)
             x, _ = levenberg_marquardt(lin, _state(a_prev, mu_hat, trans_hat), lo, hi, max_iter=p.iterations, tol=1e-6)
             x = x[0]
             a_prev = x[:m]
@@ -550,4 +651,10 @@ def estimate_pca(
             assert s.ray_valid is not None  # set with rays
             sil = RaySilhouette(s.rays, s.ray_valid, obs.camera.center, s.bones, s.radii, sigma_m=p.silhouette_sigma_m)
             terms["silhouette"] = 0.5 * p.silhouette_weight * sil.residual_per_frame(joints).square().sum(-1)
+        if s.corr is not None:
+            _, rotations = sk.forward_kinematics(q, rotations=True)
+            r_c = correspondence_residuals(s, joints, rotations)
+            assert r_c is not None  # s.corr is set
+            rho = robust_loss(cfg.costs.loss)(r_c.square().sum(-1), cfg.costs.robust_scale)
+            terms["correspondence"] = 0.5 * p.correspondence_weight * rho.sum(-1)
     return Estimate(q=q.detach(), joints=joints, cost=sum(terms.values()), terms=terms)
