@@ -5,7 +5,8 @@ One held-out swing (default 64_01, with a motion model fitted on the other dev s
 given) at 30 fps, 2 px noise, capsule silhouettes; the data, observations and silhouettes are made once
 (`prepare`, timed apart), then each estimator runs `--repeats` times on the same problem and its median
 time is kept. Prints frames per second of each, by wall-clock and by the process's CPU time (the machine
-is shared), and the ratio (how many times faster pca is).
+is shared), and the ratio (how many times faster pca is). The full tracker runs once more with 40 simulated
+point correspondences per frame (section 4.3; their simulation is part of `prepare`, not counted).
 
     OMP_NUM_THREADS=1 python scripts/bench_pca.py [--swing 64_01] [--repeats 3] [--model FILE]
 """
@@ -54,24 +55,34 @@ def main() -> int:
         f"{swing.stem}: {prep.problem.observations.num_frames} frames; data, observations and silhouettes: "
         f"{time.perf_counter() - t:.2f} s (not counted); torch threads {torch.get_num_threads()}"
     )
+    corr = ["observations.correspondences=40", "observations.correspondence_outliers=0.05"]
+    t = time.perf_counter()
+    prep_corr = prepare(load_config(REPO / "configs" / "golf.yaml", [*base, *corr]))
+    assert prep_corr.problem.correspondences is not None
+    print(
+        f"  the same with {prep_corr.problem.correspondences.num_pairs} correspondences: "
+        f"{time.perf_counter() - t:.2f} s (not counted)"
+    )
     results = {}
     for name, over in (
         ("pca (joints + silhouettes)", []),
+        ("pca + correspondences", corr),
         ("pca joints only", ["pca.silhouette_weight=0"]),
         ("frame (per-frame L-BFGS)", ["method=frame"]),
     ):
         c = load_config(REPO / "configs" / "golf.yaml", [*base, *over])
+        problem = prep_corr.problem if over is corr else prep.problem
         times, cpu = [], []
         for _ in range(args.repeats):
             t, p = time.perf_counter(), time.process_time()
-            est = ESTIMATORS[c.method](prep.problem, c, torch.Generator().manual_seed(1), lambda x: x)
+            est = ESTIMATORS[c.method](problem, c, torch.Generator().manual_seed(1), lambda x: x)
             times.append(time.perf_counter() - t)
             cpu.append(time.process_time() - p)
         sec, sec_cpu = statistics.median(times), statistics.median(cpu)
         n = est.q.shape[0]
         results[name] = (n / sec, n / sec_cpu)
         print(
-            f"  {name:28s} wall {sec:6.2f} s {n / sec:6.1f} fps | CPU {sec_cpu:6.2f} s {n / sec_cpu:6.1f} fps"
+            f"  {name:30s} wall {sec:6.2f} s {n / sec:6.1f} fps | CPU {sec_cpu:6.2f} s {n / sec_cpu:6.1f} fps"
             f"  (wall runs: {', '.join(f'{x:.2f}' for x in times)})"
         )
     full, frame = results["pca (joints + silhouettes)"], results["frame (per-frame L-BFGS)"]

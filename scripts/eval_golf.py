@@ -6,6 +6,13 @@ For each of the dev swings (configs/clips/golf.txt), a motion model is fitted on
     pca         the full tracker (configs/eval_golf.yaml): joints + silhouettes
     joints      the same without the silhouette term (pca.silhouette_weight=0; the paper's fig. 7 point)
     mean        the mean motion with the initial timing (pca.iterations=0; fig. 8)
+    pca_corr    the full tracker with point correspondences between consecutive frames (section 4.3;
+                CORR: 40 simulated pairs per frame, 1 px noise, 5% wrong matches)
+    joints_corr joints and correspondences, no silhouette term (the paper's fig. 7 (b))
+    pca_corr_m0 pca_corr keeping the pairs near the model's outlines too (pca.correspondence_margin_m=0)
+    *_6px       pca, joints, pca_corr, joints_corr, pca_corr_m0 with rougher joint tracks (ROUGH: noise_px 6, and the
+                start's wrist track smoothed over pca.key_smooth_s 0.15 s, without which the key postures
+                are not found in that noise)
     frame, kjs, batch   the other methods on the same observations (configs/eval_golf_<method>.yaml;
                 these get frame 0 as a 3D keyframe, the pca tracker no 3D input at all)
 
@@ -44,7 +51,25 @@ from ptrack.run import execute  # noqa: E402
 from ptrack.skeleton import Skeleton, load_amc  # noqa: E402
 
 log = logging.getLogger("eval_golf")
-PCA_VARIANTS = {"pca": [], "joints": ["pca.silhouette_weight=0"], "mean": ["pca.iterations=0"]}
+CORR = [
+    "observations.correspondences=40",
+    "observations.correspondence_noise_px=1",
+    "observations.correspondence_outliers=0.05",
+]
+ROUGH = ["observations.noise_px=6", "pca.key_smooth_s=0.15"]
+PCA_VARIANTS = {
+    "pca": [],
+    "joints": ["pca.silhouette_weight=0"],
+    "mean": ["pca.iterations=0"],
+    "pca_corr": CORR,
+    "joints_corr": ["pca.silhouette_weight=0", *CORR],
+    "pca_6px": ROUGH,
+    "joints_6px": ["pca.silhouette_weight=0", *ROUGH],
+    "pca_corr_6px": [*CORR, *ROUGH],
+    "joints_corr_6px": ["pca.silhouette_weight=0", *CORR, *ROUGH],
+    "pca_corr_m0": [*CORR, "pca.correspondence_margin_m=0"],
+    "pca_corr_m0_6px": [*CORR, "pca.correspondence_margin_m=0", *ROUGH],
+}
 BASELINES = ("frame", "kjs", "batch")
 TAIL_S = 0.5  # seconds after the end of the follow-through kept in the swing span
 
@@ -210,11 +235,18 @@ def main(argv: list[str] | None = None) -> int:
             span.setdefault(swing.stem, {})[v] = span_metrics(folder, stop)
             fps[v].append(m["fps"])
     frames = {s: f"{whole[s][variants[0]]['frames']} / {span[s][variants[0]]['frames']}" for s in whole}
+    groups = [[v for v in variants if not v.endswith("_6px")], [v for v in variants if v.endswith("_6px")]]
+    text = ""
+    for group, setting in zip(groups, ("", " Rougher joint tracks (noise_px 6):")):
+        if group:
+            text += (
+                table(span, group, f"{setting} Over the swing (to the end of the follow-through + 0.5 s):".strip())
+                + "\n"
+                + table(whole, group, f"{setting} Over the whole clip:".strip())
+                + "\n"
+            )
     text = (
-        table(span, variants, "Over the swing (to the end of the follow-through + 0.5 s):")
-        + "\n"
-        + table(whole, variants, "Over the whole clip:")
-        + "\n"
+        text
         + "Frames (whole clip / swing): "
         + ", ".join(f"{s} {f}" for s, f in frames.items())
         + "\n\n"
