@@ -19,11 +19,25 @@ leading dims):
     C_t C_t^T = A[t, t] - sum_{k=1..W} B[t, k] B[t, k]^T
 
 With diagonal couplings B[t, W] = A[t, t-W] C_{t-W}^{-T} is a row scaling (no product). The
-factor keeps C_t^{-T} (one triangular inverse per frame), so a solve is two sweeps of block
-products. Marginal covariances (diagonal blocks of S = A^{-1}) come from L^T S = L^{-1}, run
+factor keeps C_t^{-T} (one triangular inverse per frame) and each row's blocks side by side,
+R_t = [B[t, W] .. B[t, 1]] (n x W n), so the pivot's update is one product R_t R_t^T and a solve is
+two sweeps of two matrix-vector products per frame (the last W solutions read as one window).
+Marginal covariances (diagonal blocks of S = A^{-1}) come from L^T S = L^{-1}, run
 backwards in t over S's own band only (Takahashi):
 
     S[t, s] = C_t^{-T} (delta_ts C_t^{-1} - sum_{k=1..W} B[t+k, k]^T S[t+k, s])      (s >= t)
+
+Two halves. The sweep is T sequential steps of small products, so its cost is mostly dispatch and
+one core. `factorize` (T >= `HALVES_MIN_FRAMES`) orders the unknowns as the top frames 0..m-1, the
+bottom frames m+W..T-1 and last the W separator frames m..m+W-1 between them (m = (T-W)/2): the top
+and the bottom do not touch, so both are factored by the recursion above at once, the bottom
+backwards in time (its own reversed system, couplings transposed), in T/2 steps over 2B systems,
+or on two threads (`one_thread`'s budget). Their Cholesky rows towards the separator,
+Z_h = L_h^{-1} A[h, s], live on each half's last W frames only, and the separator's Schur
+complement A_ss - Z_top^T Z_top - Z_bot^T Z_bot (W n x W n) is factored last. It is the same
+factorisation of the reordered matrix (no extra fill, the same flops); solves are the two halves'
+sweeps around the separator's, and the marginals add to each half's own (Takahashi) the part through
+the separator, V_t S_ss V_t^T with V = A_hh^{-1} A_hs.
 
 Decoupled dofs. With diagonal couplings, a dof whose rows of every diagonal block are diagonal (a
 dof no observation moves: only per-dof priors, limits and keyframes act on it, e.g. fingers and
@@ -45,7 +59,10 @@ inputs' dtype and device.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import os
+import threading
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import NamedTuple
 
@@ -53,6 +70,8 @@ import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
+
+HALVES_MIN_FRAMES = 32  # `factorize` splits a system of this many frames or more into two halves
 
 
 class BlockBanded(NamedTuple):
@@ -78,8 +97,9 @@ class BlockBanded(NamedTuple):
 
 class _Chol(NamedTuple):
     """Block Cholesky factor of one group of n dofs, leading dims flattened to B (module docstring):
-    inv_chol_t (B, T, n, n) = C_t^{-T}; coupling (B, T, W, n, n) = B[t, k] at [:, t, k-1], zero
-    where t-k < 0. For n = 1 (decoupled dofs) both are held as (B, T) and (B, T, W)."""
+    inv_chol_t (B, T, n, n) = C_t^{-T}; coupling (B, T, n, W n) = the rows R_t = [B[t, W] .. B[t, 1]]
+    (B[t, k] at [:, t, :, (W-k) n:(W-k+1) n]), zero where t-k < 0. For n = 1 (decoupled dofs) both
+    are held as (B, T) and (B, T, W)."""
 
     inv_chol_t: Tensor
     coupling: Tensor
@@ -90,7 +110,7 @@ class BandedFactor(NamedTuple):
     the coupled dofs `coupled` (n,) (long), or None; scalar: the decoupled dofs `decoupled` (u,) as
     B * u independent systems of 1 x 1 blocks, or None; batch: the leading dims; size: D."""
 
-    dense: _Chol | None
+    dense: _Chol | _Twisted | None
     scalar: _Reduction | None
     coupled: Tensor
     decoupled: Tensor
@@ -98,21 +118,62 @@ class BandedFactor(NamedTuple):
     size: int
 
 
+_OUTER = threading.local()  # .threads: torch's thread count outside the outermost `one_thread`
+
+
 @contextmanager
 def one_thread() -> Iterator[None]:
     """Run torch on one intra-op thread inside the block (restored after). The sequential sweeps
     run on it: their products are small (n x n per frame), multithreaded BLAS gains nothing on them
     and, on a loaded machine, its spinning threads made a 40-frame sweep 370x slower (2.3 s against
-    6 ms, measured on 2 shared cores); `method: batch` runs its whole solve inside it."""
+    6 ms, measured on 2 shared cores); `method: batch` runs its whole solve inside it. The count it
+    replaced stays the budget of `factorize` and `solve`, which run the two halves of a long system
+    on two Python threads (one intra-op thread each) when it is 2 or more."""
     n = torch.get_num_threads()
-    if n == 1:
-        yield
-        return
-    torch.set_num_threads(1)
+    outer = getattr(_OUTER, "threads", None)
+    if outer is None:
+        _OUTER.threads = n
     try:
-        yield
+        if n == 1:
+            yield
+            return
+        torch.set_num_threads(1)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(n)
     finally:
-        torch.set_num_threads(n)
+        if outer is None:
+            del _OUTER.threads
+
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _forget_pool() -> None:  # a forked child has the pool object but not its thread
+    global _POOL
+    _POOL = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
+def _parallel(device: torch.device) -> bool:
+    """Whether the two halves run on two threads: a thread budget (`one_thread`) of 2 or more, on the CPU."""
+    return device.type == "cpu" and getattr(_OUTER, "threads", torch.get_num_threads()) >= 2
+
+
+def _pair(fn: Callable, top: tuple, bottom: tuple) -> tuple:
+    """(fn(*top), fn(*bottom)), the top on a second thread (`_parallel` says when)."""
+    global _POOL
+    if _POOL is None:  # one worker, for the process's life, on one intra-op thread
+        _POOL = ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="ptrack-banded", initializer=torch.set_num_threads, initargs=(1,)
+        )
+    job = _POOL.submit(fn, *top)
+    last = fn(*bottom)
+    return job.result(), last
 
 
 def _check(a: BlockBanded, who: str) -> tuple[int, int, int]:
@@ -131,48 +192,232 @@ def _check(a: BlockBanded, who: str) -> tuple[int, int, int]:
     return a.shape
 
 
-def _factor_dense(diag: Tensor, lower: Tensor) -> tuple[_Chol, Tensor]:
+def _factor_dense(diag: Tensor, lower: Tensor, out: tuple[Tensor, Tensor] | None = None) -> tuple[_Chol, Tensor]:
     """diag (B, T, n, n), lower (B|1, T, W, n) diagonal or (B|1, T, W, n, n) dense couplings ->
-    factor, ok (B,). One block row per step; per-frame tensors are kept in lists (no copies)."""
+    factor, ok (B,), written into out = (inv_chol_t, coupling) if given. One block row per step (module
+    docstring); its W coupling blocks side by side make the row R_t = [B[t, W] .. B[t, 1]], so that
+    the pivot's update is one product, C_t C_t^T = A[t, t] - R_t R_t^T."""
     b, t_len, n = diag.shape[0], diag.shape[1], diag.shape[-1]
     vec = lower.ndim == 4
     w = lower.shape[2]
     lower = lower.expand(b, *lower.shape[1:])
     eye = torch.eye(n, dtype=diag.dtype, device=diag.device).expand(b, n, n)
+    far = lower[:, :, w - 1, :, None] if vec else lower[:, :, w - 1]  # A[t, t-W] (a row scaling if diagonal)
+    near = [torch.diag_embed(lower[:, :, k]) if vec else lower[:, :, k] for k in range(w - 1)]  # A[t, t-k-1]
     zero = diag.new_zeros(b, n, n)
-    a_tt = diag.unbind(1)
-    a_k = [lower[:, :, k].unbind(1) for k in range(w)]  # a_k[k-1][t] = A[t, t-k]
-    if vec and w > 1:  # dense A[t, t-k] for k < W (the k = W block stays a row scaling)
-        a_k[: w - 1] = [torch.diag_embed(lower[:, :, k]).unbind(1) for k in range(w - 1)]
     cit: list[Tensor] = [zero] * w  # cit[t + W] = C_t^{-T}
-    blk: list[list[Tensor]] = [[zero] * w for _ in range(w)]  # blk[t + W][k-1] = B[t, k]
+    blocks: list[list[Tensor]] = [[zero] * w for _ in range(w)]  # blocks[t + W][k-1] = B[t, k]
+    rows: list[Tensor] = []  # R_t
     infos = []
     for t in range(t_len):
-        row: list[Tensor] = [zero] * w
-        if vec:
-            row[w - 1] = a_k[w - 1][t][:, :, None] * cit[t]
-        else:
-            row[w - 1] = a_k[w - 1][t] @ cit[t]
+        blk: list[Tensor] = [zero] * w
+        blk[w - 1] = far[:, t] * cit[t] if vec else far[:, t] @ cit[t]  # B[t, W] = A[t, t-W] C_{t-W}^{-T}
         for k in range(w - 1, 0, -1):
-            x = a_k[k - 1][t]
+            x = near[k - 1][:, t]
             for j in range(k + 1, w + 1):  # - B[t, j] B[t-k, j-k]^T
-                x = torch.baddbmm(x, row[j - 1], blk[t - k + w][j - k - 1].mT, alpha=-1)
-            row[k - 1] = x @ cit[t - k + w]
-        s = a_tt[t]
-        for k in range(w):
-            s = torch.baddbmm(s, row[k], row[k].mT, alpha=-1)
-        chol, info = torch.linalg.cholesky_ex(s)
+                x = torch.baddbmm(x, blk[j - 1], blocks[t - k + w][j - k - 1].mT, alpha=-1)
+            blk[k - 1] = x @ cit[t - k + w]
+        row = torch.cat(blk[::-1], -1) if w > 1 else blk[0]
+        chol, info = torch.linalg.cholesky_ex(torch.baddbmm(diag[:, t], row, row.mT, alpha=-1))
         infos.append(info)
         # C_t^{-1} comes out column-major: its transpose is a contiguous C_t^{-T}
         cit.append(torch.linalg.solve_triangular(chol, eye, upper=False).mT)
-        blk.append(row)
+        blocks.append(blk)
+        rows.append(row)
     ok = (torch.stack(infos, -1) == 0).all(-1) if infos else torch.ones(b, dtype=torch.bool, device=diag.device)
-    inv_t = torch.stack(cit[w:], 1)
-    coupling = torch.stack([torch.stack(r, 1) for r in blk[w:]], 1)
+    if out is None:
+        out = (diag.new_empty(b, t_len, n, n), diag.new_empty(b, t_len, n, w * n))
+    inv_t, coupling = out
+    if t_len:
+        torch.stack(cit[w:], 1, out=inv_t)
+        torch.stack(rows, 1, out=coupling)
     if not bool(ok.all()):  # a failed system's factor: finite stand-ins (identity pivots, no couplings)
-        inv_t = torch.where(ok[:, None, None, None], inv_t, eye[:, None])
-        coupling = torch.where(ok[:, None, None, None, None], coupling, 0.0)
+        inv_t.copy_(torch.where(ok[:, None, None, None], inv_t, eye[:, None]))
+        coupling.copy_(torch.where(ok[:, None, None, None], coupling, 0.0))
     return _Chol(inv_t, coupling), ok
+
+
+class _Twisted(NamedTuple):
+    """Block Cholesky of a system split at its middle (module docstring, "Two halves"), leading dims
+    flattened to B: halves, the factor (2B, M, ...) of the top half (frames 0..m-1, preceded by
+    M - m identity frames) stacked over the bottom half in reverse order (frames T-1 down to m+W);
+    z (2B, W n, W n), Z = L_h^{-1} A[h, s] on each half's last W frames (the bottom half's separator
+    columns in reverse frame order); sep_inv (B, W n, W n) = C_s^{-1}, the factor of the separator's
+    Schur complement A_ss - Z_top^T Z_top - Z_bot^T Z_bot; top = m."""
+
+    halves: _Chol
+    z: Tensor
+    sep_inv: Tensor
+    top: int
+
+
+def _gather(diag: Tensor, frames: Tensor, dofs: Tensor | None) -> Tensor:
+    """diag (B, T, D, D) -> (B, *frames.shape, n, n): the blocks of the given frames, restricted to
+    the dofs (None: all), in one indexing op."""
+    if dofs is None:
+        return diag[:, frames]
+    return diag[:, frames[..., None, None], dofs[:, None], dofs]
+
+
+def _split_halves(diag: Tensor, lower: Tensor, m: int, dofs: Tensor | None) -> tuple[Tensor, Tensor]:
+    """The two halves of `_Twisted` as one system of 2B: diag (B, T, D, D) (its dofs only, None: all),
+    lower (B|1, T, W, n[, n]) -> (2B, M, n, n), (2B, M, W, n[, n]), M = T - W - m >= m; the top padded
+    in front with identity frames, the bottom reversed (couplings transposed: A'[r, r-k] =
+    A[T-1-r+k, T-1-r]^T)."""
+    b, t_len = diag.shape[0], diag.shape[1]
+    n = lower.shape[-1]
+    w = lower.shape[2]
+    vec = lower.ndim == 4
+    big_m = t_len - w - m
+    pad = big_m - m
+    dev = diag.device
+    frames = torch.stack(
+        [torch.arange(-pad, m, device=dev).clamp(min=0), torch.arange(t_len - 1, m + w - 1, -1, device=dev)]
+    )  # (2, M): top (pad frames read frame 0, then set to identity), bottom reversed
+    d2 = _gather(diag, frames, dofs).transpose(0, 1).reshape(2 * b, big_m, n, n)
+    if pad:
+        d2[:b, :pad] = torch.eye(n, dtype=diag.dtype, device=dev)
+    lower = lower.expand(b, *lower.shape[1:])
+    ks = torch.arange(1, w + 1, device=dev)
+    shape = (1, big_m, w) + (1,) * (lower.ndim - 3)
+    keep = ((torch.arange(big_m, device=dev)[:, None] - pad) >= ks).reshape(shape)  # top: A[t, t-k] for t-k >= 0
+    top_l = torch.where(keep, lower[:, frames[0]], 0.0)
+    rev = lower[:, frames[1]]  # rev[r, k-1] = A[T-1-r, T-1-r-k]
+    bot_l = []
+    for k in range(1, w + 1):  # A'[r, r-k] = A[T-1-r+k, T-1-r]^T = rev[r-k, k-1]^T for r >= k
+        blk = rev[:, : big_m - k, k - 1]
+        bot_l.append(torch.cat([blk.new_zeros(b, k, *blk.shape[2:]), blk if vec else blk.mT], 1))
+    return d2, torch.cat([top_l, torch.stack(bot_l, 2)])
+
+
+def _block(diag: Tensor, lower: Tensor, t: int, s: int, dofs: Tensor | None) -> Tensor:
+    """A[t, s] (B, n, n) for |t - s| <= W of a system diag (B, T, D, D) (its dofs only), lower
+    (B, T, W, n[, n])."""
+    if t == s:
+        return _gather(diag, torch.tensor(t, device=diag.device), dofs)
+    if t < s:
+        return _block(diag, lower, s, t, dofs).mT
+    blk = lower[:, t, t - s - 1]
+    return torch.diag_embed(blk) if lower.ndim == 4 else blk
+
+
+def _factor_twisted(diag: Tensor, lower: Tensor, dofs: Tensor | None) -> tuple[_Twisted, Tensor]:
+    """diag (B, T, D, D) (its dofs only; None: all), lower (B|1, T, W, n[, n]) with T >= 4W ->
+    `_Twisted`, ok (B,): both halves factored by one sweep of T/2 steps over the 2B systems, then
+    the W-frame separator."""
+    b, t_len = diag.shape[0], diag.shape[1]
+    n = lower.shape[-1]
+    w = lower.shape[2]
+    m = (t_len - w) // 2
+    big_m = t_len - w - m
+    d2, l2 = _split_halves(diag, lower, m, dofs)
+    if _parallel(d2.device):  # the two halves on two threads, into one factor of 2B
+        out = (d2.new_empty(2 * b, big_m, n, n), d2.new_empty(2 * b, big_m, n, w * n))
+        (_, ok_top), (_, ok_bot) = _pair(
+            _factor_dense,
+            (d2[:b], l2[:b], (out[0][:b], out[1][:b])),
+            (d2[b:], l2[b:], (out[0][b:], out[1][b:])),
+        )
+        halves, ok2 = _Chol(*out), torch.cat([ok_top, ok_bot])
+    else:
+        halves, ok2 = _factor_dense(d2, l2)
+    lower = lower.expand(b, *lower.shape[1:])
+    # E = A[h, s] on each half's last W frames (n x W n each): top frame m-W+c against separator
+    # frame m+i; bottom frame m+2W-1-c (reversed index M-W+c) against m+W-1-i (reversed M+i)
+    e = d2.new_zeros(2 * b, w, n, w * n)
+    for c in range(w):
+        for i in range(w):
+            if i <= c:  # |frame - separator frame| = W - c + i <= W
+                e[:b, c, :, i * n : (i + 1) * n] = _block(diag, lower, m - w + c, m + i, dofs)
+                e[b:, c, :, i * n : (i + 1) * n] = _block(diag, lower, m + 2 * w - 1 - c, m + w - 1 - i, dofs)
+    # Z = L_h^{-1} E: the forward sweep from zeros, over the last W frames only (E vanishes before)
+    cit, cpl = halves.inv_chol_t, halves.coupling
+    z: list[Tensor] = []
+    for c in range(w):
+        t = big_m - w + c
+        r = e[:, c]
+        for k in range(1, c + 1):
+            r = torch.baddbmm(r, cpl[:, t, :, (w - k) * n : (w - k + 1) * n], z[c - k], alpha=-1)
+        z.append(cit[:, t].mT @ r)
+    zz = torch.cat(z, 1)  # (2B, W n, W n)
+    y = zz.mT @ zz
+    # the bottom's separator columns run backwards in time: reverse their frame blocks
+    rev = torch.arange(w - 1, -1, -1, device=diag.device)
+    idx = (rev[:, None] * n + torch.arange(n, device=diag.device)).flatten()
+    sep = torch.cat(
+        [torch.cat([_block(diag, lower, m + i, m + j, dofs) for j in range(w)], -1) for i in range(w)], -2
+    )  # (B, W n, W n)
+    schur = sep - y[:b] - y[b:][:, idx][:, :, idx]
+    chol, info = torch.linalg.cholesky_ex(schur)
+    eye = torch.eye(w * n, dtype=d2.dtype, device=d2.device).expand(b, w * n, w * n)
+    sep_inv = torch.linalg.solve_triangular(chol, eye, upper=False)
+    ok = ok2[:b] & ok2[b:] & (info == 0)
+    if not bool(ok.all()):
+        sep_inv = torch.where(ok[:, None, None], sep_inv, eye)
+    return _Twisted(halves, zz, sep_inv, m), ok
+
+
+def _sweep_halves(f: _Chol, b: Tensor, backward: bool) -> Tensor:
+    """`_sweep` of the 2B systems of `_Twisted.halves`: as one batch, or each half on its own thread."""
+    if not _parallel(b.device):
+        return _sweep(f, b, backward)
+    h = b.shape[0] // 2
+    top = _Chol(f.inv_chol_t[:h], f.coupling[:h])
+    bottom = _Chol(f.inv_chol_t[h:], f.coupling[h:])
+    return torch.cat(_pair(_sweep, (top, b[:h], backward), (bottom, b[h:], backward)))
+
+
+def _solve_twisted(f: _Twisted, b: Tensor) -> Tensor:
+    """f's system, b (B, T, n) -> x (B, T, n): forward sweeps of the two halves at once, the
+    separator, then their backward sweeps."""
+    bsz, t_len, n = b.shape
+    w = f.sep_inv.shape[-1] // n
+    m = f.top
+    big_m = t_len - w - m
+    pad = big_m - m
+    halves = torch.cat([torch.nn.functional.pad(b[:, :m], (0, 0, pad, 0)), b[:, m + w :].flip(1)])
+    y = _sweep_halves(f.halves, halves, backward=False)  # (2B, M, n)
+    last = y[:, big_m - w :].reshape(2 * bsz, w * n, 1)
+    zy = (f.z.mT @ last)[..., 0]  # (2B, W n): the bottom's in reversed frame order
+    zy_bot = zy[bsz:].reshape(bsz, w, n).flip(1).reshape(bsz, w * n)
+    y_sep = f.sep_inv @ (b[:, m : m + w].reshape(bsz, w * n) - zy[:bsz] - zy_bot)[..., None]
+    x_sep = f.sep_inv.mT @ y_sep  # (B, W n, 1)
+    x_rev = x_sep.reshape(bsz, w, n).flip(1).reshape(bsz, w * n, 1)
+    y = y.clone()
+    y[:, big_m - w :] -= (f.z @ torch.cat([x_sep, x_rev]))[..., 0].reshape(2 * bsz, w, n)
+    x = _sweep_halves(f.halves, y, backward=True)
+    return torch.cat([x[:bsz, pad:], x_sep.reshape(bsz, w, n), x[bsz:].flip(1)], 1)
+
+
+def _marginals_twisted(f: _Twisted) -> Tensor:
+    """Diagonal blocks of the inverse of f's system -> (B, T, n, n). In the order (top, bottom,
+    separator), A^{-1}'s half blocks are A_hh^{-1} + V S V^T with V = A_hh^{-1} A_hs = L_h^{-T} Z and
+    S = (C_s C_s^T)^{-1} the separator's: Takahashi on each half plus, per frame, V_t S V_t^T (V by
+    one backward sweep with W n columns)."""
+    halves, z = f.halves, f.z
+    b2, big_m, n = halves.inv_chol_t.shape[0], halves.inv_chol_t.shape[1], halves.inv_chol_t.shape[-1]
+    bsz, w = b2 // 2, f.sep_inv.shape[-1] // n
+    m = f.top
+    pad = big_m - m
+    own = _marginals(halves)  # (2B, M, n, n)
+    # V = L_h^{-T} [0; Z]: backward sweep with W n right-hand sides
+    v_cols = _columns(halves.coupling, n)  # (2B, M, W n, n)
+    out_v = z.new_zeros(b2, big_m, n, w * n)
+    zf = z.reshape(b2, w, n, w * n)
+    win = [z.new_zeros(b2, n, w * n) for _ in range(w)]  # x_{t+1} .. x_{t+W}
+    for t in range(big_m - 1, -1, -1):
+        r = zf[:, t - (big_m - w)] if t >= big_m - w else z.new_zeros(b2, n, w * n)
+        r = torch.baddbmm(r, v_cols[:, t].mT, torch.cat(win, 1), alpha=-1)
+        x = halves.inv_chol_t[:, t] @ r
+        out_v[:, t] = x
+        win = [x] + win[:-1]
+    s_sep = f.sep_inv.mT @ f.sep_inv  # (B, W n, W n) = (C_s C_s^T)^{-1}
+    rev = torch.arange(w - 1, -1, -1, device=z.device)
+    idx = (rev[:, None] * n + torch.arange(n, device=z.device)).flatten()
+    s_both = torch.cat([s_sep, s_sep[:, idx][:, :, idx]])  # the bottom's in reversed frame order
+    own = own + out_v @ s_both[:, None] @ out_v.mT
+    sep_blocks = torch.stack([s_sep[:, i * n : (i + 1) * n, i * n : (i + 1) * n] for i in range(w)], 1)
+    return torch.cat([own[:bsz, pad:], sep_blocks, own[bsz:].flip(1)], 1)
 
 
 def _factor_scalar(diag: Tensor, lower: Tensor) -> tuple[_Chol, Tensor]:
@@ -198,7 +443,7 @@ def _factor_scalar(diag: Tensor, lower: Tensor) -> tuple[_Chol, Tensor]:
         ci.append(s.rsqrt())  # NaN for a failed pivot, flagged and replaced below
         blk.append(row)
     inv = torch.stack(ci[w:], 1) if t_len else diag.new_zeros(b, 0)
-    coupling = torch.stack([torch.stack(r, 1) for r in blk[w:]], 1) if t_len else diag.new_zeros(b, 0, w)
+    coupling = torch.stack([torch.stack(r[::-1], 1) for r in blk[w:]], 1) if t_len else diag.new_zeros(b, 0, w)
     ok = torch.isfinite(inv).all(-1) & torch.isfinite(coupling).flatten(1).all(-1)
     if not bool(ok.all()):
         inv = torch.where(ok[:, None], inv, 1.0)
@@ -318,11 +563,13 @@ def _split(a: BlockBanded) -> Tensor:
     return ~off.flatten(0, -3).any(0).any(-1)
 
 
-def factorize(a: BlockBanded) -> tuple[BandedFactor, Tensor]:
+def factorize(a: BlockBanded, halves: bool | None = None) -> tuple[BandedFactor, Tensor]:
     """Block Cholesky of the symmetric positive definite `a` (see module docstring).
 
-    -> BandedFactor, ok (...,) bool: False where a pivot was not positive definite (that system's
-    factor is then meaningless but finite; the other systems are unaffected)."""
+    halves: factor from both ends towards a W-frame separator in the middle (module docstring, "Two
+    halves"); None = when T >= `HALVES_MIN_FRAMES`. -> BandedFactor, ok (...,) bool: False where a
+    pivot was not positive definite (that system's factor is then meaningless but finite; the other
+    systems are unaffected)."""
     t_len, w, d = _check(a, "factorize")
     batch = a.diagonal.shape[:-3]
     dg = a.diagonal.reshape(-1, t_len, d, d)
@@ -334,12 +581,19 @@ def factorize(a: BlockBanded) -> tuple[BandedFactor, Tensor]:
     coupled = torch.nonzero(~alone).flatten()
     u, n = decoupled.numel(), coupled.numel()
     ok = torch.ones(b, dtype=torch.bool, device=dg.device)
-    dense = scalar = None
+    dense: _Chol | _Twisted | None = None
+    scalar: _Reduction | None = None
     if n:
-        sub_dg = dg if u == 0 else dg[:, :, coupled][:, :, :, coupled]
+        dofs = None if u == 0 else coupled
         sub_lo = lo if u == 0 else lo[..., coupled]
+        if halves is None:
+            halves = t_len >= HALVES_MIN_FRAMES
         with one_thread():
-            dense, good = _factor_dense(sub_dg, sub_lo)
+            if halves and t_len >= 4 * w:
+                dense, good = _factor_twisted(dg, sub_lo, dofs)
+            else:
+                frames = torch.arange(t_len, device=dg.device)
+                dense, good = _factor_dense(dg if dofs is None else _gather(dg, frames, dofs), sub_lo)
         ok &= good
     if u:
         sd = dg.diagonal(dim1=-2, dim2=-1)[..., decoupled]  # (B, T, u)
@@ -352,33 +606,67 @@ def factorize(a: BlockBanded) -> tuple[BandedFactor, Tensor]:
     return BandedFactor(dense, scalar, coupled, decoupled, tuple(batch), d), ok.reshape(batch)
 
 
-def _solve_dense(f: _Chol, b: Tensor) -> Tensor:
-    """f's system, b (B, T, n) -> x (B, T, n)."""
+def _columns(cpl: Tensor, n: int) -> Tensor:
+    """The rows R_t (B, T, n, W n) -> V (B, T, W n, n) with V_t = [B[t+1, 1]; ..; B[t+W, W]] (zero past
+    the end), so that the backward sweep's sum_k B[t+k, k]^T x_{t+k} is V_t^T [x_{t+1}; ..; x_{t+W}]."""
+    t_len, w = cpl.shape[1], cpl.shape[-1] // max(n, 1)
+    v = cpl.new_zeros(cpl.shape[0], t_len, w * n, n)
+    for k in range(1, min(w, t_len - 1) + 1):
+        v[:, : t_len - k, (k - 1) * n : k * n] = cpl[:, k:, :, (w - k) * n : (w - k + 1) * n]
+    return v
+
+
+def _sweep(f: _Chol, b: Tensor, backward: bool) -> Tensor:
+    """One triangular sweep, b (B, T, n) -> (B, T, n): forward y = L^{-1} b,
+    y_t = C_t^{-1} (b_t - R_t [y_{t-W}; ..; y_{t-1}]), or backward x = L^{-T} b,
+    x_t = C_t^{-T} (b_t - V_t^T [x_{t+1}; ..; x_{t+W}]) (`_columns`). The last W results are one
+    contiguous window of a preallocated buffer, so a frame is two matrix-vector products (for one
+    system; batched products of one column for B)."""
     bsz, t_len, n = b.shape
-    w = f.coupling.shape[2]
-    zero = b.new_zeros(bsz, n, 1)
-    cit = f.inv_chol_t.unbind(1)
-    blk = [c.unbind(1) for c in f.coupling.unbind(1)]  # blk[t][k-1] = B[t, k]
-    rhs = b[..., None].unbind(1)
-    y: list[Tensor] = [zero] * w
-    for t in range(t_len):  # y_t = C_t^{-1} (b_t - sum_k B[t, k] y_{t-k})
-        r = rhs[t]
-        for k in range(1, min(w, t) + 1):
-            r = torch.baddbmm(r, blk[t][k - 1], y[t - k + w], alpha=-1)
-        y.append(cit[t].mT @ r)
-    x: list[Tensor] = [zero] * (t_len + w)
-    for t in range(t_len - 1, -1, -1):  # x_t = C_t^{-T} (y_t - sum_k B[t+k, k]^T x_{t+k})
-        r = y[t + w]
-        for k in range(1, min(w, t_len - 1 - t) + 1):
-            r = torch.baddbmm(r, blk[t + k][k - 1].mT, x[t + k], alpha=-1)
-        x[t] = cit[t] @ r
-    return torch.stack(x[:t_len], 1)[..., 0]
+    w = f.coupling.shape[-1] // max(n, 1)
+    buf = b.new_zeros(bsz, (t_len + w) * n)
+    if backward:
+        mats, cit, off, order = _columns(f.coupling, n).mT, f.inv_chol_t, 0, range(t_len - 1, -1, -1)
+    else:
+        mats, cit, off, order = f.coupling, f.inv_chol_t.mT, w, range(t_len)
+    mv: Callable[..., Tensor]
+    addmv: Callable[..., Tensor]
+    if bsz == 1:  # matrix-vector products (less dispatch than batched ones of one)
+        mats, cit, rhs = mats[0], cit[0], b[0]
+        frames, windows = buf[0].view(t_len + w, n), buf[0].unfold(0, w * n, n)
+        mv, addmv = torch.mv, torch.addmv
+    else:
+        mats, cit, rhs = mats.transpose(0, 1), cit.transpose(0, 1), b[..., None].transpose(0, 1)
+        frames, windows = (
+            buf.view(bsz, t_len + w, n, 1).transpose(0, 1),
+            buf.unfold(1, w * n, n)[..., None].transpose(0, 1),
+        )
+        mv, addmv = torch.bmm, torch.baddbmm
+    # frames[t + off] is frame t's result; windows[t + 1] (backward) or windows[t] (forward) the W it reads
+    shift = 1 if backward else 0
+    for t in order:
+        mv(cit[t], addmv(rhs[t], mats[t], windows[t + shift], alpha=-1), out=frames[t + off])
+    return buf.view(bsz, t_len + w, n)[:, off : off + t_len]
+
+
+def _solve_dense(f: _Chol | _Twisted, b: Tensor) -> Tensor:
+    """f's system, b (B, T, n) -> x (B, T, n): the two sweeps."""
+    if isinstance(f, _Twisted):
+        return _solve_twisted(f, b)
+    return _sweep(f, _sweep(f, b, backward=False), backward=True)
+
+
+def _frames(f: _Chol | _Twisted) -> int:
+    if isinstance(f, _Twisted):
+        w = f.sep_inv.shape[-1] // f.halves.inv_chol_t.shape[-1]
+        return f.halves.inv_chol_t.shape[1] + w + f.top
+    return f.inv_chol_t.shape[1]
 
 
 def solve(f: BandedFactor, b: Tensor) -> Tensor:
     """Solve A x = b with `factorize`'s factor; b (..., T, D) -> x (..., T, D)."""
     if f.dense is not None:
-        t_len = f.dense.inv_chol_t.shape[1]
+        t_len = _frames(f.dense)
     else:
         assert f.scalar is not None  # factorize fills at least one of the two
         t_len = f.scalar.diag.shape[1]
@@ -405,14 +693,18 @@ def _marginals(f: _Chol) -> Tensor:
     G_t = [B[t+1, 1]^T .. B[t+W, W]^T], S[t, t] = C_t^{-T} (C_t^{-1} - G_t S[t+1..t+W, t])."""
     cit, cpl = f.inv_chol_t, f.coupling
     if cit.ndim == 2:  # 1 x 1 blocks
-        cit, cpl = cit[..., None, None], cpl[..., None, None]
+        cit, cpl = cit[..., None, None], cpl[..., None, :]
     bsz, t_len, n = cit.shape[0], cit.shape[1], cit.shape[-1]
-    w = cpl.shape[2]
+    w = cpl.shape[-1] // n
     out = cit.new_empty(bsz, t_len, n, n)
     big = cit.new_zeros(bsz, w * n, w * n)  # S over frames t+1 .. t+W (zero past the end)
     for t in range(t_len - 1, -1, -1):
         g = torch.cat(
-            [cpl[:, t + k, k - 1].mT if t + k < t_len else cit.new_zeros(bsz, n, n) for k in range(1, w + 1)], dim=-1
+            [
+                cpl[:, t + k, :, (w - k) * n : (w - k + 1) * n].mT if t + k < t_len else cit.new_zeros(bsz, n, n)
+                for k in range(1, w + 1)
+            ],
+            dim=-1,
         )  # (B, n, W n)
         r = -(cit[:, t] @ (g @ big))  # S[t, t+1 .. t+W]
         s_tt = cit[:, t] @ (cit[:, t].mT - g @ r.mT)
@@ -423,19 +715,23 @@ def _marginals(f: _Chol) -> Tensor:
     return out
 
 
+def _marginals_any(f: _Chol | _Twisted) -> Tensor:
+    return _marginals_twisted(f) if isinstance(f, _Twisted) else _marginals(f)
+
+
 def marginal_blocks(f: BandedFactor) -> Tensor:
     """Diagonal blocks of A^{-1} from `factorize`'s factor -> (..., T, D, D): the marginal
     covariances of a Gaussian with precision A (module docstring; the inverse's band only)."""
     if f.scalar is None:
         assert f.dense is not None
         with one_thread():
-            return _marginals(f.dense).reshape(*f.batch, f.dense.inv_chol_t.shape[1], f.size, f.size)
+            return _marginals_any(f.dense).reshape(*f.batch, _frames(f.dense), f.size, f.size)
     u = f.decoupled.numel()
     bsz, t_len = f.scalar.diag.shape[0] // u, f.scalar.diag.shape[1]
     out = f.scalar.diag.new_zeros(bsz, t_len, f.size, f.size)
     if f.dense is not None:
         with one_thread():
-            out[:, :, f.coupled[:, None], f.coupled] = _marginals(f.dense)
+            out[:, :, f.coupled[:, None], f.coupled] = _marginals_any(f.dense)
     chol, _ = _factor_scalar(f.scalar.diag, f.scalar.lower)  # sequential, once: the variances need L
     var = _marginals(chol)[..., 0, 0].reshape(bsz, u, t_len).permute(0, 2, 1)
     out[:, :, f.decoupled, f.decoupled] = var

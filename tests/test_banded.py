@@ -35,13 +35,17 @@ def diagonal_blocks(m: torch.Tensor, t_len: int, d: int) -> torch.Tensor:
 
 @pytest.mark.parametrize("w", [1, 2, 3])
 @pytest.mark.parametrize("diagonal_coupling", [True, False])
-def test_solve_and_marginals_equal_dense(w, diagonal_coupling):
-    t_len, d = 9, 4
+@pytest.mark.parametrize(("t_len", "halves"), [(9, False), (12, True), (13, True)])
+def test_solve_and_marginals_equal_dense(w, diagonal_coupling, t_len, halves):
+    """One sweep over the frames, or two halves from both ends and a W-frame separator in the
+    middle (odd and even T - W: the top half padded or not)."""
+    d = 4
     a = random_banded(2, t_len, d, w, diagonal_coupling)
     dense = bd.to_dense(a)
     assert torch.allclose(dense, dense.mT)
     assert bool((torch.linalg.eigvalsh(dense) > 0).all())
-    factor, ok = bd.factorize(a)
+    factor, ok = bd.factorize(a, halves=halves)
+    assert isinstance(factor.dense, bd._Twisted) == halves
     assert ok.all()
     b = torch.randn(2, t_len, d, dtype=F64, generator=torch.Generator().manual_seed(1))
     x = bd.solve(factor, b)
@@ -55,7 +59,8 @@ def test_solve_and_marginals_equal_dense(w, diagonal_coupling):
 @pytest.mark.parametrize("w", [1, 2, 3])
 @pytest.mark.parametrize("t_len", [1, 2, 7, 16])
 @pytest.mark.parametrize("alone", [[1, 3], [0, 1, 2, 3, 4]])
-def test_decoupled_dofs_reduced_in_parallel_equal_dense(w, t_len, alone):
+@pytest.mark.parametrize("halves", [False, True])
+def test_decoupled_dofs_reduced_in_parallel_equal_dense(w, t_len, alone, halves):
     """Dofs no per-frame block couples to another (unobserved ones: only priors act on them) are
     split off and solved by cyclic reduction; the result is still the dense solve and inverse."""
     b, d = 2, 5
@@ -69,7 +74,7 @@ def test_decoupled_dofs_reduced_in_parallel_equal_dense(w, t_len, alone):
         diag[..., i, i] = v
     lower = 0.5 * torch.randn(b, t_len, w, d, generator=g, dtype=F64)
     a = bd.BlockBanded(diag + torch.diag_embed(lower.abs().sum(-2) * 2 + 0.5), lower)
-    factor, ok = bd.factorize(a)
+    factor, ok = bd.factorize(a, halves=halves)
     assert ok.all() and factor.decoupled.tolist() == alone
     dense = bd.to_dense(a)
     rhs = torch.randn(b, t_len, d, dtype=F64, generator=g)
@@ -79,23 +84,57 @@ def test_decoupled_dofs_reduced_in_parallel_equal_dense(w, t_len, alone):
     assert torch.allclose(marg, diagonal_blocks(torch.linalg.inv(dense), t_len, d), atol=1e-12, rtol=1e-10)
     bad = a.diagonal.clone()
     bad[1, t_len // 2, alone[0], alone[0]] = -1.0  # an indefinite pivot among the decoupled dofs of system 1
-    factor, ok = bd.factorize(bd.BlockBanded(bad, a.lower))
+    factor, ok = bd.factorize(bd.BlockBanded(bad, a.lower), halves=halves)
     assert ok.tolist() == [True, False] and torch.isfinite(bd.solve(factor, rhs)).all()
 
 
-def test_batched_systems_are_independent_and_failures_flagged():
-    t_len, d = 6, 3
+@pytest.mark.parametrize(
+    ("t_len", "bad_frames", "halves"), [(6, [3], False), (11, [1], True), (11, [5], True), (11, [9], True)]
+)
+def test_batched_systems_are_independent_and_failures_flagged(t_len, bad_frames, halves):
+    """An indefinite frame in the top half, the separator or the bottom half of system 1 fails that
+    system only."""
+    d = 3
     a = random_banded(3, t_len, d, 2, True)
     bad_diag = a.diagonal.clone()
-    bad_diag[1, 3] = -torch.eye(d, dtype=F64)  # system 1 is indefinite
-    factor, ok = bd.factorize(bd.BlockBanded(bad_diag, a.lower))
+    bad_diag[1, bad_frames] = -torch.eye(d, dtype=F64)  # system 1 is indefinite
+    factor, ok = bd.factorize(bd.BlockBanded(bad_diag, a.lower), halves=halves)
     assert ok.tolist() == [True, False, True]
     b = torch.randn(3, t_len, d, dtype=F64)
     x = bd.solve(factor, b)
-    assert torch.isfinite(x).all()
+    assert torch.isfinite(x).all() and torch.isfinite(bd.marginal_blocks(factor)).all()
     for i in (0, 2):
-        single, _ = bd.factorize(bd.BlockBanded(a.diagonal[i], a.lower[i]))
+        single, _ = bd.factorize(bd.BlockBanded(a.diagonal[i], a.lower[i]), halves=False)
         assert torch.allclose(x[i], bd.solve(single, b[i]), atol=1e-13)
+
+
+@pytest.mark.parametrize("diagonal_coupling", [True, False])
+def test_halves_on_two_threads_equal_one_thread(monkeypatch, diagonal_coupling):
+    """With a thread budget of 2 the two halves are factored and swept on two threads: the same factor,
+    solution and marginals as the batched sweep on one thread."""
+    t_len, d = 40, 3
+    a = random_banded(2, t_len, d, 2, diagonal_coupling)
+    b = torch.randn(2, t_len, d, dtype=F64, generator=torch.Generator().manual_seed(2))
+    calls = []
+    pair = bd._pair
+    monkeypatch.setattr(bd, "_pair", lambda *args: calls.append(args[0].__name__) or pair(*args))
+    before = torch.get_num_threads()
+    out = {}
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            factor, ok = bd.factorize(a)
+            out[threads] = (ok, bd.solve(factor, b), bd.marginal_blocks(factor))
+            assert isinstance(factor.dense, bd._Twisted)
+    finally:
+        torch.set_num_threads(before)
+    assert calls == ["_factor_dense", "_sweep", "_sweep"]  # only with 2 threads: factor, forward, backward
+    (ok1, x1, m1), (ok2, x2, m2) = out[1], out[2]
+    assert ok1.all() and ok2.all()
+    torch.testing.assert_close(x2, x1, rtol=0, atol=1e-12)
+    torch.testing.assert_close(m2, m1, rtol=0, atol=1e-12)
+    x_dense = torch.linalg.solve(bd.to_dense(a), b.flatten(-2)).unflatten(-1, (t_len, d))
+    torch.testing.assert_close(x2, x_dense, rtol=1e-10, atol=1e-12)
 
 
 def test_float32_and_shapes_follow_inputs():
