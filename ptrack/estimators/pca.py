@@ -34,7 +34,8 @@ from the envelope theorem. A frame's result is its value in the last window that
 Correspondences (p1 in frame t-1, p2 in frame t; `Problem.correspondences`), where given: before each
 window's solve, every pair whose frame t is in the window has p1 backprojected onto the capsule model of
 the current estimate of frame t-1 (the window's starting state, or the final estimate for the frame
-before the window; a line of sight that misses the model drops the pair for this window) and attached to
+before the window; a line of sight that misses the model, or passes within `pca.correspondence_margin_m` of
+any capsule's surface, drops the pair for this window) and attached to
 the hit capsule's frame; x_i is that body-fixed point moved with frame t's pose in the window, whose
 Jacobian is the geometric one of a point on the segment (`ptrack.jacobians.point_jacobian`). The pair's
 weight (1 for simulated ones) scales its squared residual.
