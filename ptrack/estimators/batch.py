@@ -45,9 +45,10 @@ import torch
 from torch import Tensor
 
 from ptrack.banded import BlockBanded, factorize, marginal_blocks, one_thread
-from ptrack.costs import Reprojection, robust_loss, robust_loss_derivative
+from ptrack.costs import PoseEval, Reprojection, robust_loss, robust_loss_derivative
+from ptrack.costs.base import PoseJacobian
 from ptrack.errors import InputError
-from ptrack.jacobians import joint_jacobian, pose_eval_and_jacobian
+from ptrack.jacobians import joint_jacobian
 from ptrack.limits import wrap_to_limits
 from ptrack.problem import Estimate, Problem
 from ptrack.solvers import BandedLinearization, banded_levenberg_marquardt
@@ -237,14 +238,17 @@ def evaluate(
     H and g are None without `with_jacobian`.
     """
     p = obj.problem
-    sk, cam, kps = p.skeleton, p.observations.camera, p.keypoints
+    sk, cam, kps = p.skeleton, p.observations.camera.to(device=q.device, dtype=q.dtype), p.keypoints
     b_len, t_len, _d = q.shape
     if with_jacobian:
-        ev, jac = pose_eval_and_jacobian(sk, cam.to(device=q.device, dtype=q.dtype), kps, q)
+        joints, dx = joint_jacobian(sk, q)  # (B, T, J, 3), (B, T, J, 3, D)
+        idx = kps.index(q.device)
+        proj, dpix = cam.project_jacobian(joints.index_select(-2, idx))  # d pixels / d X (B, T, K, 2, 3)
+        ev = PoseEval(q=q, joints=joints, pixels=proj.pixels, depth=proj.depth)
     else:
         from ptrack.problem import evaluate_pose
 
-        ev, jac = evaluate_pose(sk, cam.to(device=q.device, dtype=q.dtype), kps, q), None
+        ev, dx = evaluate_pose(sk, cam, kps, q), None
     rp = obj.reprojection
     k = rp.observed.shape[-2]
     r = rp.residual(ev).unflatten(-1, (t_len, k, 2))  # (B, T, K, 2)
@@ -264,13 +268,20 @@ def evaluate(
     terms["keyframes"] = keyframes.index_add(1, obj.jk_frames, 0.5 * jk_r.square().sum((-1, -2)))
     if not with_jacobian:
         return terms, None, None
-    assert jac is not None  # with_jacobian
+    assert dx is not None  # with_jacobian
 
-    w = robust_loss_derivative(rp.loss)(s, rp.scale)  # (B, T, K) IRLS weights
-    jr = rp.jacobian(ev, jac).unflatten(-2, (t_len, 2 * k))  # (B, T, 2K, D), rows (keypoint, x|y)
-    jw = jr * w.repeat_interleave(2, dim=-1)[..., None]
-    h = jw.mT @ jr  # (B, T, D, D): one batched product per frame
-    g = (jw.mT @ r.flatten(-2)[..., None])[..., 0]
+    # J_t^T W J_t of the reprojection: per keypoint, the residual's 2 x 3 derivative w.r.t. its joint
+    # (`Reprojection.jacobian` on d pixels / d X) times sqrt(W), times that joint's geometric Jacobian
+    root_w = robust_loss_derivative(rp.loss)(s, rp.scale).sqrt()[..., None]  # (B, T, K, 1) sqrt IRLS weights
+    jp = rp.jacobian(ev, PoseJacobian(dx, dpix, proj.depth)).unflatten(-2, (t_len, k, 2))  # (B, T, K, 2, 3)
+    jp = jp * root_w[..., None]
+    dkp = dx.index_select(2, idx)  # (B, T, K, 3, D)
+    jw = jp[..., :, 0, None] * dkp[..., None, 0, :]  # three products, not a batched 2 x 3 @ 3 x D per keypoint
+    for c in (1, 2):
+        jw.addcmul_(jp[..., :, c, None], dkp[..., None, c, :])
+    jw = jw.flatten(-3, -2)  # (B, T, 2K, D), rows (keypoint, x|y)
+    h = jw.mT @ jw  # (B, T, D, D): one batched product per frame
+    g = (jw.mT @ (r * root_w).flatten(-2)[..., None])[..., 0]
     outside = ((q < obj.lower) | (q > obj.upper)).to(q.dtype)
     diag = outside * obj.limits_scale**2
     g = g + lim * obj.limits_scale
@@ -278,7 +289,7 @@ def evaluate(
     diag = diag.index_add(1, obj.kf_frames, kf_w2.expand(b_len, -1, -1))
     g = g.index_add(1, obj.kf_frames, kf_r * obj.kf_weight)
     if obj.jk_frames.numel():
-        gj = jac.joints[:, obj.jk_frames] * obj.jk_weight[..., None, None]  # (B, G, J, 3, D)
+        gj = dx[:, obj.jk_frames] * obj.jk_weight[..., None, None]  # (B, G, J, 3, D)
         h.index_add_(1, obj.jk_frames, torch.einsum("bgjcd,bgjce->bgde", gj, gj))
         g = g.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjc->bgd", gj, jk_r))
     h.diagonal(dim1=-2, dim2=-1).add_(diag)  # in place: a diag_embed would write T D^2 zeros
@@ -407,7 +418,8 @@ def estimate_batch(
     Solved in float64 on the observations' device; the Estimate is in the observations' dtype.
 
     callback(iteration, q (1, T, D), cost (1,)) is called after every solver iteration. Runs on one
-    intra-op thread (`ptrack.banded.one_thread`: small per-frame products, shared cores)."""
+    intra-op thread (`ptrack.banded.one_thread`: small per-frame products, shared cores); with torch
+    allowed 2 or more threads, the two halves of the banded factorisation and solve run on two."""
     with one_thread():
         return _estimate(problem, cfg, generator, progress, callback)
 
