@@ -159,20 +159,23 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_pool)
 
 
-def _parallel(device: torch.device) -> bool:
-    """Whether the two halves run on two threads: a thread budget (`one_thread`) of 2 or more, on the CPU."""
+def parallel_halves(device: torch.device) -> bool:
+    """Whether two halves of a sequence run on two threads (`on_two_threads`): a thread budget
+    (`one_thread`) of 2 or more, on the CPU."""
     return device.type == "cpu" and getattr(_OUTER, "threads", torch.get_num_threads()) >= 2
 
 
-def _pair(fn: Callable, top: tuple, bottom: tuple) -> tuple:
-    """(fn(*top), fn(*bottom)), the top on a second thread (`_parallel` says when)."""
+def on_two_threads(fn: Callable, first: tuple, second: tuple) -> tuple:
+    """(fn(*first), fn(*second)), the first on a second thread (one worker for the process, one
+    intra-op thread; torch ops release the GIL, so the two run at once). Callers ask
+    `parallel_halves` first."""
     global _POOL
     if _POOL is None:  # one worker, for the process's life, on one intra-op thread
         _POOL = ThreadPoolExecutor(
             max_workers=1, thread_name_prefix="ptrack-banded", initializer=torch.set_num_threads, initargs=(1,)
         )
-    job = _POOL.submit(fn, *top)
-    last = fn(*bottom)
+    job = _POOL.submit(fn, *first)
+    last = fn(*second)
     return job.result(), last
 
 
@@ -311,9 +314,9 @@ def _factor_twisted(diag: Tensor, lower: Tensor, dofs: Tensor | None) -> tuple[_
     m = (t_len - w) // 2
     big_m = t_len - w - m
     d2, l2 = _split_halves(diag, lower, m, dofs)
-    if _parallel(d2.device):  # the two halves on two threads, into one factor of 2B
+    if parallel_halves(d2.device):  # the two halves on two threads, into one factor of 2B
         out = (d2.new_empty(2 * b, big_m, n, n), d2.new_empty(2 * b, big_m, n, w * n))
-        (_, ok_top), (_, ok_bot) = _pair(
+        (_, ok_top), (_, ok_bot) = on_two_threads(
             _factor_dense,
             (d2[:b], l2[:b], (out[0][:b], out[1][:b])),
             (d2[b:], l2[b:], (out[0][b:], out[1][b:])),
@@ -357,14 +360,17 @@ def _factor_twisted(diag: Tensor, lower: Tensor, dofs: Tensor | None) -> tuple[_
     return _Twisted(halves, zz, sep_inv, m), ok
 
 
-def _sweep_halves(f: _Chol, b: Tensor, backward: bool) -> Tensor:
+def _sweep_halves(f: _Chol, buf: Tensor, out: Tensor | None = None) -> None:
     """`_sweep` of the 2B systems of `_Twisted.halves`: as one batch, or each half on its own thread."""
-    if not _parallel(b.device):
-        return _sweep(f, b, backward)
-    h = b.shape[0] // 2
+    if not parallel_halves(buf.device):
+        _sweep(f, buf, out)
+        return
+    h = buf.shape[0] // 2
     top = _Chol(f.inv_chol_t[:h], f.coupling[:h])
     bottom = _Chol(f.inv_chol_t[h:], f.coupling[h:])
-    return torch.cat(_pair(_sweep, (top, b[:h], backward), (bottom, b[h:], backward)))
+    on_two_threads(
+        _sweep, (top, buf[:h], None if out is None else out[:h]), (bottom, buf[h:], None if out is None else out[h:])
+    )
 
 
 def _solve_twisted(f: _Twisted, b: Tensor) -> Tensor:
@@ -375,17 +381,18 @@ def _solve_twisted(f: _Twisted, b: Tensor) -> Tensor:
     m = f.top
     big_m = t_len - w - m
     pad = big_m - m
-    halves = torch.cat([torch.nn.functional.pad(b[:, :m], (0, 0, pad, 0)), b[:, m + w :].flip(1)])
-    y = _sweep_halves(f.halves, halves, backward=False)  # (2B, M, n)
-    last = y[:, big_m - w :].reshape(2 * bsz, w * n, 1)
+    # the halves' right-hand sides after W zero frames (and the top's M - m padding frames)
+    buf = torch.cat([torch.nn.functional.pad(b[:, :m], (0, 0, w + pad, 0)), _padded(b[:, m + w :].flip(1), w)])
+    _sweep_halves(f.halves, buf)  # buf[:, W:] = y (2B, M, n)
+    last = buf[:, w + big_m - w :].reshape(2 * bsz, w * n, 1)
     zy = (f.z.mT @ last)[..., 0]  # (2B, W n): the bottom's in reversed frame order
     zy_bot = zy[bsz:].reshape(bsz, w, n).flip(1).reshape(bsz, w * n)
     y_sep = f.sep_inv @ (b[:, m : m + w].reshape(bsz, w * n) - zy[:bsz] - zy_bot)[..., None]
     x_sep = f.sep_inv.mT @ y_sep  # (B, W n, 1)
     x_rev = x_sep.reshape(bsz, w, n).flip(1).reshape(bsz, w * n, 1)
-    y = y.clone()
-    y[:, big_m - w :] -= (f.z @ torch.cat([x_sep, x_rev]))[..., 0].reshape(2 * bsz, w, n)
-    x = _sweep_halves(f.halves, y, backward=True)
+    buf[:, w + big_m - w :] -= (f.z @ torch.cat([x_sep, x_rev]))[..., 0].reshape(2 * bsz, w, n)
+    x = b.new_empty(2 * bsz, big_m, n)
+    _sweep_halves(f.halves, buf, x)
     return torch.cat([x[:bsz, pad:], x_sep.reshape(bsz, w, n), x[bsz:].flip(1)], 1)
 
 
@@ -400,22 +407,23 @@ def _marginals_twisted(f: _Twisted) -> Tensor:
     m = f.top
     pad = big_m - m
     own = _marginals(halves)  # (2B, M, n, n)
-    # V = L_h^{-T} [0; Z]: backward sweep with W n right-hand sides
+    # S = (C_s C_s^T)^{-1} = Q Q^T with Q = C_s^{-T}, so V_t S V_t^T = (V_t Q)(V_t Q)^T; the bottom
+    # half's columns run backwards in time: its Q's rows reversed by frame block
+    rev = torch.arange(w - 1, -1, -1, device=z.device)
+    idx = (rev[:, None] * n + torch.arange(n, device=z.device)).flatten()
+    q_both = torch.cat([f.sep_inv.mT, f.sep_inv.mT[:, idx]])  # (2B, W n, W n)
+    # V = L_h^{-T} [0; Z]: a backward sweep with W n right-hand sides, keeping only its last W rows
     v_cols = _columns(halves.coupling, n)  # (2B, M, W n, n)
-    out_v = z.new_zeros(b2, big_m, n, w * n)
     zf = z.reshape(b2, w, n, w * n)
-    win = [z.new_zeros(b2, n, w * n) for _ in range(w)]  # x_{t+1} .. x_{t+W}
+    win = [z.new_zeros(b2, n, w * n) for _ in range(w)]  # V_{t+1} .. V_{t+W}
     for t in range(big_m - 1, -1, -1):
         r = zf[:, t - (big_m - w)] if t >= big_m - w else z.new_zeros(b2, n, w * n)
         r = torch.baddbmm(r, v_cols[:, t].mT, torch.cat(win, 1), alpha=-1)
-        x = halves.inv_chol_t[:, t] @ r
-        out_v[:, t] = x
+        x = halves.inv_chol_t[:, t] @ r  # V_t (2B, n, W n)
+        vq = x @ q_both
+        own[:, t] = torch.baddbmm(own[:, t], vq, vq.mT)
         win = [x] + win[:-1]
-    s_sep = f.sep_inv.mT @ f.sep_inv  # (B, W n, W n) = (C_s C_s^T)^{-1}
-    rev = torch.arange(w - 1, -1, -1, device=z.device)
-    idx = (rev[:, None] * n + torch.arange(n, device=z.device)).flatten()
-    s_both = torch.cat([s_sep, s_sep[:, idx][:, :, idx]])  # the bottom's in reversed frame order
-    own = own + out_v @ s_both[:, None] @ out_v.mT
+    s_sep = f.sep_inv.mT @ f.sep_inv  # (B, W n, W n)
     sep_blocks = torch.stack([s_sep[:, i * n : (i + 1) * n, i * n : (i + 1) * n] for i in range(w)], 1)
     return torch.cat([own[:bsz, pad:], sep_blocks, own[bsz:].flip(1)], 1)
 
@@ -616,44 +624,60 @@ def _columns(cpl: Tensor, n: int) -> Tensor:
     return v
 
 
-def _sweep(f: _Chol, b: Tensor, backward: bool) -> Tensor:
-    """One triangular sweep, b (B, T, n) -> (B, T, n): forward y = L^{-1} b,
-    y_t = C_t^{-1} (b_t - R_t [y_{t-W}; ..; y_{t-1}]), or backward x = L^{-T} b,
-    x_t = C_t^{-T} (b_t - V_t^T [x_{t+1}; ..; x_{t+W}]) (`_columns`). The last W results are one
-    contiguous window of a preallocated buffer, so a frame is two matrix-vector products (for one
-    system; batched products of one column for B)."""
-    bsz, t_len, n = b.shape
+def _sweep(f: _Chol, buf: Tensor, out: Tensor | None = None) -> None:
+    """One triangular sweep in place over buf (B, T + W, n), whose first W frames are zeros.
+
+    Forward (out None): buf[:, W:] holds b and becomes y = L^{-1} b, frame by frame
+    y_t = C_t^{-1} (b_t - R_t [y_{t-W}; ..; y_{t-1}]) (the W frames before t are one contiguous window).
+    Backward: buf[:, W:] holds y and out (B, T, n) receives x = L^{-T} y, from the last frame:
+    x_t = C_t^{-T} y_t, then the window of the W frames before t loses R_t^T x_t (each x_t's share in
+    its predecessors' equations), so no column of L is gathered. Two matrix-vector products per frame
+    (for one system; batched products of one column for B)."""
+    bsz, n = buf.shape[0], buf.shape[2]
     w = f.coupling.shape[-1] // max(n, 1)
-    buf = b.new_zeros(bsz, (t_len + w) * n)
-    if backward:
-        mats, cit, off, order = _columns(f.coupling, n).mT, f.inv_chol_t, 0, range(t_len - 1, -1, -1)
-    else:
-        mats, cit, off, order = f.coupling, f.inv_chol_t.mT, w, range(t_len)
-    mv: Callable[..., Tensor]
-    addmv: Callable[..., Tensor]
+    t_len = buf.shape[1] - w
+    flat = buf.view(bsz, (t_len + w) * n)
     if bsz == 1:  # matrix-vector products (less dispatch than batched ones of one)
-        mats, cit, rhs = mats[0], cit[0], b[0]
-        frames, windows = buf[0].view(t_len + w, n), buf[0].unfold(0, w * n, n)
-        mv, addmv = torch.mv, torch.addmv
-    else:
-        mats, cit, rhs = mats.transpose(0, 1), cit.transpose(0, 1), b[..., None].transpose(0, 1)
-        frames, windows = (
-            buf.view(bsz, t_len + w, n, 1).transpose(0, 1),
-            buf.unfold(1, w * n, n)[..., None].transpose(0, 1),
-        )
-        mv, addmv = torch.bmm, torch.baddbmm
-    # frames[t + off] is frame t's result; windows[t + 1] (backward) or windows[t] (forward) the W it reads
-    shift = 1 if backward else 0
-    for t in order:
-        mv(cit[t], addmv(rhs[t], mats[t], windows[t + shift], alpha=-1), out=frames[t + off])
-    return buf.view(bsz, t_len + w, n)[:, off : off + t_len]
+        cit, rows = f.inv_chol_t[0], f.coupling[0]
+        frames, windows = buf[0], flat[0].unfold(0, w * n, n)
+        if out is None:
+            for t in range(t_len):
+                torch.mv(cit[t].mT, torch.addmv(frames[t + w], rows[t], windows[t], alpha=-1), out=frames[t + w])
+            return
+        x = out[0]
+        for t in range(t_len - 1, -1, -1):
+            torch.mv(cit[t], frames[t + w], out=x[t])
+            if t:
+                windows[t].addmv_(rows[t].mT, x[t], alpha=-1)
+        return
+    cit, rows = f.inv_chol_t.transpose(0, 1), f.coupling.transpose(0, 1)  # frame-major
+    frames = buf[..., None].transpose(0, 1)  # (T + W, B, n, 1)
+    windows = flat.unfold(1, w * n, n)[..., None].transpose(0, 1)  # (T + 1, B, W n, 1)
+    if out is None:
+        for t in range(t_len):
+            torch.bmm(cit[t].mT, torch.baddbmm(frames[t + w], rows[t], windows[t], alpha=-1), out=frames[t + w])
+        return
+    x = out[..., None].transpose(0, 1)
+    for t in range(t_len - 1, -1, -1):
+        torch.bmm(cit[t], frames[t + w], out=x[t])
+        if t:
+            windows[t].baddbmm_(rows[t].mT, x[t], alpha=-1)
+
+
+def _padded(b: Tensor, w: int) -> Tensor:
+    """b (B, T, n) -> (B, W + T, n) with W zero frames first: a buffer for `_sweep`."""
+    return torch.nn.functional.pad(b, (0, 0, w, 0))
 
 
 def _solve_dense(f: _Chol | _Twisted, b: Tensor) -> Tensor:
     """f's system, b (B, T, n) -> x (B, T, n): the two sweeps."""
     if isinstance(f, _Twisted):
         return _solve_twisted(f, b)
-    return _sweep(f, _sweep(f, b, backward=False), backward=True)
+    buf = _padded(b, f.coupling.shape[-1] // max(b.shape[-1], 1))
+    _sweep(f, buf)
+    x = torch.empty_like(b)
+    _sweep(f, buf, x)
+    return x
 
 
 def _frames(f: _Chol | _Twisted) -> int:

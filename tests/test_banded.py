@@ -116,8 +116,8 @@ def test_halves_on_two_threads_equal_one_thread(monkeypatch, diagonal_coupling):
     a = random_banded(2, t_len, d, 2, diagonal_coupling)
     b = torch.randn(2, t_len, d, dtype=F64, generator=torch.Generator().manual_seed(2))
     calls = []
-    pair = bd._pair
-    monkeypatch.setattr(bd, "_pair", lambda *args: calls.append(args[0].__name__) or pair(*args))
+    pair = bd.on_two_threads
+    monkeypatch.setattr(bd, "on_two_threads", lambda *args: calls.append(args[0].__name__) or pair(*args))
     before = torch.get_num_threads()
     out = {}
     try:
