@@ -99,6 +99,40 @@ def test_partial_angle_and_joint_keyframes(tmp_path):
     assert float((est.joints[25, rhand] - gt_j[25, rhand].to(est.q)).norm()) < 0.02
 
 
+def test_linearisation_on_two_threads_equals_one(tmp_path, monkeypatch):
+    """From 64 frames on, with a thread budget of 2, the per-frame part of the linearisation runs on the
+    two halves of the sequence on two threads: the same energies, Hessian blocks and gradient (a joint
+    keyframe included), and the same as one thread."""
+    import ptrack.estimators.batch as batch
+
+    cfg = load_config(BATCH, ["data.stop=320", "progress=false"])  # 80 frames
+    prep = prepare(cfg)
+    sk, gt_q, gt_j = prep.problem.skeleton, prep.gt_q, prep.gt_joints
+    rhand = sk.joint_names.index("rwrist")
+    keys = [
+        {"frame": 0, "q": [float(v) for v in gt_q[0]]},
+        {"frame": 79, "q": [float(v) for v in gt_q[79]]},
+        {"frame": 50, "joints": {"rwrist": [float(v) for v in gt_j[50, rhand]]}},
+    ]
+    path = tmp_path / "keys.json"
+    path.write_text(json.dumps({"units": "radians", "keyframes": keys}))
+    cfg = load_config(BATCH, ["data.stop=320", "progress=false", f"keyframes.file={path}", "batch.init=keyframes"])
+    prep = prepare(cfg)
+    obj = trajectory_objective(prep.problem, cfg, torch.float64, torch.device("cpu"))
+    assert obj.jk_frames.tolist() == [50] and obj.problem.observations.num_frames == 80
+    q = batch.interpolate_keyframes(prep.problem, obj.lower, obj.upper)[None]
+    q = q + 0.01 * torch.randn(q.shape, generator=torch.Generator().manual_seed(0), dtype=q.dtype)
+    out = {}
+    for two in (False, True):
+        monkeypatch.setattr(batch, "parallel_halves", lambda device, two=two: two)
+        out[two] = batch.evaluate(obj, q)
+    (terms1, h1, g1), (terms2, h2, g2) = out[False], out[True]
+    for name in terms1:
+        torch.testing.assert_close(terms2[name], terms1[name], rtol=0, atol=0)
+    torch.testing.assert_close(h2, h1, rtol=0, atol=0)
+    torch.testing.assert_close(g2, g1, rtol=0, atol=0)
+
+
 def test_joint_std_is_calibrated_and_logged(tmp_path):
     out = tmp_path / "run"
     assert main(["run", str(BATCH), *SHORT[:2], "batch.uncertainty=true", f"out_dir={out}"]) == 0

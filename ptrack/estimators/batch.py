@@ -39,12 +39,13 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from ptrack.banded import BlockBanded, factorize, marginal_blocks, one_thread
+from ptrack.banded import BlockBanded, factorize, marginal_blocks, on_two_threads, one_thread, parallel_halves
 from ptrack.costs import PoseEval, Reprojection, robust_loss, robust_loss_derivative
 from ptrack.costs.base import PoseJacobian
 from ptrack.errors import InputError
@@ -54,6 +55,7 @@ from ptrack.problem import Estimate, Problem
 from ptrack.solvers import BandedLinearization, banded_levenberg_marquardt
 
 log = logging.getLogger(__name__)
+_MIN_PART = 32  # `evaluate` splits the frames in two halves for two threads from 2 * _MIN_PART frames
 
 
 @dataclass(frozen=True, eq=False)
@@ -240,15 +242,34 @@ def evaluate(
     p = obj.problem
     sk, cam, kps = p.skeleton, p.observations.camera.to(device=q.device, dtype=q.dtype), p.keypoints
     b_len, t_len, _d = q.shape
+    idx = kps.index(q.device)
+    # the per-frame work (joint Jacobians, projections, J^T W J) runs on the two halves of the
+    # sequence at once when torch may use two threads (`ptrack.banded.parallel_halves`)
+    parts = [slice(0, t_len)]
+    if with_jacobian and t_len >= 2 * _MIN_PART and parallel_halves(q.device):
+        parts = [slice(0, t_len // 2), slice(t_len // 2, t_len)]
+
+    def per_parts(fn: Callable[..., Any], extra: list | None = None) -> list:
+        """fn(part, extra[i]) for every part, on two threads if two."""
+        args = [(part,) if extra is None else (part, e) for part, e in zip(parts, extra or parts)]
+        return [fn(*args[0])] if len(parts) == 1 else list(on_two_threads(fn, args[0], args[1]))
+
+    dx: list[Tensor] | None = None
     if with_jacobian:
-        joints, dx = joint_jacobian(sk, q)  # (B, T, J, 3), (B, T, J, 3, D)
-        idx = kps.index(q.device)
-        proj, dpix = cam.project_jacobian(joints.index_select(-2, idx))  # d pixels / d X (B, T, K, 2, 3)
-        ev = PoseEval(q=q, joints=joints, pixels=proj.pixels, depth=proj.depth)
+
+        def geometry(part: slice) -> tuple[Tensor, ...]:
+            joints, dx = joint_jacobian(sk, q[:, part])  # (B, t, J, 3), (B, t, J, 3, D)
+            proj, dpix = cam.project_jacobian(joints.index_select(-2, idx))  # d pixels / d X (B, t, K, 2, 3)
+            return joints, dx, proj.pixels, proj.depth, dpix
+
+        geo = per_parts(geometry)
+        joints, pixels, depth, dpix = (torch.cat([part[i] for part in geo], 1) for i in (0, 2, 3, 4))
+        dx = [part[1] for part in geo]  # each part's (B, t, J, 3, D), not joined: only read per part
+        ev = PoseEval(q=q, joints=joints, pixels=pixels, depth=depth)
     else:
         from ptrack.problem import evaluate_pose
 
-        ev, dx = evaluate_pose(sk, cam, kps, q), None
+        ev = evaluate_pose(sk, cam, kps, q)
     rp = obj.reprojection
     k = rp.observed.shape[-2]
     r = rp.residual(ev).unflatten(-1, (t_len, k, 2))  # (B, T, K, 2)
@@ -273,15 +294,23 @@ def evaluate(
     # J_t^T W J_t of the reprojection: per keypoint, the residual's 2 x 3 derivative w.r.t. its joint
     # (`Reprojection.jacobian` on d pixels / d X) times sqrt(W), times that joint's geometric Jacobian
     root_w = robust_loss_derivative(rp.loss)(s, rp.scale).sqrt()[..., None]  # (B, T, K, 1) sqrt IRLS weights
-    jp = rp.jacobian(ev, PoseJacobian(dx, dpix, proj.depth)).unflatten(-2, (t_len, k, 2))  # (B, T, K, 2, 3)
+    jp = rp.jacobian(ev, PoseJacobian(ev.joints, dpix, ev.depth)).unflatten(-2, (t_len, k, 2))  # (B, T, K, 2, 3)
     jp = jp * root_w[..., None]
-    dkp = dx.index_select(2, idx)  # (B, T, K, 3, D)
-    jw = jp[..., :, 0, None] * dkp[..., None, 0, :]  # three products, not a batched 2 x 3 @ 3 x D per keypoint
-    for c in (1, 2):
-        jw.addcmul_(jp[..., :, c, None], dkp[..., None, c, :])
-    jw = jw.flatten(-3, -2)  # (B, T, 2K, D), rows (keypoint, x|y)
-    h = jw.mT @ jw  # (B, T, D, D): one batched product per frame
-    g = (jw.mT @ (r * root_w).flatten(-2)[..., None])[..., 0]
+    rw = (r * root_w).flatten(-2)[..., None]  # (B, T, 2K, 1)
+    h = q.new_empty(b_len, t_len, _d, _d)
+    g = q.new_empty(b_len, t_len, _d)
+
+    def normal_equations(part: slice, dx_part: Tensor) -> None:
+        dkp = dx_part.index_select(2, idx)  # (B, t, K, 3, D)
+        jp_part = jp[:, part]
+        jw = jp_part[..., :, 0, None] * dkp[..., None, 0, :]  # three products, not a batched 2 x 3 @ 3 x D each
+        for c in (1, 2):
+            jw.addcmul_(jp_part[..., :, c, None], dkp[..., None, c, :])
+        jw = jw.flatten(-3, -2)  # (B, t, 2K, D), rows (keypoint, x|y)
+        torch.matmul(jw.mT, jw, out=h[:, part])  # one batched product per frame, in place
+        torch.matmul(jw.mT, rw[:, part], out=g[:, part, :, None])
+
+    per_parts(normal_equations, dx)
     outside = ((q < obj.lower) | (q > obj.upper)).to(q.dtype)
     diag = outside * obj.limits_scale**2
     g = g + lim * obj.limits_scale
@@ -289,7 +318,8 @@ def evaluate(
     diag = diag.index_add(1, obj.kf_frames, kf_w2.expand(b_len, -1, -1))
     g = g.index_add(1, obj.kf_frames, kf_r * obj.kf_weight)
     if obj.jk_frames.numel():
-        gj = dx[:, obj.jk_frames] * obj.jk_weight[..., None, None]  # (B, G, J, 3, D)
+        _, dx_jk = joint_jacobian(sk, q[:, obj.jk_frames])
+        gj = dx_jk * obj.jk_weight[..., None, None]  # (B, G, J, 3, D)
         h.index_add_(1, obj.jk_frames, torch.einsum("bgjcd,bgjce->bgde", gj, gj))
         g = g.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjc->bgd", gj, jk_r))
     h.diagonal(dim1=-2, dim2=-1).add_(diag)  # in place: a diag_embed would write T D^2 zeros
