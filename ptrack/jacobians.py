@@ -2,6 +2,8 @@
 objective's stacked residuals (chain rule through the joints, FK still once).
 
     joint_jacobian(sk, q (..., D)) -> joints (..., J, 3), jac (..., J, 3, D)
+    point_jacobian(sk, q (..., D), joint (..., P), local (..., P, 3)) -> points (..., P, 3), jac (..., P, 3, D)
+    joint_and_point_jacobian(sk, q, joint, local) -> both of the above, FK once
     residual_jacobian(sk, residual_fn, q (..., D)) -> r (..., M), jac (..., M, D)
     objective_linearization(sk, objective, camera, keypoints) -> q (N, D) -> Linearization
 
@@ -154,8 +156,47 @@ def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
     """
     joints, rot = sk.forward_kinematics(q, rotations=True)
     c = _constants(sk, q.dtype, q.device)
-    batch = q.shape[:-1]
     a, o = _slot_axes(c, q, joints, rot)
+    return joints, _joint_rows(sk, c, q, joints, rot, a, o)
+
+
+def point_jacobian(sk: Skeleton, q: Tensor, joint: Tensor, local: Tensor) -> tuple[Tensor, Tensor]:
+    """Points rigidly attached to joints' frames and their geometric Jacobian w.r.t. the pose, one FK pass.
+
+    q (..., D); joint (..., P) long: the skeleton joint y whose frame carries each point; local (..., P, 3):
+    the point in that frame (origin p_y, axes y's world rotation G_y). joint and local broadcast against
+    q's batch dims. -> points x = p_y + G_y local (..., P, 3) metres and jac (..., P, 3, D) = d x / d q.
+
+    The point moves with y's body: every slot s of y or of an ancestor turns it about the slot's world
+    axis a_s through the pivot o_s (d x / d th_s = a_s x (x - o_s), as for the joints; mimic slots
+    scaled by their multiplier), a prismatic ancestor slides it along G_i s_i, a root translation dof
+    moves it by its unit vector. Follows q's dtype and device.
+    """
+    joints, rot = sk.forward_kinematics(q, rotations=True)
+    c = _constants(sk, q.dtype, q.device)
+    a, o = _slot_axes(c, q, joints, rot)
+    return _point_rows(sk, c, q, joints, rot, a, o, joint, local)
+
+
+def joint_and_point_jacobian(
+    sk: Skeleton, q: Tensor, joint: Tensor, local: Tensor, fk: tuple[Tensor, Tensor] | None = None
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """`joint_jacobian` and `point_jacobian` of the same poses from one FK pass (and one set of slot axes):
+    q (..., D), joint (..., P), local (..., P, 3) as in `point_jacobian` -> joints (..., J, 3), their
+    jac (..., J, 3, D), points (..., P, 3) and theirs (..., P, 3, D) (broadcast batch dims), each equal to
+    what the two functions return. fk: `sk.forward_kinematics(q, rotations=True)` (joints (..., J, 3),
+    world rotations (..., J, 3, 3)) if already computed."""
+    joints, rot = sk.forward_kinematics(q, rotations=True) if fk is None else fk
+    c = _constants(sk, q.dtype, q.device)
+    a, o = _slot_axes(c, q, joints, rot)
+    points, point_jac = _point_rows(sk, c, q, joints, rot, a, o, joint, local)
+    return joints, _joint_rows(sk, c, q, joints, rot, a, o), points, point_jac
+
+
+def _joint_rows(sk: Skeleton, c: dict, q: Tensor, joints: Tensor, rot: Tensor, a: Tensor, o: Tensor) -> Tensor:
+    """`joint_jacobian`'s jac (..., J, 3, D) from an FK pass of q (..., D) (joints (..., J, 3), world
+    rotations (..., J, 3, 3)) and its slot axes and pivots a, o (..., S, 3) (`_slot_axes`)."""
+    batch = q.shape[:-1]
     # for each (joint y, slot s) pair with y in the subtree of s's joint: a_s x (p_y - o_s)
     pair_a = a.index_select(-2, c["pair_slot"])  # (..., P, 3)
     lever = joints.index_select(-2, c["pair_joint"]) - o.index_select(-2, c["pair_slot"])
@@ -175,24 +216,22 @@ def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
     jac = jac.unflatten(-1, (joints.shape[-2], 3, sk.num_dofs))
     if c["trans_dof"].numel():
         jac[..., c["trans_axis"], c["trans_dof"]] = 1.0
-    return joints, jac
+    return jac
 
 
-def point_jacobian(sk: Skeleton, q: Tensor, joint: Tensor, local: Tensor) -> tuple[Tensor, Tensor]:
-    """Points rigidly attached to joints' frames and their geometric Jacobian w.r.t. the pose, one FK pass.
-
-    q (..., D); joint (..., P) long: the skeleton joint y whose frame carries each point; local (..., P, 3):
-    the point in that frame (origin p_y, axes y's world rotation G_y). joint and local broadcast against
-    q's batch dims. -> points x = p_y + G_y local (..., P, 3) metres and jac (..., P, 3, D) = d x / d q.
-
-    The point moves with y's body: every slot s of y or of an ancestor turns it about the slot's world
-    axis a_s through the pivot o_s (d x / d th_s = a_s x (x - o_s), as for the joints; mimic slots
-    scaled by their multiplier), a prismatic ancestor slides it along G_i s_i, a root translation dof
-    moves it by its unit vector. Follows q's dtype and device.
-    """
-    joints, rot = sk.forward_kinematics(q, rotations=True)
-    c = _constants(sk, q.dtype, q.device)
-    a, o = _slot_axes(c, q, joints, rot)
+def _point_rows(
+    sk: Skeleton,
+    c: dict,
+    q: Tensor,
+    joints: Tensor,
+    rot: Tensor,
+    a: Tensor,
+    o: Tensor,
+    joint: Tensor,
+    local: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """`point_jacobian`'s points (..., P, 3) and jac (..., P, 3, D) from an FK pass of q (..., D) (joints
+    (..., J, 3), world rotations (..., J, 3, 3)) and its slot axes and pivots a, o (..., S, 3)."""
     key = ("point_jacobian", q.dtype, str(q.device))
     pc = sk._cache.get(key)
     if pc is None:  # (J, S) slot s turns joint y's body; (S, D) each slot's dof with its multiplier; same for sliders

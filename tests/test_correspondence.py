@@ -13,7 +13,13 @@ import torch
 from ptrack.camera import camera_for_motion
 from ptrack.cli import main
 from ptrack.correspondences import Correspondences, simulate_correspondences
-from ptrack.costs.correspondence import anchor_points, backproject, ray_capsule_hit, reprojection_rows
+from ptrack.costs.correspondence import (
+    anchor_points,
+    backproject,
+    backproject_rays,
+    ray_capsule_hit,
+    reprojection_rows,
+)
 from ptrack.errors import InputError
 from ptrack.silhouette import capsule_radii
 from ptrack.skeleton import Skeleton, load_amc
@@ -94,6 +100,12 @@ def test_backprojection_hits_the_front_capsule():
     # a pixel beside both capsules misses
     miss = backproject(cam, centre + torch.tensor([90.0, 0.0], dtype=F64), joints, rot, bones, radii)
     assert not bool(miss.valid) and float(radii[far]) > 0
+    # the same from the pixels' rays, made beforehand
+    pixels = torch.stack([centre, centre + torch.tensor([90.0, 0.0], dtype=F64)])
+    _, rays = cam.rays(pixels)
+    both = (joints.expand(2, 4, 3), rot.expand(2, 4, 3, 3), bones, radii)
+    for got, want in zip(backproject_rays(cam.center, rays, *both), backproject(cam, pixels, *both)):
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
 
 
 @pytest.fixture(scope="module")

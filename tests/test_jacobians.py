@@ -13,7 +13,13 @@ import torch
 from ptrack.camera import camera_for_motion
 from ptrack.costs import JointLimits, Objective, PoseEval, Reprojection
 from ptrack.errors import InputError
-from ptrack.jacobians import joint_jacobian, objective_linearization, point_jacobian, residual_jacobian
+from ptrack.jacobians import (
+    joint_and_point_jacobian,
+    joint_jacobian,
+    objective_linearization,
+    point_jacobian,
+    residual_jacobian,
+)
 from ptrack.keypoints import make_keypoints
 from ptrack.limits import wrap_to_limits
 from ptrack.problem import evaluate_pose
@@ -159,6 +165,11 @@ def test_point_jacobian_matches_autograd(cmu, model):
     # joint and local broadcast against q's batch dims
     _, shared = point_jacobian(sk, q, joint[0], local[0])
     torch.testing.assert_close(shared[0], jac[0], rtol=0, atol=0)
+    # both from one FK pass (given or not): exactly what the two functions return
+    for fk in (None, (joints, rot)):
+        both = joint_and_point_jacobian(sk, q, joint, local, fk)
+        for got, want in zip(both, (*joint_jacobian(sk, q), points, jac)):
+            torch.testing.assert_close(got, want, rtol=0, atol=0)
 
 
 def test_root_translation_columns_are_unit_vectors(cmu):

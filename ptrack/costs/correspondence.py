@@ -13,6 +13,7 @@ the geometric Jacobian of `ptrack.jacobians.point_jacobian`.
         -> CapsuleHit(point (..., 3), depth (...), bone (...), hit (...))
     backproject(camera, pixels (..., 2), joints (..., J, 3), rotations (..., J, 3, 3), bones (B, 2), radii (B,))
         -> Anchors(joint (...), local (..., 3), bone (...), valid (...))
+    backproject_rays(origin (3,), directions (..., 3), joints, rotations, bones, radii) -> the same, given rays
     anchor_points(anchors, joints (..., J, 3), rotations (..., J, 3, 3)) -> (..., 3)
     reprojection_rows(camera, points (..., 3), d_points (..., 3, Q), target (..., 2), weight (...))
         -> residuals (..., 2), jacobian (..., 2, Q)
@@ -112,11 +113,20 @@ def backproject(
     """The body points seen at `pixels`: pixels (..., 2); joints (..., J, 3) and world rotations
     (..., J, 3, 3) of the pose they are seen in; bones (B, 2) long (parent, child) joint indices; radii (B,)
     metres -> Anchors (...). A pixel whose line of sight misses the model gives valid False."""
-    bones = bones.to(joints.device)
     _, directions = camera.rays(pixels.to(joints))
+    return backproject_rays(camera.center, directions, joints, rotations, bones, radii)
+
+
+def backproject_rays(
+    origin: Tensor, directions: Tensor, joints: Tensor, rotations: Tensor, bones: Tensor, radii: Tensor
+) -> Anchors:
+    """`backproject` of lines of sight given as rays (the pixels' rays from `Camera.rays`, e.g. made once for
+    pixels backprojected on many poses): origin (3,) the camera centre, directions (..., 3) unit; the rest
+    as in `backproject` -> Anchors (...)."""
+    bones = bones.to(joints.device)
     hit = ray_capsule_hit(
-        camera.center.to(joints),
-        directions,
+        origin.to(joints),
+        directions.to(joints),
         joints.index_select(-2, bones[:, 0]),
         joints.index_select(-2, bones[:, 1]),
         radii.to(joints),

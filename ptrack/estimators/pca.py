@@ -38,7 +38,10 @@ before the window; a line of sight that misses the model, or passes within `pca.
 any capsule's surface, drops the pair for this window) and attached to
 the hit capsule's frame; x_i is that body-fixed point moved with frame t's pose in the window, whose
 Jacobian is the geometric one of a point on the segment (`ptrack.jacobians.point_jacobian`). The pair's
-weight (1 for simulated ones) scales its squared residual.
+weight (1 for simulated ones) scales its squared residual. Cost: p1's rays are made once; per window one FK
+pass of the frame before it and the window's starting state serves the backprojection and the solve's first
+linearisation (`StartBody`); each linearisation has one FK pass for joints and points
+(`ptrack.jacobians.joint_and_point_jacobian`) and projects them together.
 
 Start (section 5.1), with no 3D input: the four key postures are found in the 2D wrist track
 (`ptrack.key_postures.detect_key_postures_2d`, rules `motion.key_postures`), every frame's normalised
@@ -65,10 +68,10 @@ import torch
 from torch import Tensor
 
 from ptrack.costs import robust_loss, robust_loss_derivative
-from ptrack.costs.correspondence import Anchors, anchor_points, backproject, reprojection_rows
+from ptrack.costs.correspondence import Anchors, anchor_points, backproject_rays
 from ptrack.costs.ray_silhouette import RaySilhouette, mask_samples
 from ptrack.errors import InputError
-from ptrack.jacobians import joint_jacobian, point_jacobian
+from ptrack.jacobians import joint_and_point_jacobian, joint_jacobian
 from ptrack.key_postures import detect_key_postures_2d, initial_times
 from ptrack.motion_model import (
     MotionModel,
@@ -140,6 +143,7 @@ class Setup:
     # correspondences by second frame t (None: none, or pca.correspondence_weight 0): p1 (T, P, 2) pixels in
     # frame t-1, p2 (T, P, 2) in frame t, weight (T, P) sqrt(pair weight) / sigma_px (0: padding)
     corr: tuple[Tensor, Tensor, Tensor] | None = None
+    corr_rays: Tensor | None = None  # (T, P, 3) unit world rays of p1 (set with corr)
 
     @property
     def m(self) -> int:
@@ -202,10 +206,11 @@ def _setup(problem: Problem, cfg) -> Setup:
     root_xyz = tuple(coord[slot_of[d]] for d in root[3:])
     with torch.no_grad():
         _, rest = sk.forward_kinematics(torch.zeros(sk.num_dofs, dtype=dtype, device=device), rotations=True)
-    corr = None
+    corr = corr_rays = None
     if problem.correspondences is not None and p.correspondence_weight > 0:
         p1, p2, w = problem.correspondences.to(device=device, dtype=dtype).by_frame(obs.num_frames)
         corr = (p1, p2, w.sqrt() / cfg.costs.sigma_px)
+        _, corr_rays = obs.camera.rays(p1)  # backprojected once per window: made once here
     return Setup(
         problem,
         cfg,
@@ -224,6 +229,7 @@ def _setup(problem: Problem, cfg) -> Setup:
         root_xyz,
         rest[0],
         corr,
+        corr_rays,
     )
 
 
@@ -344,6 +350,20 @@ class WindowPairs:
     weight: Tensor
 
 
+@dataclass(frozen=True)
+class StartBody:
+    """A window's body poses at its starting state, computed before its solve for the backprojection and kept
+    for the solve's first linearisation (the LM starts there): key (1, m + f) the state's alpha and mu; q
+    (1, f, D) and dq (1, f, D, m + f) of `_body`; joints (1, f, J, 3) and world rotations (1, f, J, 3, 3) of
+    the skeleton's FK of q."""
+
+    key: Tensor
+    q: Tensor
+    dq: Tensor
+    joints: Tensor
+    rotations: Tensor
+
+
 def _window_linearization(
     s: Setup,
     frames: Tensor,
@@ -351,10 +371,12 @@ def _window_linearization(
     pred: Prediction,
     silhouette: RaySilhouette | None,
     pairs: WindowPairs | None = None,
+    start: StartBody | None = None,
 ) -> Callable[[Tensor], Linearization]:
     """The LM `linearize` of one window: state x (N, m + 7 f) = [alpha, mu, (translation, rotation vector)
     per frame] -> residuals, Jacobian, IRLS weights, energy. ref (N|1, f, 3, 3): the frames' reference
-    root rotations; a frame's rotation is exp(w) ref. pairs: the window's correspondences (`_window_pairs`)."""
+    root rotations; a frame's rotation is exp(w) ref. pairs: the window's correspondences (`_window_pairs`).
+    start: body poses already computed (`_start_pairs`), used for a state whose alpha and mu equal its key."""
     p, cc = s.cfg.pca, s.cfg.costs
     m, f = s.m, frames.shape[0]
     sk, cam = s.problem.skeleton, s.problem.observations.camera
@@ -363,7 +385,12 @@ def _window_linearization(
     scale = cc.robust_scale
     sqrt_joint, sqrt_fg = math.sqrt(p.joint_weight), math.sqrt(p.silhouette_weight)
     sqrt_corr = math.sqrt(p.correspondence_weight)
-    n_joints = sk.num_joints
+    n_joints, n_tracked = sk.num_joints, s.tracked.numel()
+    seen, target, w_seen = s.tracked, obs, w_obs  # what is projected: the tracked joints, and the pairs' points
+    if pairs is not None:
+        n_pairs = pairs.weight.shape[-1]
+        seen = torch.cat([seen, n_joints + torch.arange(n_pairs, device=seen.device)])
+        target, w_seen = torch.cat([obs, pairs.target], -2), torch.cat([w_obs, pairs.weight], -1)
     alpha_pred_sigma = p.alpha_sigma * s.alpha_sigma
     sqrt_prior = math.sqrt(p.alpha_prior_weight)
     fr = torch.arange(f, device=frames.device)
@@ -374,10 +401,15 @@ def _window_linearization(
         n, npar = x.shape
         alpha, mu, g = x[:, :m], x[:, m : m + f], x[:, m + f :].reshape(n, f, 6)
         trans, w = g[..., :3], g[..., 3:]
-        q, dq = _body(s, alpha, mu)
-        xb, dxb_dq = joint_jacobian(sk, q)  # (N, f, J, 3), (N, f, J, 3, D)
-        if pairs is not None:  # the pairs' body-fixed points ride along as extra "joints" J .. J + P - 1
-            xp, dxp_dq = point_jacobian(sk, q, pairs.anchors.joint, pairs.anchors.local)  # (N, f, P, 3(, D))
+        fk = None
+        if start is not None and n == 1 and torch.equal(x[:, : m + f], start.key):  # the same body poses
+            q, dq, fk = start.q, start.dq, (start.joints, start.rotations)
+        else:
+            q, dq = _body(s, alpha, mu)
+        if pairs is None:
+            xb, dxb_dq = joint_jacobian(sk, q)  # (N, f, J, 3), (N, f, J, 3, D)
+        else:  # the pairs' body-fixed points ride along as extra "joints" J .. J + P - 1 (one FK for both)
+            xb, dxb_dq, xp, dxp_dq = joint_and_point_jacobian(sk, q, pairs.anchors.joint, pairs.anchors.local, fk)
             xb, dxb_dq = torch.cat([xb, xp], -2), torch.cat([dxb_dq, dxp_dq], -3)
         dxb = dxb_dq @ dq[:, :, None]  # (N, f, J (+ P), 3, m + f)
         r_w, jl = _exp(w)
@@ -391,18 +423,19 @@ def _window_linearization(
         # d joint / d w_k = (J_l e_k) x lever: (N, f, J, 3 columns k, 3 coordinates)
         dw = torch.linalg.cross(jl.mT[:, :, None], lever[..., None, :].expand(*lever.shape[:-1], 3, 3))
         dj[:, fr[:, None], :, :, w_cols] = dw.permute(1, 3, 0, 2, 4)
-        # tracked joints: robust reprojection
-        proj, dpix = cam.project_jacobian(joints[..., s.tracked, :])
-        r_kp = (proj.pixels - obs) * w_obs[..., None]  # (N, f, K', 2) whitened
-        j_kp = (dpix @ dj[..., s.tracked, :, :]) * w_obs[..., None, None]  # (N, f, K', 2, P)
+        # tracked joints (and the pairs' points, projected with them): robust reprojection
+        proj, dpix = cam.project_jacobian(joints[..., seen, :])
+        r_seen = (proj.pixels - target) * w_seen[..., None]  # (N, f, K' (+ P), 2) whitened
+        j_seen = (dpix @ dj[..., seen, :, :]) * w_seen[..., None, None]  # (N, f, K' (+ P), 2, P)
+        r_kp, j_kp = r_seen[..., :n_tracked, :], j_seen[..., :n_tracked, :, :]
         sq = r_kp.square().sum(-1)
         res = [sqrt_joint * r_kp.reshape(n, -1)]
         jac = [sqrt_joint * j_kp.reshape(n, -1, npar)]
         wts = [drho(sq, scale)[..., None].expand_as(r_kp).reshape(n, -1)]
         energy = 0.5 * p.joint_weight * rho(sq, scale).flatten(1).sum(-1)
         if pairs is not None:  # correspondences: robust reprojection of the moved points against p2
-            x_c, dx_c = joints[..., n_joints:, :], dj[..., n_joints:, :, :]
-            r_c, j_c = reprojection_rows(cam, x_c, dx_c, pairs.target, pairs.weight)
+            r_c, j_c = r_seen[..., n_tracked:, :], j_seen[..., n_tracked:, :, :]  # `reprojection_rows`
+            r_c = torch.where(pairs.weight[..., None] > 0, r_c, torch.zeros_like(r_c))  # a dropped pair's p2: anything
             sq_c = r_c.square().sum(-1)
             res.append(sqrt_corr * r_c.reshape(n, -1))
             jac.append(sqrt_corr * j_c.reshape(n, -1, npar))
@@ -447,30 +480,57 @@ def _silhouette(s: Setup, frames: Tensor) -> RaySilhouette | None:
     )
 
 
-def _world_frames(s: Setup, alpha: Tensor, mu: Tensor, rot: Tensor, trans: Tensor) -> tuple[Tensor, Tensor]:
-    """World joints (k, J, 3) and joint rotations (k, J, 3, 3) of k frames' states: alpha (k, m), mu (k,), root
-    rotations (k, 3, 3), translations (k, 3) (the body turned about its root as in `_window_linearization`)."""
-    q, _ = _body(s, alpha, mu[:, None])
-    xb, rb = s.problem.skeleton.forward_kinematics(q[:, 0], rotations=True)
+def _world_frames(xb: Tensor, rb: Tensor, rot: Tensor, trans: Tensor) -> tuple[Tensor, Tensor]:
+    """World joints (k, J, 3) and joint rotations (k, J, 3, 3) of k frames' body FK (joints xb (k, J, 3),
+    rotations rb (k, J, 3, 3)) turned by root rotations rot (k, 3, 3) about the root and moved by trans (k, 3),
+    as in `_window_linearization`."""
     r0 = xb[:, :1]
     return trans[:, None] + r0 + (xb - r0) @ rot.mT, rot[:, None] @ rb
 
 
-def _backproject(s: Setup, p1: Tensor, joints: Tensor, rotations: Tensor) -> Anchors:
-    """Anchors (k, P) of pixels p1 (k, P, 2) on the capsule model of poses joints (k, J, 3), rotations (k, J, 3, 3)."""
+def _start_pairs(
+    s: Setup, frames: Tensor, a_start: Tensor, mu_start: Tensor, rot_start: Tensor, trans_start: Tensor, before
+) -> tuple[WindowPairs | None, StartBody]:
+    """The window's correspondences (`_window_pairs`) backprojected on the frames before its frames: the final
+    estimate of the frame before the window, then the window's frames but its last at the window's starting
+    state (alpha a_start (m,), mu_start (f,), root rotations (f, 3, 3) and translations (f, 3)); and that
+    state's body poses (`StartBody`), from one FK pass with the frame before. before: the estimate of the frame
+    before the window (alpha (m,), mu (), rotation (3, 3), translation (3,)), None for a window at frame 0."""
+    f = frames.shape[0]
+    q, dq = _body(s, a_start[None], mu_start[None])  # (1, f, D), (1, f, D, m + f)
+    body, rot, trans = q[0], rot_start, trans_start
+    if before is not None:
+        a_b, mu_b, rot_b, trans_b = before
+        q_b, _ = _body(s, a_b[None], mu_b.reshape(1, 1))
+        body, rot, trans = torch.cat([q_b[0], body]), torch.cat([rot_b[None], rot]), torch.cat([trans_b[None], trans])
+    xb, rb = s.problem.skeleton.forward_kinematics(body, rotations=True)  # (f (+ 1), J, 3), (f (+ 1), J, 3, 3)
+    start = StartBody(torch.cat([a_start, mu_start])[None], q, dq, xb[-f:][None], rb[-f:][None])
+    # frame 0 has no pairs: any pose stands before it
+    prev = (
+        torch.arange(f, device=frames.device)
+        if before is not None
+        else (torch.arange(f, device=frames.device) - 1).clamp_min(0)
+    )
+    x_prev, r_prev = _world_frames(xb[prev], rb[prev], rot[prev], trans[prev])
+    return _window_pairs(s, frames, x_prev, r_prev), start
+
+
+def _backproject(s: Setup, rays: Tensor, joints: Tensor, rotations: Tensor) -> Anchors:
+    """Anchors (k, P) of the pixels p1 whose rays (k, P, 3) are given (`Setup.corr_rays`) on the capsule model of
+    poses joints (k, J, 3), rotations (k, J, 3, 3)."""
     bones = torch.as_tensor(s.bones, dtype=torch.long, device=joints.device)
     cam = s.problem.observations.camera
-    return backproject(cam, p1, joints[:, None], rotations[:, None], bones, s.radii)
+    return backproject_rays(cam.center, rays, joints[:, None], rotations[:, None], bones, s.radii)
 
 
 def _window_pairs(s: Setup, frames: Tensor, joints_prev: Tensor, rotations_prev: Tensor) -> WindowPairs | None:
     """The correspondences whose second frame is in the window `frames` (f,), backprojected on the poses of the
     frames before them: joints_prev (f, J, 3), rotations_prev (f, J, 3, 3) (anything for frame 0, which has no
     pairs). None when the run has no correspondences."""
-    if s.corr is None:
+    if s.corr is None or s.corr_rays is None:
         return None
-    p1, p2, w = (x[frames] for x in s.corr)
-    anchors = _backproject(s, p1, joints_prev, rotations_prev)
+    _, p2, w = (x[frames] for x in s.corr)
+    anchors = _backproject(s, s.corr_rays[frames], joints_prev, rotations_prev)
     keep = anchors.valid & (anchors.clearance >= s.cfg.pca.correspondence_margin_m)
     return WindowPairs(anchors, p2, torch.where(keep, w, torch.zeros_like(w)))
 
@@ -479,11 +539,11 @@ def correspondence_residuals(s: Setup, joints: Tensor, rotations: Tensor) -> Ten
     """Per frame t and pair, the correspondence residuals (T, P, 2) (whitened pixels) of a trajectory's world
     joints (T, J, 3) and rotations (T, J, 3, 3): p1 backprojected at frame t-1, moved with frame t. Frame 0
     and pairs that miss the model are 0. None without correspondences."""
-    if s.corr is None:
+    if s.corr is None or s.corr_rays is None:
         return None
-    p1, p2, w = s.corr
+    _, p2, w = s.corr
     prev = (torch.arange(joints.shape[0], device=joints.device) - 1).clamp_min(0)
-    anchors = _backproject(s, p1, joints[prev], rotations[prev])
+    anchors = _backproject(s, s.corr_rays, joints[prev], rotations[prev])
     x = anchor_points(anchors, joints[:, None], rotations[:, None])
     r = (s.problem.observations.camera.project(x).pixels - p2) * w[..., None]
     return torch.where((anchors.valid & (w > 0))[..., None], r, torch.zeros_like(r))
@@ -618,17 +678,12 @@ def estimate_pca(
                 lo[m : m + f] = mu[start - 1]
                 mu_hat = torch.maximum(mu_hat, mu[start - 1])
             pred = Prediction(a_prev, mu_hat, trans_hat, timing=mu_init[frames])
-            pairs = None
+            pairs = body0 = None
             if s.corr is not None:  # backprojected on the window's starting state (frame start - 1: its estimate)
-                k = torch.arange(max(start - 1, 0), start + f - 1, device=device)
-                in_window = k >= start
-                a_k = torch.where(in_window[:, None], a_prev, alpha[k])
-                mu_k = torch.where(in_window, mu_hat[(k - start).clamp_min(0)], mu[k])
-                x_prev, r_prev = _world_frames(s, a_k, mu_k, rot[k], trans[k])
-                if start == 0:  # frame 0 has no pairs: any pose stands before it
-                    x_prev, r_prev = torch.cat([x_prev[:1], x_prev]), torch.cat([r_prev[:1], r_prev])
-                pairs = _window_pairs(s, frames, x_prev, r_prev)
-            lin = _window_linearization(s, frames, rot_hat[None], pred, _silhouette(s, frames), pairs)
+                b = start - 1
+                before = (alpha[b], mu[b], rot[b], trans[b]) if start > 0 else None
+                pairs, body0 = _start_pairs(s, frames, a_prev, mu_hat, rot_hat, trans_hat, before)
+            lin = _window_linearization(s, frames, rot_hat[None], pred, _silhouette(s, frames), pairs, body0)
             x, _ = levenberg_marquardt(lin, _state(a_prev, mu_hat, trans_hat), lo, hi, max_iter=p.iterations, tol=1e-6)
             x = x[0]
             a_prev = x[:m]
