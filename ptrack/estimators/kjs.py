@@ -36,7 +36,8 @@ fitted to frame 0's 2D rigidly and then in every dof under the pose prior; the `
 fits that differ in 3D are expanded by every flip combination of the chains (the product of their
 trees) and the K best distinct minima kept. A frame with no observed
 keypoint is carried by the dynamics. The output's `hypotheses` are the K modes of each frame;
-`q`/`joints` are the best trajectory through them by Viterbi with a velocity prior.
+`q`/`joints` are the best trajectory through them by Viterbi: each mode's own frame cost (data, limits,
+collision, pose prior; `_evidence`) plus a velocity prior between consecutive choices.
 """
 
 from __future__ import annotations
@@ -446,6 +447,19 @@ def _first_modes(s: Setup, strategy: Strategy) -> Modes:
 # ---------------------------------------------------------------- the estimator
 
 
+def _evidence(s: Setup, t: int, q: Tensor) -> Tensor:
+    """Frame t's own cost of poses q (K, D) -> (K,): robust reprojection, limits, collision and the pose
+    prior, without the dynamics term. It is the unary term of the best-trajectory Viterbi pass, whose
+    pairwise term is the dynamics: a mode's tracking cost and weight already hold the dynamics around the
+    mode it came from (and, through the weights, every earlier frame), so using them there would count
+    the dynamics twice and tie the best trajectory to the filter's earlier choices."""
+    prob = s.problem
+    sk = prob.skeleton
+    with torch.no_grad():
+        ev = pose_eval_from_joints(prob.observations.camera, prob.keypoints, q, sk.forward_kinematics(q))
+        return _objective(s, t, None, tracking=True)(ev).total
+
+
 def _pad(modes: Modes, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Modes (M) -> (K, D) q, (K,) weights, (K,) costs, (K, D, D) covariance factors, padding with copies
     of the best at weight 0."""
@@ -499,6 +513,7 @@ def _track(
     ws: list[Tensor] = []
     cs: list[Tensor] = []
     ls: list[Tensor] = []
+    es: list[Tensor] = []
     jumps = []
     modes = None
     for t in progress(range(obs.num_frames)):
@@ -508,9 +523,10 @@ def _track(
             modes, counts = _step(s, t, modes, strategy, generator)
         for out, x in zip((qs, ws, cs, ls), _pad(modes, k.modes)):
             out.append(x)
+        es.append(_evidence(s, t, qs[-1]))
         jumps.append(counts.to(modes.q.device))
     hq, hw, hc = torch.stack(qs), torch.stack(ws), torch.stack(cs)  # (T, K, D), (T, K), (T, K)
-    unary = hc - torch.log(hw.clamp_min(torch.finfo(hw.dtype).tiny))
+    unary = torch.stack(es)
     path = viterbi(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), hq, k.viterbi_sigma)
     frames = torch.arange(hq.shape[0], device=hq.device)
     q = hq[frames, path]
