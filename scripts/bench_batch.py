@@ -1,6 +1,7 @@
 """Benchmark of the batch MAP solver (`method: batch`): speed against scipy, and peak memory.
 
     python scripts/bench_batch.py              # 300 frames, full CMU skeleton (62 dofs), 30 iterations, + scipy
+    python scripts/bench_batch.py --no-scipy   # ptrack's time alone (no scipy: its run takes minutes; no warm start)
     python scripts/bench_batch.py --memory     # peak memory of 3 iterations + joint_std at 1,000 and 10,000 frames
     python scripts/bench_batch.py --warm       # only the warm start (init_from) against a cold re-solve
 
@@ -11,8 +12,11 @@ second, the batch objective with least-squares reprojection (`costs.loss=l2`, so
 start from the keyframes interpolated. Ours: `banded_levenberg_marquardt`, 30 iterations (no early
 stop). scipy: `least_squares(method='trf', jac_sparsity=...)` (finite differences grouped by the
 sparsity, lsmr on the sparse Jacobian), run until its cost is within 1% of ours or `--scipy-nfev`
-evaluations; the script prints both times, both costs and the ratio. One torch thread (the machine's
-2 cores are shared; multithreaded small products were slower here).
+evaluations; the script prints both times, both costs and the ratio, and the wall time of one
+iteration's parts (linearisation, factorisation, solve). Threads as `method: batch` uses them
+(`--threads`, default all cores): the solve inside `ptrack.banded.one_thread`, so every op runs on one
+intra-op thread, and with a budget of 2 or more the two halves of the sequence's linearisation and of
+the banded factorisation and solve run on two Python threads (`--threads 1`: all on one).
 """
 
 from __future__ import annotations
@@ -132,8 +136,38 @@ def sparsity(obj, t_len: int, d: int):
     return s
 
 
+def parts(lin, q: torch.Tensor, obj, damping: float, repeats: int = 10) -> str:
+    """Median wall time of one iteration's parts at q: the linearisation, the factorisation of the
+    damped normal equations and their solve (as `banded_levenberg_marquardt` calls them)."""
+    from ptrack.banded import factorize, solve
+    from ptrack.solvers import _band_damped, _free
+
+    out = lin(q)
+    lo, hi = obj.lower.expand_as(q), obj.upper.expand_as(q)
+    free = _free(q, out.gradient, lo, hi)
+    lam = damping * out.hessian.diagonal.diagonal(dim1=-2, dim2=-1).amax((-2, -1))
+    damped = _band_damped(out.hessian, free, lam)
+    factor, _ = factorize(damped)
+    rhs = -torch.where(free, out.gradient, 0.0)
+    res = []
+    for name, fn in (
+        ("linearisation", lambda: lin(q)),
+        ("factorisation", lambda: factorize(damped)),
+        ("solve", lambda: solve(factor, rhs)),
+    ):
+        walls = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            walls.append(time.perf_counter() - t0)
+        res.append(f"{name} {1000 * float(np.median(walls)):.1f} ms")
+    return ", ".join(res)
+
+
 def speed(args) -> None:
-    torch.set_num_threads(1)
+    from ptrack.banded import one_thread
+
+    torch.set_num_threads(args.threads)
     cfg, prep, obj, q0 = problem(300)
     t_len, d = q0.shape
     print(
@@ -141,23 +175,35 @@ def speed(args) -> None:
         f"{int((prep.problem.observations.confidence > 0).sum())} observed keypoints"
     )
     lin = linearization(obj)
-    lin(q0[None])  # warm-up (kernel caches)
-    times, cpu = [], []
-    for _ in range(args.repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        q, info = banded_levenberg_marquardt(
-            lin, q0[None], obj.lower, obj.upper, max_iter=30, tol=1e-300, gtol=0.0, damping=cfg.batch.damping
-        )
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    ours, cost = min(times), float(info.cost[0])
-    load = os.getloadavg()[0]
+    times, cpu, loads = [], [], []
+    with one_thread():  # as `method: batch` runs: the banded halves on `threads` threads, the rest on one
+        lin(q0[None])  # warm-up (kernel caches)
+        for _ in range(args.repeats):
+            t0, c0 = time.perf_counter(), time.process_time()
+            q, info = banded_levenberg_marquardt(
+                lin, q0[None], obj.lower, obj.upper, max_iter=30, tol=1e-300, gtol=0.0, damping=cfg.batch.damping
+            )
+            times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+            loads.append(os.getloadavg()[0])
+        split = parts(lin, q, obj, cfg.batch.damping)
+    ours, cost, iters = float(np.median(times)), float(info.cost[0]), int(info.iterations[0])
     check = 0.5 * float(residuals(obj, q[0]).square().sum())
+    how = "one thread" if args.threads == 1 else "two threads for the halves of linearisation, factorisation, solve"
     print(
-        f"ptrack banded LM: 30 iterations in {ours:.2f} s (best of {args.repeats}: "
-        f"{', '.join(f'{t:.2f}' for t in times)}; process CPU time {min(cpu):.2f} s, one thread; load {load:.1f}), "
-        f"cost {float(info.history[0, 0]):.2f} -> {cost:.4f} (same objective as scipy's: {check:.4f})"
+        f"ptrack banded LM: {iters} iterations in {ours:.2f} s (median of {args.repeats}: "
+        f"{', '.join(f'{t:.2f}' for t in times)}; process CPU time {float(np.median(cpu)):.2f} s; {how}; "
+        f"load {', '.join(f'{x:.1f}' for x in loads)}), cost {float(info.history[0, 0]):.2f} -> {cost:.4f} "
+        f"(same objective as scipy's: {check:.4f})"
     )
+    if iters < 30:  # converged to round-off: its steps no longer move q (info.converged) or the damping ran away
+        print(
+            f"LM stopped after {iters} iterations (converged {bool(info.converged[0])}); "
+            f"30 iterations at this rate: {30 * ours / iters:.2f} s"
+        )
+    print(f"one iteration's parts (median wall time at the solution): {split}")
+    if args.no_scipy:
+        return
 
     from scipy.optimize import least_squares
 
@@ -220,9 +266,16 @@ def warm_start(args) -> None:
     cold (from its keyframes interpolated) and warm (from the first solution, what `init_from: RUN_DIR`
     reads from result.npz and warps onto the keyframes, `warp_to_keyframes`; also unwarped), all to the
     config's tolerance (at most 100 iterations)."""
+    from ptrack.banded import one_thread
+
+    torch.set_num_threads(args.threads)
+    with one_thread():  # as `method: batch` runs (see speed())
+        _warm_start(args)
+
+
+def _warm_start(args) -> None:
     import dataclasses
 
-    torch.set_num_threads(1)
     cfg, prep, obj, q0 = problem(300, 1.0)
     damping = cfg.batch.damping if args.damping is None else args.damping
     cfg = dataclasses.replace(cfg, batch=dataclasses.replace(cfg.batch, damping=damping))
@@ -347,6 +400,10 @@ if __name__ == "__main__":
     ap.add_argument("--scipy-nfev", type=int, default=200)
     ap.add_argument("--scipy-jac", choices=["analytic", "sparsity"], default="analytic")
     ap.add_argument("--damping", type=float, default=None, help="initial LM damping (default: the config's)")
+    ap.add_argument("--no-scipy", action="store_true", help="only ptrack's speed (no scipy, no warm start)")
+    ap.add_argument(
+        "--threads", type=int, default=torch.get_num_threads(), help="torch threads (default: all cores); see speed()"
+    )
     a = ap.parse_args()
     if a.memory_child:
         memory_one(a.memory_child)
@@ -356,4 +413,5 @@ if __name__ == "__main__":
         warm_start(a)
     else:
         speed(a)
-        warm_start(a)
+        if not a.no_scipy:  # --no-scipy: a quick look at ptrack's speed alone
+            warm_start(a)
