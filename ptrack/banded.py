@@ -31,8 +31,8 @@ Two halves. The sweep is T sequential steps of small products, so its cost is mo
 one core. `factorize` (T >= `HALVES_MIN_FRAMES`) orders the unknowns as the top frames 0..m-1, the
 bottom frames m+W..T-1 and last the W separator frames m..m+W-1 between them (m = (T-W)/2): the top
 and the bottom do not touch, so both are factored by the recursion above at once, the bottom
-backwards in time (its own reversed system, couplings transposed), in T/2 steps over 2B systems,
-or on two threads (`one_thread`'s budget). Their Cholesky rows towards the separator,
+backwards in time (its own reversed system, couplings transposed), in T/2 steps over 2B systems
+(half the dispatch of one sweep over T). Their Cholesky rows towards the separator,
 Z_h = L_h^{-1} A[h, s], live on each half's last W frames only, and the separator's Schur
 complement A_ss - Z_top^T Z_top - Z_bot^T Z_bot (W n x W n) is factored last. It is the same
 factorisation of the reordered matrix (no extra fill, the same flops); solves are the two halves'
@@ -127,8 +127,8 @@ def one_thread() -> Iterator[None]:
     run on it: their products are small (n x n per frame), multithreaded BLAS gains nothing on them
     and, on a loaded machine, its spinning threads made a 40-frame sweep 370x slower (2.3 s against
     6 ms, measured on 2 shared cores); `method: batch` runs its whole solve inside it. The count it
-    replaced stays the budget of `factorize` and `solve`, which run the two halves of a long system
-    on two Python threads (one intra-op thread each) when it is 2 or more."""
+    replaced stays the thread budget that `parallel_halves` reads (the batch linearisation runs the two
+    halves of a sequence on two Python threads, one intra-op thread each, when it is 2 or more)."""
     n = torch.get_num_threads()
     outer = getattr(_OUTER, "threads", None)
     if outer is None:
@@ -167,7 +167,8 @@ def parallel_halves(device: torch.device) -> bool:
 
 def on_two_threads(fn: Callable, first: tuple, second: tuple) -> tuple:
     """(fn(*first), fn(*second)), the first on a second thread (one worker for the process, one
-    intra-op thread; torch ops release the GIL, so the two run at once). Callers ask
+    intra-op thread; torch ops release the GIL, so the two run at once when each op is big enough for
+    the GIL's handoffs not to matter: not the sweeps here, ~1,000 small ops a half). Callers ask
     `parallel_halves` first."""
     global _POOL
     if _POOL is None:  # one worker, for the process's life, on one intra-op thread
@@ -195,9 +196,9 @@ def _check(a: BlockBanded, who: str) -> tuple[int, int, int]:
     return a.shape
 
 
-def _factor_dense(diag: Tensor, lower: Tensor, out: tuple[Tensor, Tensor] | None = None) -> tuple[_Chol, Tensor]:
+def _factor_dense(diag: Tensor, lower: Tensor) -> tuple[_Chol, Tensor]:
     """diag (B, T, n, n), lower (B|1, T, W, n) diagonal or (B|1, T, W, n, n) dense couplings ->
-    factor, ok (B,), written into out = (inv_chol_t, coupling) if given. One block row per step (module
+    factor, ok (B,). One block row per step (module
     docstring); its W coupling blocks side by side make the row R_t = [B[t, W] .. B[t, 1]], so that
     the pivot's update is one product, C_t C_t^T = A[t, t] - R_t R_t^T."""
     b, t_len, n = diag.shape[0], diag.shape[1], diag.shape[-1]
@@ -205,8 +206,10 @@ def _factor_dense(diag: Tensor, lower: Tensor, out: tuple[Tensor, Tensor] | None
     w = lower.shape[2]
     lower = lower.expand(b, *lower.shape[1:])
     eye = torch.eye(n, dtype=diag.dtype, device=diag.device).expand(b, n, n)
-    far = lower[:, :, w - 1, :, None] if vec else lower[:, :, w - 1]  # A[t, t-W] (a row scaling if diagonal)
-    near = [torch.diag_embed(lower[:, :, k]) if vec else lower[:, :, k] for k in range(w - 1)]  # A[t, t-k-1]
+    # frame-major views: frame t's blocks by one integer index
+    far = (lower[:, :, w - 1, :, None] if vec else lower[:, :, w - 1]).transpose(0, 1)  # A[t, t-W] (B, n, 1|n)
+    near = [(torch.diag_embed(lower[:, :, k]) if vec else lower[:, :, k]).transpose(0, 1) for k in range(w - 1)]
+    a_tt = diag.transpose(0, 1)
     zero = diag.new_zeros(b, n, n)
     cit: list[Tensor] = [zero] * w  # cit[t + W] = C_t^{-T}
     blocks: list[list[Tensor]] = [[zero] * w for _ in range(w)]  # blocks[t + W][k-1] = B[t, k]
@@ -214,29 +217,25 @@ def _factor_dense(diag: Tensor, lower: Tensor, out: tuple[Tensor, Tensor] | None
     infos = []
     for t in range(t_len):
         blk: list[Tensor] = [zero] * w
-        blk[w - 1] = far[:, t] * cit[t] if vec else far[:, t] @ cit[t]  # B[t, W] = A[t, t-W] C_{t-W}^{-T}
+        blk[w - 1] = far[t] * cit[t] if vec else far[t] @ cit[t]  # B[t, W] = A[t, t-W] C_{t-W}^{-T}
         for k in range(w - 1, 0, -1):
-            x = near[k - 1][:, t]
+            x = near[k - 1][t]  # A[t, t-k]
             for j in range(k + 1, w + 1):  # - B[t, j] B[t-k, j-k]^T
                 x = torch.baddbmm(x, blk[j - 1], blocks[t - k + w][j - k - 1].mT, alpha=-1)
             blk[k - 1] = x @ cit[t - k + w]
         row = torch.cat(blk[::-1], -1) if w > 1 else blk[0]
-        chol, info = torch.linalg.cholesky_ex(torch.baddbmm(diag[:, t], row, row.mT, alpha=-1))
+        chol, info = torch.linalg.cholesky_ex(torch.baddbmm(a_tt[t], row, row.mT, alpha=-1))
         infos.append(info)
         # C_t^{-1} comes out column-major: its transpose is a contiguous C_t^{-T}
         cit.append(torch.linalg.solve_triangular(chol, eye, upper=False).mT)
         blocks.append(blk)
         rows.append(row)
     ok = (torch.stack(infos, -1) == 0).all(-1) if infos else torch.ones(b, dtype=torch.bool, device=diag.device)
-    if out is None:
-        out = (diag.new_empty(b, t_len, n, n), diag.new_empty(b, t_len, n, w * n))
-    inv_t, coupling = out
-    if t_len:
-        torch.stack(cit[w:], 1, out=inv_t)
-        torch.stack(rows, 1, out=coupling)
+    inv_t = torch.stack(cit[w:], 1) if t_len else diag.new_zeros(b, 0, n, n)
+    coupling = torch.stack(rows, 1) if t_len else diag.new_zeros(b, 0, n, w * n)
     if not bool(ok.all()):  # a failed system's factor: finite stand-ins (identity pivots, no couplings)
-        inv_t.copy_(torch.where(ok[:, None, None, None], inv_t, eye[:, None]))
-        coupling.copy_(torch.where(ok[:, None, None, None], coupling, 0.0))
+        inv_t = torch.where(ok[:, None, None, None], inv_t, eye[:, None])
+        coupling = torch.where(ok[:, None, None, None], coupling, 0.0)
     return _Chol(inv_t, coupling), ok
 
 
@@ -314,16 +313,7 @@ def _factor_twisted(diag: Tensor, lower: Tensor, dofs: Tensor | None) -> tuple[_
     m = (t_len - w) // 2
     big_m = t_len - w - m
     d2, l2 = _split_halves(diag, lower, m, dofs)
-    if parallel_halves(d2.device):  # the two halves on two threads, into one factor of 2B
-        out = (d2.new_empty(2 * b, big_m, n, n), d2.new_empty(2 * b, big_m, n, w * n))
-        (_, ok_top), (_, ok_bot) = on_two_threads(
-            _factor_dense,
-            (d2[:b], l2[:b], (out[0][:b], out[1][:b])),
-            (d2[b:], l2[b:], (out[0][b:], out[1][b:])),
-        )
-        halves, ok2 = _Chol(*out), torch.cat([ok_top, ok_bot])
-    else:
-        halves, ok2 = _factor_dense(d2, l2)
+    halves, ok2 = _factor_dense(d2, l2)
     lower = lower.expand(b, *lower.shape[1:])
     # E = A[h, s] on each half's last W frames (n x W n each): top frame m-W+c against separator
     # frame m+i; bottom frame m+2W-1-c (reversed index M-W+c) against m+W-1-i (reversed M+i)
@@ -360,19 +350,6 @@ def _factor_twisted(diag: Tensor, lower: Tensor, dofs: Tensor | None) -> tuple[_
     return _Twisted(halves, zz, sep_inv, m), ok
 
 
-def _sweep_halves(f: _Chol, buf: Tensor, out: Tensor | None = None) -> None:
-    """`_sweep` of the 2B systems of `_Twisted.halves`: as one batch, or each half on its own thread."""
-    if not parallel_halves(buf.device):
-        _sweep(f, buf, out)
-        return
-    h = buf.shape[0] // 2
-    top = _Chol(f.inv_chol_t[:h], f.coupling[:h])
-    bottom = _Chol(f.inv_chol_t[h:], f.coupling[h:])
-    on_two_threads(
-        _sweep, (top, buf[:h], None if out is None else out[:h]), (bottom, buf[h:], None if out is None else out[h:])
-    )
-
-
 def _solve_twisted(f: _Twisted, b: Tensor) -> Tensor:
     """f's system, b (B, T, n) -> x (B, T, n): forward sweeps of the two halves at once, the
     separator, then their backward sweeps."""
@@ -383,7 +360,7 @@ def _solve_twisted(f: _Twisted, b: Tensor) -> Tensor:
     pad = big_m - m
     # the halves' right-hand sides after W zero frames (and the top's M - m padding frames)
     buf = torch.cat([torch.nn.functional.pad(b[:, :m], (0, 0, w + pad, 0)), _padded(b[:, m + w :].flip(1), w)])
-    _sweep_halves(f.halves, buf)  # buf[:, W:] = y (2B, M, n)
+    _sweep(f.halves, buf)  # buf[:, W:] = y (2B, M, n)
     last = buf[:, w + big_m - w :].reshape(2 * bsz, w * n, 1)
     zy = (f.z.mT @ last)[..., 0]  # (2B, W n): the bottom's in reversed frame order
     zy_bot = zy[bsz:].reshape(bsz, w, n).flip(1).reshape(bsz, w * n)
@@ -392,7 +369,7 @@ def _solve_twisted(f: _Twisted, b: Tensor) -> Tensor:
     x_rev = x_sep.reshape(bsz, w, n).flip(1).reshape(bsz, w * n, 1)
     buf[:, w + big_m - w :] -= (f.z @ torch.cat([x_sep, x_rev]))[..., 0].reshape(2 * bsz, w, n)
     x = b.new_empty(2 * bsz, big_m, n)
-    _sweep_halves(f.halves, buf, x)
+    _sweep(f.halves, buf, x)
     return torch.cat([x[:bsz, pad:], x_sep.reshape(bsz, w, n), x[bsz:].flip(1)], 1)
 
 

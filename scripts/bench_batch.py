@@ -15,8 +15,8 @@ sparsity, lsmr on the sparse Jacobian), run until its cost is within 1% of ours 
 evaluations; the script prints both times, both costs and the ratio, and the wall time of one
 iteration's parts (linearisation, factorisation, solve). Threads as `method: batch` uses them
 (`--threads`, default all cores): the solve inside `ptrack.banded.one_thread`, so every op runs on one
-intra-op thread, and with a budget of 2 or more the two halves of the sequence's linearisation and of
-the banded factorisation and solve run on two Python threads (`--threads 1`: all on one).
+intra-op thread, and with a budget of 2 or more the linearisation's two halves of the sequence run on
+two Python threads (`--threads 1`: all on one).
 """
 
 from __future__ import annotations
@@ -176,7 +176,7 @@ def speed(args) -> None:
     )
     lin = linearization(obj)
     times, cpu, loads = [], [], []
-    with one_thread():  # as `method: batch` runs: the banded halves on `threads` threads, the rest on one
+    with one_thread():  # as `method: batch` runs (module docstring)
         lin(q0[None])  # warm-up (kernel caches)
         for _ in range(args.repeats):
             t0, c0 = time.perf_counter(), time.process_time()
@@ -189,7 +189,7 @@ def speed(args) -> None:
         split = parts(lin, q, obj, cfg.batch.damping)
     ours, cost, iters = float(np.median(times)), float(info.cost[0]), int(info.iterations[0])
     check = 0.5 * float(residuals(obj, q[0]).square().sum())
-    how = "one thread" if args.threads == 1 else "two threads for the halves of linearisation, factorisation, solve"
+    how = "one thread" if args.threads == 1 else "the linearisation's two halves on two threads"
     print(
         f"ptrack banded LM: {iters} iterations in {ours:.2f} s (median of {args.repeats}: "
         f"{', '.join(f'{t:.2f}' for t in times)}; process CPU time {float(np.median(cpu)):.2f} s; {how}; "

@@ -108,33 +108,25 @@ def test_batched_systems_are_independent_and_failures_flagged(t_len, bad_frames,
         assert torch.allclose(x[i], bd.solve(single, b[i]), atol=1e-13)
 
 
-@pytest.mark.parametrize("diagonal_coupling", [True, False])
-def test_halves_on_two_threads_equal_one_thread(monkeypatch, diagonal_coupling):
-    """With a thread budget of 2 the two halves are factored and swept on two threads: the same factor,
-    solution and marginals as the batched sweep on one thread."""
-    t_len, d = 40, 3
-    a = random_banded(2, t_len, d, 2, diagonal_coupling)
-    b = torch.randn(2, t_len, d, dtype=F64, generator=torch.Generator().manual_seed(2))
-    calls = []
-    pair = bd.on_two_threads
-    monkeypatch.setattr(bd, "on_two_threads", lambda *args: calls.append(args[0].__name__) or pair(*args))
+def test_thread_budget_and_two_threads():
+    """one_thread keeps the count it replaced as the budget parallel_halves reads (CPU only); on_two_threads
+    returns both results in order, the first computed on the worker thread."""
+    import threading
+
     before = torch.get_num_threads()
-    out = {}
     try:
-        for threads in (1, 2):
-            torch.set_num_threads(threads)
-            factor, ok = bd.factorize(a)
-            out[threads] = (ok, bd.solve(factor, b), bd.marginal_blocks(factor))
-            assert isinstance(factor.dense, bd._Twisted)
+        for budget in (1, 2):
+            torch.set_num_threads(budget)
+            with bd.one_thread():
+                assert torch.get_num_threads() == 1
+                assert bd.parallel_halves(torch.device("cpu")) == (budget >= 2)
+                assert not bd.parallel_halves(torch.device("meta"))
+            assert torch.get_num_threads() == budget
     finally:
         torch.set_num_threads(before)
-    assert calls == ["_factor_dense", "_sweep", "_sweep"]  # only with 2 threads: factor, forward, backward
-    (ok1, x1, m1), (ok2, x2, m2) = out[1], out[2]
-    assert ok1.all() and ok2.all()
-    torch.testing.assert_close(x2, x1, rtol=0, atol=1e-12)
-    torch.testing.assert_close(m2, m1, rtol=0, atol=1e-12)
-    x_dense = torch.linalg.solve(bd.to_dense(a), b.flatten(-2)).unflatten(-1, (t_len, d))
-    torch.testing.assert_close(x2, x_dense, rtol=1e-10, atol=1e-12)
+    names = bd.on_two_threads(lambda x: (x, threading.current_thread().name), (1,), (2,))
+    assert [n[0] for n in names] == [1, 2]
+    assert names[0][1].startswith("ptrack-banded") and names[1][1] == threading.current_thread().name
 
 
 def test_float32_and_shapes_follow_inputs():

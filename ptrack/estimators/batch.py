@@ -449,7 +449,8 @@ def estimate_batch(
 
     callback(iteration, q (1, T, D), cost (1,)) is called after every solver iteration. Runs on one
     intra-op thread (`ptrack.banded.one_thread`: small per-frame products, shared cores); with torch
-    allowed 2 or more threads, the two halves of the banded factorisation and solve run on two."""
+    allowed 2 or more threads, the linearisation's per-frame work runs on the sequence's two halves on
+    two threads (`evaluate`)."""
     with one_thread():
         return _estimate(problem, cfg, generator, progress, callback)
 
