@@ -19,7 +19,6 @@ the true motion, keeps the points still visible there and adds noise and outlier
 from __future__ import annotations
 
 import math
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -31,6 +30,7 @@ from torch import Tensor
 from ptrack.camera import Camera
 from ptrack.costs.correspondence import anchor_points, backproject, ray_capsule_hit
 from ptrack.errors import InputError
+from ptrack.observations import read_npz
 
 #: a simulated point counts as visible in frame t when the model's first surface along its line of sight is
 #: this close to it (metres)
@@ -128,19 +128,7 @@ class Correspondences:
         missing key, a wrong dtype or shape, NaN, a negative weight or a frame outside the clip raise
         `InputError` naming the file."""
         path = Path(path)
-        if not path.is_file():
-            raise InputError(f"correspondence file not found: {path}")
-        try:
-            data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-            raise InputError(f"{path}: not an .npz archive ({e})") from None
-        if not isinstance(data, np.lib.npyio.NpzFile):
-            raise InputError(f"{path}: not an .npz archive (a single .npy array?)")
-        with data:
-            try:
-                arrays = {key: data[key] for key in data.files}
-            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-                raise InputError(f"{path}: cannot read an array ({e})") from None
+        arrays = read_npz(path, "correspondence file")
         for key in ("frame", "p1", "p2"):
             if key not in arrays:
                 raise InputError(f"{path}: missing key {key!r} (has {sorted(arrays)}; needs frame, p1, p2)")

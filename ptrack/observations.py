@@ -166,21 +166,7 @@ class Observations:
         missing key or a wrong dtype/shape raises `InputError` naming the file and key.
         """
         path = Path(path)
-        if not path.is_file():
-            raise InputError(f"observation file not found: {path}")
-        try:
-            data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-            if isinstance(e, ValueError) and "pickle" in str(e):  # numpy's guess for bytes it does not know
-                raise InputError(f"{path}: not an .npz archive (numpy cannot read it)") from e
-            raise InputError(f"{path}: not an .npz archive ({e})") from e
-        if not isinstance(data, np.lib.npyio.NpzFile):
-            raise InputError(f"{path}: not an .npz archive (a single .npy array?)")
-        with data:
-            try:
-                arrays = {key: data[key] for key in data.files}
-            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-                raise InputError(f"{path}: cannot read an array ({e})") from e
+        arrays = read_npz(path, "observation file")
 
         def need(key: str) -> np.ndarray:
             if key not in arrays:
@@ -511,3 +497,24 @@ def simulate_observations(
     )
     info = SimulationInfo(clean, visible, deleted, occluded, dropped, outlier, swapped)
     return obs, info
+
+
+def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
+    """Every array of an .npz file, read without pickles. A missing file, bytes that are not an .npz
+    archive, a single .npy array or an unreadable member raise `InputError` naming the file (`what` names
+    the kind of file in the not-found message)."""
+    if not path.is_file():
+        raise InputError(f"{what} not found: {path}")
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        if isinstance(e, ValueError) and "pickle" in str(e):  # numpy's guess for bytes it does not know
+            raise InputError(f"{path}: not an .npz archive (numpy cannot read it)") from e
+        raise InputError(f"{path}: not an .npz archive ({e})") from e
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise InputError(f"{path}: not an .npz archive (a single .npy array?)")
+    with data:
+        try:
+            return {key: data[key] for key in data.files}
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            raise InputError(f"{path}: cannot read an array ({e})") from e
