@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from cli_errors import fail
 
 from ptrack import metrics as M
 from ptrack.cli import main
@@ -215,15 +216,6 @@ def test_accuracy_on_a_clip_not_tuned_on(cmu_file):
 # -- bad input: one error line naming the file and the problem, exit 2, nothing written ---------------
 
 
-def _fail(capsys, out: Path, argv: list[str], *fragments: str) -> None:
-    rc = main(argv)
-    err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1 and err[0].startswith("ptrack: error: "), err
-    for f in fragments:
-        assert f in err[0], (f, err[0])
-    assert not out.exists()
-
-
 @pytest.mark.parametrize(
     "text, suffix, fragments",
     [
@@ -240,12 +232,12 @@ def test_bad_keyframe_files(tmp_path, capsys, text, suffix, fragments):
     path = tmp_path / f"keys{suffix}"
     path.write_text(text)
     out = tmp_path / "out"
-    _fail(capsys, out, ["run", str(BATCH), *SHORT, f"keyframes.file={path}", f"out_dir={out}"], str(path), *fragments)
+    fail(capsys, out, ["run", str(BATCH), *SHORT, f"keyframes.file={path}", f"out_dir={out}"], str(path), *fragments)
 
 
 def test_bad_init_from(tmp_path, capsys):
     out = tmp_path / "out"
-    _fail(
+    fail(
         capsys,
         out,
         ["run", str(BATCH), *SHORT, f"init_from={tmp_path}", f"out_dir={out}"],
@@ -254,8 +246,8 @@ def test_bad_init_from(tmp_path, capsys):
     )
     short = tmp_path / "short"
     assert main(["run", str(BATCH), "data.stop=120", *SHORT[1:], f"out_dir={short}"]) == 0
-    _fail(capsys, out, ["run", str(BATCH), *SHORT, f"init_from={short}", f"out_dir={out}"], str(short), "frames")
-    _fail(
+    fail(capsys, out, ["run", str(BATCH), *SHORT, f"init_from={short}", f"out_dir={out}"], str(short), "frames")
+    fail(
         capsys,
         out,
         ["run", str(BATCH), *SHORT, f"init_from={short}", "model.freeze=[]", f"out_dir={out}", "data.stop=120"],

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from cli_errors import fail
 
 import ptrack.viz
 from ptrack.cli import main
@@ -26,24 +27,6 @@ DEMO = REPO / "configs" / "demo.yaml"
 ASF = REPO / "ptrack" / "data" / "10.asf"
 AMC = REPO / "ptrack" / "data" / "10_02.amc"
 FAST = ["data.stop=48", "data.stride=4", "frame.iterations=15", "frame.first_iterations=60", "progress=false"]
-
-
-def _fail(capsys, out: Path, argv: list[str], *fragments: str) -> str:
-    """Run argv; assert exit 2, one `ptrack: error:` line naming every fragment, no traceback, no out."""
-    rc = main(argv)
-    captured = capsys.readouterr()
-    err = captured.err
-    assert rc == 2, f"exit {rc}, stderr: {err}"
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("ptrack: error: "), err
-    assert "Traceback" not in err
-    for f in fragments:
-        assert f in lines[0], f"{f!r} not in {lines[0]!r}"
-    assert captured.out == ""
-    assert not out.exists(), f"{out} was written"
-    if out.parent.exists():
-        assert not any(".partial" in p.name for p in out.parent.iterdir())
-    return lines[0]
 
 
 def _run_argv(out: Path, *extra: str, config: Path = DEMO) -> list[str]:
@@ -96,25 +79,25 @@ def test_run_from_observation_file(tmp_path, capsys, obs_arrays):
 
 
 def test_missing_config(tmp_path, capsys):
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", config=tmp_path / "nope.yaml"), "nope.yaml")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", config=tmp_path / "nope.yaml"), "nope.yaml")
 
 
 def test_invalid_yaml_config(tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
     bad.write_text("data: {asf: [1, 2\n")
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", config=bad), "bad.yaml")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", config=bad), "bad.yaml")
 
 
 def test_invalid_yaml_override_value(tmp_path, capsys):
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "camera.width=[1, 2"), "camera.width")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "camera.width=[1, 2"), "camera.width")
 
 
 def test_missing_asf(tmp_path, capsys):
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.asf={tmp_path / 'gone.asf'}"), "gone.asf")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.asf={tmp_path / 'gone.asf'}"), "gone.asf")
 
 
 def test_missing_amc(tmp_path, capsys):
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.amc={tmp_path / 'gone.amc'}"), "gone.amc")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.amc={tmp_path / 'gone.amc'}"), "gone.amc")
 
 
 @pytest.mark.parametrize(
@@ -128,7 +111,7 @@ def test_malformed_asf(tmp_path, capsys, text):
     bad = tmp_path / "broken.asf"
     full = ASF.read_text()
     bad.write_text(text if text is not None else full[: len(full) // 3])
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.asf={bad}"), "broken.asf")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.asf={bad}"), "broken.asf")
 
 
 @pytest.mark.parametrize("edit", ["number", "empty", "unknown_bone"])
@@ -142,17 +125,17 @@ def test_malformed_amc(tmp_path, capsys, edit):
     else:
         text = text.replace("\nlfemur ", "\nlthigh ", 1)
     bad.write_text(text)
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.amc={bad}"), "broken.amc")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.amc={bad}"), "broken.amc")
 
 
 def test_amc_of_another_skeleton(tmp_path, capsys):
     other = tmp_path / "other.asf"  # the same skeleton with the bone lthumb renamed
     other.write_text(re.sub(r"\blthumb\b", "lpinky", ASF.read_text()))
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.asf={other}"), "10_02.amc", "lthumb")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"data.asf={other}"), "10_02.amc", "lthumb")
 
 
 def test_unknown_key(tmp_path, capsys):
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "camera.fov=60"), "camera.fov")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "camera.fov=60"), "camera.fov")
 
 
 @pytest.mark.parametrize(
@@ -166,22 +149,22 @@ def test_unknown_key(tmp_path, capsys):
     ],
 )
 def test_wrong_type(tmp_path, capsys, override, key):
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", override), key)
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", override), key)
 
 
 def test_bad_value(tmp_path, capsys):
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "data.stride=0"), "data.stride")
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "data.start=5000", "data.stop=null"), "data.start")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "data.stride=0"), "data.stride")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "data.start=5000", "data.stop=null"), "data.start")
 
 
 def test_bad_override_syntax(tmp_path, capsys):
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "seed"), "seed")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "seed"), "seed")
 
 
 def test_keypoints_npz_of_wrong_shape(tmp_path, capsys, obs_arrays):
     kp = obs_arrays["keypoints"]
     path = _save(tmp_path / "flat.npz", obs_arrays, keypoints=kp[..., :1])
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "flat.npz", "keypoints")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "flat.npz", "keypoints")
     path = _save(
         tmp_path / "k16.npz",
         obs_arrays,
@@ -189,12 +172,12 @@ def test_keypoints_npz_of_wrong_shape(tmp_path, capsys, obs_arrays):
         confidence=obs_arrays["confidence"][:, :16],
         keypoint_names=obs_arrays["keypoint_names"][:16],
     )
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "keypoint")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "keypoint")
     path = _save(
         tmp_path / "short.npz",
         {k: v[:5] if k in ("keypoints", "confidence", "times") else v for k, v in obs_arrays.items()},
     )
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "short.npz", "5 frames")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "short.npz", "5 frames")
 
 
 def test_nan_keypoints_with_confidence(tmp_path, capsys, obs_arrays):
@@ -202,7 +185,7 @@ def test_nan_keypoints_with_confidence(tmp_path, capsys, obs_arrays):
     kp[3, 5] = np.nan
     assert obs_arrays["confidence"][3, 5] > 0
     path = _save(tmp_path / "nan.npz", obs_arrays, keypoints=kp)
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "nan.npz", "NaN", "frame 3")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", f"observations.file={path}"), "nan.npz", "NaN", "frame 3")
     # NaN where confidence is 0 is allowed
     conf = obs_arrays["confidence"].copy()
     conf[3, 5] = 0
@@ -213,12 +196,12 @@ def test_nan_keypoints_with_confidence(tmp_path, capsys, obs_arrays):
 
 
 def test_camera_that_sees_nothing(tmp_path, capsys):
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "camera.focal_px=10000000"), "sees none")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "camera.focal_px=10000000"), "sees none")
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
 def test_cuda_unavailable(tmp_path, capsys):
-    _fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "device=cuda"), "device", "CUDA")
+    fail(capsys, tmp_path / "o", _run_argv(tmp_path / "o", "device=cuda"), "device", "CUDA")
 
 
 def test_non_empty_out_dir(tmp_path, capsys):
@@ -346,7 +329,7 @@ def test_unknown_flag_after_overrides_is_a_usage_error(tmp_path):
 
 def test_overrides_after_a_flag_keep_their_order(tmp_path, capsys):
     # data.stride=4 (in FAST) before the flag, data.stride=0 after it: the later one is applied
-    _fail(capsys, tmp_path / "o", [*_run_argv(tmp_path / "o"), "--quiet", "data.stride=0"], "data.stride")
+    fail(capsys, tmp_path / "o", [*_run_argv(tmp_path / "o"), "--quiet", "data.stride=0"], "data.stride")
 
 
 def test_unwritable_out_dir_is_one_line_before_the_run(tmp_path):
@@ -401,7 +384,7 @@ def test_garbage_observation_file_is_not_an_npz(tmp_path):
 @pytest.mark.parametrize("key", ["missing", "dropped_frames"])
 def test_channel_rate_of_one_names_the_config_key(tmp_path, capsys, key):
     # the config accepts what the channel accepts: one interval, one message, naming the config key
-    line = _fail(
+    line = fail(
         capsys,
         tmp_path / "o",
         _run_argv(tmp_path / "o", f"observations.{key}=1.0"),

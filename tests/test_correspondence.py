@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from cli_errors import fail
 
 from ptrack.camera import camera_for_motion
-from ptrack.cli import main
 from ptrack.correspondences import Correspondences, simulate_correspondences
 from ptrack.costs.correspondence import (
     anchor_points,
@@ -171,16 +171,6 @@ def test_by_frame_and_npz_round_trip(tmp_path):
         Correspondences.load_npz(tmp_path / "c.npz", 2)
 
 
-def _fail(capsys, out: Path, argv: list[str], *fragments: str) -> None:
-    rc = main(argv)
-    err = capsys.readouterr().err
-    lines = err.strip().splitlines()
-    assert rc == 2 and len(lines) == 1 and lines[0].startswith("ptrack: error: "), err
-    for frag in fragments:
-        assert frag in lines[0], (frag, lines[0])
-    assert not out.exists()
-
-
 def _write(path: Path, **arrays) -> Path:
     np.savez(path, **arrays)
     return path
@@ -193,7 +183,7 @@ def test_bad_correspondence_files_and_settings(tmp_path, capsys):
 
     def run(path: Path | str, *fragments: str, extra: tuple[str, ...] = ()) -> None:
         argv = ["run", str(DEMO), *FAST, f"observations.correspondence_file={path}", *extra, f"out_dir={out}"]
-        _fail(capsys, out, argv, *fragments)
+        fail(capsys, out, argv, *fragments)
 
     run(tmp_path / "none.npz", "correspondence file not found", "none.npz")
     (tmp_path / "text.npz").write_text("not an archive")
@@ -218,7 +208,7 @@ def test_bad_correspondence_files_and_settings(tmp_path, capsys):
         ("pca.correspondence_weight=-1", "pca.correspondence_weight"),
         ("pca.correspondence_margin_m=-0.1", "pca.correspondence_margin_m"),
     ):
-        _fail(capsys, out, ["run", str(DEMO), *FAST, bad, f"out_dir={out}"], key)
+        fail(capsys, out, ["run", str(DEMO), *FAST, bad, f"out_dir={out}"], key)
 
 
 def test_simulated_correspondences_leave_the_keypoints_as_they_were():

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from cli_errors import fail
 
 from ptrack.cli import main
 from ptrack.config import load_config
@@ -111,9 +112,8 @@ def test_root_rotation_round_trip_and_window_jacobian(cmu_file, heldout_model):
     assert float((fd - out.jacobian[0]).abs().amax()) < 1e-4 * scale
 
 
-def test_heldout_swing_tracked_under_40mm(cmu_file, heldout_model, tmp_path, capsys):
-    """The issue's check: a swing the model never saw, noise_px 2, no keyframes, silhouettes on."""
-    out = tmp_path / "run"
+def _track_heldout(cmu_file, heldout_model, out: Path, capsys, *overrides: str) -> dict:
+    """`ptrack run configs/golf.yaml` on the held-out swing with its model, seed 0 -> metrics.json."""
     rc = main(
         [
             "run",
@@ -121,29 +121,22 @@ def test_heldout_swing_tracked_under_40mm(cmu_file, heldout_model, tmp_path, cap
             f"data.amc={cmu_file(f'64_{HELD_OUT}.amc')}",
             f"data.asf={cmu_file('64.asf')}",
             f"motion.model_file={heldout_model}",
-            "observations.noise_px=2",
+            *overrides,
             "seed=0",
             "progress=false",
             f"out_dir={out}",
         ]
     )
     assert rc == 0, capsys.readouterr().err
-    metrics = json.loads((out / "metrics.json").read_text())
+    return json.loads((out / "metrics.json").read_text())
+
+
+def test_heldout_swing_tracked_under_40mm(cmu_file, heldout_model, tmp_path, capsys):
+    """The issue's check: a swing the model never saw, noise_px 2, no keyframes, silhouettes on."""
+    metrics = _track_heldout(cmu_file, heldout_model, tmp_path / "run", capsys, "observations.noise_px=2")
     assert metrics["method"] == "pca" and metrics["frames"] > 90
     assert metrics["mpjpe_mm"] < 40, metrics["mpjpe_mm"]
     assert metrics["reprojection_error_px"] < 5
-
-
-def _fail(capsys, out: Path, argv: list[str], *fragments: str) -> None:
-    rc = main(argv)
-    err = capsys.readouterr().err
-    lines = err.strip().splitlines()
-    assert rc == 2 and len(lines) == 1 and lines[0].startswith("ptrack: error: "), err
-    for frag in fragments:
-        assert frag in lines[0], (frag, lines[0])
-    assert not out.exists()
-    if out.parent.exists():
-        assert not any(".partial" in p.name for p in out.parent.iterdir())
 
 
 @pytest.mark.parametrize(
@@ -158,7 +151,7 @@ def _fail(capsys, out: Path, argv: list[str], *fragments: str) -> None:
 )
 def test_bad_pca_values(tmp_path, capsys, override, key):
     out = tmp_path / "run"
-    _fail(capsys, out, ["run", str(GOLF), override, f"out_dir={out}"], key)
+    fail(capsys, out, ["run", str(GOLF), override, f"out_dir={out}"], key)
 
 
 def test_model_file_of_another_skeleton_or_corrupt(cmu_file, heldout_model, tmp_path, capsys):
@@ -180,8 +173,8 @@ def test_model_file_of_another_skeleton_or_corrupt(cmu_file, heldout_model, tmp_
     corrupt.write_bytes(b"PK\x03\x04 this is not a motion model")
     base = ["run", str(GOLF), f"data.amc={cmu_file('64_02.amc')}", f"data.asf={cmu_file('64.asf')}", "data.stop=200"]
     out = tmp_path / "run"
-    _fail(capsys, out, [*base, f"motion.model_file={bad_skeleton}", f"out_dir={out}"], "another skeleton")
-    _fail(capsys, out, [*base, f"motion.model_file={corrupt}", f"out_dir={out}"], "corrupt", str(corrupt))
+    fail(capsys, out, [*base, f"motion.model_file={bad_skeleton}", f"out_dir={out}"], "another skeleton")
+    fail(capsys, out, [*base, f"motion.model_file={corrupt}", f"out_dir={out}"], "corrupt", str(corrupt))
     assert np.load(heldout_model)["mean"].shape[1] == len(model.dof_names)  # the good file is untouched
 
 
@@ -237,21 +230,7 @@ def test_window_correspondence_rows_match_autograd(cmu_file, heldout_model):
 def test_heldout_swing_with_correspondences_under_40mm(cmu_file, heldout_model, tmp_path, capsys):
     """The tracker with simulated correspondences (and the foreground term) on a swing the model never saw."""
     out = tmp_path / "run"
-    rc = main(
-        [
-            "run",
-            str(GOLF),
-            f"data.amc={cmu_file(f'64_{HELD_OUT}.amc')}",
-            f"data.asf={cmu_file('64.asf')}",
-            f"motion.model_file={heldout_model}",
-            "observations.correspondences=40",
-            "seed=0",
-            "progress=false",
-            f"out_dir={out}",
-        ]
-    )
-    assert rc == 0, capsys.readouterr().err
-    metrics = json.loads((out / "metrics.json").read_text())
+    metrics = _track_heldout(cmu_file, heldout_model, out, capsys, "observations.correspondences=40")
     assert metrics["mpjpe_mm"] < 40, metrics["mpjpe_mm"]
     with np.load(out / "result.npz") as z:
         assert z["frames"].shape[0] == metrics["frames"]
