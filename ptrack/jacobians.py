@@ -2,6 +2,7 @@
 objective's stacked residuals (chain rule through the joints, FK still once).
 
     joint_jacobian(sk, q (..., D)) -> joints (..., J, 3), jac (..., J, 3, D)
+    joint_jacobian(sk, q, joints (Y,)) -> joints (..., J, 3), jac (..., Y, 3, D): only those joints' rows
     point_jacobian(sk, q (..., D), joint (..., P), local (..., P, 3)) -> points (..., P, 3), jac (..., P, 3, D)
     joint_and_point_jacobian(sk, q, joint, local) -> both of the above, FK once
     residual_jacobian(sk, residual_fn, q (..., D)) -> r (..., M), jac (..., M, D)
@@ -41,7 +42,7 @@ column is one backward pass per output row.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -99,6 +100,7 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
         "slot_flat": (torch.arange(j)[:, None] * 3 + torch.arange(3))[driven].to(device),  # (S,)
         "slot_joint": joint_of.to(device),
         "injective": len(set(slot_dof[driven].tolist())) == int(driven.sum()),
+        "ancestors": anc,  # on the CPU: `_row_constants` builds its tables from it
         "pair_joint": pair_joint.to(device),
         "pair_slot": pair_slot.to(device),
         "pair_index": pair_index.to(device),  # (3 P,)
@@ -147,17 +149,21 @@ def _slot_axes(c: dict, q: Tensor, joints: Tensor, rot: Tensor) -> tuple[Tensor,
     return a, o
 
 
-def joint_jacobian(sk: Skeleton, q: Tensor) -> tuple[Tensor, Tensor]:
+def joint_jacobian(sk: Skeleton, q: Tensor, joints: Sequence[int] | Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Joint positions and their geometric Jacobian w.r.t. the pose, from one FK pass.
 
     q: (..., D) -> joints (..., J, 3) metres, jac (..., J, 3, D) with jac[..., y, :, d] = d p_y / d q_d
-    (see the module docstring). Follows q's dtype and device. Not differentiable itself (it is a
-    first derivative; use autograd through `forward_kinematics` for second derivatives).
+    (see the module docstring). joints: the rows wanted, Y joint indices (any order, repeats allowed;
+    a sequence or a 1-D long tensor): jac is then (..., Y, 3, D) with jac[..., r] = the full
+    Jacobian's row joints[r], built from the (joint, ancestor slot) pairs of those joints only (the
+    positions stay all J: FK computes them anyway). Follows q's dtype and device. Not differentiable
+    itself (it is a first derivative; use autograd through `forward_kinematics` for second derivatives).
     """
-    joints, rot = sk.forward_kinematics(q, rotations=True)
+    positions, rot = sk.forward_kinematics(q, rotations=True)
     c = _constants(sk, q.dtype, q.device)
-    a, o = _slot_axes(c, q, joints, rot)
-    return joints, _joint_rows(sk, c, q, joints, rot, a, o)
+    a, o = _slot_axes(c, q, positions, rot)
+    rows = None if joints is None else _row_constants(sk, c, joints, q.dtype, q.device)
+    return positions, _joint_rows(sk, c, q, positions, rot, a, o, rows)
 
 
 def point_jacobian(sk: Skeleton, q: Tensor, joint: Tensor, local: Tensor) -> tuple[Tensor, Tensor]:
@@ -193,27 +199,74 @@ def joint_and_point_jacobian(
     return joints, _joint_rows(sk, c, q, joints, rot, a, o), points, point_jac
 
 
-def _joint_rows(sk: Skeleton, c: dict, q: Tensor, joints: Tensor, rot: Tensor, a: Tensor, o: Tensor) -> Tensor:
+def _row_constants(
+    sk: Skeleton, c: dict, joints: Sequence[int] | Tensor, dtype: torch.dtype, device: torch.device
+) -> dict:
+    """`_constants`' pair tables for the Jacobian rows of Y chosen joints (cached per choice): the
+    (row r, slot s) pairs where s's joint is joints[r] or one of its ancestors, in the full table's
+    order (row-major, then slot), with where their entries go in a flattened (Y, 3, D) Jacobian;
+    likewise for prismatic sliders."""
+    rows = tuple(int(y) for y in (joints.tolist() if isinstance(joints, Tensor) else joints))
+    key = ("jacobian rows", dtype, str(device), rows)
+    rc = sk._cache.get(key)
+    if rc is not None:
+        return rc
+    j, d = sk.num_joints, sk.num_dofs
+    if any(not -j <= y < j for y in rows):
+        raise ValueError(f"joint_jacobian: joints {list(rows)} outside the skeleton's {j} joints")
+    rows = tuple(y % j for y in rows)
+    sel = torch.as_tensor(rows, dtype=torch.long)
+    anc = c["ancestors"][sel]  # (Y, J): anc[r, i]: i is joints[r] or an ancestor of it
+    slot_dof = torch.as_tensor(sk.axis_dof, dtype=torch.long)  # (J, 3)
+    driven = slot_dof >= 0
+    joint_of = torch.arange(j)[:, None].expand(j, 3)[driven]
+    pair_row, pair_slot = torch.nonzero(anc[:, joint_of], as_tuple=True)  # (P,) each
+    pair_index = ((pair_row[:, None] * 3 + torch.arange(3)) * d + slot_dof[driven][pair_slot][:, None]).flatten()
+    scale = torch.as_tensor(sk.axis_scale, dtype=dtype)
+    sliders = torch.as_tensor(np.flatnonzero(sk.slide_dof >= 0), dtype=torch.long)
+    slide_row, slide_src = torch.nonzero(anc[:, sliders], as_tuple=True)
+    slide_src = sliders[slide_src]
+    slide_dof = torch.as_tensor(sk.slide_dof, dtype=torch.long)[slide_src]
+    slide_index = ((slide_row[:, None] * 3 + torch.arange(3)) * d + slide_dof[:, None]).flatten()
+    rc = {
+        "rows": len(rows),
+        "pair_joint": sel[pair_row].to(device),
+        "pair_slot": pair_slot.to(device),
+        "pair_index": pair_index.to(device),
+        "pair_scale": scale[driven][pair_slot].to(device),
+        "slide_src": slide_src.to(device),
+        "slide_index": slide_index.to(device),
+    }
+    sk._cache[key] = rc
+    return rc
+
+
+def _joint_rows(
+    sk: Skeleton, c: dict, q: Tensor, joints: Tensor, rot: Tensor, a: Tensor, o: Tensor, rows: dict | None = None
+) -> Tensor:
     """`joint_jacobian`'s jac (..., J, 3, D) from an FK pass of q (..., D) (joints (..., J, 3), world
-    rotations (..., J, 3, 3)) and its slot axes and pivots a, o (..., S, 3) (`_slot_axes`)."""
+    rotations (..., J, 3, 3)) and its slot axes and pivots a, o (..., S, 3) (`_slot_axes`); with rows
+    (`_row_constants` of Y joints) only those rows, (..., Y, 3, D)."""
     batch = q.shape[:-1]
+    t = c if rows is None else rows  # the pair tables: all joints, or the chosen rows
+    n_rows = joints.shape[-2] if rows is None else rows["rows"]
     # for each (joint y, slot s) pair with y in the subtree of s's joint: a_s x (p_y - o_s)
-    pair_a = a.index_select(-2, c["pair_slot"])  # (..., P, 3)
-    lever = joints.index_select(-2, c["pair_joint"]) - o.index_select(-2, c["pair_slot"])
+    pair_a = a.index_select(-2, t["pair_slot"])  # (..., P, 3)
+    lever = joints.index_select(-2, t["pair_joint"]) - o.index_select(-2, t["pair_slot"])
     vals = _cross(pair_a, lever)  # (..., P, 3)
     if not c["plain"]:  # mimic slots turn by their multiplier per unit of the leader's dof
-        vals = vals * c["pair_scale"][:, None]
+        vals = vals * t["pair_scale"][:, None]
     vals = vals.flatten(-2)  # (..., 3 P), entries (p, k)
-    jac = q.new_zeros(*batch, joints.shape[-2] * 3 * sk.num_dofs)
+    jac = q.new_zeros(*batch, n_rows * 3 * sk.num_dofs)
     if c["injective"]:
-        jac.index_copy_(-1, c["pair_index"], vals)
+        jac.index_copy_(-1, t["pair_index"], vals)
     else:
-        jac.index_add_(-1, c["pair_index"], vals)
-    if c["slide_src"].numel():  # a prismatic joint i moves every joint of its subtree by G_i s_i
-        src = c["slide_src"]
+        jac.index_add_(-1, t["pair_index"], vals)
+    if t["slide_src"].numel():  # a prismatic joint i moves every joint of its subtree by G_i s_i
+        src = t["slide_src"]
         direction = torch.einsum("...qab,qb->...qa", rot.index_select(-3, src), c["slide_axis"].index_select(0, src))
-        jac.index_add_(-1, c["slide_index"], direction.flatten(-2))
-    jac = jac.unflatten(-1, (joints.shape[-2], 3, sk.num_dofs))
+        jac.index_add_(-1, t["slide_index"], direction.flatten(-2))
+    jac = jac.unflatten(-1, (n_rows, 3, sk.num_dofs))
     if c["trans_dof"].numel():
         jac[..., c["trans_axis"], c["trans_dof"]] = 1.0
     return jac

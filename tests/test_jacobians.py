@@ -124,6 +124,37 @@ def test_joint_jacobian_any_leading_dims_and_dtype(cmu):
     torch.testing.assert_close(jac32.double(), flat, rtol=0, atol=1e-4)
 
 
+@pytest.mark.parametrize("model", ["cmu", "reduced", "tree1", "panda"])
+def test_joint_jacobian_of_chosen_joints_equals_the_full_rows(cmu, model):
+    """joint_jacobian(sk, q, joints): exactly the full Jacobian's rows of those joints (any order,
+    repeats, a tensor or a sequence, none), on CMU, a reduced model, a random tree and a URDF with
+    sliders and mimics; and so equal to autograd through FK (float64)."""
+    gen = torch.Generator().manual_seed(5)
+    if model in ("cmu", "reduced"):
+        sk = cmu if model == "cmu" else cmu.freeze(REDUCE)
+        q = _poses(sk, 3)
+        chosen = [0, 6, 7, 8, 1, 2, 3, 12, 13, 15, 16, 17, 18, 19, 24, 25, 26]  # the CMU keypoints' joints
+    elif model == "panda":
+        sk = Skeleton.from_urdf(Path(__file__).parent / "data/urdf/example_robot_data/panda_description/panda.urdf")
+        assert sk.has_slides_or_mimics
+        q = 0.5 * torch.randn(3, sk.num_dofs, generator=gen, dtype=F64)
+        chosen = list(range(sk.num_joints))[::-2]
+    else:
+        sk = _random_tree(int(model[-1]))
+        q = torch.randn(3, sk.num_dofs, generator=gen, dtype=F64)
+        chosen = [4, 0, 7, 4]
+    joints, full = joint_jacobian(sk, q)
+    for rows in (chosen, torch.tensor(chosen[:2]), [sk.num_joints - 1], list(range(sk.num_joints)), []):
+        got_joints, jac = joint_jacobian(sk, q.reshape(1, 3, -1), rows)
+        assert jac.shape == (1, 3, len(rows), 3, sk.num_dofs)
+        torch.testing.assert_close(got_joints[0], joints, rtol=0, atol=0)
+        torch.testing.assert_close(jac[0], full[:, torch.as_tensor(rows, dtype=torch.long)], rtol=0, atol=0)
+    want = _autograd_joint_jacobian(sk, q)[:, chosen]
+    torch.testing.assert_close(joint_jacobian(sk, q, chosen)[1], want, rtol=0, atol=1e-10)
+    with pytest.raises(ValueError, match="outside the skeleton"):
+        joint_jacobian(sk, q, [sk.num_joints])
+
+
 def _autograd_point_jacobian(sk: Skeleton, q: torch.Tensor, joint: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
     """q (N, D), joint (N, P), local (N, P, 3) -> d (p_joint + G_joint local) / d q (N, P, 3, D) through FK."""
 

@@ -67,7 +67,8 @@ class Trajectory:
     sqrt(weight) / sigma; smooth: ((n, a_n (D,)), ...) difference order and per-dof weight;
     band (T, W+1, D) the smoothing Hessian (band[t, k] = its (t, t-k) diagonal block's diagonal);
     kf_frames (F,), kf_target (F, D), kf_weight (F, D) = 1/sigma (0 where not given), angular (D,)
-    bool; jk_frames (G,), jk_target (G, J, 3), jk_weight (G, J) = 1/sigma (0 where not given).
+    bool; jk_frames (G,), jk_target (G, J, 3), jk_weight (G, J) = 1/sigma (0 where not given),
+    jk_joints the joints some joint keyframe gives (the others' weights are all 0).
     """
 
     problem: Problem
@@ -84,6 +85,7 @@ class Trajectory:
     jk_frames: Tensor
     jk_target: Tensor
     jk_weight: Tensor
+    jk_joints: tuple[int, ...]
 
 
 def smoothing_prior(name: str | None) -> dict[str, dict[str, float]]:
@@ -221,6 +223,7 @@ def trajectory_objective(
         jk_frames,
         jk_target,
         jk_weight,
+        tuple(torch.nonzero((jk_weight != 0).any(0)).flatten().tolist()),
     )
 
 
@@ -258,13 +261,14 @@ def evaluate(
     if with_jacobian:
 
         def geometry(part: slice) -> tuple[Tensor, ...]:
-            joints, dx = joint_jacobian(sk, q[:, part])  # (B, t, J, 3), (B, t, J, 3, D)
+            # only the keypoints' joints' rows of the joint Jacobian: (B, t, J, 3), (B, t, K, 3, D)
+            joints, dkp = joint_jacobian(sk, q[:, part], kps.joints)
             proj, dpix = cam.project_jacobian(joints.index_select(-2, idx))  # d pixels / d X (B, t, K, 2, 3)
-            return joints, dx, proj.pixels, proj.depth, dpix
+            return joints, dkp, proj.pixels, proj.depth, dpix
 
         geo = per_parts(geometry)
         joints, pixels, depth, dpix = (torch.cat([part[i] for part in geo], 1) for i in (0, 2, 3, 4))
-        dx = [part[1] for part in geo]  # each part's (B, t, J, 3, D), not joined: only read per part
+        dx = [part[1] for part in geo]  # each part's (B, t, K, 3, D), not joined: only read per part
         ev = PoseEval(q=q, joints=joints, pixels=pixels, depth=depth)
     else:
         from ptrack.problem import evaluate_pose
@@ -300,8 +304,7 @@ def evaluate(
     h = q.new_empty(b_len, t_len, _d, _d)
     g = q.new_empty(b_len, t_len, _d)
 
-    def normal_equations(part: slice, dx_part: Tensor) -> None:
-        dkp = dx_part.index_select(2, idx)  # (B, t, K, 3, D)
+    def normal_equations(part: slice, dkp: Tensor) -> None:
         jp_part = jp[:, part]
         jw = jp_part[..., :, 0, None] * dkp[..., None, 0, :]  # three products, not a batched 2 x 3 @ 3 x D each
         for c in (1, 2):
@@ -318,10 +321,11 @@ def evaluate(
     diag = diag.index_add(1, obj.kf_frames, kf_w2.expand(b_len, -1, -1))
     g = g.index_add(1, obj.kf_frames, kf_r * obj.kf_weight)
     if obj.jk_frames.numel():
-        _, dx_jk = joint_jacobian(sk, q[:, obj.jk_frames])
-        gj = dx_jk * obj.jk_weight[..., None, None]  # (B, G, J, 3, D)
+        # only the rows of joints some joint keyframe gives (the others weigh 0): (B, G, J', 3, D)
+        _, dx_jk = joint_jacobian(sk, q[:, obj.jk_frames], obj.jk_joints)
+        gj = dx_jk * obj.jk_weight[:, list(obj.jk_joints), None, None]
         h.index_add_(1, obj.jk_frames, torch.einsum("bgjcd,bgjce->bgde", gj, gj))
-        g = g.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjc->bgd", gj, jk_r))
+        g = g.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjc->bgd", gj, jk_r[:, :, list(obj.jk_joints)]))
     h.diagonal(dim1=-2, dim2=-1).add_(diag)  # in place: a diag_embed would write T D^2 zeros
     g = g + _band_matvec(obj.band, q)
     return terms, h, g
