@@ -211,9 +211,12 @@ def _factor_dense(diag: Tensor, lower: Tensor) -> tuple[_Chol, Tensor]:
     near = [(torch.diag_embed(lower[:, :, k]) if vec else lower[:, :, k]).transpose(0, 1) for k in range(w - 1)]
     a_tt = diag.transpose(0, 1)
     zero = diag.new_zeros(b, n, n)
+    # the factor is written in place, frame-major (frame t's C_t^{-T} and R_t contiguous, as the
+    # sweeps read them), instead of stacking T blocks at the end (~1.5 ms at T = 149, n = 44)
+    inv_fm = diag.new_empty(t_len, b, n, n)
+    rows = diag.new_empty(t_len, b, n, w * n)  # R_t
     cit: list[Tensor] = [zero] * w  # cit[t + W] = C_t^{-T}
     blocks: list[list[Tensor]] = [[zero] * w for _ in range(w)]  # blocks[t + W][k-1] = B[t, k]
-    rows: list[Tensor] = []  # R_t
     infos = []
     for t in range(t_len):
         blk: list[Tensor] = [zero] * w
@@ -223,16 +226,18 @@ def _factor_dense(diag: Tensor, lower: Tensor) -> tuple[_Chol, Tensor]:
             for j in range(k + 1, w + 1):  # - B[t, j] B[t-k, j-k]^T
                 x = torch.baddbmm(x, blk[j - 1], blocks[t - k + w][j - k - 1].mT, alpha=-1)
             blk[k - 1] = x @ cit[t - k + w]
-        row = torch.cat(blk[::-1], -1) if w > 1 else blk[0]
+        row = rows[t]
+        if w > 1:
+            torch.cat(blk[::-1], -1, out=row)
+        else:
+            row.copy_(blk[0])
         chol, info = torch.linalg.cholesky_ex(torch.baddbmm(a_tt[t], row, row.mT, alpha=-1))
         infos.append(info)
-        # C_t^{-1} comes out column-major: its transpose is a contiguous C_t^{-T}
-        cit.append(torch.linalg.solve_triangular(chol, eye, upper=False).mT)
+        # C_t^{-1} comes out column-major: its transpose is C_t^{-T}, copied row-major into the factor
+        cit.append(inv_fm[t].copy_(torch.linalg.solve_triangular(chol, eye, upper=False).mT))
         blocks.append(blk)
-        rows.append(row)
     ok = (torch.stack(infos, -1) == 0).all(-1) if infos else torch.ones(b, dtype=torch.bool, device=diag.device)
-    inv_t = torch.stack(cit[w:], 1) if t_len else diag.new_zeros(b, 0, n, n)
-    coupling = torch.stack(rows, 1) if t_len else diag.new_zeros(b, 0, n, w * n)
+    inv_t, coupling = inv_fm.transpose(0, 1), rows.transpose(0, 1)  # (B, T, ...) views
     if not bool(ok.all()):  # a failed system's factor: finite stand-ins (identity pivots, no couplings)
         inv_t = torch.where(ok[:, None, None, None], inv_t, eye[:, None])
         coupling = torch.where(ok[:, None, None, None], coupling, 0.0)
@@ -255,10 +260,15 @@ class _Twisted(NamedTuple):
 
 def _gather(diag: Tensor, frames: Tensor, dofs: Tensor | None) -> Tensor:
     """diag (B, T, D, D) -> (B, *frames.shape, n, n): the blocks of the given frames, restricted to
-    the dofs (None: all), in one indexing op."""
-    if dofs is None:
-        return diag[:, frames]
-    return diag[:, frames[..., None, None], dofs[:, None], dofs]
+    the dofs (None: all): the frames, then the n^2 entries of each block by one flat index (on the
+    bench's 300 x 62 x 62 to 44 dofs 0.6 + 0.8 ms against 5.6 ms for one advanced index, whose
+    gather along the last dim is slow)."""
+    picked = diag.index_select(1, frames.flatten())
+    if dofs is not None:
+        d, n = diag.shape[-1], dofs.numel()
+        entries = (dofs[:, None] * d + dofs).flatten()  # (n^2,) row-major within a block
+        picked = picked.flatten(-2).index_select(-1, entries).unflatten(-1, (n, n))
+    return picked.reshape(diag.shape[0], *frames.shape, *picked.shape[-2:])
 
 
 def _split_halves(diag: Tensor, lower: Tensor, m: int, dofs: Tensor | None) -> tuple[Tensor, Tensor]:
@@ -543,9 +553,12 @@ def _solve_reduced(f: _Reduction, b: Tensor) -> Tensor:
 def _split(a: BlockBanded) -> Tensor:
     """(D,) bool: dofs whose rows of every diagonal block are diagonal (decoupled from the others;
     only meaningful with diagonal couplings, which couple a dof only with itself)."""
-    off = a.diagonal.ne(0)
-    off.diagonal(dim1=-2, dim2=-1).fill_(False)
-    return ~off.flatten(0, -3).any(0).any(-1)
+    # an entry is nonzero in some block iff its smallest or largest value over the blocks is (NaN
+    # counts as nonzero, as in != 0): two fast reductions instead of a (..., T, D, D) mask
+    blocks = a.diagonal.flatten(0, -3)
+    off = (blocks.amin(0) != 0) | (blocks.amax(0) != 0)
+    off.fill_diagonal_(False)
+    return ~off.any(-1)
 
 
 def factorize(a: BlockBanded, halves: bool | None = None) -> tuple[BandedFactor, Tensor]:
