@@ -3,6 +3,7 @@ objective's stacked residuals (chain rule through the joints, FK still once).
 
     joint_jacobian(sk, q (..., D)) -> joints (..., J, 3), jac (..., J, 3, D)
     joint_jacobian(sk, q, joints (Y,)) -> joints (..., J, 3), jac (..., Y, 3, D): only those joints' rows
+    joint_jacobian_product(sk, q, joints (Y,), left (..., Y, R, 3)) -> left @ those rows (..., Y, R, D)
     point_jacobian(sk, q (..., D), joint (..., P), local (..., P, 3)) -> points (..., P, 3), jac (..., P, 3, D)
     joint_and_point_jacobian(sk, q, joint, local) -> both of the above, FK once
     residual_jacobian(sk, residual_fn, q (..., D)) -> r (..., M), jac (..., M, D)
@@ -184,6 +185,59 @@ def point_jacobian(sk: Skeleton, q: Tensor, joint: Tensor, local: Tensor) -> tup
     return _point_rows(sk, c, q, joints, rot, a, o, joint, local)
 
 
+def joint_jacobian_product(
+    sk: Skeleton,
+    q: Tensor,
+    joints: Sequence[int] | Tensor,
+    left: Tensor,
+    fk: tuple[Tensor, Tensor] | None = None,
+) -> Tensor:
+    """left @ the joint Jacobian rows of Y chosen joints, without forming those rows.
+
+    q (..., D), joints (Y,) as in `joint_jacobian`, left (..., Y, R, 3) (a derivative w.r.t. each
+    chosen joint's position, e.g. of its R = 2 pixel coordinates) -> (..., Y, R, D) = left[..., y]
+    @ jac[..., y] with jac = `joint_jacobian(sk, q, joints)[1]`. Each (joint, ancestor slot) pair
+    contributes left_y (a_s x (p_y - o_s)) to its dof's column (R values instead of 3, and no
+    (Y, 3, D) buffer); a slider its left_y G_i s_i, a root translation dof left_y's column of its
+    axis. For one slot per dof (no mimics), equal to the product of the two to the last bit: its
+    entries are the same products summed in the same order (x0 y0 + x1 y1, + x2 y2), where the
+    product adds exact zeros. fk: `sk.forward_kinematics(q, rotations=True)` if already computed.
+    Follows q's dtype and device.
+    """
+    positions, rot = sk.forward_kinematics(q, rotations=True) if fk is None else fk
+    c = _constants(sk, q.dtype, q.device)
+    a, o = _slot_axes(c, q, positions, rot)
+    rc = _row_constants(sk, c, joints, q.dtype, q.device)
+    y_len, r_len, d = rc["rows"], left.shape[-2], sk.num_dofs
+    batch = torch.broadcast_shapes(q.shape[:-1], left.shape[:-3])
+    left = left.expand(*batch, y_len, r_len, 3)
+    lever = positions.index_select(-2, rc["pair_joint"]) - o.index_select(-2, rc["pair_slot"])
+    vals = _cross(a.index_select(-2, rc["pair_slot"]), lever)  # (..., P, 3)
+    if not c["plain"]:
+        vals = vals * rc["pair_scale"][:, None]
+    lp = left.index_select(-3, rc["pair_row"])  # (..., P, R, 3)
+    entries = lp[..., 0] * vals[..., None, 0]  # (..., P, R), as the product's x0 y0 + x1 y1 + x2 y2
+    for k in (1, 2):
+        entries.addcmul_(lp[..., k], vals[..., None, k])
+    r = torch.arange(r_len, device=q.device)
+    index = ((rc["pair_row"][:, None] * r_len + r) * d + rc["pair_dof"][:, None]).flatten()
+    out = q.new_zeros(*batch, y_len * r_len * d)
+    if c["injective"]:
+        out.index_copy_(-1, index, entries.flatten(-2))
+    else:
+        out.index_add_(-1, index, entries.flatten(-2))
+    if rc["slide_src"].numel():
+        src = rc["slide_src"]
+        direction = torch.einsum("...qab,qb->...qa", rot.index_select(-3, src), c["slide_axis"].index_select(0, src))
+        slide = (left.index_select(-3, rc["slide_row"]) * direction[..., None, :]).sum(-1)  # (..., Q, R)
+        index = ((rc["slide_row"][:, None] * r_len + r) * d + rc["slide_dof"][:, None]).flatten()
+        out.index_add_(-1, index, slide.flatten(-2))
+    out = out.unflatten(-1, (y_len, r_len, d))
+    if c["trans_dof"].numel():  # no slot drives a translation dof: these columns are zero so far
+        out[..., c["trans_dof"]] += left[..., c["trans_axis"]]
+    return out
+
+
 def joint_and_point_jacobian(
     sk: Skeleton, q: Tensor, joint: Tensor, local: Tensor, fk: tuple[Tensor, Tensor] | None = None
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -236,6 +290,11 @@ def _row_constants(
         "pair_scale": scale[driven][pair_slot].to(device),
         "slide_src": slide_src.to(device),
         "slide_index": slide_index.to(device),
+        # for `joint_jacobian_product`: each pair's and slider's row and dof
+        "pair_row": pair_row.to(device),
+        "pair_dof": slot_dof[driven][pair_slot].to(device),
+        "slide_row": slide_row.to(device),
+        "slide_dof": slide_dof.to(device),
     }
     sk._cache[key] = rc
     return rc

@@ -16,6 +16,7 @@ from ptrack.errors import InputError
 from ptrack.jacobians import (
     joint_and_point_jacobian,
     joint_jacobian,
+    joint_jacobian_product,
     objective_linearization,
     point_jacobian,
     residual_jacobian,
@@ -153,6 +154,42 @@ def test_joint_jacobian_of_chosen_joints_equals_the_full_rows(cmu, model):
     torch.testing.assert_close(joint_jacobian(sk, q, chosen)[1], want, rtol=0, atol=1e-10)
     with pytest.raises(ValueError, match="outside the skeleton"):
         joint_jacobian(sk, q, [sk.num_joints])
+
+
+@pytest.mark.parametrize("model", ["cmu", "reduced", "tree2", "panda"])
+def test_joint_jacobian_product_equals_left_times_the_rows(cmu, model):
+    """joint_jacobian_product(sk, q, joints, left) = left @ joint_jacobian(sk, q, joints)[1] per joint
+    (float64; to the last bit on CMU, whose dofs each drive one slot, summed as x0 y0 + x1 y1 + x2 y2),
+    left broadcast over q's batch dims and the FK given or not, on CMU, a reduced model, a random tree
+    and a URDF with sliders and mimics."""
+    gen = torch.Generator().manual_seed(7)
+    if model in ("cmu", "reduced"):
+        sk = cmu if model == "cmu" else cmu.freeze(REDUCE)
+        q = _poses(sk, 3)
+        chosen = [0, 6, 7, 8, 1, 2, 3, 12, 13, 15, 16, 17, 18, 19, 24, 25, 26]
+    elif model == "panda":
+        sk = Skeleton.from_urdf(Path(__file__).parent / "data/urdf/example_robot_data/panda_description/panda.urdf")
+        q = 0.5 * torch.randn(3, sk.num_dofs, generator=gen, dtype=F64)
+        chosen = list(range(sk.num_joints))[::-2]
+    else:
+        sk = _random_tree(int(model[-1]))
+        q = torch.randn(3, sk.num_dofs, generator=gen, dtype=F64)
+        chosen = [4, 0, 7, 4]
+    _, rows = joint_jacobian(sk, q, chosen)  # (3, Y, 3, D)
+    for r_len in (2, 1):
+        left = torch.randn(3, len(chosen), r_len, 3, generator=gen, dtype=F64)
+        got = joint_jacobian_product(sk, q, chosen, left)
+        assert got.shape == (3, len(chosen), r_len, sk.num_dofs)
+        torch.testing.assert_close(got, left @ rows, rtol=0, atol=1e-12)
+        if model == "cmu":
+            want = left[..., 0, None] * rows[..., None, 0, :]
+            for c in (1, 2):
+                want.addcmul_(left[..., c, None], rows[..., None, c, :])
+            torch.testing.assert_close(got, want, rtol=0, atol=0)
+        fk = sk.forward_kinematics(q, rotations=True)
+        torch.testing.assert_close(joint_jacobian_product(sk, q, chosen, left, fk), got, rtol=0, atol=0)
+        shared = joint_jacobian_product(sk, q, chosen, left[0])  # one left for every pose
+        torch.testing.assert_close(shared, left[0] @ rows, rtol=0, atol=1e-12)
 
 
 def _autograd_point_jacobian(sk: Skeleton, q: torch.Tensor, joint: torch.Tensor, local: torch.Tensor) -> torch.Tensor:

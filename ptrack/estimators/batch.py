@@ -49,7 +49,7 @@ from ptrack.banded import BlockBanded, factorize, marginal_blocks, on_two_thread
 from ptrack.costs import PoseEval, Reprojection, robust_loss, robust_loss_derivative
 from ptrack.costs.base import PoseJacobian
 from ptrack.errors import InputError
-from ptrack.jacobians import joint_jacobian
+from ptrack.jacobians import joint_jacobian, joint_jacobian_product
 from ptrack.limits import wrap_to_limits
 from ptrack.problem import Estimate, Problem
 from ptrack.solvers import BandedLinearization, banded_levenberg_marquardt
@@ -257,18 +257,17 @@ def evaluate(
         args = [(part,) if extra is None else (part, e) for part, e in zip(parts, extra or parts)]
         return [fn(*args[0])] if len(parts) == 1 else list(on_two_threads(fn, args[0], args[1]))
 
-    dx: list[Tensor] | None = None
+    fk: list[tuple[Tensor, Tensor]] | None = None
     if with_jacobian:
 
         def geometry(part: slice) -> tuple[Tensor, ...]:
-            # only the keypoints' joints' rows of the joint Jacobian: (B, t, J, 3), (B, t, K, 3, D)
-            joints, dkp = joint_jacobian(sk, q[:, part], kps.joints)
+            joints, rot = sk.forward_kinematics(q[:, part], rotations=True)  # (B, t, J, 3), (B, t, J, 3, 3)
             proj, dpix = cam.project_jacobian(joints.index_select(-2, idx))  # d pixels / d X (B, t, K, 2, 3)
-            return joints, dkp, proj.pixels, proj.depth, dpix
+            return joints, rot, proj.pixels, proj.depth, dpix
 
         geo = per_parts(geometry)
         joints, pixels, depth, dpix = (torch.cat([part[i] for part in geo], 1) for i in (0, 2, 3, 4))
-        dx = [part[1] for part in geo]  # each part's (B, t, K, 3, D), not joined: only read per part
+        fk = [(part[0], part[1]) for part in geo]  # each part's FK, not joined: only read per part
         ev = PoseEval(q=q, joints=joints, pixels=pixels, depth=depth)
     else:
         from ptrack.problem import evaluate_pose
@@ -293,10 +292,12 @@ def evaluate(
     terms["keyframes"] = keyframes.index_add(1, obj.jk_frames, 0.5 * jk_r.square().sum((-1, -2)))
     if not with_jacobian:
         return terms, None, None
-    assert dx is not None  # with_jacobian
+    assert fk is not None  # with_jacobian
 
     # J_t^T W J_t of the reprojection: per keypoint, the residual's 2 x 3 derivative w.r.t. its joint
     # (`Reprojection.jacobian` on d pixels / d X) times sqrt(W), times that joint's geometric Jacobian
+    # (`joint_jacobian_product`: from the keypoints' joints' (joint, ancestor slot) pairs, 2 values
+    # each, never the (K, 3, D) rows)
     root_w = robust_loss_derivative(rp.loss)(s, rp.scale).sqrt()[..., None]  # (B, T, K, 1) sqrt IRLS weights
     jp = rp.jacobian(ev, PoseJacobian(ev.joints, dpix, ev.depth)).unflatten(-2, (t_len, k, 2))  # (B, T, K, 2, 3)
     jp = jp * root_w[..., None]
@@ -304,16 +305,13 @@ def evaluate(
     h = q.new_empty(b_len, t_len, _d, _d)
     g = q.new_empty(b_len, t_len, _d)
 
-    def normal_equations(part: slice, dkp: Tensor) -> None:
-        jp_part = jp[:, part]
-        jw = jp_part[..., :, 0, None] * dkp[..., None, 0, :]  # three products, not a batched 2 x 3 @ 3 x D each
-        for c in (1, 2):
-            jw.addcmul_(jp_part[..., :, c, None], dkp[..., None, c, :])
+    def normal_equations(part: slice, fk_part: tuple[Tensor, Tensor]) -> None:
+        jw = joint_jacobian_product(sk, q[:, part], kps.joints, jp[:, part], fk_part)  # (B, t, K, 2, D)
         jw = jw.flatten(-3, -2)  # (B, t, 2K, D), rows (keypoint, x|y)
         torch.matmul(jw.mT, jw, out=h[:, part])  # one batched product per frame, in place
         torch.matmul(jw.mT, rw[:, part], out=g[:, part, :, None])
 
-    per_parts(normal_equations, dx)
+    per_parts(normal_equations, fk)
     outside = ((q < obj.lower) | (q > obj.upper)).to(q.dtype)
     diag = outside * obj.limits_scale**2
     g = g + lim * obj.limits_scale
