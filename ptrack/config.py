@@ -117,6 +117,11 @@ class KjsMethodConfig:
     # (05_02: 28.4 against 20.7 mm best trajectory)
     distinct_mm: float = 0.0
     distinct_deg: float = 3.0  # with distinct_mm 0: minima closer than this in every dof are one
+    # share of the diffusion samples split equally over the modes (the rest by weight), so that light modes,
+    # which often hold a limb's other branch, keep exploring. 1 px dev clips, keyframe start, seeds 0-2 (best
+    # trajectory / best-of-K mm / flip rate): 0 gave 26.8 / 20.7 / 0.069, 29.1 / 22.5 / 0.092, 26.8 / 19.5 /
+    # 0.068; 0.5 gave 25.6 / 20.1 / 0.067, 28.4 / 20.3 / 0.081, 23.9 / 19.6 / 0.062 (1.0, seed 0: 27.3 / 20.6)
+    even_share: float = 0.5
     temperature: float = 1.0  # weights ∝ prior * exp(-cost / temperature)
     # radians (or metres) per frame: the dynamics' velocity prior. Each hypothesis is polished to
     # convergence, so this alone holds the weakly observed dofs: 0.05 measured better than 0.08 and 0.15
@@ -139,7 +144,14 @@ class KjsMethodConfig:
     collision_weight: float = 1.0  # body non-self-intersection term
     floor_deg: float = 0.5  # smallest sampling std per dof (unobservable directions)
     ceiling_deg: float = 30.0  # largest sampling std per dof
-    viterbi_sigma: float = 0.05  # radians per frame: smoothness of the best trajectory through the modes
+    # the best trajectory through the modes (Viterbi): its velocity prior on the joints' positions relative
+    # to the root (joints; std viterbi_sigma_m metres per frame and coordinate) or on the dofs (dofs; std
+    # viterbi_sigma radians per frame). On the same recorded modes of the dev clips (best trajectory mm):
+    # 1 px seed 0 dofs 25.6, joints 23.7; seed 1 28.4, 22.6; 2 px seed 0 34.1, 32.7 (joints 0.03 and 0.08 m
+    # between). Euler-angle steps are not the body's motion: a root or shoulder angle near gimbal lock moves a lot
+    viterbi_space: str = "joints"
+    viterbi_sigma_m: float = 0.05
+    viterbi_sigma: float = 0.05
     init: str = "keyframe"  # keyframe: frame 0's 3D pose given; tree: rest pose fitted in view + every flip
     # init tree: the CMU pose prior's spread is scaled by this (1.0-2.0 gave the same mean best-of-K on
     # frame 0 of the dev clips, 1.5 is between); angles it does not name: std rest_sigma around 0
@@ -578,6 +590,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         "floor_deg",
         "ceiling_deg",
         "viterbi_sigma",
+        "viterbi_sigma_m",
         "rest_sigma",
         "start_prior_scale",
         "prior_tail_scale",
@@ -596,13 +609,15 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     for key in ("motion_scale", "pose_prior_weight", "distinct_mm"):
         if getattr(kc, key) < 0:
             raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")
-    if not 0 <= kc.momentum <= 1:
-        raise InputError(f"config key 'kjs.momentum' must be in [0, 1], got {kc.momentum}")
+    for key in ("momentum", "even_share"):
+        if not 0 <= getattr(kc, key) <= 1:
+            raise InputError(f"config key 'kjs.{key}' must be in [0, 1], got {getattr(kc, key)}")
     for key, allowed in (
         ("tail", ("gaussian", "student", "cauchy")),
         ("limits_mode", ("prune", "project")),
         ("polisher", ("lm", "lbfgs")),
         ("init", ("keyframe", "tree")),
+        ("viterbi_space", ("joints", "dofs")),
         ("prior_tail", ("gaussian", "cauchy", "huber", "geman_mcclure")),
     ):
         if getattr(kc, key) not in allowed:

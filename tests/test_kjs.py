@@ -14,7 +14,7 @@ from ptrack import metrics as M
 from ptrack.cli import main
 from ptrack.config import load_config
 from ptrack.estimators import ESTIMATORS
-from ptrack.estimators.kjs import KJS, _chain_votes, _setup, track
+from ptrack.estimators.kjs import KJS, _allocate, _chain_votes, _setup, track
 from ptrack.problem import Problem
 from ptrack.run import prepare
 
@@ -122,6 +122,15 @@ def test_chain_votes_follow_the_covariance(kjs_run):
     assert int(votes[1].argmax()) == 0 and float(votes[1, 0]) > 0.99
 
 
+def test_allocation_splits_an_even_share_over_the_modes():
+    weight = torch.tensor([0.97, 0.01, 0.01, 0.01])
+    by_weight = _allocate(weight, 100)
+    assert sum(by_weight) == 100 and max(by_weight[1:]) <= 2
+    half = _allocate(weight, 100, even=0.5)
+    assert sum(half) == 100 and min(half[1:]) >= 12 and half[0] > 50
+    assert _allocate(weight, 100, even=1.0) == [25, 25, 25, 25]
+
+
 @pytest.mark.parametrize(
     "override, key",
     [
@@ -131,6 +140,9 @@ def test_chain_votes_follow_the_covariance(kjs_run):
         ("kjs.scale=-1", "kjs.scale"),
         ("kjs.tail=uniform", "kjs.tail"),
         ("kjs.init=guess", "kjs.init"),
+        ("kjs.even_share=1.5", "kjs.even_share"),
+        ("kjs.viterbi_space=angles", "kjs.viterbi_space"),
+        ("kjs.viterbi_sigma_m=0", "kjs.viterbi_sigma_m"),
     ],
 )
 def test_bad_settings_are_one_line_errors(tmp_path, capsys, override, key):

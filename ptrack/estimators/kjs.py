@@ -37,7 +37,9 @@ fits that differ in 3D are expanded by every flip combination of the chains (the
 trees) and the K best distinct minima kept. A frame with no observed
 keypoint is carried by the dynamics. The output's `hypotheses` are the K modes of each frame;
 `q`/`joints` are the best trajectory through them by Viterbi: each mode's own frame cost (data, limits,
-collision, pose prior; `_evidence`) plus a velocity prior between consecutive choices.
+collision, pose prior; `_evidence`) plus a velocity prior between consecutive choices, on the joints'
+positions relative to the root (`kjs.viterbi_space: joints`, std `kjs.viterbi_sigma_m` per frame) or on
+the dofs (`dofs`, `kjs.viterbi_sigma`).
 """
 
 from __future__ import annotations
@@ -222,10 +224,11 @@ def _cholesky(s: Setup, hessian: Tensor) -> Tensor:
 # ---------------------------------------------------------------- sampling
 
 
-def _allocate(weight: Tensor, total: int) -> list[int]:
-    """Split `total` samples over modes by weight, every mode at least one (if total allows)."""
+def _allocate(weight: Tensor, total: int, even: float = 0.0) -> list[int]:
+    """Split `total` samples over modes: a share `even` of them equally, the rest by weight, every mode
+    at least one (if total allows)."""
     m = weight.shape[0]
-    base = min(1, total // max(m, 1))
+    base = max(min(1, total // max(m, 1)), int(even * total) // max(m, 1))
     rest = total - base * m
     share = torch.floor(weight.double() * rest)
     left = rest - int(share.sum())
@@ -237,7 +240,7 @@ def _allocate(weight: Tensor, total: int) -> list[int]:
 def _diffuse(s: Setup, modes: Modes, total: int, strategy: Strategy, gen: torch.Generator) -> tuple[Tensor, Tensor]:
     """Draw `total` diffusion samples: -> q (total, D), parent mode index (total,)."""
     k = s.cfg.kjs
-    counts = _allocate(modes.weight, total)
+    counts = _allocate(modes.weight, total, k.even_share)
     dof = k.tail_dof if k.tail == "student" else None
     propose = spherical_proposal if strategy.spherical else css_proposal
     draws = propose(modes.q, modes.chol, counts, gen, tail=k.tail, dof=dof)
@@ -527,11 +530,16 @@ def _track(
         jumps.append(counts.to(modes.q.device))
     hq, hw, hc = torch.stack(qs), torch.stack(ws), torch.stack(cs)  # (T, K, D), (T, K), (T, K)
     unary = torch.stack(es)
-    path = viterbi(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), hq, k.viterbi_sigma)
+    with torch.no_grad():
+        hyp_joints = sk.forward_kinematics(hq)  # (T, K, J, 3)
+    if k.viterbi_space == "joints":  # the body's motion in metres: every joint relative to the root
+        feats, sigma = (hyp_joints - hyp_joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
+    else:
+        feats, sigma = hq, k.viterbi_sigma
+    path = viterbi(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma)
     frames = torch.arange(hq.shape[0], device=hq.device)
     q = hq[frames, path]
     with torch.no_grad():
-        hyp_joints = sk.forward_kinematics(hq)
         joints = hyp_joints[frames, path]
         directions = principal_directions(sk, hq, torch.stack(ls), k.scale)
     return Estimate(
