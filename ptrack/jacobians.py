@@ -60,6 +60,35 @@ from ptrack.solvers import Linearization
 ResidualFn = Callable[[Tensor, Tensor], Tensor]
 
 
+def _pair_tables(sk: Skeleton, anc: Tensor, dtype: torch.dtype) -> dict[str, Tensor]:
+    """The (row, slot) pairs of a Jacobian whose rows are Y joints, from anc (Y, J) (anc[r, i]: joint i is
+    row r's joint or one of its ancestors), on the CPU: each pair's row, slot, dof and mimic scale, and
+    where its three entries go in a flattened (Y, 3, D) Jacobian ((r * 3 + k) * D + dof); likewise the
+    (row, prismatic slider) pairs of URDF models (joint i slides its subtree along G_i s_i, one dof)."""
+    j, d = sk.num_joints, sk.num_dofs
+    slot_dof = torch.as_tensor(sk.axis_dof, dtype=torch.long)  # (J, 3)
+    driven = slot_dof >= 0
+    joint_of = torch.arange(j)[:, None].expand(j, 3)[driven]  # (S,) joint of each driven slot
+    pair_row, pair_slot = torch.nonzero(anc[:, joint_of], as_tuple=True)  # (P,) each
+    pair_dof = slot_dof[driven][pair_slot]
+    scale = torch.as_tensor(sk.axis_scale, dtype=dtype)  # (J, 3) a mimic slot's multiplier, else 1
+    sliders = torch.as_tensor(np.flatnonzero(sk.slide_dof >= 0), dtype=torch.long)
+    slide_row, slide_src = torch.nonzero(anc[:, sliders], as_tuple=True)
+    slide_src = sliders[slide_src]
+    slide_dof = torch.as_tensor(sk.slide_dof, dtype=torch.long)[slide_src]
+    return {
+        "pair_row": pair_row,
+        "pair_slot": pair_slot,
+        "pair_dof": pair_dof,
+        "pair_index": ((pair_row[:, None] * 3 + torch.arange(3)) * d + pair_dof[:, None]).flatten(),
+        "pair_scale": scale[driven][pair_slot],
+        "slide_row": slide_row,
+        "slide_src": slide_src,
+        "slide_dof": slide_dof,
+        "slide_index": ((slide_row[:, None] * 3 + torch.arange(3)) * d + slide_dof[:, None]).flatten(),
+    }
+
+
 def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
     """Per-skeleton constants, cached like the FK plan: slot axes, which slots are driven, the dof
     each slot drives, and the (joint, slot) pairs where the slot's joint is the joint or one of its
@@ -79,17 +108,8 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
     driven = slot_dof >= 0
     joint_of = torch.arange(j)[:, None].expand(j, 3)[driven]  # (S,) joint of each driven slot
     trans = torch.as_tensor(sk.translation_dof, dtype=torch.long)
-    d = sk.num_dofs
-    pair_joint, pair_slot = torch.nonzero(anc[:, joint_of], as_tuple=True)  # (P,) each
-    # flat index into (J, 3, D) of entry k of pair p: (y * 3 + k) * D + dof
-    pair_index = ((pair_joint[:, None] * 3 + torch.arange(3)) * d + slot_dof[driven][pair_slot][:, None]).flatten()
     scale = torch.as_tensor(sk.axis_scale, dtype=dtype)  # (J, 3) a mimic slot's multiplier, else 1
-    # URDF prismatic joints: joint i slides its subtree along G_i s_i, one dof; (joint y, slider i) pairs
-    sliders = torch.as_tensor(np.flatnonzero(sk.slide_dof >= 0), dtype=torch.long)
-    slide_joint, slide_src = torch.nonzero(anc[:, sliders], as_tuple=True)
-    slide_src = sliders[slide_src]
-    slide_dof = torch.as_tensor(sk.slide_dof, dtype=torch.long)[slide_src]
-    slide_index = ((slide_joint[:, None] * 3 + torch.arange(3)) * d + slide_dof[:, None]).flatten()
+    pt = _pair_tables(sk, anc, dtype)
     c = {
         "axes": torch.as_tensor(sk.axes, dtype=dtype, device=device),  # (J, 3, 3)
         "slot_index": torch.as_tensor(sk.axis_dof.clip(0), dtype=torch.long, device=device),  # (J, 3)
@@ -102,18 +122,18 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
         "slot_joint": joint_of.to(device),
         "injective": len(set(slot_dof[driven].tolist())) == int(driven.sum()),
         "ancestors": anc,  # on the CPU: `_row_constants` builds its tables from it
-        "pair_joint": pair_joint.to(device),
-        "pair_slot": pair_slot.to(device),
-        "pair_index": pair_index.to(device),  # (3 P,)
+        "pair_joint": pt["pair_row"].to(device),
+        "pair_slot": pt["pair_slot"].to(device),
+        "pair_index": pt["pair_index"].to(device),  # (3 P,)
         "trans_axis": torch.nonzero(trans >= 0).flatten().to(device),  # world axes with a dof
         "trans_dof": trans[trans >= 0].to(device),
         # angle per unit of the slot's dof (0 for undriven slots): theta = mask * q + frozen, as in FK
         "mask": torch.where(driven, scale, torch.zeros_like(scale)).to(device),
-        "pair_scale": scale[driven][pair_slot].to(device),  # (P,)
+        "pair_scale": pt["pair_scale"].to(device),  # (P,)
         "plain": bool((scale[driven] == 1).all()),
-        "slide_src": slide_src.to(device),  # (Q,) the prismatic joint of each (joint, slider) pair
+        "slide_src": pt["slide_src"].to(device),  # (Q,) the prismatic joint of each (joint, slider) pair
         "slide_axis": torch.as_tensor(sk.slide_axis, dtype=dtype, device=device),  # (J, 3) in G_i's frame
-        "slide_index": slide_index.to(device),  # (3 Q,)
+        "slide_index": pt["slide_index"].to(device),  # (3 Q,)
     }
     sk._cache[key] = c
     return c
@@ -265,37 +285,15 @@ def _row_constants(
     rc = sk._cache.get(key)
     if rc is not None:
         return rc
-    j, d = sk.num_joints, sk.num_dofs
+    j = sk.num_joints
     if any(not -j <= y < j for y in rows):
         raise ValueError(f"joint_jacobian: joints {list(rows)} outside the skeleton's {j} joints")
     rows = tuple(y % j for y in rows)
     sel = torch.as_tensor(rows, dtype=torch.long)
-    anc = c["ancestors"][sel]  # (Y, J): anc[r, i]: i is joints[r] or an ancestor of it
-    slot_dof = torch.as_tensor(sk.axis_dof, dtype=torch.long)  # (J, 3)
-    driven = slot_dof >= 0
-    joint_of = torch.arange(j)[:, None].expand(j, 3)[driven]
-    pair_row, pair_slot = torch.nonzero(anc[:, joint_of], as_tuple=True)  # (P,) each
-    pair_index = ((pair_row[:, None] * 3 + torch.arange(3)) * d + slot_dof[driven][pair_slot][:, None]).flatten()
-    scale = torch.as_tensor(sk.axis_scale, dtype=dtype)
-    sliders = torch.as_tensor(np.flatnonzero(sk.slide_dof >= 0), dtype=torch.long)
-    slide_row, slide_src = torch.nonzero(anc[:, sliders], as_tuple=True)
-    slide_src = sliders[slide_src]
-    slide_dof = torch.as_tensor(sk.slide_dof, dtype=torch.long)[slide_src]
-    slide_index = ((slide_row[:, None] * 3 + torch.arange(3)) * d + slide_dof[:, None]).flatten()
-    rc = {
-        "rows": len(rows),
-        "pair_joint": sel[pair_row].to(device),
-        "pair_slot": pair_slot.to(device),
-        "pair_index": pair_index.to(device),
-        "pair_scale": scale[driven][pair_slot].to(device),
-        "slide_src": slide_src.to(device),
-        "slide_index": slide_index.to(device),
-        # for `joint_jacobian_product`: each pair's and slider's row and dof
-        "pair_row": pair_row.to(device),
-        "pair_dof": slot_dof[driven][pair_slot].to(device),
-        "slide_row": slide_row.to(device),
-        "slide_dof": slide_dof.to(device),
-    }
+    pt = _pair_tables(sk, c["ancestors"][sel], dtype)
+    rc = {name: x.to(device) for name, x in pt.items()}  # for `joint_jacobian_product`: pair_row, pair_dof, ...
+    rc["rows"] = len(rows)
+    rc["pair_joint"] = sel[pt["pair_row"]].to(device)
     sk._cache[key] = rc
     return rc
 

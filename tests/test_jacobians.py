@@ -125,25 +125,27 @@ def test_joint_jacobian_any_leading_dims_and_dtype(cmu):
     torch.testing.assert_close(jac32.double(), flat, rtol=0, atol=1e-4)
 
 
+def _chosen_joints_case(cmu, model: str, gen: torch.Generator):
+    """A model, 3 poses and a choice of joints for the chosen-rows tests: CMU and a reduced CMU (the
+    keypoints' 17 joints), a random tree (repeats, any order) or the panda URDF (sliders, mimics)."""
+    if model in ("cmu", "reduced"):
+        sk = cmu if model == "cmu" else cmu.freeze(REDUCE)
+        return sk, _poses(sk, 3), [0, 6, 7, 8, 1, 2, 3, 12, 13, 15, 16, 17, 18, 19, 24, 25, 26]
+    if model == "panda":
+        sk = Skeleton.from_urdf(Path(__file__).parent / "data/urdf/example_robot_data/panda_description/panda.urdf")
+        assert sk.has_slides_or_mimics
+        return sk, 0.5 * torch.randn(3, sk.num_dofs, generator=gen, dtype=F64), list(range(sk.num_joints))[::-2]
+    sk = _random_tree(int(model[-1]))
+    return sk, torch.randn(3, sk.num_dofs, generator=gen, dtype=F64), [4, 0, 7, 4]
+
+
 @pytest.mark.parametrize("model", ["cmu", "reduced", "tree1", "panda"])
 def test_joint_jacobian_of_chosen_joints_equals_the_full_rows(cmu, model):
     """joint_jacobian(sk, q, joints): exactly the full Jacobian's rows of those joints (any order,
     repeats, a tensor or a sequence, none), on CMU, a reduced model, a random tree and a URDF with
     sliders and mimics; and so equal to autograd through FK (float64)."""
     gen = torch.Generator().manual_seed(5)
-    if model in ("cmu", "reduced"):
-        sk = cmu if model == "cmu" else cmu.freeze(REDUCE)
-        q = _poses(sk, 3)
-        chosen = [0, 6, 7, 8, 1, 2, 3, 12, 13, 15, 16, 17, 18, 19, 24, 25, 26]  # the CMU keypoints' joints
-    elif model == "panda":
-        sk = Skeleton.from_urdf(Path(__file__).parent / "data/urdf/example_robot_data/panda_description/panda.urdf")
-        assert sk.has_slides_or_mimics
-        q = 0.5 * torch.randn(3, sk.num_dofs, generator=gen, dtype=F64)
-        chosen = list(range(sk.num_joints))[::-2]
-    else:
-        sk = _random_tree(int(model[-1]))
-        q = torch.randn(3, sk.num_dofs, generator=gen, dtype=F64)
-        chosen = [4, 0, 7, 4]
+    sk, q, chosen = _chosen_joints_case(cmu, model, gen)
     joints, full = joint_jacobian(sk, q)
     for rows in (chosen, torch.tensor(chosen[:2]), [sk.num_joints - 1], list(range(sk.num_joints)), []):
         got_joints, jac = joint_jacobian(sk, q.reshape(1, 3, -1), rows)
@@ -163,18 +165,7 @@ def test_joint_jacobian_product_equals_left_times_the_rows(cmu, model):
     left broadcast over q's batch dims and the FK given or not, on CMU, a reduced model, a random tree
     and a URDF with sliders and mimics."""
     gen = torch.Generator().manual_seed(7)
-    if model in ("cmu", "reduced"):
-        sk = cmu if model == "cmu" else cmu.freeze(REDUCE)
-        q = _poses(sk, 3)
-        chosen = [0, 6, 7, 8, 1, 2, 3, 12, 13, 15, 16, 17, 18, 19, 24, 25, 26]
-    elif model == "panda":
-        sk = Skeleton.from_urdf(Path(__file__).parent / "data/urdf/example_robot_data/panda_description/panda.urdf")
-        q = 0.5 * torch.randn(3, sk.num_dofs, generator=gen, dtype=F64)
-        chosen = list(range(sk.num_joints))[::-2]
-    else:
-        sk = _random_tree(int(model[-1]))
-        q = torch.randn(3, sk.num_dofs, generator=gen, dtype=F64)
-        chosen = [4, 0, 7, 4]
+    sk, q, chosen = _chosen_joints_case(cmu, model, gen)
     _, rows = joint_jacobian(sk, q, chosen)  # (3, Y, 3, D)
     for r_len in (2, 1):
         left = torch.randn(3, len(chosen), r_len, 3, generator=gen, dtype=F64)
