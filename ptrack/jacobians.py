@@ -205,6 +205,23 @@ def point_jacobian(sk: Skeleton, q: Tensor, joint: Tensor, local: Tensor) -> tup
     return _point_rows(sk, c, q, joints, rot, a, o, joint, local)
 
 
+def _pair_values(c: dict, t: dict, positions: Tensor, a: Tensor, o: Tensor) -> Tensor:
+    """Each (joint y, slot s) pair's column entries a_s x (p_y - o_s) (times a mimic slot's multiplier),
+    for the pair tables t (`_constants` or `_row_constants`): -> (..., P, 3)."""
+    lever = positions.index_select(-2, t["pair_joint"]) - o.index_select(-2, t["pair_slot"])
+    vals = _cross(a.index_select(-2, t["pair_slot"]), lever)  # (..., P, 3)
+    if not c["plain"]:  # mimic slots turn by their multiplier per unit of the leader's dof
+        vals = vals * t["pair_scale"][:, None]
+    return vals
+
+
+def _slide_directions(c: dict, t: dict, rot: Tensor) -> Tensor:
+    """Each (joint, prismatic slider i) pair's direction G_i s_i in the world, for the pair tables t:
+    rot (..., J, 3, 3) -> (..., Q, 3)."""
+    src = t["slide_src"]
+    return torch.einsum("...qab,qb->...qa", rot.index_select(-3, src), c["slide_axis"].index_select(0, src))
+
+
 def joint_jacobian_product(
     sk: Skeleton,
     q: Tensor,
@@ -231,10 +248,7 @@ def joint_jacobian_product(
     y_len, r_len, d = rc["rows"], left.shape[-2], sk.num_dofs
     batch = torch.broadcast_shapes(q.shape[:-1], left.shape[:-3])
     left = left.expand(*batch, y_len, r_len, 3)
-    lever = positions.index_select(-2, rc["pair_joint"]) - o.index_select(-2, rc["pair_slot"])
-    vals = _cross(a.index_select(-2, rc["pair_slot"]), lever)  # (..., P, 3)
-    if not c["plain"]:
-        vals = vals * rc["pair_scale"][:, None]
+    vals = _pair_values(c, rc, positions, a, o)  # (..., P, 3)
     lp = left.index_select(-3, rc["pair_row"])  # (..., P, R, 3)
     entries = lp[..., 0] * vals[..., None, 0]  # (..., P, R), as the product's x0 y0 + x1 y1 + x2 y2
     for k in (1, 2):
@@ -247,8 +261,7 @@ def joint_jacobian_product(
     else:
         out.index_add_(-1, index, entries.flatten(-2))
     if rc["slide_src"].numel():
-        src = rc["slide_src"]
-        direction = torch.einsum("...qab,qb->...qa", rot.index_select(-3, src), c["slide_axis"].index_select(0, src))
+        direction = _slide_directions(c, rc, rot)  # (..., Q, 3)
         slide = (left.index_select(-3, rc["slide_row"]) * direction[..., None, :]).sum(-1)  # (..., Q, R)
         index = ((rc["slide_row"][:, None] * r_len + r) * d + rc["slide_dof"][:, None]).flatten()
         out.index_add_(-1, index, slide.flatten(-2))
@@ -308,21 +321,14 @@ def _joint_rows(
     t = c if rows is None else rows  # the pair tables: all joints, or the chosen rows
     n_rows = joints.shape[-2] if rows is None else rows["rows"]
     # for each (joint y, slot s) pair with y in the subtree of s's joint: a_s x (p_y - o_s)
-    pair_a = a.index_select(-2, t["pair_slot"])  # (..., P, 3)
-    lever = joints.index_select(-2, t["pair_joint"]) - o.index_select(-2, t["pair_slot"])
-    vals = _cross(pair_a, lever)  # (..., P, 3)
-    if not c["plain"]:  # mimic slots turn by their multiplier per unit of the leader's dof
-        vals = vals * t["pair_scale"][:, None]
-    vals = vals.flatten(-2)  # (..., 3 P), entries (p, k)
+    vals = _pair_values(c, t, joints, a, o).flatten(-2)  # (..., 3 P), entries (p, k)
     jac = q.new_zeros(*batch, n_rows * 3 * sk.num_dofs)
     if c["injective"]:
         jac.index_copy_(-1, t["pair_index"], vals)
     else:
         jac.index_add_(-1, t["pair_index"], vals)
     if t["slide_src"].numel():  # a prismatic joint i moves every joint of its subtree by G_i s_i
-        src = t["slide_src"]
-        direction = torch.einsum("...qab,qb->...qa", rot.index_select(-3, src), c["slide_axis"].index_select(0, src))
-        jac.index_add_(-1, t["slide_index"], direction.flatten(-2))
+        jac.index_add_(-1, t["slide_index"], _slide_directions(c, t, rot).flatten(-2))
     jac = jac.unflatten(-1, (n_rows, 3, sk.num_dofs))
     if c["trans_dof"].numel():
         jac[..., c["trans_axis"], c["trans_dof"]] = 1.0
@@ -345,21 +351,15 @@ def _point_rows(
     key = ("point_jacobian", q.dtype, str(q.device))
     pc = sk._cache.get(key)
     if pc is None:  # (J, S) slot s turns joint y's body; (S, D) each slot's dof with its multiplier; same for sliders
-        j, d = sk.num_joints, sk.num_dofs
+        d = sk.num_dofs
         n_slot = int(c["slot_joint"].numel())
-        anc = torch.zeros(j, n_slot, dtype=torch.bool, device=q.device)
-        anc[c["pair_joint"], c["pair_slot"]] = True
+        anc = c["ancestors"][:, c["slot_joint"].cpu()].to(q.device)  # (J, S): slot s's joint is y or above it
         slot_dof = c["slot_index"].flatten()[c["slot_flat"]]
         select = torch.zeros(n_slot, d, dtype=q.dtype, device=q.device)
         select[torch.arange(n_slot, device=q.device), slot_dof] = c["mask"].flatten()[c["slot_flat"]]
-        sliders = torch.as_tensor(np.flatnonzero(sk.slide_dof >= 0), dtype=torch.long, device=q.device)
-        slide_anc = torch.zeros(j, sliders.numel(), dtype=torch.bool, device=q.device)
-        for k, i in enumerate(sliders.tolist()):
-            for y in range(j):
-                z = y
-                while z >= 0 and z != i:
-                    z = sk.parents[z]
-                slide_anc[y, k] = z == i
+        sliders = torch.as_tensor(np.flatnonzero(sk.slide_dof >= 0), dtype=torch.long)
+        slide_anc = c["ancestors"][:, sliders].to(q.device)  # (J, Q): slider i is y or above it
+        sliders = sliders.to(q.device)
         slide_select = torch.zeros(sliders.numel(), d, dtype=q.dtype, device=q.device)
         slide_dof = torch.as_tensor(sk.slide_dof, dtype=torch.long, device=q.device)
         slide_select[torch.arange(sliders.numel(), device=q.device), slide_dof[sliders]] = 1.0
