@@ -532,16 +532,15 @@ def _track(
     unary = torch.stack(es)
     with torch.no_grad():
         hyp_joints = sk.forward_kinematics(hq)  # (T, K, J, 3)
-    if k.viterbi_space == "joints":  # the body's motion in metres: every joint relative to the root
-        feats, sigma = (hyp_joints - hyp_joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
-    else:
-        feats, sigma = hq, k.viterbi_sigma
-    path = viterbi(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma)
-    frames = torch.arange(hq.shape[0], device=hq.device)
-    q = hq[frames, path]
-    with torch.no_grad():
+        if k.viterbi_space == "joints":  # the body's motion in metres: every joint relative to the root
+            feats, sigma = (hyp_joints - hyp_joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
+        else:
+            feats, sigma = hq, k.viterbi_sigma
+        path = viterbi(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma)
+        frames = torch.arange(hq.shape[0], device=hq.device)
         joints = hyp_joints[frames, path]
         directions = principal_directions(sk, hq, torch.stack(ls), k.scale)
+    q = hq[frames, path]
     return Estimate(
         q=q,
         joints=joints,
