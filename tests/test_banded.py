@@ -36,9 +36,12 @@ def diagonal_blocks(m: torch.Tensor, t_len: int, d: int) -> torch.Tensor:
 @pytest.mark.parametrize("w", [1, 2, 3])
 @pytest.mark.parametrize("diagonal_coupling", [True, False])
 @pytest.mark.parametrize(("t_len", "halves"), [(9, False), (12, True), (13, True)])
-def test_solve_and_marginals_equal_dense(w, diagonal_coupling, t_len, halves):
+@pytest.mark.parametrize("numpy_loops", [True, False])
+def test_solve_and_marginals_equal_dense(w, diagonal_coupling, t_len, halves, numpy_loops, monkeypatch):
     """One sweep over the frames, or two halves from both ends and a W-frame separator in the
-    middle (odd and even T - W: the top half padded or not)."""
+    middle (odd and even T - W: the top half padded or not); the sequential loops on numpy/LAPACK
+    (CPU) or torch (any device)."""
+    monkeypatch.setattr(bd, "NUMPY_LOOPS", numpy_loops)
     d = 4
     a = random_banded(2, t_len, d, w, diagonal_coupling)
     dense = bd.to_dense(a)
@@ -91,9 +94,11 @@ def test_decoupled_dofs_reduced_in_parallel_equal_dense(w, t_len, alone, halves)
 @pytest.mark.parametrize(
     ("t_len", "bad_frames", "halves"), [(6, [3], False), (11, [1], True), (11, [5], True), (11, [9], True)]
 )
-def test_batched_systems_are_independent_and_failures_flagged(t_len, bad_frames, halves):
+@pytest.mark.parametrize("numpy_loops", [True, False])
+def test_batched_systems_are_independent_and_failures_flagged(t_len, bad_frames, halves, numpy_loops, monkeypatch):
     """An indefinite frame in the top half, the separator or the bottom half of system 1 fails that
-    system only."""
+    system only (numpy/LAPACK loops or torch's)."""
+    monkeypatch.setattr(bd, "NUMPY_LOOPS", numpy_loops)
     d = 3
     a = random_banded(3, t_len, d, 2, True)
     bad_diag = a.diagonal.clone()
@@ -106,6 +111,24 @@ def test_batched_systems_are_independent_and_failures_flagged(t_len, bad_frames,
     for i in (0, 2):
         single, _ = bd.factorize(bd.BlockBanded(a.diagonal[i], a.lower[i]), halves=False)
         assert torch.allclose(x[i], bd.solve(single, b[i]), atol=1e-13)
+
+
+@pytest.mark.parametrize("w", [1, 2, 3])
+@pytest.mark.parametrize("diagonal_coupling", [True, False])
+def test_numpy_loops_equal_torch_loops(w, diagonal_coupling, monkeypatch):
+    """The CPU fast path (factor and sweeps on numpy/LAPACK) gives torch's factor and solve."""
+    a = random_banded(2, 40, 5, w, diagonal_coupling)
+    b = torch.randn(2, 40, 5, dtype=F64, generator=torch.Generator().manual_seed(2))
+    out = {}
+    for flag in (True, False):
+        monkeypatch.setattr(bd, "NUMPY_LOOPS", flag)
+        factor, ok = bd.factorize(a)
+        assert ok.all() and isinstance(factor.dense, bd._Twisted)
+        out[flag] = factor.dense.halves, bd.solve(factor, b)
+    (fn, xn), (ft, xt) = out[True], out[False]
+    assert torch.allclose(fn.inv_chol_t, ft.inv_chol_t, atol=1e-13, rtol=1e-11)
+    assert torch.allclose(fn.coupling, ft.coupling, atol=1e-13, rtol=1e-11)
+    assert torch.allclose(xn, xt, atol=1e-13, rtol=1e-11)
 
 
 def test_thread_budget_and_two_threads():
