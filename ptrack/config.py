@@ -242,7 +242,10 @@ class BatchMethodConfig:
     prior: str | None = "cmu"
     upsample: int = 1  # reconstruct N frames per observed frame (data.stride must be divisible by N)
     init: str = "frame"  # start: "frame" (per-frame fits, `frame.*` settings) or "keyframes" (interpolated)
-    uncertainty: bool = True  # marginal covariances -> joint_std (T, J) in result.npz
+    # joint_std (T, J) in result.npz: "branches" (the Laplace covariance plus every limb's depth-flip
+    # branches, ptrack/branches.py; true means this), "laplace" (the marginal covariances at the solution
+    # alone: faster, overconfident between keyframes), false = none
+    uncertainty: bool | str = "branches"
 
 
 #: the golf swing's key postures (Urtasun, Fleet & Fua 2004, fig. 2), rules of `ptrack.key_postures`
@@ -641,6 +644,11 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
             raise InputError(f"config key 'batch.{key}' must be positive or null, got {getattr(b, key)}")
     if b.init not in ("frame", "keyframes"):
         raise InputError(f"config key 'batch.init' must be 'frame' or 'keyframes', got {b.init!r}")
+    if isinstance(b.uncertainty, str) and b.uncertainty not in ("laplace", "branches"):
+        raise InputError(
+            f"config key 'batch.uncertainty' must be 'branches', 'laplace', true (= branches) or false, "
+            f"got {b.uncertainty!r}"
+        )
     if b.upsample > 1 and cfg.data.stride % b.upsample:
         raise InputError(
             f"config key 'batch.upsample' ({b.upsample}) must divide data.stride ({cfg.data.stride}): "

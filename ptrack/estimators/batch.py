@@ -23,7 +23,10 @@ it with `ptrack.banded` (never a dense (T*D)^2 matrix) inside the joint-limit bo
 Uncertainty: the diagonal blocks of the inverse Gauss-Newton Hessian at the solution (the banded
 recursion of `ptrack.banded.marginal_blocks`) are the per-frame marginal covariances of the pose;
 through the joint Jacobian G_t (J, 3, D) each joint's position covariance is G Sigma_t G^T, and
-`joint_std` (T, J) is the square root of its trace (metres: the RMS 3D error it predicts).
+`joint_std` (T, J) is the square root of its trace (metres: the RMS 3D error it predicts). That
+Laplace approximation only sees the curvature of the branch the solution took; with
+`batch.uncertainty: branches` (the default) each limb's depth flips are added as a mixture
+(`flip_posterior`, `ptrack.branches`): their second moment about the solution joins the trace.
 
 The start is the per-frame fit (`method: frame`), or an earlier run's trajectory (`init_from`, warped
 onto the keyframes: `warp_to_keyframes`), or the keyframes interpolated (`batch.init: keyframes`).
@@ -46,10 +49,13 @@ import torch
 from torch import Tensor
 
 from ptrack.banded import BlockBanded, factorize, marginal_blocks, on_two_threads, one_thread, parallel_halves
+from ptrack.branches import BranchPosterior, branch_posterior, relax_branches
 from ptrack.costs import PoseEval, Reprojection, robust_loss, robust_loss_derivative
 from ptrack.costs.base import PoseJacobian
 from ptrack.errors import InputError
+from ptrack.ik import ik_plan
 from ptrack.jacobians import joint_jacobian, joint_jacobian_product
+from ptrack.jumps import check_independent, default_chains
 from ptrack.limits import wrap_to_limits
 from ptrack.problem import Estimate, Problem
 from ptrack.solvers import BandedLinearization, banded_levenberg_marquardt
@@ -344,20 +350,56 @@ def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
     return linearize
 
 
-def joint_std(obj: Trajectory, q: Tensor, hessian: BlockBanded) -> Tensor:
+def joint_std(obj: Trajectory, q: Tensor, hessian: BlockBanded, branches: BranchPosterior | None = None) -> Tensor:
     """Per-joint 3D standard deviation from the Gauss-Newton Hessian at the solution.
 
     q (B, T, D), hessian (diagonal (B, T, D, D)) -> (B, T, J) metres = sqrt(trace(G_t Sigma_t G_t^T))
     per joint, Sigma_t the marginal covariance of q_t (banded recursion). A tiny ridge (1e-9 of the
-    largest diagonal entry) keeps directions no term constrains finite."""
+    largest diagonal entry) keeps directions no term constrains finite. With `branches`
+    (`flip_posterior`), the flip branches' second moment about q is added to the variance:
+    sqrt(trace(G Sigma G^T) + sum_c sum_l p_l |X_l - X|^2), each branch with q's curvature."""
     ridge = 1e-9 * hessian.diagonal.diagonal(dim1=-2, dim2=-1).amax((-2, -1)).clamp(min=1e-30)
     eye = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device)
     factor, ok = factorize(BlockBanded(hessian.diagonal + ridge[:, None, None, None] * eye, hessian.lower))
     sigma = marginal_blocks(factor)  # (B, T, D, D)
     _, g = joint_jacobian(obj.problem.skeleton, q)  # (B, T, J, 3, D)
     var = torch.einsum("btjcd,btde,btjce->btj", g, sigma, g)
+    if branches is not None:
+        var = var + branches.variance
     std = var.clamp(min=0).sqrt()
     return torch.where(ok[:, None, None], std, torch.full_like(std, math.nan))
+
+
+def flip_posterior(
+    obj: Trajectory, q: Tensor, iterations: int = 30, tol: float = 1e-9, damping: float = 1e-8
+) -> BranchPosterior | None:
+    """The flip branches of the solution q (B, T, D) in the posterior (`ptrack.branches`): every limb's
+    depth-labelled leaves (the default chains: arms, legs, head) through q's projections, each leaf's
+    whole trajectory re-solved from there by this objective's Levenberg-Marquardt (`iterations`,
+    `tol`, `damping` as the solve's; 0 iterations: the rigid leaves), and their marginal
+    probabilities per frame from the objective itself (per-frame terms, smoothing between
+    consecutive frames' leaves; forward-backward). None (with a warning) for a model without the
+    default chains. Costs one batched solve of 4 trajectories per chain (20 on CMU skeletons)."""
+    sk = obj.problem.skeleton
+    try:
+        chains = default_chains(sk)
+        check_independent(sk, chains)
+        plans = tuple(ik_plan(sk, c) for c in chains)
+    except InputError as e:
+        log.warning("batch.uncertainty: no flip chains on this model (%s); the Laplace std only", e)
+        return None
+
+    def frame_energy(x: Tensor) -> Tensor:
+        terms, _, _ = evaluate(obj, x, with_jacobian=False)
+        return terms["reprojection"] + terms["limits"] + terms["keyframes"]
+
+    lin = linearization(obj)
+
+    def relax(starts: Tensor) -> Tensor:
+        return relax_branches(starts, lin, obj.lower, obj.upper, iterations, tol, damping)
+
+    cam = obj.problem.observations.camera
+    return branch_posterior(sk, cam, q, chains, plans, frame_energy, obj.smooth, relax if iterations > 0 else None)
 
 
 def load_init(run_dir: str | Path, problem: Problem, dtype: torch.dtype, device: torch.device) -> Tensor:
@@ -504,7 +546,11 @@ def _estimate(
     with torch.no_grad():
         terms, _, _ = evaluate(obj, q, with_jacobian=False)
         joints = problem.skeleton.forward_kinematics(q[0])
-        std = joint_std(obj, q, info.hessian)[0] if bc.uncertainty else None
+        std = None
+        if bc.uncertainty:
+            mode = "branches" if bc.uncertainty is True else bc.uncertainty
+            branches = flip_posterior(obj, q, bc.iterations, bc.tol, bc.damping) if mode == "branches" else None
+            std = joint_std(obj, q, info.hessian, branches)[0]
     terms = {name: v[0].to(out_dtype) for name, v in terms.items()}
     return Estimate(
         q=q[0].to(out_dtype),
