@@ -13,10 +13,13 @@ start from the keyframes interpolated. Ours: `banded_levenberg_marquardt`, 30 it
 stop). scipy: `least_squares(method='trf', jac_sparsity=...)` (finite differences grouped by the
 sparsity, lsmr on the sparse Jacobian), run until its cost is within 1% of ours or `--scipy-nfev`
 evaluations; the script prints both times, both costs and the ratio, and the wall time of one
-iteration's parts (linearisation, factorisation, solve). Threads as `method: batch` uses them
-(`--threads`, default all cores): the solve inside `ptrack.banded.one_thread`, so every op runs on one
-intra-op thread, and with a budget of 2 or more the linearisation's two halves of the sequence run on
-two Python threads (`--threads 1`: all on one).
+iteration's parts (linearisation, factorisation, solve). Threads (`--threads`, default 1): the solve
+inside `ptrack.banded.one_thread`, so every op runs on one intra-op thread, as `method: batch` runs it;
+with `--threads 2` (a budget of 2, what `method: batch` gets from torch's default on a 2-core machine)
+the linearisation's two halves of the sequence also run on two Python threads. One thread is the
+default because it was as fast or faster on the shared 2-core machine these numbers come from: the
+two-thread linearisation is ~25% of an iteration and only gains while a second core is free
+(docs/results.md, `method: batch`).
 """
 
 from __future__ import annotations
@@ -402,7 +405,7 @@ if __name__ == "__main__":
     ap.add_argument("--damping", type=float, default=None, help="initial LM damping (default: the config's)")
     ap.add_argument("--no-scipy", action="store_true", help="only ptrack's speed (no scipy, no warm start)")
     ap.add_argument(
-        "--threads", type=int, default=torch.get_num_threads(), help="torch threads (default: all cores); see speed()"
+        "--threads", type=int, default=1, help="torch's thread budget (default 1; 2: two-thread linearisation)"
     )
     a = ap.parse_args()
     if a.memory_child:
