@@ -81,7 +81,7 @@ from torch import Tensor
 from ptrack.errors import InputError
 
 HALVES_MIN_FRAMES = 32  # `factorize` splits a system of this many frames or more into two halves
-NUMPY_LOOPS = True  # the sequential loops on numpy/LAPACK for CPU tensors (`_numpy_path`); False: torch's
+NUMPY_LOOPS = True  # the sequential loops on numpy/LAPACK for CPU tensors (`numpy_path`); False: torch's
 
 
 class BlockBanded(NamedTuple):
@@ -213,7 +213,7 @@ def _factor_dense(diag: Tensor, lower: Tensor) -> tuple[_Chol, Tensor]:
     The loop is T sequential steps of ~6 small ops, so it is written for the fewest: per-frame views
     made once (unbind), products by bmm with out= into the factor (no cat, no copies), the pivot's
     upper factor U_t = C_t^T inverted straight into C_t^{-T} = U_t^{-1}."""
-    if _numpy_path(diag):
+    if numpy_path(diag):
         return _factor_dense_numpy(diag, lower)
     b, t_len, n = diag.shape[0], diag.shape[1], diag.shape[-1]
     vec = lower.ndim == 4
@@ -255,9 +255,10 @@ def _factor_dense(diag: Tensor, lower: Tensor) -> tuple[_Chol, Tensor]:
     return _Chol(inv_t, coupling), ok
 
 
-def _numpy_path(x: Tensor) -> bool:
-    """Whether the sequential loops run on numpy/LAPACK (`_factor_dense_numpy`): CPU float32/64
-    tensors without autograd, unless `NUMPY_LOOPS` is off (the torch loops are the reference)."""
+def numpy_path(x: Tensor) -> bool:
+    """Whether the CPU fast paths on numpy/LAPACK apply to x (the sequential loops here, the batch
+    linearisation's J^T J): CPU float32/64 tensors without autograd, unless `NUMPY_LOOPS` is off (the
+    torch code is the reference)."""
     return NUMPY_LOOPS and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and not x.requires_grad
 
 
@@ -726,7 +727,7 @@ def factorize(a: BlockBanded, halves: bool | None = None) -> tuple[BandedFactor,
     if u:
         sd = dg.diagonal(dim1=-2, dim2=-1)[..., decoupled]  # (B, T, u)
         sl = lo[..., decoupled]  # (B|1, T, W, u)
-        scalar, good = (_band_lapack if _numpy_path(dg) else _reduce)(
+        scalar, good = (_band_lapack if numpy_path(dg) else _reduce)(
             sd.permute(0, 2, 1).reshape(b * u, t_len),
             sl.permute(0, 3, 1, 2).expand(b, u, t_len, w).reshape(b * u, t_len, w),
         )
@@ -753,7 +754,7 @@ def _sweep(f: _Chol, buf: Tensor, out: Tensor | None = None) -> None:
     x_t = C_t^{-T} y_t, then the window of the W frames before t loses R_t^T x_t (each x_t's share in
     its predecessors' equations), so no column of L is gathered. Two matrix-vector products per frame
     (for one system; batched products of one column for B)."""
-    if _numpy_path(buf) and buf.is_contiguous() and (out is None or out.is_contiguous()):
+    if numpy_path(buf) and buf.is_contiguous() and (out is None or out.is_contiguous()):
         _sweep_numpy(f, buf, out)
         return
     bsz, n = buf.shape[0], buf.shape[2]
