@@ -11,11 +11,9 @@ import pytest
 import torch
 
 from ptrack import metrics as M
-from ptrack.banded import one_thread, parallel_halves
 from ptrack.cli import main
 from ptrack.config import load_config
 from ptrack.estimators import ESTIMATORS
-from ptrack.estimators import kjs as kjs_module
 from ptrack.estimators.kjs import KJS, _allocate, _chain_votes, _setup, track
 from ptrack.problem import Problem
 from ptrack.run import prepare
@@ -95,29 +93,6 @@ def test_sampling_baselines_run_at_the_same_budget(method):
     prep, est = _run(f"method={method}", "data.stop=40")
     _, best = _errors(prep, est)
     assert est.hypotheses.shape[1] == K and best < 25.0
-
-
-def test_polish_in_two_halves_equals_one_batch(kjs_run):
-    """With a thread budget of 2 the polish solves two halves of the hypotheses on two threads: each
-    hypothesis is its own problem, so the result is the one batch's."""
-    prep, est = kjs_run
-    cfg = load_config(KJS_YAML, EXACT)
-    s = _setup(prep.problem, cfg, KJS)
-    gen = torch.Generator().manual_seed(0)
-    q = est.q[3] + 0.05 * torch.randn(96, est.q.shape[-1], generator=gen)
-    q = torch.minimum(torch.maximum(q, s.lower), s.upper)
-    sigma = torch.full_like(q, 0.05)
-    one = kjs_module._polish_batch(s, 3, q, est.q[2].expand_as(q), 4, sigma, True)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(2)
-    try:
-        with one_thread():
-            assert parallel_halves(q.device)
-            two = kjs_module._polish(s, 3, q, est.q[2].expand_as(q), 4, sigma, True)
-    finally:
-        torch.set_num_threads(threads)
-    for a, b in zip(one, two):
-        torch.testing.assert_close(b, a, rtol=1e-6, atol=1e-6)
 
 
 def test_frames_without_keypoints_are_carried():

@@ -52,7 +52,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from ptrack.banded import on_two_threads, one_thread, parallel_halves
+from ptrack.banded import one_thread
 from ptrack.costs import (
     CostTerm,
     HeavyTailedPrior,
@@ -186,9 +186,6 @@ def _objective(
     return Objective(terms, weights)
 
 
-_SPLIT = 64  # hypotheses from which a polish runs as two halves on two threads (CPU, 2 or more threads)
-
-
 def _polish(
     s: Setup,
     t: int,
@@ -198,37 +195,7 @@ def _polish(
     sigma: float | Tensor | None = None,
     tracking: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Local optimisation of N hypotheses on frame t. q, mean: (N, D), sigma: a scalar, (D,) or (N, D)
-    -> q (N, D), cost (N,), hessian (N, D, D).
-
-    The hypotheses are independent problems (each its own damping, steps and stop), so with a thread
-    budget of 2 or more on the CPU (`ptrack.banded.parallel_halves`) and at least `_SPLIT` of them, the
-    two halves are solved at once on two threads, one intra-op thread each: the same per-hypothesis
-    iterations as one batch."""
-    n = q.shape[0]
-    if n < _SPLIT or not parallel_halves(q.device):
-        return _polish_batch(s, t, q, mean, iterations, sigma, tracking)
-
-    def rows_of(x, rows: slice):  # per-hypothesis (N, D) settings are split, shared ones are not
-        return x[rows] if isinstance(x, Tensor) and x.ndim == 2 else x
-
-    def half(rows: slice) -> tuple[Tensor, Tensor, Tensor]:
-        return _polish_batch(s, t, q[rows], rows_of(mean, rows), iterations, rows_of(sigma, rows), tracking)
-
-    first, second = on_two_threads(half, (slice(0, n // 2),), (slice(n // 2, n),))
-    return torch.cat([first[0], second[0]]), torch.cat([first[1], second[1]]), torch.cat([first[2], second[2]])
-
-
-def _polish_batch(
-    s: Setup,
-    t: int,
-    q: Tensor,
-    mean: Tensor | None,
-    iterations: int,
-    sigma: float | Tensor | None,
-    tracking: bool,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """`_polish` of one batch of hypotheses on the calling thread."""
+    """Local optimisation of N hypotheses on frame t. q, mean: (N, D) -> q (N, D), cost (N,), hessian (N, D, D)."""
     prob = s.problem
     sk, cam, kps = prob.skeleton, prob.observations.camera, prob.keypoints
     objective = _objective(s, t, mean, sigma, tracking)
