@@ -250,6 +250,10 @@ class BatchMethodConfig:
     # branches, ptrack/branches.py; true means this), "laplace" (the marginal covariances at the solution
     # alone: faster, overconfident between keyframes), false = none
     uncertainty: bool | str = "branches"
+    # rounds of restarts from the limbs' depth-flip branches (ptrack/branches.py): after the solve, each
+    # limb's flipped trajectory re-solved; the one of lowest whole energy, if lower than the solution's,
+    # is solved again from and replaces it (0: none)
+    flip_restarts: int = 1
 
 
 #: the golf swing's key postures (Urtasun, Fleet & Fua 2004, fig. 2), rules of `ptrack.key_postures`
@@ -648,6 +652,8 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
             raise InputError(f"config key 'batch.{key}' must be positive or null, got {getattr(b, key)}")
     if b.init not in ("frame", "keyframes"):
         raise InputError(f"config key 'batch.init' must be 'frame' or 'keyframes', got {b.init!r}")
+    if isinstance(b.flip_restarts, bool) or not isinstance(b.flip_restarts, int) or b.flip_restarts < 0:
+        raise InputError(f"config key 'batch.flip_restarts' must be an integer >= 0, got {b.flip_restarts!r}")
     if isinstance(b.uncertainty, str) and b.uncertainty not in ("laplace", "branches"):
         raise InputError(
             f"config key 'batch.uncertainty' must be 'branches', 'laplace', true (= branches) or false, "

@@ -16,13 +16,13 @@ from cli_errors import fail
 from ptrack import metrics as M
 from ptrack.cli import main
 from ptrack.config import load_config
-from ptrack.estimators.batch import estimate_batch, trajectory_objective, warp_to_keyframes
+from ptrack.estimators.batch import _energy, estimate_batch, lower_branch, trajectory_objective, warp_to_keyframes
 from ptrack.keyframes import read_keyframes
 from ptrack.run import prepare
 
 REPO = Path(__file__).resolve().parents[1]
 BATCH = REPO / "configs" / "batch.yaml"
-SHORT = ["data.stop=160", "progress=false", "batch.uncertainty=false"]  # 1.3 s, 40 frames at 30 fps
+SHORT = ["data.stop=160", "progress=false", "batch.uncertainty=false", "batch.flip_restarts=0"]  # 1.3 s, 40 frames
 
 
 @pytest.fixture(autouse=True)
@@ -235,6 +235,37 @@ def test_bad_keyframe_files(tmp_path, capsys, text, suffix, fragments):
     path.write_text(text)
     out = tmp_path / "out"
     fail(capsys, out, ["run", str(BATCH), *SHORT, f"keyframes.file={path}", f"out_dir={out}"], str(path), *fragments)
+
+
+def test_lower_branch_replaces_the_solution_only_when_the_objective_prefers_it():
+    """A flip branch replaces the solution when its whole energy is lower (the solve stopped in a local
+    minimum), never when it is higher. The candidates here: the converged solution and its start."""
+    cfg, prep, est = solve()
+    obj = trajectory_objective(prep.problem, cfg, torch.float64, torch.device("cpu"))
+    solution = est.q.to(torch.float64)[None]
+    start = solution.clone()
+    start[..., 6:] += 0.2  # every angle off: a trajectory the objective likes less
+    assert float(_energy(obj, start)[0]) > float(_energy(obj, solution)[0])
+
+    class Leaves:  # the fields of a BranchPosterior that lower_branch reads: (B, C, L, T, D) trajectories
+        def __init__(self, q):
+            self.branches = type("Branches", (), {"q": q[:, None, None]})()
+
+    torch.testing.assert_close(lower_branch(obj, start, Leaves(solution)), solution)  # type: ignore[arg-type]
+    assert lower_branch(obj, solution, Leaves(start)) is None  # type: ignore[arg-type]
+
+
+def test_flip_restarts_never_raise_the_cost(tmp_path, capsys):
+    runs = {}
+    for rounds in (0, 1):
+        out = tmp_path / f"r{rounds}"
+        assert main(["run", str(BATCH), *SHORT[:3], f"batch.flip_restarts={rounds}", f"out_dir={out}"]) == 0
+        runs[rounds] = json.loads((out / "metrics.json").read_text())
+    assert runs[1]["solver_cost_final"] <= runs[0]["solver_cost_final"] * (1 + 1e-6)
+    out = tmp_path / "bad"
+    fail(
+        capsys, out, ["run", str(BATCH), *SHORT[:3], "batch.flip_restarts=-1", f"out_dir={out}"], "batch.flip_restarts"
+    )
 
 
 def test_bad_init_from(tmp_path, capsys):

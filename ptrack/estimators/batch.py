@@ -413,6 +413,24 @@ def flip_posterior(
     return branch_posterior(sk, cam, q, chains, plans, frame_energy, obj.smooth, relax if iterations > 0 else None)
 
 
+def lower_branch(obj: Trajectory, q: Tensor, branches: BranchPosterior) -> Tensor | None:
+    """The re-solved flip branch (`flip_posterior`) of lowest whole energy, if it is lower than the
+    solution q's (B = 1): -> (1, T, D), or None. A flipped limb's trajectory that the objective itself
+    prefers means the solve stopped in a local minimum on the other branch."""
+    cand = branches.branches.q[0].flatten(0, 1)  # (C L, T, D)
+    energy = _energy(obj, torch.cat([q, cand]))
+    best = int(torch.argmin(energy[1:]))
+    if not bool(energy[1 + best] < energy[0] - 1e-9 * energy[0].abs()):
+        return None
+    return cand[best][None]
+
+
+def _energy(obj: Trajectory, q: Tensor) -> Tensor:
+    """The whole objective of trajectories q (N, T, D) -> (N,)."""
+    terms, _, _ = evaluate(obj, q, with_jacobian=False)
+    return torch.stack(list(terms.values())).sum(0).sum(-1)
+
+
 def load_init(run_dir: str | Path, problem: Problem, dtype: torch.dtype, device: torch.device) -> Tensor:
     """The trajectory q (T, D) of an earlier run folder, checked to be the same model and frames."""
     path = Path(run_dir) / "result.npz"
@@ -537,31 +555,51 @@ def _estimate(
         frame_cfg = cfg if full0 else dataclasses.replace(cfg, frame=dataclasses.replace(cfg.frame, init="rest"))
         q0 = estimate_frames(problem, frame_cfg, generator, progress).q
     q0 = wrap_to_limits(q0.detach().to(dtype), lower, upper, obj.angular)
-    q, info = banded_levenberg_marquardt(
-        linearization(obj),
-        q0[None],
-        lower,
-        upper,
-        max_iter=bc.iterations,
-        tol=bc.tol,
-        gtol=bc.tol * 1e-2,
-        damping=bc.damping,
-        callback=callback,
-    )
+    done = 0  # iterations so far: a restart's costs follow the first solve's on the logged timeline
+
+    def solve(start: Tensor) -> tuple[Tensor, Any]:
+        def logged(it: int, x: Tensor, cost: Tensor) -> None:
+            if callback is not None:
+                callback(done + it, x, cost)
+
+        return banded_levenberg_marquardt(
+            linearization(obj),
+            start,
+            lower,
+            upper,
+            max_iter=bc.iterations,
+            tol=bc.tol,
+            gtol=bc.tol * 1e-2,
+            damping=bc.damping,
+            callback=logged,
+        )
+
+    q, info = solve(q0[None])
+    history = info.history
     log.info(
-        "batch: %d iterations, cost %.6g -> %.6g",
-        int(info.iterations[0]),
-        float(info.history[0, 0]),
-        float(info.cost[0]),
+        "batch: %d iterations, cost %.6g -> %.6g", int(info.iterations[0]), float(history[0, 0]), float(info.cost[0])
     )
+    branches: BranchPosterior | None = None
+    for _ in range(bc.flip_restarts):
+        with torch.no_grad():
+            branches = flip_posterior(obj, q, bc.iterations, bc.tol, bc.damping)
+            start = None if branches is None else lower_branch(obj, q, branches)
+        if start is None:
+            break
+        done = history.shape[0] - 1
+        q, info = solve(start)
+        history = torch.cat([history, info.history[1:]])
+        branches = None  # the posterior of the trajectory it replaced
+        log.info("batch: restarted from a flip branch, cost -> %.6g", float(info.cost[0]))
     with torch.no_grad():
         terms, _, _ = evaluate(obj, q, with_jacobian=False)
         joints = problem.skeleton.forward_kinematics(q[0])
         std = None
         if bc.uncertainty:
             mode = "branches" if bc.uncertainty is True else bc.uncertainty
-            branches = flip_posterior(obj, q, bc.iterations, bc.tol, bc.damping) if mode == "branches" else None
-            std = joint_std(obj, q, info.hessian, branches)[0]
+            if mode == "branches" and branches is None:
+                branches = flip_posterior(obj, q, bc.iterations, bc.tol, bc.damping)
+            std = joint_std(obj, q, info.hessian, branches if mode == "branches" else None)[0]
     terms = {name: v[0].to(out_dtype) for name, v in terms.items()}
     return Estimate(
         q=q[0].to(out_dtype),
@@ -569,5 +607,5 @@ def _estimate(
         cost=torch.stack(list(terms.values())).sum(0),
         terms=terms,
         joint_std=None if std is None else std.to(out_dtype),
-        solver_cost=info.history[:, 0].to(out_dtype),
+        solver_cost=history[:, 0].to(out_dtype),
     )
