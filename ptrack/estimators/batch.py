@@ -27,6 +27,9 @@ through the joint Jacobian G_t (J, 3, D) each joint's position covariance is G S
 Laplace approximation only sees the curvature of the branch the solution took; with
 `batch.uncertainty: branches` (the default) each limb's depth flips are added as a mixture
 (`flip_posterior`, `ptrack.branches`): their second moment about the solution joins the trace.
+The same re-solved branches restart the solve (`batch.flip_restarts` rounds, `lower_branch`): one
+whose whole energy is lower than the solution's shows the solve stopped in a local minimum on the
+other branch, and the solve continues from it.
 
 The start is the per-frame fit (`method: frame`), or an earlier run's trajectory (`init_from`, warped
 onto the keyframes: `warp_to_keyframes`), or the keyframes interpolated (`batch.init: keyframes`).
@@ -397,7 +400,7 @@ def flip_posterior(
         check_independent(sk, chains)
         plans = tuple(ik_plan(sk, c) for c in chains)
     except InputError as e:
-        log.warning("batch.uncertainty: no flip chains on this model (%s); the Laplace std only", e)
+        log.warning("batch: no flip chains on this model (%s): no flip restarts, the Laplace std only", e)
         return None
 
     def frame_energy(x: Tensor) -> Tensor:
