@@ -52,7 +52,6 @@ from ptrack.camera import Camera
 from ptrack.ik import ChainIK, chain_ik
 from ptrack.jumps import Chain, interpretation_tree
 from ptrack.skeleton import Skeleton
-from ptrack.solvers import BandedLinearization, banded_levenberg_marquardt
 
 
 class Branches(NamedTuple):
@@ -138,38 +137,19 @@ def branch_poses(
     return Branches(tuple(chains), out, valid, dofs)
 
 
-def relax_branches(
-    starts: Tensor,
-    linearize: Callable[[Tensor], BandedLinearization],
-    lower: Tensor,
-    upper: Tensor,
-    max_iter: int = 30,
-    tol: float = 1e-9,
-    damping: float = 1e-8,
-) -> Tensor:
+def relax_branches(starts: Tensor, solve: Callable[[Tensor], Tensor]) -> Tensor:
     """Start trajectories re-solved: the nearest minimum of the whole objective to each, by the
-    trajectory's banded Levenberg-Marquardt (`ptrack.solvers.banded_levenberg_marquardt`) in every
-    dof. A rigid flip switches branch with a jump in the chain's angles and leaves the rest of the
-    body where q had it; the re-solved trajectory leaves and rejoins q smoothly where the branches
-    meet, and moves whatever else the other branch needs (a flipped leg tilts the pelvis), so the
-    smoothing energy of a switch is what the objective says.
+    trajectory solver `solve` (N, T, D) -> (N, T, D) (`method: batch`'s Levenberg-Marquardt in every
+    dof, `ptrack.estimators.batch.solve_trajectory`). A rigid flip switches branch with a jump in the
+    chain's angles and leaves the rest of the body where q had it; the re-solved trajectory leaves and
+    rejoins q smoothly where the branches meet, and moves whatever else the other branch needs (a
+    flipped leg tilts the pelvis), so the smoothing energy of a switch is what the objective says.
 
-    starts (B, C, L, T, D); linearize: q (N, T, D) -> the whole objective's `BandedLinearization`;
-    lower, upper (D,) the box. -> (B, C, L, T, D)."""
+    starts (B, C, L, T, D) -> (B, C, L, T, D)."""
     t_len, d = starts.shape[-2:]
     out = torch.empty_like(starts)
     for c in range(starts.shape[1]):  # one chain's leaves at a time: L times the solve's memory, not C L
-        x, _ = banded_levenberg_marquardt(
-            linearize,
-            starts[:, c].reshape(-1, t_len, d),
-            lower,
-            upper,
-            max_iter=max_iter,
-            tol=tol,
-            gtol=tol * 1e-2,
-            damping=damping,
-        )
-        out[:, c] = x.reshape(starts[:, c].shape)
+        out[:, c] = solve(starts[:, c].reshape(-1, t_len, d)).reshape(starts[:, c].shape)
     return out
 
 

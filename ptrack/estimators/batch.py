@@ -69,7 +69,7 @@ from ptrack.jacobians import joint_jacobian, joint_jacobian_product
 from ptrack.jumps import check_independent, default_chains
 from ptrack.limits import wrap_to_limits
 from ptrack.problem import Estimate, Problem
-from ptrack.solvers import BandedLinearization, banded_levenberg_marquardt
+from ptrack.solvers import BandedLinearization, BandedLMInfo, banded_levenberg_marquardt
 
 log = logging.getLogger(__name__)
 _MIN_PART = 32  # `evaluate` splits the frames in two halves for two threads from 2 * _MIN_PART frames
@@ -384,13 +384,29 @@ def joint_std(obj: Trajectory, q: Tensor, hessian: BlockBanded, branches: Branch
     return torch.where(ok[:, None, None], std, torch.full_like(std, math.nan))
 
 
-def flip_posterior(
-    obj: Trajectory, q: Tensor, iterations: int = 30, tol: float = 1e-9, damping: float = 1e-8
-) -> BranchPosterior | None:
+def solve_trajectory(
+    obj: Trajectory, start: Tensor, bc, callback: Callable[[int, Tensor, Tensor], None] | None = None
+) -> tuple[Tensor, BandedLMInfo]:
+    """The whole objective's Levenberg-Marquardt from start (B, T, D) inside the joint-limit box, with
+    the `batch.*` settings bc (iterations, tol, damping) -> q (B, T, D), `BandedLMInfo`."""
+    return banded_levenberg_marquardt(
+        linearization(obj),
+        start,
+        obj.lower,
+        obj.upper,
+        max_iter=bc.iterations,
+        tol=bc.tol,
+        gtol=bc.tol * 1e-2,
+        damping=bc.damping,
+        callback=callback,
+    )
+
+
+def flip_posterior(obj: Trajectory, q: Tensor, bc) -> BranchPosterior | None:
     """The flip branches of the solution q (B, T, D) in the posterior (`ptrack.branches`): every limb's
     depth-labelled leaves (the default chains: arms, legs, head) through q's projections, each leaf's
-    whole trajectory re-solved from there by this objective's Levenberg-Marquardt (`iterations`,
-    `tol`, `damping` as the solve's; 0 iterations: the rigid leaves), and their marginal
+    whole trajectory re-solved from there by `solve_trajectory` with the `batch.*` settings bc (0
+    iterations: the rigid leaves), and their marginal
     probabilities per frame from the objective itself (per-frame terms, smoothing between
     consecutive frames' leaves; forward-backward). None (with a warning) for a model without the
     default chains. Costs one batched solve of 4 trajectories per chain (20 on CMU skeletons)."""
@@ -407,13 +423,11 @@ def flip_posterior(
         terms, _, _ = evaluate(obj, x, with_jacobian=False)
         return terms["reprojection"] + terms["limits"] + terms["keyframes"]
 
-    lin = linearization(obj)
-
     def relax(starts: Tensor) -> Tensor:
-        return relax_branches(starts, lin, obj.lower, obj.upper, iterations, tol, damping)
+        return relax_branches(starts, lambda x: solve_trajectory(obj, x, bc)[0])
 
     cam = obj.problem.observations.camera
-    return branch_posterior(sk, cam, q, chains, plans, frame_energy, obj.smooth, relax if iterations > 0 else None)
+    return branch_posterior(sk, cam, q, chains, plans, frame_energy, obj.smooth, relax if bc.iterations > 0 else None)
 
 
 def lower_branch(obj: Trajectory, q: Tensor, branches: BranchPosterior) -> Tensor | None:
@@ -560,22 +574,12 @@ def _estimate(
     q0 = wrap_to_limits(q0.detach().to(dtype), lower, upper, obj.angular)
     done = 0  # iterations so far: a restart's costs follow the first solve's on the logged timeline
 
-    def solve(start: Tensor) -> tuple[Tensor, Any]:
+    def solve(start: Tensor) -> tuple[Tensor, BandedLMInfo]:
         def logged(it: int, x: Tensor, cost: Tensor) -> None:
             if callback is not None:
                 callback(done + it, x, cost)
 
-        return banded_levenberg_marquardt(
-            linearization(obj),
-            start,
-            lower,
-            upper,
-            max_iter=bc.iterations,
-            tol=bc.tol,
-            gtol=bc.tol * 1e-2,
-            damping=bc.damping,
-            callback=logged,
-        )
+        return solve_trajectory(obj, start, bc, logged)
 
     q, info = solve(q0[None])
     history = info.history
@@ -585,7 +589,7 @@ def _estimate(
     branches: BranchPosterior | None = None
     for _ in range(bc.flip_restarts):
         with torch.no_grad():
-            branches = flip_posterior(obj, q, bc.iterations, bc.tol, bc.damping)
+            branches = flip_posterior(obj, q, bc)
             start = None if branches is None else lower_branch(obj, q, branches)
         if start is None:
             break
@@ -601,7 +605,7 @@ def _estimate(
         if bc.uncertainty:
             mode = "branches" if bc.uncertainty is True else bc.uncertainty
             if mode == "branches" and branches is None:
-                branches = flip_posterior(obj, q, bc.iterations, bc.tol, bc.damping)
+                branches = flip_posterior(obj, q, bc)
             std = joint_std(obj, q, info.hessian, branches if mode == "branches" else None)[0]
     terms = {name: v[0].to(out_dtype) for name, v in terms.items()}
     return Estimate(
