@@ -169,24 +169,28 @@ def repeats(joints: Tensor, valid: Tensor) -> Tensor:
     return out
 
 
-def smoothing_factors(x: Tensor, smooth: Sequence[tuple[int, Tensor]]) -> tuple[Tensor | None, Tensor | None]:
+def smoothing_factors(
+    x: Tensor, smooth: Sequence[tuple[int, Tensor]], rho: Callable[[Tensor], Tensor] | None = None
+) -> tuple[Tensor | None, Tensor | None]:
     """The smoothing energy between consecutive frames' states.
 
     x (..., S, T, m) each state's trajectory of m dofs; smooth ((n, a_n (m,)), ...) the prior
-    1/2 |a_n diff_n(q)|^2 on those dofs (orders 1 and 2). -> pair (..., T-1, S, S) [t, a, b] the
+    1/2 |a_n diff_n(q)|^2 on those dofs (orders 1 and 2), or 1/2 sum rho((a_n diff_n(q))^2) with a
+    robust loss rho on each residual's square. -> pair (..., T-1, S, S) [t, a, b] the
     first-difference energy from state a at t to b at t+1, triple (..., T-2, S, S, S) [t, a, b, c]
     the second difference's over t, t+1, t+2; None for an order the prior lacks (or too few frames)."""
     t_len = x.shape[-2]
+    loss = (lambda s: s) if rho is None else rho
     pair: Tensor | None = None
     triple: Tensor | None = None
     x = x.transpose(-3, -2)  # (..., T, S, m)
     for n, a in smooth:
         if n == 1 and t_len > 1:
             r = a * (x[..., 1:, None, :, :] - x[..., :-1, :, None, :])  # (..., T-1, S, S, m)
-            pair = 0.5 * r.square().sum(-1)
+            pair = 0.5 * loss(r.square()).sum(-1)
         elif n == 2 and t_len > 2:
             r = x[..., 2:, None, None, :, :] - 2 * x[..., 1:-1, None, :, None, :] + x[..., :-2, :, None, None, :]
-            triple = 0.5 * (a * r).square().sum(-1)  # (..., T-2, S, S, S)
+            triple = 0.5 * loss((a * r).square()).sum(-1)  # (..., T-2, S, S, S)
         elif n not in (1, 2):
             raise ValueError(f"smoothing_factors: difference order {n} is not 1 or 2")
     return pair, triple
@@ -229,16 +233,21 @@ def forward_backward(unary: Tensor, pair: Tensor | None = None, triple: Tensor |
     return torch.stack(out, -2)
 
 
-def branch_marginals(branches: Branches, unary: Tensor, smooth: Sequence[tuple[int, Tensor]]) -> Tensor:
+def branch_marginals(
+    branches: Branches,
+    unary: Tensor,
+    smooth: Sequence[tuple[int, Tensor]],
+    rho: Callable[[Tensor], Tensor] | None = None,
+) -> Tensor:
     """Each chain's leaf marginals per frame: unary (B, C, L, T) frame energies above the trajectory's
     (inf where not valid) and the smoothing prior on the chain's dofs between the leaf poses
-    (`smoothing_factors`) -> (B, C, L, T) probabilities (module docstring, 3)."""
+    (`smoothing_factors`, robust loss rho or None) -> (B, C, L, T) probabilities (module docstring, 3)."""
     out = []
     u = torch.where(branches.valid, unary, torch.full_like(unary, torch.inf)).transpose(-2, -1)  # (B, C, T, L)
     for c in range(branches.q.shape[1]):
         idx = branches.dofs[c].nonzero()[:, 0]
         pair, triple = smoothing_factors(
-            branches.q[:, c].index_select(-1, idx), [(n, a.index_select(0, idx)) for n, a in smooth]
+            branches.q[:, c].index_select(-1, idx), [(n, a.index_select(0, idx)) for n, a in smooth], rho
         )
         out.append(forward_backward(u[:, c], pair, triple).transpose(-2, -1))
     return torch.stack(out, 1)
@@ -260,13 +269,14 @@ def branch_posterior(
     frame_energy: Callable[[Tensor], Tensor],
     smooth: Sequence[tuple[int, Tensor]],
     relax: Callable[[Tensor], Tensor] | None = None,
+    rho: Callable[[Tensor], Tensor] | None = None,
 ) -> BranchPosterior:
     """The flip branches of trajectory q (B, T, D) in its posterior (module docstring).
 
     frame_energy: trajectories (N, T, D) -> (N, T) the objective's per-frame terms (everything but
     the smoothing prior); smooth: the prior's ((n, a_n (D,)), ...), 1/2 |a_n diff_n(q)|^2;
     relax: starts (B, C, L, T, D) -> the leaves re-solved (e.g. `relax_branches`), None = the
-    rigid leaves."""
+    rigid leaves; rho: the prior's robust loss on each residual's square, None = l2."""
     br = branch_poses(sk, camera, q, chains, plans)
     if relax is not None:
         moved = relax(br.q)
@@ -278,7 +288,7 @@ def branch_posterior(
     energy = frame_energy(br.q.reshape(-1, t_len, d)).reshape(b_len, c_len, leaves_n, t_len)
     unary = energy - frame_energy(q)[:, None, None]  # above q's (a constant per frame: cancels)
     unary = torch.where(br.valid, unary, torch.full_like(unary, torch.inf))
-    prob = branch_marginals(br, unary, smooth)
+    prob = branch_marginals(br, unary, smooth, rho)
     variance = mixture_variance(sk.forward_kinematics(q), branch_joints, prob)
     return BranchPosterior(br, unary, prob, branch_joints, variance)
 

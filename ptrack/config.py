@@ -244,6 +244,12 @@ class BatchMethodConfig:
     # per-dof scales by dof name, replacing the sigmas above for the dofs it names: "cmu" (fitted to the
     # dev clips' motion, ptrack/data/cmu_smoothing.json, scripts/make_smoothing_prior.py), null = none
     prior: str | None = "cmu"
+    # the smoothing residuals' loss (l2, huber, cauchy, geman_mcclure) and its scale in prior std units:
+    # a heavier tail lets a motion faster than the prior's scale through (a run's legs). Dev clips,
+    # keyframes every 1 s, MPJPE: l2 23.1 mm, huber 2 22.5, cauchy 3 21.6, 2 20.3, 1.5 19.8, 1 19.9 (one
+    # walk 20 -> 32 mm: below 2 the loss is non-convex enough to stop in worse minima), docs/results.md
+    smooth_loss: str = "cauchy"
+    smooth_scale: float = 2.0
     upsample: int = 1  # reconstruct N frames per observed frame (data.stride must be divisible by N)
     init: str = "frame"  # start: "frame" (per-frame fits, `frame.*` settings) or "keyframes" (interpolated)
     # joint_std (T, J) in result.npz: "branches" (the Laplace covariance plus every limb's depth-flip
@@ -651,6 +657,11 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     for key in ("velocity_sigma", "accel_sigma", "velocity_sigma_m", "accel_sigma_m"):
         if getattr(b, key) is not None and not getattr(b, key) > 0:
             raise InputError(f"config key 'batch.{key}' must be positive or null, got {getattr(b, key)}")
+    losses = ("l2", "huber", "cauchy", "geman_mcclure")
+    if b.smooth_loss not in losses:
+        raise InputError(f"config key 'batch.smooth_loss' must be one of {', '.join(losses)}, got {b.smooth_loss!r}")
+    if not b.smooth_scale > 0:
+        raise InputError(f"config key 'batch.smooth_scale' must be positive, got {b.smooth_scale}")
     if b.init not in ("frame", "keyframes"):
         raise InputError(f"config key 'batch.init' must be 'frame' or 'keyframes', got {b.init!r}")
     if isinstance(b.flip_restarts, bool) or not isinstance(b.flip_restarts, int) or b.flip_restarts < 0:

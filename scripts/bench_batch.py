@@ -7,19 +7,21 @@
 
 Problem: the bundled CMU soccer kick (subject 10) at 120 fps, frames 0-299, default virtual camera,
 2 px noise, 10% missing, full skeleton (`model.freeze=[]`: 62 dofs), ground-truth keyframes every
-second, the batch objective with least-squares reprojection (`costs.loss=l2`, so that it is the plain
-0.5 |r|^2 scipy minimises), joint limits as bounds and barrier, acceleration smoothing. Both solvers
-start from the keyframes interpolated. Ours: `banded_levenberg_marquardt`, 30 iterations (no early
-stop). scipy: `least_squares(method='trf', jac_sparsity=...)` (finite differences grouped by the
-sparsity, lsmr on the sparse Jacobian), run until its cost is within 1% of ours or `--scipy-nfev`
-evaluations; the script prints both times, both costs and the ratio, and the wall time of one
-iteration's parts (linearisation, factorisation, solve). Threads (`--threads`, default 1): the solve
-inside `ptrack.banded.one_thread`, so every op runs on one intra-op thread, as `method: batch` runs it;
-with `--threads 2` (a budget of 2, what `method: batch` gets from torch's default on a 2-core machine)
-the linearisation's two halves of the sequence also run on two Python threads. One thread is the
-default because it was as fast or faster on the shared 2-core machine these numbers come from: the
-two-thread linearisation is ~25% of an iteration and only gains while a second core is free
-(docs/results.md, `method: batch`).
+second, the batch objective with least-squares reprojection and smoothing (`costs.loss=l2`,
+`batch.smooth_loss=l2`, so that it is the plain 0.5 |r|^2 scipy minimises; ptrack's time is also
+printed with the config's robust losses, which change the weights, not the work), joint limits as
+bounds and barrier, acceleration smoothing. Both solvers start from the keyframes interpolated.
+Ours: `banded_levenberg_marquardt`, 30 iterations (no early stop). scipy:
+`least_squares(method='trf', jac_sparsity=...)` (finite differences grouped by the sparsity, lsmr on
+the sparse Jacobian), run until its cost is within 1% of ours or `--scipy-nfev` evaluations; the
+script prints both times, both costs and the ratio, and the wall time of one iteration's parts
+(linearisation, factorisation, solve). Threads (`--threads`, default 1): the solve inside
+`ptrack.banded.one_thread`, so every op runs on one intra-op thread, as `method: batch` runs it;
+with `--threads 2` (a budget of 2, what `method: batch` gets from torch's default on a 2-core
+machine) the linearisation's two halves of the sequence also run on two Python threads. One thread
+is the default because it was as fast or faster on the shared 2-core machine these numbers come
+from: the two-thread linearisation is ~25% of an iteration and only gains while a second core is
+free (docs/results.md, `method: batch`).
 """
 
 from __future__ import annotations
@@ -53,14 +55,15 @@ from ptrack.solvers import banded_levenberg_marquardt  # noqa: E402
 CONFIG = REPO / "configs" / "batch.yaml"
 
 
-def problem(frames: int, every_s: float = 1.0):
+def problem(frames: int, every_s: float = 1.0, plain: bool = True):
+    """plain: least-squares reprojection and smoothing (scipy's objective); else the config's losses."""
     cfg = load_config(
         CONFIG,
         [
             "data.stride=1",
             f"data.stop={frames}",
             "model.freeze=[]",
-            "costs.loss=l2",
+            *(["costs.loss=l2", "batch.smooth_loss=l2"] if plain else []),
             f"keyframes.every_s={every_s}",
             "progress=false",
         ],
@@ -205,6 +208,21 @@ def speed(args) -> None:
             f"30 iterations at this rate: {30 * ours / iters:.2f} s"
         )
     print(f"one iteration's parts (median wall time at the solution): {split}")
+    _, _, robj, rq0 = problem(300, plain=False)
+    rlin = linearization(robj)
+    walls = []
+    with one_thread():
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            _, rinfo = banded_levenberg_marquardt(
+                rlin, rq0[None], robj.lower, robj.upper, max_iter=30, tol=1e-300, gtol=0.0, damping=cfg.batch.damping
+            )
+            walls.append(time.perf_counter() - t0)
+    print(
+        f"with the config's robust losses (costs.loss {robj.reprojection.loss}, batch.smooth_loss "
+        f"{robj.smooth_loss} {robj.smooth_scale:g}): {int(rinfo.iterations[0])} iterations in "
+        f"{float(np.median(walls)):.2f} s (median of {args.repeats}: {', '.join(f'{t:.2f}' for t in walls)})"
+    )
     if args.no_scipy:
         return
 

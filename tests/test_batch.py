@@ -6,6 +6,7 @@ the method was not tuned on, and bad keyframe files / init_from folders through 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,9 @@ from cli_errors import fail
 from ptrack import metrics as M
 from ptrack.cli import main
 from ptrack.config import load_config
+from ptrack.costs import robust_loss_derivative
+from ptrack.errors import InputError
+from ptrack.estimators import batch
 from ptrack.estimators.batch import _energy, estimate_batch, lower_branch, trajectory_objective, warp_to_keyframes
 from ptrack.keyframes import read_keyframes
 from ptrack.run import prepare
@@ -134,6 +138,50 @@ def test_linearisation_on_two_threads_equals_one(tmp_path, monkeypatch):
     torch.testing.assert_close(g2, g1, rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("loss", ["l2", "huber", "cauchy"])
+def test_robust_smoothing_gradient_and_band(loss):
+    """With a robust loss on the smoothing residuals, `evaluate`'s gradient is the energy's (autograd) and
+    the linearisation's band is the Gauss-Newton Hessian of the smoothing, D^T diag(w a^2) D, dense."""
+    cfg = load_config(BATCH, [*SHORT, "data.stop=60", f"batch.smooth_loss={loss}", "batch.smooth_scale=1.5"])
+    prep = prepare(cfg)
+    obj = trajectory_objective(prep.problem, cfg, torch.float64, torch.device("cpu"))
+    noise = torch.randn((2, *prep.gt_q.shape), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    q = (prep.gt_q.double() + 0.05 * noise).requires_grad_()
+    energy = sum(v.sum() for v in batch.evaluate(obj, q, with_jacobian=False)[0].values())
+    (grad,) = torch.autograd.grad(energy, q)
+    _, _, g = batch.evaluate(obj, q.detach())
+    torch.testing.assert_close(g, grad, rtol=1e-9, atol=1e-7)
+    if loss == "cauchy":  # bad values: one error line naming the key
+        for bad in ("batch.smooth_loss=tukey", "batch.smooth_scale=0"):
+            with pytest.raises(InputError, match=bad.split("=")[0].replace(".", r"\.")):
+                load_config(BATCH, [*SHORT, bad])
+    t_len, d = q.shape[1:]
+    if loss == "l2":
+        band = obj.band[None]
+    else:
+        band = batch.weighted_band(t_len, batch.robust_smoothing(obj, q.detach())[2], q)
+        assert band.shape[0] == 2 and not torch.equal(band[0], obj.band)  # the weights moved it
+    dense = torch.zeros(2, t_len * d, t_len * d, dtype=torch.float64)
+    x = q.detach()
+    for n, a in obj.smooth:  # D_n^T diag(w a^2) D_n from the residuals' own derivative, one dof at a time
+        rows = t_len - n
+        dn = torch.zeros(rows, t_len, dtype=torch.float64)
+        for j in range(n + 1):
+            dn[torch.arange(rows), torch.arange(rows) + j] = (-1.0) ** (n - j) * math.comb(n, j)
+        r2 = (a * torch.diff(x, n=n, dim=-2)).square()  # (2, rows, D)
+        w = torch.ones_like(r2) if loss == "l2" else robust_loss_derivative(loss)(r2, 1.5)
+        for k in range(d):
+            blk = torch.einsum("it,bi,iu->btu", dn, w[..., k] * a[k] ** 2, dn)
+            dense[:, k::d, k::d] += blk
+    for t in range(t_len):
+        for k in range(band.shape[2]):
+            if t - k >= 0:
+                blk = dense[:, t * d : (t + 1) * d, (t - k) * d : (t - k + 1) * d]
+                want = band[:, t, k].expand(2, d)
+                torch.testing.assert_close(torch.diagonal(blk, dim1=-2, dim2=-1), want, rtol=1e-12, atol=1e-9)
+                assert float((blk - torch.diag_embed(torch.diagonal(blk, dim1=-2, dim2=-1))).abs().max()) == 0.0
+
+
 def test_joint_std_is_calibrated_and_logged(tmp_path):
     out = tmp_path / "run"
     assert main(["run", str(BATCH), *SHORT[:2], "batch.uncertainty=true", f"out_dir={out}"]) == 0
@@ -193,8 +241,9 @@ def test_accuracy_on_a_clip_not_tuned_on(cmu_file):
     """CMU 35_01 (walk; not a dev clip), 3 s at 30 fps, 2 px noise, 10% missing, keyframes every second.
     Measured 2026-11-23 with the per-dof smoothing scales fitted to the dev clips (batch.prior: cmu):
     27.5 mm MPJPE from the interpolated keyframes and from the per-frame fits (one scale for all dofs:
-    40.6 / 36.4 mm), acceleration error 4.8 mm/f^2 against 46.2 for `method: frame` on the same
-    observations; the other held-out clips are in docs/results.md."""
+    40.6 / 36.4 mm); 26.6 mm from either with the Cauchy smoothing loss (batch.smooth_loss),
+    acceleration error 4.8 mm/f^2 against 46.2 for `method: frame` on the same observations; the other
+    held-out clips are in docs/results.md."""
     amc, asf = cmu_file("35_01.amc"), cmu_file("35.asf")
     cfg = load_config(
         BATCH,

@@ -4,21 +4,25 @@ Rehg 2001, eq. 5), by Levenberg-Marquardt on its block-banded normal equations.
 For the trajectory Q = (q_0 .. q_{T-1}), q_t (D,), the energy is
 
     L(Q) = sum_t [ robust reprojection_t(q_t) + joint limits_t(q_t) ]        per frame (eqs. 1, 2)
-         + 1/2 sum_n sum_t |a_n * diff_n(Q)_t|^2                            smoothing (eq. 3), n = 1, 2
+         + 1/2 sum_n sum_t,d rho(|a_n * diff_n(Q)_t,d|^2)                   smoothing (eq. 3), n = 1, 2
          + 1/2 sum_f |(q_{t_f} - f_f) / sigma_f|^2 over the given dofs       angle keyframes (eq. 4)
          + 1/2 sum_g |(X_j(q_{t_g}) - x_g) / sigma_g|^2 over the given joints joint-position keyframes
 
 with a_1 = 1 / (dt sigma_velocity), a_2 = 1 / (dt^2 sigma_acceleration) per dof: by default
 (`batch.prior: cmu`) each CMU dof's own scale, the RMS velocity and acceleration of real motion
-(`ptrack/data/cmu_smoothing.json`, fitted to the dev clips by `scripts/make_smoothing_prior.py`:
-a knee accelerates at ~27 rad/s^2, the head at ~7), else `batch.velocity_sigma` / `accel_sigma`
-for angles and `*_sigma_m` for the root position. Missing keypoints (confidence 0) and frames without any 2D add
-nothing: the dynamics fill them, which is how `batch.upsample` reconstructs frames between the
-observed ones. The per-frame terms give the diagonal blocks J_t^T W J_t of the Gauss-Newton Hessian
-(J_t from the geometric joint Jacobian, one FK pass batched over all frames); the smoothing prior is
-linear in Q and couples each dof only with itself, so it adds a constant band of diagonal couplings
-(block-pentadiagonal with an acceleration term). `ptrack.solvers.banded_levenberg_marquardt` solves
-it with `ptrack.banded` (never a dense (T*D)^2 matrix) inside the joint-limit box.
+(`ptrack/data/cmu_smoothing.json`, fitted to the dev clips by `scripts/make_smoothing_prior.py`: a
+knee accelerates at ~27 rad/s^2, the head at ~7), else `batch.velocity_sigma` / `accel_sigma` for
+angles and `*_sigma_m` for the root position. rho is `batch.smooth_loss` at `batch.smooth_scale`
+prior std (default Cauchy at 2: quadratic for the motion the prior expects, logarithmic for faster
+motion, so a run's legs are not pulled flat; l2 is the paper's Gaussian). Missing keypoints
+(confidence 0) and frames without any 2D add nothing: the dynamics fill them, which is how
+`batch.upsample` reconstructs frames between the observed ones. The per-frame terms give the
+diagonal blocks J_t^T W J_t of the Gauss-Newton Hessian (J_t from the geometric joint Jacobian, one
+FK pass batched over all frames); the smoothing prior is linear in Q and couples each dof only with
+itself, so it adds a band of diagonal couplings (block-pentadiagonal with an acceleration term;
+constant for l2, else D_n^T diag(w a_n^2) D_n with the IRLS weights w = rho' of the residuals at the
+current Q). `ptrack.solvers.banded_levenberg_marquardt` solves it with `ptrack.banded` (never a
+dense (T*D)^2 matrix) inside the joint-limit box.
 
 Uncertainty: the diagonal blocks of the inverse Gauss-Newton Hessian at the solution (the banded
 recursion of `ptrack.banded.marginal_blocks`) are the per-frame marginal covariances of the pose;
@@ -103,6 +107,15 @@ class Trajectory:
     jk_target: Tensor
     jk_weight: Tensor
     jk_joints: tuple[int, ...]
+    smooth_loss: str = "l2"
+    smooth_scale: float = 1.0
+
+    def smooth_rho(self) -> Callable[[Tensor], Tensor] | None:
+        """The smoothing residuals' robust loss on their squares (in prior std units), None for l2."""
+        if self.smooth_loss == "l2":
+            return None
+        rho, c = robust_loss(self.smooth_loss), self.smooth_scale
+        return lambda s: rho(s, c)
 
 
 def smoothing_prior(name: str | None) -> dict[str, dict[str, float]]:
@@ -118,23 +131,63 @@ def smoothing_prior(name: str | None) -> dict[str, dict[str, float]]:
     return {"velocity": doc["velocity"], "accel": doc["accel"]}
 
 
+def _difference_coefficients(n: int, like: Tensor) -> Tensor:
+    """The n-th forward difference's coefficients: residual i = sum_j coef[j] q[i + j]. -> (n+1,)."""
+    return torch.tensor([(-1) ** (n - j) * math.comb(n, j) for j in range(n + 1)], dtype=like.dtype, device=like.device)
+
+
 def smoothing_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Tensor) -> Tensor:
     """Band of sum_n a_n^2 D_n^T D_n (D_n: n-th forward difference over T frames, per dof).
     -> (T, W+1, D) with W = the largest n (at least 1); entry [t, k] is the (t, t-k) block's diagonal."""
+    return weighted_band(t_len, tuple((n, a.square().expand(max(t_len - n, 0), -1)) for n, a in smooth), like)
+
+
+def weighted_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Tensor) -> Tensor:
+    """Band of sum_n D_n^T diag(c_n) D_n with a weight per residual: smooth ((n, c_n (..., T-n, D)), ...)
+    -> (..., T, W+1, D), W the largest n (at least 1); entry [t, k] is the (t, t-k) block's diagonal."""
     d = like.shape[-1]
     w = max([n for n, _ in smooth] + [1])
-    band = like.new_zeros(t_len, w + 1, d)
-    for n, a in smooth:
+    lead = torch.broadcast_shapes(*[c.shape[:-2] for _, c in smooth]) if smooth else ()
+    band = like.new_zeros(*lead, t_len, w + 1, d)
+    for n, c in smooth:
         if t_len <= n:
             continue
-        coef = torch.tensor(
-            [(-1) ** (n - j) * math.comb(n, j) for j in range(n + 1)], dtype=like.dtype, device=like.device
-        )
+        coef = _difference_coefficients(n, like)
         rows = t_len - n  # residual i covers frames i .. i+n
         for j in range(n + 1):
             for k in range(j + 1):
-                band[k + (j - k) : rows + j, j - k] += coef[j] * coef[k] * a.square()
+                band[..., j : rows + j, j - k, :] += coef[j] * coef[k] * c
     return band
+
+
+def _difference_transpose(n: int, v: Tensor) -> Tensor:
+    """D_n^T v over the frames: v (..., T-n, D) -> (..., T, D)."""
+    coef = _difference_coefficients(n, v)
+    return sum(
+        (float(coef[j]) * torch.nn.functional.pad(v, (0, 0, j, n - j)) for j in range(n + 1)),
+        torch.zeros((), dtype=v.dtype, device=v.device),
+    )
+
+
+def robust_smoothing(obj: Trajectory, q: Tensor) -> tuple[Tensor, Tensor, tuple[tuple[int, Tensor], ...]]:
+    """The smoothing prior under the robust loss `obj.smooth_loss` (scale `obj.smooth_scale` prior std):
+    q (B, T, D) -> energy (B, T) (each residual at its middle frame), gradient (B, T, D), and the
+    Gauss-Newton weights ((n, w a_n^2 (B, T-n, D)), ...) with w the IRLS weight of each residual."""
+    rho, drho = robust_loss(obj.smooth_loss), robust_loss_derivative(obj.smooth_loss)
+    b_len, t_len, _ = q.shape
+    energy, grad = q.new_zeros(b_len, t_len), torch.zeros_like(q)
+    weights = []
+    for n, a in obj.smooth:
+        if t_len <= n:
+            continue
+        r = a * torch.diff(q, n=n, dim=-2)  # (B, T-n, D) in prior std units
+        s = r.square()
+        e = 0.5 * rho(s, obj.smooth_scale).sum(-1)
+        energy = energy + torch.nn.functional.pad(e, ((n + 1) // 2, n - (n + 1) // 2))
+        c = drho(s, obj.smooth_scale) * a.square()
+        grad = grad + _difference_transpose(n, c * torch.diff(q, n=n, dim=-2))
+        weights.append((n, c))
+    return energy, grad, tuple(weights)
 
 
 def _band_matvec(band: Tensor, q: Tensor) -> Tensor:
@@ -241,6 +294,8 @@ def trajectory_objective(
         jk_target,
         jk_weight,
         tuple(torch.nonzero((jk_weight != 0).any(0)).flatten().tolist()),
+        bc.smooth_loss,
+        bc.smooth_scale,
     )
 
 
@@ -297,11 +352,15 @@ def evaluate(
     terms = {"reprojection": 0.5 * robust_loss(rp.loss)(s, rp.scale).sum(-1)}
     lim = (torch.clamp(q - obj.lower, max=0.0) + torch.clamp(q - obj.upper, min=0.0)) * obj.limits_scale
     terms["limits"] = 0.5 * lim.square().sum(-1)
-    smooth = q.new_zeros(b_len, t_len)
-    for n, a in obj.smooth:
-        if t_len > n:
-            e = 0.5 * (a * torch.diff(q, n=n, dim=-2)).square().sum(-1)  # (B, T-n)
-            smooth = smooth + torch.nn.functional.pad(e, ((n + 1) // 2, n - (n + 1) // 2))
+    robust = obj.smooth_loss != "l2"
+    if robust:
+        smooth, smooth_grad, _ = robust_smoothing(obj, q)
+    else:
+        smooth = q.new_zeros(b_len, t_len)
+        for n, a in obj.smooth:
+            if t_len > n:
+                e = 0.5 * (a * torch.diff(q, n=n, dim=-2)).square().sum(-1)  # (B, T-n)
+                smooth = smooth + torch.nn.functional.pad(e, ((n + 1) // 2, n - (n + 1) // 2))
     terms["smooth"] = smooth
     kf_r = _wrapped(q[:, obj.kf_frames] - obj.kf_target, obj.angular) * obj.kf_weight  # (B, F, D)
     keyframes = q.new_zeros(b_len, t_len).index_add(1, obj.kf_frames, 0.5 * kf_r.square().sum(-1))
@@ -345,19 +404,23 @@ def evaluate(
         h.index_add_(1, obj.jk_frames, torch.einsum("bgjcd,bgjce->bgde", gj, gj))
         g = g.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjc->bgd", gj, jk_r[:, :, list(obj.jk_joints)]))
     h.diagonal(dim1=-2, dim2=-1).add_(diag)  # in place: a diag_embed would write T D^2 zeros
-    g = g + _band_matvec(obj.band, q)
+    g = g + (smooth_grad if robust else _band_matvec(obj.band, q))
     return terms, h, g
 
 
 def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
-    """q (B, T, D) -> `BandedLinearization` of the whole objective (smoothing on the band)."""
-    band = obj.band
-    lower = band[None, :, 1:]  # (1, T, W, D): [t, k-1] = block (t, t-k)
+    """q (B, T, D) -> `BandedLinearization` of the whole objective (smoothing on the band; with a
+    robust smoothing loss, the band of its IRLS weights at q)."""
+    band = obj.band[None]  # (1, T, W+1, D)
 
     def linearize(q: Tensor) -> BandedLinearization:
         terms, h, g = evaluate(obj, q)
         assert h is not None and g is not None  # with_jacobian
-        h.diagonal(dim1=-2, dim2=-1).add_(band[:, 0])
+        b = band
+        if obj.smooth_loss != "l2":
+            b = weighted_band(q.shape[1], robust_smoothing(obj, q)[2], q)
+        lower = b[:, :, 1:]  # (B|1, T, W, D): [t, k-1] = block (t, t-k)
+        h.diagonal(dim1=-2, dim2=-1).add_(b[:, :, 0])
         energy = torch.stack(list(terms.values())).sum(0).sum(-1)
         return BandedLinearization(BlockBanded(h, lower.to(q)), g, energy)
 
@@ -427,7 +490,8 @@ def flip_posterior(obj: Trajectory, q: Tensor, bc) -> BranchPosterior | None:
         return relax_branches(starts, lambda x: solve_trajectory(obj, x, bc)[0])
 
     cam = obj.problem.observations.camera
-    return branch_posterior(sk, cam, q, chains, plans, frame_energy, obj.smooth, relax if bc.iterations > 0 else None)
+    relaxed = relax if bc.iterations > 0 else None
+    return branch_posterior(sk, cam, q, chains, plans, frame_energy, obj.smooth, relaxed, obj.smooth_rho())
 
 
 def lower_branch(obj: Trajectory, q: Tensor, branches: BranchPosterior) -> Tensor | None:
