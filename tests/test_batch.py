@@ -182,6 +182,13 @@ def test_robust_smoothing_gradient_and_band(loss):
                 assert float((blk - torch.diag_embed(torch.diagonal(blk, dim1=-2, dim2=-1))).abs().max()) == 0.0
 
 
+def test_robust_smoothing_without_smoothing_terms():
+    """The ablation without smoothing (every sigma null) runs with the default robust loss too."""
+    nulls = [f"batch.{k}=null" for k in ("velocity_sigma", "accel_sigma", "velocity_sigma_m", "accel_sigma_m")]
+    _, prep, est = solve("data.stop=60", *nulls)
+    assert torch.isfinite(est.q).all() and float(est.terms["smooth"].abs().sum()) == 0.0
+
+
 def test_joint_std_is_calibrated_and_logged(tmp_path):
     out = tmp_path / "run"
     assert main(["run", str(BATCH), *SHORT[:2], "batch.uncertainty=true", f"out_dir={out}"]) == 0

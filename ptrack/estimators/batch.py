@@ -417,7 +417,7 @@ def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
         terms, h, g = evaluate(obj, q)
         assert h is not None and g is not None  # with_jacobian
         b = band
-        if obj.smooth_loss != "l2":
+        if obj.smooth_loss != "l2" and obj.smooth:
             b = weighted_band(q.shape[1], robust_smoothing(obj, q)[2], q)
         lower = b[:, :, 1:]  # (B|1, T, W, D): [t, k-1] = block (t, t-k)
         h.diagonal(dim1=-2, dim2=-1).add_(b[:, :, 0])
