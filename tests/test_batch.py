@@ -185,7 +185,7 @@ def test_robust_smoothing_gradient_and_band(loss):
 def test_robust_smoothing_without_smoothing_terms():
     """The ablation without smoothing (every sigma null) runs with the default robust loss too."""
     nulls = [f"batch.{k}=null" for k in ("velocity_sigma", "accel_sigma", "velocity_sigma_m", "accel_sigma_m")]
-    _, prep, est = solve("data.stop=60", *nulls)
+    _, _, est = solve("data.stop=60", *nulls)
     assert torch.isfinite(est.q).all() and float(est.terms["smooth"].abs().sum()) == 0.0
 
 
