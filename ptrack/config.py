@@ -131,6 +131,18 @@ class KjsMethodConfig:
     # convergence, so this alone holds the weakly observed dofs: 0.05 measured better than 0.08 and 0.15
     # on 2 s of CMU 16_01 (42.4, 42.9, 63.6 mm)
     prior_sigma: float = 0.05
+    # per-dof velocity std instead: "cmu" (each CMU dof's RMS velocity in real motion, the table of
+    # `batch.prior`, times the frame interval and dynamics_scale, at least dynamics_floor per frame;
+    # prior_sigma for the dofs it does not name, the root's position), null = prior_sigma for every dof.
+    # Dev clips, keyframe start (best trajectory / best-of-K mm / flip rate), null -> cmu with floor 0.02:
+    # 1 px seeds 0-2 23.7 / 20.1 / 0.066 -> 23.9 / 18.6 / 0.062, 22.6 / 20.3 / 0.066 -> 20.9 / 17.7 / 0.057,
+    # 23.0 / 19.6 / 0.059 -> 22.6 / 18.7 / 0.067; 2 px seeds 0-1 32.7 / 29.6 / 0.057 -> 28.6 / 26.8 / 0.057,
+    # 34.9 / 31.0 / 0.070 -> 31.3 / 27.1 / 0.064. Tree start, 1 px: 37.2 / 27.2 -> 40.9 / 29.3 mm. Floor 0
+    # (1 px, seed 0): 22.6 / 18.7 / 0.056 but 2 px 32.2 / 28.9 / 0.068; 0.03: 23.3 / 19.1 / 0.060 and 2 px
+    # 31.6 / 28.3 / 0.064 (docs/results.md)
+    dynamics: str | None = "cmu"
+    dynamics_scale: float = 1.0
+    dynamics_floor: float = 0.02
     # tails of that prior in tracking steps: gaussian, or a robust loss (cauchy, huber, geman_mcclure)
     # beyond prior_tail_scale standard deviations, so that a limb flipped far from the prediction
     # stays a competing mode (the paper's long-tailed mixture components). Dev clips, keyframe start
@@ -612,9 +624,14 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         "rest_sigma",
         "start_prior_scale",
         "prior_tail_scale",
+        "dynamics_scale",
     ):
         if not getattr(kc, key) > 0:
             raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(kc, key)}")
+    if not kc.dynamics_floor >= 0:
+        raise InputError(f"config key 'kjs.dynamics_floor' must be >= 0, got {kc.dynamics_floor}")
+    if kc.dynamics not in (None, "cmu"):
+        raise InputError(f"config key 'kjs.dynamics' must be 'cmu' or null, got {kc.dynamics!r}")
     for key in ("init_yaws", "init_fits"):
         if getattr(kc, key) < 1:
             raise InputError(f"config key 'kjs.{key}' must be >= 1, got {getattr(kc, key)}")

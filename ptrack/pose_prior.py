@@ -11,6 +11,10 @@ subjects that are not in the development clips (`configs/clips/dev.txt`), so tha
 held out of it.
 
     mean, std, known = pose_prior(skeleton, lower, upper, angular)   # (D,), (D,), (D,) bool
+
+Beside it, the motion's per-dof velocity and acceleration scales (`smoothing_prior("cmu")`, from
+`ptrack/data/cmu_smoothing.json`, made by `scripts/make_smoothing_prior.py` from the dev clips): the
+smoothing prior of `method: batch` and, with `kjs.dynamics: cmu`, the trackers' dynamics.
 """
 
 from __future__ import annotations
@@ -79,4 +83,18 @@ def pose_prior(
     return wrap_to_limits(mean, lower, upper, angular), std, known
 
 
-__all__ = ["pose_prior", "pose_prior_path", "read_pose_prior"]
+def smoothing_prior(name: str | None, key: str = "batch.prior") -> dict[str, dict[str, float]]:
+    """Per-dof smoothing scales by dof name: {"velocity": {dof: rad/s or m/s}, "accel": {dof: rad/s^2 or
+    m/s^2}}. "cmu": `ptrack/data/cmu_smoothing.json` (fitted to the dev clips by
+    `scripts/make_smoothing_prior.py`); None: none (the config's scalar sigmas for every dof). key: the
+    config key named in the error for another name."""
+    if name is None:
+        return {}
+    if name != "cmu":
+        raise InputError(f"config key '{key}' must be 'cmu' or null, got {name!r}")
+    with resources.files("ptrack").joinpath("data").joinpath("cmu_smoothing.json").open() as f:
+        doc = json.load(f)
+    return {"velocity": doc["velocity"], "accel": doc["accel"]}
+
+
+__all__ = ["pose_prior", "pose_prior_path", "read_pose_prior", "smoothing_prior"]

@@ -143,6 +143,8 @@ def test_allocation_splits_an_even_share_over_the_modes():
         ("kjs.even_share=1.5", "kjs.even_share"),
         ("kjs.viterbi_space=angles", "kjs.viterbi_space"),
         ("kjs.viterbi_sigma_m=0", "kjs.viterbi_sigma_m"),
+        ("kjs.dynamics=walk", "kjs.dynamics"),
+        ("kjs.dynamics_floor=-0.1", "kjs.dynamics_floor"),
     ],
 )
 def test_bad_settings_are_one_line_errors(tmp_path, capsys, override, key):
@@ -151,6 +153,26 @@ def test_bad_settings_are_one_line_errors(tmp_path, capsys, override, key):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and err[0].startswith("ptrack: error:") and key in err[0], err
     assert not out.exists()
+
+
+def test_per_dof_dynamics():
+    """`kjs.dynamics: cmu`: each dof's velocity std per frame is its CMU RMS velocity times the frame
+    interval (30 fps here), at least the floor; the root's position keeps `kjs.prior_sigma`."""
+    from ptrack.pose_prior import smoothing_prior
+
+    table = smoothing_prior("cmu")["velocity"]
+    for floor in (0.0, 0.02):
+        cfg = load_config(KJS_YAML, ["data.stop=12", f"kjs.dynamics_floor={floor}"])
+        setup = _setup(prepare(cfg).problem, cfg, KJS)
+        names = setup.problem.skeleton.dof_names
+        sigma = dict(zip(names, setup.dynamics_sigma.tolist()))
+        assert sigma["ltibia.rx"] == pytest.approx(max(table["ltibia.rx"] / 30, floor), rel=1e-6)  # a knee: ~0.07 rad
+        assert sigma["head.rx"] == pytest.approx(max(table["head.rx"] / 30, floor), rel=1e-6)  # the head: ~0.007 rad
+        assert sigma["root.tx"] == pytest.approx(cfg.kjs.prior_sigma, rel=1e-6)  # not in the table
+        assert min(sigma.values()) >= floor * (1 - 1e-6)
+    cfg = load_config(KJS_YAML, ["data.stop=12", "kjs.dynamics=null"])
+    flat = _setup(prepare(cfg).problem, cfg, KJS).dynamics_sigma
+    torch.testing.assert_close(flat, torch.full_like(flat, cfg.kjs.prior_sigma))
 
 
 def test_run_writes_hypotheses(tmp_path):

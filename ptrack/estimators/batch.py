@@ -42,12 +42,10 @@ onto the keyframes: `warp_to_keyframes`), or the keyframes interpolated (`batch.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +70,7 @@ from ptrack.ik import ik_plan
 from ptrack.jacobians import joint_jacobian, joint_jacobian_product
 from ptrack.jumps import check_independent, default_chains
 from ptrack.limits import wrap_to_limits
+from ptrack.pose_prior import smoothing_prior
 from ptrack.problem import Estimate, Problem
 from ptrack.solvers import BandedLinearization, BandedLMInfo, banded_levenberg_marquardt
 
@@ -116,19 +115,6 @@ class Trajectory:
             return None
         rho, c = robust_loss(self.smooth_loss), self.smooth_scale
         return lambda s: rho(s, c)
-
-
-def smoothing_prior(name: str | None) -> dict[str, dict[str, float]]:
-    """Per-dof smoothing scales by dof name: {"velocity": {dof: rad/s or m/s}, "accel": {dof: rad/s^2 or
-    m/s^2}}. "cmu": `ptrack/data/cmu_smoothing.json` (fitted to the dev clips by
-    `scripts/make_smoothing_prior.py`); None: none (the config's scalar sigmas for every dof)."""
-    if name is None:
-        return {}
-    if name != "cmu":
-        raise InputError(f"config key 'batch.prior' must be 'cmu' or null, got {name!r}")
-    with resources.files("ptrack").joinpath("data").joinpath("cmu_smoothing.json").open() as f:
-        doc = json.load(f)
-    return {"velocity": doc["velocity"], "accel": doc["accel"]}
 
 
 def _difference_coefficients(n: int, like: Tensor) -> Tensor:

@@ -76,7 +76,7 @@ from ptrack.jumps import (
     product,
 )
 from ptrack.mixture import Modes, distinct_minima, posterior_weights, viterbi
-from ptrack.pose_prior import pose_prior
+from ptrack.pose_prior import pose_prior, smoothing_prior
 from ptrack.problem import Estimate, Problem, first_keyframe, pose_eval_from_joints
 from ptrack.samplers import css_proposal, project_to_limits, scaled_covariance, spherical_proposal
 from ptrack.solvers import lbfgs, levenberg_marquardt
@@ -116,6 +116,7 @@ class Setup:
     root: Tensor  # (D,) bool: the root joint's rotation and translation dofs
     prior: tuple[Tensor, Tensor, Tensor]  # CMU pose prior: mean (D,), std (D,), known (D,) bool (never the root)
     prior_sigma: Tensor  # (D,) the tracking term's std: the prior's spread (>= floor_deg), 1e6 where unknown
+    dynamics_sigma: Tensor  # (D,) the dynamics' velocity std per frame before widening (`kjs.dynamics`)
 
 
 def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
@@ -149,8 +150,37 @@ def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
     known = known & ~root
     prior_sigma = torch.where(known, std.clamp_min(math.radians(k.floor_deg)), torch.full_like(std, 1e6))
     return Setup(
-        problem, cfg, lower, upper, angular, collision, chains, plans, chain_dofs, root, (mean, std, known), prior_sigma
+        problem,
+        cfg,
+        lower,
+        upper,
+        angular,
+        collision,
+        chains,
+        plans,
+        chain_dofs,
+        root,
+        (mean, std, known),
+        prior_sigma,
+        _dynamics_sigma(problem, k, dtype, device),
     )
+
+
+def _dynamics_sigma(problem: Problem, k, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The dynamics' velocity std per frame (D,): `kjs.prior_sigma` for every dof, or with `kjs.dynamics:
+    cmu` each CMU dof's RMS velocity in real motion (`ptrack/data/cmu_smoothing.json`, the table of
+    `batch.prior`) times the frame interval and `kjs.dynamics_scale`, at least `kjs.dynamics_floor`;
+    `kjs.prior_sigma` for the dofs the table does not name (the root's position)."""
+    sk, times = problem.skeleton, problem.observations.times.double()
+    sigma = torch.full((sk.num_dofs,), k.prior_sigma, dtype=dtype, device=device)
+    if k.dynamics is None:
+        return sigma
+    dt = float(torch.median(times[1:] - times[:-1])) if times.numel() > 1 else 1.0 / 30
+    table = smoothing_prior(k.dynamics, "kjs.dynamics")["velocity"]
+    for i, name in enumerate(sk.dof_names):
+        if name in table:
+            sigma[i] = max(table[name] * dt * k.dynamics_scale, k.dynamics_floor)
+    return sigma
 
 
 # ---------------------------------------------------------------- the frame's objective
@@ -336,7 +366,7 @@ def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generat
     q = torch.cat([predicted, q])
     parent = torch.cat([idx, parent])
     # the dynamics' spread widens with each mode's own last motion: a fast limb may move as far again
-    sigma = torch.sqrt(k.prior_sigma**2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
+    sigma = torch.sqrt(s.dynamics_sigma**2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
     # polish everything briefly, then the most promising distinct minima to convergence
     q, cost, hessian = _polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent], tracking=True)
     best, _ = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], 4 * k.modes)
