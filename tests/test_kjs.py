@@ -162,7 +162,7 @@ def test_per_dof_dynamics():
 
     table = smoothing_prior("cmu")["velocity"]
     for floor in (0.0, 0.02):
-        cfg = load_config(KJS_YAML, ["data.stop=12", f"kjs.dynamics_floor={floor}"])
+        cfg = load_config(KJS_YAML, ["data.stop=12", "kjs.dynamics=cmu", f"kjs.dynamics_floor={floor}"])
         setup = _setup(prepare(cfg).problem, cfg, KJS)
         names = setup.problem.skeleton.dof_names
         sigma = dict(zip(names, setup.dynamics_sigma.tolist()))
@@ -170,7 +170,7 @@ def test_per_dof_dynamics():
         assert sigma["head.rx"] == pytest.approx(max(table["head.rx"] / 30, floor), rel=1e-6)  # the head: ~0.007 rad
         assert sigma["root.tx"] == pytest.approx(cfg.kjs.prior_sigma, rel=1e-6)  # not in the table
         assert min(sigma.values()) >= floor * (1 - 1e-6)
-    cfg = load_config(KJS_YAML, ["data.stop=12", "kjs.dynamics=null"])
+    cfg = load_config(KJS_YAML, ["data.stop=12"])  # the default: one std for every dof
     flat = _setup(prepare(cfg).problem, cfg, KJS).dynamics_sigma
     torch.testing.assert_close(flat, torch.full_like(flat, cfg.kjs.prior_sigma))
 
