@@ -366,7 +366,8 @@ def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generat
     q = torch.cat([predicted, q])
     parent = torch.cat([idx, parent])
     # the dynamics' spread widens with each mode's own last motion: a fast limb may move as far again
-    sigma = torch.sqrt(s.dynamics_sigma**2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
+    base = k.prior_sigma if k.dynamics is None else s.dynamics_sigma  # a float: the same rounding as before
+    sigma = torch.sqrt(base**2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
     # polish everything briefly, then the most promising distinct minima to convergence
     q, cost, hessian = _polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent], tracking=True)
     best, _ = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], 4 * k.modes)
