@@ -138,7 +138,7 @@ class KjsMethodConfig:
     # best trajectory / best-of-K mm / flip rate, null -> cmu with floor 0.02: 1 px seeds 0-2 23.7 / 20.1 /
     # 0.066 -> 23.9 / 18.6 / 0.062, 22.6 / 20.3 / 0.066 -> 20.9 / 17.7 / 0.057, 23.0 / 19.6 / 0.059 -> 22.6 /
     # 18.7 / 0.067; 2 px seeds 0-1 32.7 / 29.6 / 0.057 -> 28.6 / 26.8 / 0.057, 34.9 / 31.0 / 0.070 -> 31.3 /
-    # 27.1 / 0.064), but not on clips it was not fitted to: 6 held-out clips (2 px) 45.3 / 39.8 / 0.100 ->
+    # 27.1 / 0.064), but not on clips it was not fitted to: 6 held-out clips (2 px) 42.8 / 39.6 / 0.090 ->
     # 45.5 / 38.3 / 0.098, the bundled 10_02 (bench_kjs) 44.6 / 33.6 -> 47.1 / 35.3 mm (docs/results.md)
     dynamics: str | None = None
     dynamics_scale: float = 1.0
