@@ -554,18 +554,19 @@ def interpolate_keyframes(problem: Problem, lower: Tensor, upper: Tensor) -> Ten
 def warp_to_keyframes(q: Tensor, obj: Trajectory) -> Tensor:
     """Motion warping of a start (Witkin & Popovic 1995): per dof, the offsets that bring q (T, D) onto
     each angle keyframe giving that dof, linearly interpolated in time between those keyframes (held
-    beyond the first and last), added to q; keyframe dofs already met within their std count as
-    offset 0 (anchors). -> (T, D). A start from an earlier solution (`init_from`)
-    already meets the keyframes it was solved with (offsets ~0 there), so a keyframe added since is
-    met at once and its change fades out towards its neighbours: the solver refines that stretch
-    instead of first dragging it there."""
+    beyond the first and last), added to q; keyframe dofs already met within 3 of their std count as
+    offset 0 (anchors: a solution misses some keyframe dofs by 1-2 std where the data pulls against
+    them, and re-meeting those exactly would only move the start off its minimum). -> (T, D). A start
+    from an earlier solution (`init_from`) already meets the keyframes it was solved with (offsets ~0
+    there), so a keyframe added since is met at once and its change fades out towards its neighbours:
+    the solver refines that stretch instead of first dragging it there."""
     if obj.kf_frames.numel() == 0:
         return q
     diff = _wrapped(obj.kf_target - q[obj.kf_frames], obj.angular)  # (F, D)
     given = (obj.kf_weight > 0).cpu().numpy()
     frames = obj.kf_frames.cpu().numpy()
-    # a dof the start already meets within its keyframe's std is an anchor: offset 0 there
-    delta = torch.where(diff.abs() * obj.kf_weight > 1, diff, 0.0).detach().cpu().double().numpy()
+    # a dof the start already meets within 3 of its keyframe's std is an anchor: offset 0 there
+    delta = torch.where(diff.abs() * obj.kf_weight > 3, diff, 0.0).detach().cpu().double().numpy()
     order = np.argsort(frames, kind="stable")
     frames, delta, given = frames[order], delta[order], given[order]
     t = np.arange(q.shape[0], dtype=np.float64)
