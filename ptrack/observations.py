@@ -129,6 +129,12 @@ class Observations:
         return self.keypoints.shape[0]
 
     @property
+    def frame_interval(self) -> float:
+        """Seconds between observed frames: the median step of `times` (1/30 for a single frame)."""
+        times = self.times.detach().double()
+        return float(torch.median(times[1:] - times[:-1])) if times.numel() > 1 else 1.0 / 30
+
+    @property
     def num_keypoints(self) -> int:
         return self.keypoints.shape[1]
 

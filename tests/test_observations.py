@@ -400,6 +400,14 @@ def _fields(T=4, K=3):
     }
 
 
+def test_frame_interval_is_the_median_step():
+    f = _fields()
+    f["times"] = torch.tensor([0.0, 0.1, 0.2, 0.5])  # one dropped-frame gap does not move the median
+    assert Observations(**f).frame_interval == pytest.approx(0.1)
+    one = {k: (v[:1] if isinstance(v, torch.Tensor) else v) for k, v in _fields().items()}
+    assert Observations(**one).frame_interval == pytest.approx(1 / 30)
+
+
 def test_observations_accepts_nan_where_missing_and_converts():
     f = _fields()
     f["keypoints"][1, 2] = math.nan

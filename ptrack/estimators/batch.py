@@ -207,8 +207,7 @@ def trajectory_objective(
     lower, upper = sk.limits(dtype=dtype, device=device)
     if not limits:
         lower, upper = torch.full_like(lower, -math.inf), torch.full_like(upper, math.inf)
-    times = obs.times.double()
-    dt = float(torch.median(times[1:] - times[:-1])) if t_len > 1 else 1.0
+    dt = obs.frame_interval
     trans = torch.zeros(d, dtype=torch.bool, device=device)
     trans[[i for i in sk.translation_dof.tolist() if i >= 0]] = True
     angular = torch.as_tensor(sk.angular_dofs(), device=device)

@@ -171,11 +171,11 @@ def _dynamics_sigma(problem: Problem, k, dtype: torch.dtype, device: torch.devic
     cmu` each CMU dof's RMS velocity in real motion (`ptrack/data/cmu_smoothing.json`, the table of
     `batch.prior`) times the frame interval and `kjs.dynamics_scale`, at least `kjs.dynamics_floor`;
     `kjs.prior_sigma` for the dofs the table does not name (the root's position)."""
-    sk, times = problem.skeleton, problem.observations.times.double()
+    sk = problem.skeleton
     sigma = torch.full((sk.num_dofs,), k.prior_sigma, dtype=dtype, device=device)
     if k.dynamics is None:
         return sigma
-    dt = float(torch.median(times[1:] - times[:-1])) if times.numel() > 1 else 1.0 / 30
+    dt = problem.observations.frame_interval
     table = smoothing_prior(k.dynamics, "kjs.dynamics")["velocity"]
     for i, name in enumerate(sk.dof_names):
         if name in table:

@@ -584,8 +584,7 @@ def initial_timing(s: Setup) -> tuple[Tensor, Tensor]:
             "method pca finds the key postures from the 2D wrists: the keypoint set needs "
             "l_wrist or r_wrist (config key 'model.keypoints')"
         )
-    times = obs.times.detach().cpu().double()
-    fps = float(1.0 / (times[1:] - times[:-1]).median()) if times.numel() > 1 else 30.0
+    fps = 1.0 / obs.frame_interval
     rules = dataclasses.replace(s.cfg.motion, smooth_s=s.cfg.pca.key_smooth_s)
     keys = detect_key_postures_2d(
         obs.keypoints[:, wrists].detach().cpu(), fps, rules, valid=(obs.confidence[:, wrists] > 0).cpu()
