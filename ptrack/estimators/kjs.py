@@ -116,7 +116,7 @@ class Setup:
     root: Tensor  # (D,) bool: the root joint's rotation and translation dofs
     prior: tuple[Tensor, Tensor, Tensor]  # CMU pose prior: mean (D,), std (D,), known (D,) bool (never the root)
     prior_sigma: Tensor  # (D,) the tracking term's std: the prior's spread (>= floor_deg), 1e6 where unknown
-    dynamics_sigma: Tensor  # (D,) the dynamics' velocity std per frame before widening (`kjs.dynamics`)
+    dynamics_sigma: float | Tensor  # the dynamics' velocity std per frame before widening (`kjs.dynamics`)
 
 
 def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
@@ -166,15 +166,16 @@ def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
     )
 
 
-def _dynamics_sigma(problem: Problem, k, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """The dynamics' velocity std per frame (D,): `kjs.prior_sigma` for every dof, or with `kjs.dynamics:
-    cmu` each CMU dof's RMS velocity in real motion (`ptrack/data/cmu_smoothing.json`, the table of
-    `batch.prior`) times the frame interval and `kjs.dynamics_scale`, at least `kjs.dynamics_floor`;
-    `kjs.prior_sigma` for the dofs the table does not name (the root's position)."""
+def _dynamics_sigma(problem: Problem, k, dtype: torch.dtype, device: torch.device) -> float | Tensor:
+    """The dynamics' velocity std per frame: the float `kjs.prior_sigma` for every dof (so that the
+    prior's arithmetic rounds as it always has), or with `kjs.dynamics: cmu` a (D,) tensor: each CMU
+    dof's RMS velocity in real motion (`ptrack/data/cmu_smoothing.json`, the table of `batch.prior`)
+    times the frame interval and `kjs.dynamics_scale`, at least `kjs.dynamics_floor`; `kjs.prior_sigma`
+    for the dofs the table does not name (the root's position)."""
+    if k.dynamics is None:
+        return k.prior_sigma
     sk = problem.skeleton
     sigma = torch.full((sk.num_dofs,), k.prior_sigma, dtype=dtype, device=device)
-    if k.dynamics is None:
-        return sigma
     dt = problem.observations.frame_interval
     table = smoothing_prior(k.dynamics, "kjs.dynamics")["velocity"]
     for i, name in enumerate(sk.dof_names):
@@ -366,8 +367,7 @@ def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generat
     q = torch.cat([predicted, q])
     parent = torch.cat([idx, parent])
     # the dynamics' spread widens with each mode's own last motion: a fast limb may move as far again
-    base = k.prior_sigma if k.dynamics is None else s.dynamics_sigma  # a float: the same rounding as before
-    sigma = torch.sqrt(base**2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
+    sigma = torch.sqrt(s.dynamics_sigma**2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
     # polish everything briefly, then the most promising distinct minima to convergence
     q, cost, hessian = _polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent], tracking=True)
     best, _ = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], 4 * k.modes)
