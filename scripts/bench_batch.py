@@ -170,6 +170,27 @@ def parts(lin, q: torch.Tensor, obj, damping: float, repeats: int = 10) -> str:
     return ", ".join(res)
 
 
+def timed_solves(obj, q0: torch.Tensor, damping: float, repeats: int):
+    """`repeats` solves of 30 iterations (no early stop) from q0 (T, D) on one intra-op thread, as
+    `method: batch` runs (module docstring), after one warm-up linearisation -> q (1, T, D) and info of
+    the last, wall times, CPU times and load averages of each."""
+    from ptrack.banded import one_thread
+
+    lin = linearization(obj)
+    times, cpu, loads = [], [], []
+    with one_thread():
+        lin(q0[None])  # warm-up (kernel caches)
+        for _ in range(repeats):
+            t0, c0 = time.perf_counter(), time.process_time()
+            q, info = banded_levenberg_marquardt(
+                lin, q0[None], obj.lower, obj.upper, max_iter=30, tol=1e-300, gtol=0.0, damping=damping
+            )
+            times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+            loads.append(os.getloadavg()[0])
+    return q, info, times, cpu, loads
+
+
 def speed(args) -> None:
     from ptrack.banded import one_thread
 
@@ -180,19 +201,9 @@ def speed(args) -> None:
         f"problem: {t_len} frames, {d} dofs, {obj.kf_frames.numel()} keyframes, "
         f"{int((prep.problem.observations.confidence > 0).sum())} observed keypoints"
     )
-    lin = linearization(obj)
-    times, cpu, loads = [], [], []
-    with one_thread():  # as `method: batch` runs (module docstring)
-        lin(q0[None])  # warm-up (kernel caches)
-        for _ in range(args.repeats):
-            t0, c0 = time.perf_counter(), time.process_time()
-            q, info = banded_levenberg_marquardt(
-                lin, q0[None], obj.lower, obj.upper, max_iter=30, tol=1e-300, gtol=0.0, damping=cfg.batch.damping
-            )
-            times.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-            loads.append(os.getloadavg()[0])
-        split = parts(lin, q, obj, cfg.batch.damping)
+    q, info, times, cpu, loads = timed_solves(obj, q0, cfg.batch.damping, args.repeats)
+    with one_thread():
+        split = parts(linearization(obj), q, obj, cfg.batch.damping)
     ours, cost, iters = float(np.median(times)), float(info.cost[0]), int(info.iterations[0])
     check = 0.5 * float(residuals(obj, q[0]).square().sum())
     how = "one thread" if args.threads == 1 else "the linearisation's two halves on two threads"
@@ -209,15 +220,7 @@ def speed(args) -> None:
         )
     print(f"one iteration's parts (median wall time at the solution): {split}")
     _, _, robj, rq0 = problem(300, plain=False)
-    rlin = linearization(robj)
-    walls = []
-    with one_thread():
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            _, rinfo = banded_levenberg_marquardt(
-                rlin, rq0[None], robj.lower, robj.upper, max_iter=30, tol=1e-300, gtol=0.0, damping=cfg.batch.damping
-            )
-            walls.append(time.perf_counter() - t0)
+    _, rinfo, walls, _, _ = timed_solves(robj, rq0, cfg.batch.damping, args.repeats)
     print(
         f"with the config's robust losses (costs.loss {robj.reprojection.loss}, batch.smooth_loss "
         f"{robj.smooth_loss} {robj.smooth_scale:g}): {int(rinfo.iterations[0])} iterations in "
