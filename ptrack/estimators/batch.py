@@ -534,7 +534,10 @@ def interpolate_keyframes(problem: Problem, lower: Tensor, upper: Tensor) -> Ten
         else (torch.ones(kf.frames.shape, dtype=torch.bool) if kf.mask is None else kf.mask.all(-1).cpu())
     )
     if kf is None or full is None or not bool(full.any()):
-        raise InputError("batch.init is 'keyframes' but no keyframe gives every dof")
+        raise InputError(
+            "batch.init is 'keyframes' but no keyframe gives every dof: start from the per-frame fits "
+            "(batch.init=frame) or add a full keyframe"
+        )
     frames = kf.frames.cpu()[full]
     order = torch.argsort(frames)
     frames, q = frames[order], kf.q.to(lower)[full.to(lower.device)][order.to(lower.device)]
