@@ -17,6 +17,7 @@ from typing import Any, Union
 
 import yaml
 
+from ptrack.costs.base import ROBUST_LOSSES
 from ptrack.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -653,7 +654,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         ("polisher", ("lm", "lbfgs")),
         ("init", ("keyframe", "tree")),
         ("viterbi_space", ("joints", "dofs")),
-        ("prior_tail", ("gaussian", "cauchy", "huber", "geman_mcclure")),
+        ("prior_tail", ("gaussian", *(n for n in ROBUST_LOSSES if n != "l2"))),
     ):
         if getattr(kc, key) not in allowed:
             raise InputError(f"config key 'kjs.{key}' must be one of {', '.join(allowed)}, got {getattr(kc, key)!r}")
@@ -674,9 +675,10 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     for key in ("velocity_sigma", "accel_sigma", "velocity_sigma_m", "accel_sigma_m"):
         if getattr(b, key) is not None and not getattr(b, key) > 0:
             raise InputError(f"config key 'batch.{key}' must be positive or null, got {getattr(b, key)}")
-    losses = ("l2", "huber", "cauchy", "geman_mcclure")
-    if b.smooth_loss not in losses:
-        raise InputError(f"config key 'batch.smooth_loss' must be one of {', '.join(losses)}, got {b.smooth_loss!r}")
+    if b.smooth_loss not in ROBUST_LOSSES:
+        raise InputError(
+            f"config key 'batch.smooth_loss' must be one of {', '.join(ROBUST_LOSSES)}, got {b.smooth_loss!r}"
+        )
     if not b.smooth_scale > 0:
         raise InputError(f"config key 'batch.smooth_scale' must be positive, got {b.smooth_scale}")
     if b.init not in ("frame", "keyframes"):
@@ -695,6 +697,8 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         )
     if cfg.costs.sigma_px <= 0:
         raise InputError(f"config key 'costs.sigma_px' must be positive, got {cfg.costs.sigma_px}")
+    if cfg.costs.loss not in ROBUST_LOSSES:
+        raise InputError(f"config key 'costs.loss' must be one of {', '.join(ROBUST_LOSSES)}, got {cfg.costs.loss!r}")
     validate_pca(cfg.pca, cfg.model.keypoints, names=cfg.method == "pca")
 
 

@@ -293,6 +293,9 @@ def test_absolute_paths_kept(tmp_path):
         ("frame.init=zero", "frame.init"),
         ("frame.iterations=0", "frame.iterations"),
         ("costs.sigma_px=0", "costs.sigma_px"),
+        ("costs.loss=tukey", "costs.loss"),
+        ("batch.smooth_loss=tukey", "batch.smooth_loss"),
+        ("kjs.prior_tail=l2", "kjs.prior_tail"),
     ],
 )
 def test_value_checks_name_the_key(override, key):

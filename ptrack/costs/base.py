@@ -97,6 +97,8 @@ _LOSSES: dict[str, tuple[Loss, Loss]] = {
     "geman_mcclure": (geman_mcclure, _geman_mcclure_d),
 }
 
+ROBUST_LOSSES: tuple[str, ...] = tuple(_LOSSES)  # the names `robust_loss` knows
+
 
 def robust_loss(name: str) -> Loss:
     """The robust loss `rho(s, scale)` called `name` (l2, huber, cauchy, geman_mcclure)."""
