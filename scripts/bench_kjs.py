@@ -48,10 +48,11 @@ def run(method: str, args: argparse.Namespace, root: Path) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--stop", type=int, default=592, help="AMC frames 0..stop (592: the whole clip, 148 frames)")
-    ap.add_argument("--methods", nargs="+", default=["kjs", "css", "ss"])
+    ap.add_argument("--methods", nargs="+", default=["kjs", "css", "ss"], help="trackers (frame always runs first)")
     ap.add_argument("--samples", type=int, default=256, help="hypotheses per frame")
     ap.add_argument("--modes", type=int, default=8, help="K")
     args = ap.parse_args()
+    args.methods = [m for m in dict.fromkeys(args.methods) if m != "frame"]  # each once; frame is the baseline
     print(f"load average before: {os.getloadavg()[0]:.2f}")
     with tempfile.TemporaryDirectory() as tmp:
         base = run("frame", args, Path(tmp))
