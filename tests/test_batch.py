@@ -131,7 +131,7 @@ def test_linearisation_on_two_threads_equals_one(tmp_path, monkeypatch):
     for two in (False, True):
         monkeypatch.setattr(batch, "parallel_halves", lambda device, two=two: two)
         out[two] = batch.evaluate(obj, q)
-    (terms1, h1, g1), (terms2, h2, g2) = out[False], out[True]
+    (terms1, h1, g1, _), (terms2, h2, g2, _) = out[False], out[True]
     for name in terms1:
         torch.testing.assert_close(terms2[name], terms1[name], rtol=0, atol=0)
     torch.testing.assert_close(h2, h1, rtol=0, atol=0)
@@ -147,9 +147,9 @@ def test_robust_smoothing_gradient_and_band(loss):
     obj = trajectory_objective(prep.problem, cfg, torch.float64, torch.device("cpu"))
     noise = torch.randn((2, *prep.gt_q.shape), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     q = (prep.gt_q.double() + 0.05 * noise).requires_grad_()
-    energy = sum(v.sum() for v in batch.evaluate(obj, q, with_jacobian=False)[0].values())
+    energy = sum(v.sum() for v in batch.evaluate(obj, q, with_jacobian=False).terms.values())
     (grad,) = torch.autograd.grad(energy, q)
-    _, _, g = batch.evaluate(obj, q.detach())
+    g = batch.evaluate(obj, q.detach()).g
     torch.testing.assert_close(g, grad, rtol=1e-9, atol=1e-7)
     if loss == "cauchy":  # bad values: one error line naming the key
         for bad in ("batch.smooth_loss=tukey", "batch.smooth_scale=0"):

@@ -47,7 +47,7 @@ import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -289,16 +289,22 @@ def _wrapped(diff: Tensor, angular: Tensor) -> Tensor:
     return torch.where(angular, torch.remainder(diff + math.pi, 2 * math.pi) - math.pi, diff)
 
 
-def evaluate(
-    obj: Trajectory, q: Tensor, with_jacobian: bool = True
-) -> tuple[dict[str, Tensor], Tensor | None, Tensor | None]:
-    """Per-frame energies of each term, and the per-frame Gauss-Newton pieces.
+class Evaluation(NamedTuple):
+    """`evaluate`'s result: terms {name: (B, T)} (reprojection, limits, smooth, keyframes; each
+    smoothing residual counted at its middle frame), h (B, T, D, D) the per-frame blocks J_t^T W J_t
+    of every term but the smoothing band, g (B, T, D) the gradient of the whole energy (smoothing
+    included), smooth_weights the smoothing's Gauss-Newton weights (`robust_smoothing`); h and g are
+    None without the Jacobian."""
 
-    q (B, T, D) -> terms {name: (B, T)} (reprojection, limits, smooth, keyframes; each smoothing
-    residual counted at its middle frame), H (B, T, D, D) the per-frame blocks J_t^T W J_t of every
-    term but the smoothing band, g (B, T, D) the gradient of the whole energy (smoothing included);
-    H and g are None without `with_jacobian`.
-    """
+    terms: dict[str, Tensor]
+    h: Tensor | None
+    g: Tensor | None
+    smooth_weights: tuple[tuple[int, Tensor], ...]
+
+
+def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluation:
+    """Per-frame energies of each term, and the per-frame Gauss-Newton pieces: q (B, T, D) ->
+    `Evaluation`."""
     p = obj.problem
     sk, cam, kps = p.skeleton, p.observations.camera.to(device=q.device, dtype=q.dtype), p.keypoints
     b_len, t_len, _d = q.shape
@@ -338,21 +344,13 @@ def evaluate(
     lim = (torch.clamp(q - obj.lower, max=0.0) + torch.clamp(q - obj.upper, min=0.0)) * obj.limits_scale
     terms["limits"] = 0.5 * lim.square().sum(-1)
     robust = obj.smooth_loss != "l2"
-    if robust:
-        smooth, smooth_grad, _ = robust_smoothing(obj, q)
-    else:
-        smooth = q.new_zeros(b_len, t_len)
-        for n, a in obj.smooth:
-            if t_len > n:
-                e = 0.5 * (a * torch.diff(q, n=n, dim=-2)).square().sum(-1)  # (B, T-n)
-                smooth = smooth + torch.nn.functional.pad(e, ((n + 1) // 2, n - (n + 1) // 2))
-    terms["smooth"] = smooth
+    terms["smooth"], smooth_grad, smooth_weights = robust_smoothing(obj, q)
     kf_r = _wrapped(q[:, obj.kf_frames] - obj.kf_target, obj.angular) * obj.kf_weight  # (B, F, D)
     keyframes = q.new_zeros(b_len, t_len).index_add(1, obj.kf_frames, 0.5 * kf_r.square().sum(-1))
     jk_r = (ev.joints[:, obj.jk_frames] - obj.jk_target) * obj.jk_weight[..., None]  # (B, G, J, 3)
     terms["keyframes"] = keyframes.index_add(1, obj.jk_frames, 0.5 * jk_r.square().sum((-1, -2)))
     if not with_jacobian:
-        return terms, None, None
+        return Evaluation(terms, None, None, smooth_weights)
     assert fk is not None  # with_jacobian
 
     # J_t^T W J_t of the reprojection: per keypoint, the residual's 2 x 3 derivative w.r.t. its joint
@@ -389,8 +387,8 @@ def evaluate(
         h.index_add_(1, obj.jk_frames, torch.einsum("bgjcd,bgjce->bgde", gj, gj))
         g = g.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjc->bgd", gj, jk_r[:, :, list(obj.jk_joints)]))
     h.diagonal(dim1=-2, dim2=-1).add_(diag)  # in place: a diag_embed would write T D^2 zeros
-    g = g + (smooth_grad if robust else _band_matvec(obj.band, q))
-    return terms, h, g
+    g = g + (smooth_grad if robust else _band_matvec(obj.band, q))  # l2: the fixed band's product
+    return Evaluation(terms, h, g, smooth_weights)
 
 
 def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
@@ -399,11 +397,11 @@ def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
     band = obj.band[None]  # (1, T, W+1, D)
 
     def linearize(q: Tensor) -> BandedLinearization:
-        terms, h, g = evaluate(obj, q)
+        terms, h, g, weights = evaluate(obj, q)
         assert h is not None and g is not None  # with_jacobian
         b = band
         if obj.smooth_loss != "l2" and obj.smooth:
-            b = weighted_band(q.shape[1], robust_smoothing(obj, q)[2], q)
+            b = weighted_band(q.shape[1], weights, q)
         lower = b[:, :, 1:]  # (B|1, T, W, D): [t, k-1] = block (t, t-k)
         h.diagonal(dim1=-2, dim2=-1).add_(b[:, :, 0])
         energy = torch.stack(list(terms.values())).sum(0).sum(-1)
@@ -468,7 +466,7 @@ def flip_posterior(obj: Trajectory, q: Tensor, bc) -> BranchPosterior | None:
         return None
 
     def frame_energy(x: Tensor) -> Tensor:
-        terms, _, _ = evaluate(obj, x, with_jacobian=False)
+        terms = evaluate(obj, x, with_jacobian=False).terms
         return terms["reprojection"] + terms["limits"] + terms["keyframes"]
 
     def relax(starts: Tensor) -> Tensor:
@@ -493,7 +491,7 @@ def lower_branch(obj: Trajectory, q: Tensor, branches: BranchPosterior) -> Tenso
 
 def _energy(obj: Trajectory, q: Tensor) -> Tensor:
     """The whole objective of trajectories q (N, T, D) -> (N,)."""
-    terms, _, _ = evaluate(obj, q, with_jacobian=False)
+    terms = evaluate(obj, q, with_jacobian=False).terms
     return torch.stack(list(terms.values())).sum(0).sum(-1)
 
 
@@ -652,7 +650,7 @@ def _estimate(
         branches = None  # the posterior of the trajectory it replaced
         log.info("batch: restarted from a flip branch, cost -> %.6g", float(info.cost[0]))
     with torch.no_grad():
-        terms, _, _ = evaluate(obj, q, with_jacobian=False)
+        terms = evaluate(obj, q, with_jacobian=False).terms
         joints = problem.skeleton.forward_kinematics(q[0])
         std = None
         if bc.uncertainty:
