@@ -117,9 +117,9 @@ class Trajectory:
         return lambda s: rho(s, c)
 
 
-def _difference_coefficients(n: int, like: Tensor) -> Tensor:
-    """The n-th forward difference's coefficients: residual i = sum_j coef[j] q[i + j]. -> (n+1,)."""
-    return torch.tensor([(-1) ** (n - j) * math.comb(n, j) for j in range(n + 1)], dtype=like.dtype, device=like.device)
+def _difference_coefficients(n: int) -> list[float]:
+    """The n-th forward difference's coefficients: residual i = sum_j coef[j] q[i + j]. -> n+1 floats."""
+    return [float((-1) ** (n - j) * math.comb(n, j)) for j in range(n + 1)]
 
 
 def smoothing_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Tensor) -> Tensor:
@@ -138,7 +138,7 @@ def weighted_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Tens
     for n, c in smooth:
         if t_len <= n:
             continue
-        coef = _difference_coefficients(n, like)
+        coef = _difference_coefficients(n)
         rows = t_len - n  # residual i covers frames i .. i+n
         for j in range(n + 1):
             for k in range(j + 1):
@@ -148,20 +148,24 @@ def weighted_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Tens
 
 def _difference_transpose(n: int, v: Tensor) -> Tensor:
     """D_n^T v over the frames: v (..., T-n, D) -> (..., T, D)."""
-    coef = _difference_coefficients(n, v)
+    coef = _difference_coefficients(n)
     return sum(
-        (float(coef[j]) * torch.nn.functional.pad(v, (0, 0, j, n - j)) for j in range(n + 1)),
+        (coef[j] * torch.nn.functional.pad(v, (0, 0, j, n - j)) for j in range(n + 1)),
         torch.zeros((), dtype=v.dtype, device=v.device),
     )
 
 
-def robust_smoothing(obj: Trajectory, q: Tensor) -> tuple[Tensor, Tensor, tuple[tuple[int, Tensor], ...]]:
+def robust_smoothing(
+    obj: Trajectory, q: Tensor, derivatives: bool = True
+) -> tuple[Tensor, Tensor | None, tuple[tuple[int, Tensor], ...]]:
     """The smoothing prior under the robust loss `obj.smooth_loss` (scale `obj.smooth_scale` prior std):
     q (B, T, D) -> energy (B, T) (each residual at its middle frame), gradient (B, T, D), and the
-    Gauss-Newton weights ((n, w a_n^2 (B, T-n, D)), ...) with w the IRLS weight of each residual."""
+    Gauss-Newton weights ((n, w a_n^2 (B, T-n, D)), ...) with w the IRLS weight of each residual;
+    without `derivatives`, the energy only (gradient None, no weights)."""
     rho, drho = robust_loss(obj.smooth_loss), robust_loss_derivative(obj.smooth_loss)
     b_len, t_len, _ = q.shape
-    energy, grad = q.new_zeros(b_len, t_len), torch.zeros_like(q)
+    energy = q.new_zeros(b_len, t_len)
+    grad = torch.zeros_like(q) if derivatives else None
     weights = []
     for n, a in obj.smooth:
         if t_len <= n:
@@ -170,6 +174,8 @@ def robust_smoothing(obj: Trajectory, q: Tensor) -> tuple[Tensor, Tensor, tuple[
         s = r.square()
         e = 0.5 * rho(s, obj.smooth_scale).sum(-1)
         energy = energy + torch.nn.functional.pad(e, ((n + 1) // 2, n - (n + 1) // 2))
+        if grad is None:
+            continue
         c = drho(s, obj.smooth_scale) * a.square()
         grad = grad + _difference_transpose(n, c * torch.diff(q, n=n, dim=-2))
         weights.append((n, c))
@@ -293,8 +299,9 @@ class Evaluation(NamedTuple):
     """`evaluate`'s result: terms {name: (B, T)} (reprojection, limits, smooth, keyframes; each
     smoothing residual counted at its middle frame), h (B, T, D, D) the per-frame blocks J_t^T W J_t
     of every term but the smoothing band, g (B, T, D) the gradient of the whole energy (smoothing
-    included), smooth_weights the smoothing's Gauss-Newton weights (`robust_smoothing`); h and g are
-    None without the Jacobian."""
+    included), smooth_weights the robust smoothing's Gauss-Newton weights (`robust_smoothing`; empty
+    for l2, whose band is the fixed `Trajectory.band`); h and g are None and smooth_weights empty
+    without the Jacobian."""
 
     terms: dict[str, Tensor]
     h: Tensor | None
@@ -343,8 +350,9 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
     terms = {"reprojection": 0.5 * robust_loss(rp.loss)(s, rp.scale).sum(-1)}
     lim = (torch.clamp(q - obj.lower, max=0.0) + torch.clamp(q - obj.upper, min=0.0)) * obj.limits_scale
     terms["limits"] = 0.5 * lim.square().sum(-1)
-    robust = obj.smooth_loss != "l2"
-    terms["smooth"], smooth_grad, smooth_weights = robust_smoothing(obj, q)
+    # the smoothing's derivatives only where used: l2's gradient and band come from the fixed band
+    robust = with_jacobian and obj.smooth_loss != "l2"
+    terms["smooth"], smooth_grad, smooth_weights = robust_smoothing(obj, q, derivatives=robust)
     kf_r = _wrapped(q[:, obj.kf_frames] - obj.kf_target, obj.angular) * obj.kf_weight  # (B, F, D)
     keyframes = q.new_zeros(b_len, t_len).index_add(1, obj.kf_frames, 0.5 * kf_r.square().sum(-1))
     jk_r = (ev.joints[:, obj.jk_frames] - obj.jk_target) * obj.jk_weight[..., None]  # (B, G, J, 3)
@@ -387,7 +395,7 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
         h.index_add_(1, obj.jk_frames, torch.einsum("bgjcd,bgjce->bgde", gj, gj))
         g = g.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjc->bgd", gj, jk_r[:, :, list(obj.jk_joints)]))
     h.diagonal(dim1=-2, dim2=-1).add_(diag)  # in place: a diag_embed would write T D^2 zeros
-    g = g + (smooth_grad if robust else _band_matvec(obj.band, q))  # l2: the fixed band's product
+    g = g + (smooth_grad if smooth_grad is not None else _band_matvec(obj.band, q))
     return Evaluation(terms, h, g, smooth_weights)
 
 
@@ -399,9 +407,7 @@ def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
     def linearize(q: Tensor) -> BandedLinearization:
         terms, h, g, weights = evaluate(obj, q)
         assert h is not None and g is not None  # with_jacobian
-        b = band
-        if obj.smooth_loss != "l2" and obj.smooth:
-            b = weighted_band(q.shape[1], weights, q)
+        b = weighted_band(q.shape[1], weights, q) if weights else band  # robust: the IRLS weights' band
         lower = b[:, :, 1:]  # (B|1, T, W, D): [t, k-1] = block (t, t-k)
         h.diagonal(dim1=-2, dim2=-1).add_(b[:, :, 0])
         energy = torch.stack(list(terms.values())).sum(0).sum(-1)
