@@ -41,6 +41,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from ptrack.banded import one_thread  # noqa: E402
 from ptrack.config import load_config  # noqa: E402
 from ptrack.estimators.batch import (  # noqa: E402
     interpolate_keyframes,
@@ -174,8 +175,6 @@ def timed_solves(obj, q0: torch.Tensor, damping: float, repeats: int):
     """`repeats` solves of 30 iterations (no early stop) from q0 (T, D) on one intra-op thread, as
     `method: batch` runs (module docstring), after one warm-up linearisation -> q (1, T, D) and info of
     the last, wall times, CPU times and load averages of each."""
-    from ptrack.banded import one_thread
-
     lin = linearization(obj)
     times, cpu, loads = [], [], []
     with one_thread():
@@ -192,8 +191,6 @@ def timed_solves(obj, q0: torch.Tensor, damping: float, repeats: int):
 
 
 def speed(args) -> None:
-    from ptrack.banded import one_thread
-
     torch.set_num_threads(args.threads)
     cfg, prep, obj, q0 = problem(300)
     t_len, d = q0.shape
@@ -290,8 +287,6 @@ def warm_start(args) -> None:
     cold (from its keyframes interpolated) and warm (from the first solution, what `init_from: RUN_DIR`
     reads from result.npz and warps onto the keyframes, `warp_to_keyframes`; also unwarped), all to the
     config's tolerance (at most 100 iterations)."""
-    from ptrack.banded import one_thread
-
     torch.set_num_threads(args.threads)
     with one_thread():  # as `method: batch` runs (see speed())
         _warm_start(args)
