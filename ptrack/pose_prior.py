@@ -12,9 +12,10 @@ held out of it.
 
     mean, std, known = pose_prior(skeleton, lower, upper, angular)   # (D,), (D,), (D,) bool
 
-Beside it, the motion's per-dof velocity and acceleration scales (`smoothing_prior("cmu")`, from
-`ptrack/data/cmu_smoothing.json`, made by `scripts/make_smoothing_prior.py` from the dev clips): the
-smoothing prior of `method: batch` and, with `kjs.dynamics: cmu`, the trackers' dynamics.
+Beside it, the motion's per-dof velocity and acceleration scales (`smoothing_prior(name)`, made by
+`scripts/make_smoothing_prior.py`): "cmu" (`ptrack/data/cmu_smoothing.json`, from the dev clips) is the
+smoothing prior of `method: batch`; "cmu-train" (`ptrack/data/cmu_smoothing_train.json`, from training
+clips of other subjects) the trackers' dynamics (`kjs.dynamics`).
 """
 
 from __future__ import annotations
@@ -83,18 +84,23 @@ def pose_prior(
     return wrap_to_limits(mean, lower, upper, angular), std, known
 
 
+#: the per-dof motion scale tables shipped in ptrack/data, by config name (`batch.prior`, `kjs.dynamics`); both
+#: made by `scripts/make_smoothing_prior.py`: "cmu" from the dev clips (configs/clips/dev.txt), "cmu-train"
+#: from the training clips (configs/clips/train.txt: subjects with no dev clip, none of the held-out clips)
+SMOOTHING_TABLES = {"cmu": "cmu_smoothing.json", "cmu-train": "cmu_smoothing_train.json"}
+
+
 def smoothing_prior(name: str | None, key: str = "batch.prior") -> dict[str, dict[str, float]]:
     """Per-dof smoothing scales by dof name: {"velocity": {dof: rad/s or m/s}, "accel": {dof: rad/s^2 or
-    m/s^2}}. "cmu": `ptrack/data/cmu_smoothing.json` (fitted to the dev clips by
-    `scripts/make_smoothing_prior.py`); None: none (the config's scalar sigmas for every dof). key: the
-    config key named in the error for another name."""
+    m/s^2}} from the table `name` of `SMOOTHING_TABLES`; None: none (the config's scalar sigmas for every
+    dof). key: the config key named in the error for another name."""
     if name is None:
         return {}
-    if name != "cmu":
-        raise InputError(f"config key '{key}' must be 'cmu' or null, got {name!r}")
-    with resources.files("ptrack").joinpath("data").joinpath("cmu_smoothing.json").open() as f:
+    if name not in SMOOTHING_TABLES:
+        raise InputError(f"config key '{key}' must be one of {', '.join(SMOOTHING_TABLES)} or null, got {name!r}")
+    with resources.files("ptrack").joinpath("data").joinpath(SMOOTHING_TABLES[name]).open() as f:
         doc = json.load(f)
     return {"velocity": doc["velocity"], "accel": doc["accel"]}
 
 
-__all__ = ["pose_prior", "pose_prior_path", "read_pose_prior", "smoothing_prior"]
+__all__ = ["SMOOTHING_TABLES", "pose_prior", "pose_prior_path", "read_pose_prior", "smoothing_prior"]

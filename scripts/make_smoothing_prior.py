@@ -1,11 +1,14 @@
-"""Make `ptrack/data/cmu_smoothing.json`: per-dof velocity and acceleration scales of `method: batch`'s
-smoothing prior, fitted to real CMU motion.
+"""Make the per-dof motion scale tables `ptrack/data/cmu_smoothing*.json`: each dof's velocity and
+acceleration scale, fitted to real CMU motion.
 
     python scripts/make_smoothing_prior.py [--clips configs/clips/dev.txt] [--fps 30] \\
         [--out ptrack/data/cmu_smoothing.json]
+    python scripts/make_smoothing_prior.py --clips configs/clips/train.txt \\
+        --out ptrack/data/cmu_smoothing_train.json
 
 The batch objective's smoothing terms are zero-mean Gaussians on each dof's velocity and acceleration
-(`ptrack/estimators/batch.py`); the maximum-likelihood std of such a Gaussian on a clip is the RMS of
+(`ptrack/estimators/batch.py`), and the trackers' dynamics a prior on each dof's velocity
+(`kjs.dynamics`); the maximum-likelihood std of such a Gaussian on a clip is the RMS of
 the dof's finite-difference velocity (acceleration) there. Per clip (whole AMC at --fps, angle
 differences wrapped into [-pi, pi)) the RMS is taken; the scale written is the median over the clips
 (one clip with Euler-angle flips of the root, e.g. a pirouette, does not set it), floored at
@@ -13,8 +16,12 @@ differences wrapped into [-pi, pi)) the RMS is taken; the scale written is the m
 translation gets an acceleration scale only: its velocity is not zero-mean (walking moves on), so
 the config's `batch.velocity_sigma_m` stays in force for it.
 
-Training clips: the dev clips (`configs/clips/dev.txt`), never the held-out ones
-(`configs/clips/heldout_batch.txt`) on which the prior is checked.
+Two tables ship (`ptrack.pose_prior.SMOOTHING_TABLES`): "cmu" (`cmu_smoothing.json`, `batch.prior`'s
+default) from the dev clips (`configs/clips/dev.txt`), never the held-out ones
+(`configs/clips/heldout_batch.txt`) on which it is checked; "cmu-train" (`cmu_smoothing_train.json`,
+`kjs.dynamics`'s default) from `configs/clips/train.txt`, clips of subjects with no dev clip and none
+of the held-out clips, so that the trackers' dev and held-out figures are measured on motion it was not
+fitted to.
 """
 
 from __future__ import annotations
@@ -86,9 +93,9 @@ def main() -> None:
         else:
             accel[n] = round(c, 3)
     doc = {
-        "about": "per-dof smoothing scales of method: batch (velocity rad/s or m/s, acceleration rad/s^2 or "
-        "m/s^2): the median over the clips of each clip's RMS finite-difference rate at fps; "
-        "made by scripts/make_smoothing_prior.py",
+        "about": "per-dof motion scales (velocity rad/s or m/s, acceleration rad/s^2 or m/s^2) of method: "
+        "batch's smoothing prior and the trackers' dynamics: the median over the clips of each clip's RMS "
+        "finite-difference rate at fps; made by scripts/make_smoothing_prior.py",
         "made": date.today().isoformat(),
         "fps": args.fps,
         "clips": names_used,

@@ -11,7 +11,7 @@ import torch
 
 from ptrack.errors import InputError
 from ptrack.evaluate import parse_clips
-from ptrack.pose_prior import pose_prior, pose_prior_path, read_pose_prior
+from ptrack.pose_prior import SMOOTHING_TABLES, pose_prior, pose_prior_path, read_pose_prior, smoothing_prior
 from ptrack.skeleton import Skeleton, load_amc
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,6 +30,24 @@ def test_dev_subjects_are_held_out():
     dev = {p.parent.name for p in parse_clips(str(REPO / "configs" / "clips" / "dev.txt"))}
     assert dev <= set(doc["held_out_subjects"])
     assert not any(c.split("_")[0] in dev for c in doc["clips"])
+
+
+def test_trackers_dynamics_table_holds_out_the_evaluation_clips():
+    """The trackers' default dynamics table ("cmu-train") was fitted to no clip of a dev subject and to
+    none of the held-out clips, and it lists exactly configs/clips/train.txt; both tables read by name."""
+    doc = json.loads((DATA / SMOOTHING_TABLES["cmu-train"]).read_text())
+    clips = set(doc["clips"])
+    dev = parse_clips(str(REPO / "configs" / "clips" / "dev.txt"))
+    held = parse_clips(str(REPO / "configs" / "clips" / "heldout_batch.txt"))
+    train = parse_clips(str(REPO / "configs" / "clips" / "train.txt"))
+    assert clips == {p.stem for p in train}
+    assert not any(c.split("_")[0] in {p.parent.name for p in dev} for c in clips)
+    assert not clips & {p.stem for p in held}
+    for name in SMOOTHING_TABLES:
+        table = smoothing_prior(name, "kjs.dynamics")
+        assert table["velocity"]["ltibia.rx"] > 10 * table["velocity"]["lclavicle.ry"] > 0
+    with pytest.raises(InputError, match=r"'kjs\.dynamics' must be one of cmu, cmu-train or null"):
+        smoothing_prior("walk", "kjs.dynamics")
 
 
 def test_mapping_onto_a_cmu_model(model):
