@@ -19,6 +19,7 @@ import yaml
 
 from ptrack.costs.base import ROBUST_LOSSES
 from ptrack.errors import InputError
+from ptrack.pose_prior import SMOOTHING_TABLES
 
 log = logging.getLogger(__name__)
 
@@ -132,16 +133,19 @@ class KjsMethodConfig:
     # convergence, so this alone holds the weakly observed dofs: 0.05 measured better than 0.08 and 0.15
     # on 2 s of CMU 16_01 (42.4, 42.9, 63.6 mm)
     prior_sigma: float = 0.05
-    # per-dof velocity std instead: "cmu" (each CMU dof's RMS velocity in real motion, the table of
-    # `batch.prior`, times the frame interval and dynamics_scale, at least dynamics_floor per frame;
-    # prior_sigma for the dofs it does not name, the root's position), null = prior_sigma for every dof.
-    # Not the default: on the dev clips, whose motion the table was fitted to, it helped (keyframe start,
-    # best trajectory / best-of-K mm / flip rate, null -> cmu with floor 0.02: 1 px seeds 0-2 23.7 / 20.1 /
-    # 0.066 -> 23.9 / 18.6 / 0.062, 22.6 / 20.3 / 0.066 -> 20.9 / 17.7 / 0.057, 23.0 / 19.6 / 0.059 -> 22.6 /
-    # 18.7 / 0.067; 2 px seeds 0-1 32.7 / 29.6 / 0.057 -> 28.6 / 26.8 / 0.057, 34.9 / 31.0 / 0.070 -> 31.3 /
-    # 27.1 / 0.064), but not on clips it was not fitted to: 6 held-out clips (2 px) 42.8 / 39.6 / 0.090 ->
-    # 45.5 / 38.3 / 0.098, the bundled 10_02 (bench_kjs) 44.6 / 33.6 -> 47.1 / 35.3 mm (docs/results.md)
-    dynamics: str | None = None
+    # the dynamics' velocity std per dof instead of prior_sigma for all: a table of each CMU dof's RMS
+    # velocity in real motion (`ptrack.pose_prior.SMOOTHING_TABLES`), times the frame interval and
+    # dynamics_scale, at least dynamics_floor per frame; prior_sigma for the dofs it does not name (the root's
+    # position). "cmu-train" (the default): fitted to configs/clips/train.txt, subjects with no dev clip;
+    # "cmu": fitted to the dev clips themselves (batch.prior's table); null: prior_sigma for every dof.
+    # Keyframe start, best trajectory / best-of-K mm / flip rate, null -> cmu-train: dev clips 1 px seeds 0-4
+    # 23.7 / 20.1 / 0.066 -> 22.4 / 18.5 / 0.052, 22.6 / 20.3 / 0.066 -> 21.7 / 18.2 / 0.060, 23.0 / 19.6 /
+    # 0.059 -> 20.8 / 18.3 / 0.055, 30.4 / 21.4 / 0.113 -> 25.5 / 19.5 / 0.071, 24.2 / 20.7 / 0.064 -> 22.4 /
+    # 18.5 / 0.067; 2 px seeds 0-1 32.7 / 29.6 / 0.057 -> 32.2 / 27.8 / 0.063, 35.3 / 31.5 / 0.072 -> 30.8 /
+    # 26.5 / 0.061; held-out clips (configs/clips/heldout_batch.txt) 1 px 28.9 / 24.2 / 0.072 -> 24.8 / 21.4 /
+    # 0.059, 2 px 42.8 / 39.6 / 0.090 -> 42.9 / 36.4 / 0.087 (docs/results.md). Fitted to the dev clips
+    # ("cmu") it helped the dev clips as much but not the held-out ones (2 px 45.5 / 38.3 / 0.098)
+    dynamics: str | None = "cmu-train"
     dynamics_scale: float = 1.0
     dynamics_floor: float = 0.02
     # tails of that prior in tracking steps: gaussian, or a robust loss (cauchy, huber, geman_mcclure)
@@ -631,8 +635,10 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
             raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(kc, key)}")
     if not kc.dynamics_floor >= 0:
         raise InputError(f"config key 'kjs.dynamics_floor' must be >= 0, got {kc.dynamics_floor}")
-    if kc.dynamics not in (None, "cmu"):
-        raise InputError(f"config key 'kjs.dynamics' must be 'cmu' or null, got {kc.dynamics!r}")
+    if kc.dynamics is not None and kc.dynamics not in SMOOTHING_TABLES:
+        raise InputError(
+            f"config key 'kjs.dynamics' must be one of {', '.join(SMOOTHING_TABLES)} or null, got {kc.dynamics!r}"
+        )
     for key in ("init_yaws", "init_fits"):
         if getattr(kc, key) < 1:
             raise InputError(f"config key 'kjs.{key}' must be >= 1, got {getattr(kc, key)}")

@@ -5,7 +5,7 @@ The posterior of each frame is a mixture of K modes (`ptrack.mixture.Modes`). On
 from frame t-1's modes to frame t's:
 
 1. predict: each mode's centre is carried to frame t (constant position; its prior below is the
-   dynamics' velocity noise `kjs.prior_sigma`);
+   dynamics' velocity noise, per dof from real motion, `kjs.dynamics`);
 2. diffusion: samples around the modes, mode m getting a share of the budget by its weight, drawn
    from its covariance scaled by `kjs.scale` (CSS), or isotropically with the same volume (SS), with
    Gaussian, Student-t or Cauchy tails, then projected onto the joint limits;
@@ -23,7 +23,7 @@ from frame t-1's modes to frame t's:
    each with the covariance scale * (Gauss-Newton Hessian)^-1 for the next frame's diffusion.
 
 The polishing objective holds robust reprojection, joint limits, body non-self-intersection, the
-dynamics (a prior around each mode's prediction, std `kjs.prior_sigma` widened per dof by
+dynamics (a prior around each mode's prediction, std per dof `kjs.dynamics` (or `kjs.prior_sigma`), widened by
 `kjs.motion_scale` times the mode's last motion, Gaussian within `kjs.prior_tail_scale` std and
 heavy-tailed beyond (`kjs.prior_tail`, cauchy: the paper's long-tailed components), so a limb
 flipped far from the prediction remains a minimum of comparable cost) and a weak CMU pose prior
@@ -167,11 +167,11 @@ def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
 
 
 def _dynamics_sigma(problem: Problem, k, dtype: torch.dtype, device: torch.device) -> float | Tensor:
-    """The dynamics' velocity std per frame: the float `kjs.prior_sigma` for every dof (so that the
-    prior's arithmetic rounds as it always has), or with `kjs.dynamics: cmu` a (D,) tensor: each CMU
-    dof's RMS velocity in real motion (`ptrack/data/cmu_smoothing.json`, the table of `batch.prior`)
-    times the frame interval and `kjs.dynamics_scale`, at least `kjs.dynamics_floor`; `kjs.prior_sigma`
-    for the dofs the table does not name (the root's position)."""
+    """The dynamics' velocity std per frame: with `kjs.dynamics` null the float `kjs.prior_sigma` for every
+    dof; else a (D,) tensor: each CMU dof's RMS velocity in real motion from the table `kjs.dynamics`
+    (`ptrack.pose_prior.SMOOTHING_TABLES`; the default "cmu-train" was fitted to clips of subjects with no
+    dev clip) times the frame interval and `kjs.dynamics_scale`, at least `kjs.dynamics_floor`;
+    `kjs.prior_sigma` for the dofs the table does not name (the root's position)."""
     if k.dynamics is None:
         return k.prior_sigma
     sk = problem.skeleton
