@@ -19,7 +19,7 @@ import yaml
 
 from ptrack.costs.base import ROBUST_LOSSES
 from ptrack.errors import InputError
-from ptrack.pose_prior import SMOOTHING_TABLES
+from ptrack.pose_prior import check_smoothing_table
 
 log = logging.getLogger(__name__)
 
@@ -636,10 +636,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
             raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(kc, key)}")
     if not kc.dynamics_floor >= 0:
         raise InputError(f"config key 'kjs.dynamics_floor' must be >= 0, got {kc.dynamics_floor}")
-    if kc.dynamics is not None and kc.dynamics not in SMOOTHING_TABLES:
-        raise InputError(
-            f"config key 'kjs.dynamics' must be one of {', '.join(SMOOTHING_TABLES)} or null, got {kc.dynamics!r}"
-        )
+    check_smoothing_table(kc.dynamics, "kjs.dynamics")
     for key in ("init_yaws", "init_fits"):
         if getattr(kc, key) < 1:
             raise InputError(f"config key 'kjs.{key}' must be >= 1, got {getattr(kc, key)}")

@@ -90,17 +90,29 @@ def pose_prior(
 SMOOTHING_TABLES = {"cmu": "cmu_smoothing.json", "cmu-train": "cmu_smoothing_train.json"}
 
 
+def check_smoothing_table(name: str | None, key: str) -> None:
+    """Raise InputError naming the config key `key` unless `name` is a table of `SMOOTHING_TABLES` or None."""
+    if name is not None and name not in SMOOTHING_TABLES:
+        raise InputError(f"config key '{key}' must be one of {', '.join(SMOOTHING_TABLES)} or null, got {name!r}")
+
+
 def smoothing_prior(name: str | None, key: str = "batch.prior") -> dict[str, dict[str, float]]:
     """Per-dof smoothing scales by dof name: {"velocity": {dof: rad/s or m/s}, "accel": {dof: rad/s^2 or
     m/s^2}} from the table `name` of `SMOOTHING_TABLES`; None: none (the config's scalar sigmas for every
     dof). key: the config key named in the error for another name."""
+    check_smoothing_table(name, key)
     if name is None:
         return {}
-    if name not in SMOOTHING_TABLES:
-        raise InputError(f"config key '{key}' must be one of {', '.join(SMOOTHING_TABLES)} or null, got {name!r}")
     with resources.files("ptrack").joinpath("data").joinpath(SMOOTHING_TABLES[name]).open() as f:
         doc = json.load(f)
     return {"velocity": doc["velocity"], "accel": doc["accel"]}
 
 
-__all__ = ["SMOOTHING_TABLES", "pose_prior", "pose_prior_path", "read_pose_prior", "smoothing_prior"]
+__all__ = [
+    "SMOOTHING_TABLES",
+    "check_smoothing_table",
+    "pose_prior",
+    "pose_prior_path",
+    "read_pose_prior",
+    "smoothing_prior",
+]
