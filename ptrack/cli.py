@@ -40,6 +40,12 @@ def _parser() -> argparse.ArgumentParser:
         help="AMC files: a comma-separated list, or a text file with one path per line "
         "(relative to that file); each clip's ASF is the .asf in the AMC's folder",
     )
+    e.add_argument(
+        "--seeds",
+        default=None,
+        help="run every clip once per seed, e.g. 0-4 or 0,3,7: each clip's row is the mean over the seeds, "
+        "a second table gives each seed's mean over the clips",
+    )
     e.add_argument("--out", default=None, help="output folder (default logs/eval-<config>-<time>)")
     e.add_argument("--quiet", action="store_true", help="no progress (bar on a terminal, one line per clip elsewhere)")
     e.add_argument("--json", action="store_true", help="print results.json on stdout instead of the table's path")
@@ -89,10 +95,16 @@ def main(argv: list[str] | None = None) -> int:
             out = execute(cfg, progress=False if args.quiet else None)
             print((out / "metrics.json").read_text() if args.json else out, end="" if args.json else "\n", flush=True)
         elif args.command == "evaluate":
-            from ptrack.evaluate import evaluate
+            from ptrack.evaluate import evaluate, parse_seeds
 
+            seeds = None if args.seeds is None else parse_seeds(args.seeds)
             table = evaluate(
-                args.config, args.clips, args.overrides, out=args.out, progress=False if args.quiet else None
+                args.config,
+                args.clips,
+                args.overrides,
+                out=args.out,
+                progress=False if args.quiet else None,
+                seeds=seeds,
             )
             json_path = table.with_name("results.json")
             print(json_path.read_text() if args.json else table, end="" if args.json else "\n", flush=True)

@@ -3,6 +3,12 @@
 `evaluate(config, clips)` runs the config once per AMC clip (its ASF is the .asf file in the AMC's
 folder), each into `<out>/<clip>/`, and writes `<out>/results.md` (metrics per clip and their
 mean) and `<out>/results.json`. Estimator issues paste the table into docs/results.md.
+
+With `seeds` (`ptrack evaluate --seeds 0-4`) every clip runs once per seed (the seed draws the
+observation noise, the missing keypoints and the samplers' randomness) into `<out>/<clip>/seed-<s>/`;
+each clip's row is then the mean over its seeds, a second table gives each seed's mean over the clips
+(the spread a single seed hides), and results.json holds {"clips": {clip: mean}, "runs": {clip:
+{seed: metrics}}}.
 """
 
 from __future__ import annotations
@@ -11,7 +17,7 @@ import json
 import logging
 import math
 import sys
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from datetime import datetime
 from pathlib import Path
 
@@ -36,6 +42,7 @@ COLUMNS = (
     ("gt_joint_limit_violation_fraction", "GT limit viol.", "{:.3f}"),
     ("best_of_k_mpjpe_mm", "best-of-K mm", "{:.1f}"),
     ("seconds", "seconds", "{:.1f}"),
+    ("seeds", "seeds", "{:d}"),  # with several seeds: how many ran (the row is their mean)
 )
 
 
@@ -60,6 +67,27 @@ def parse_clips(spec: str, cwd: Path | None = None) -> list[Path]:
     return paths
 
 
+def parse_seeds(spec: str) -> list[int]:
+    """Seeds from "3", "0-4" or "0,2,7-9": integers >= 0, each at most once, in the order given."""
+    seeds: list[int] = []
+    for item in spec.split(","):
+        item = item.strip()
+        lo, sep, hi = item.partition("-")
+        try:
+            first, last = int(lo), int(hi) if sep else int(lo)
+        except ValueError:
+            raise InputError(
+                f"--seeds {spec!r}: {item!r} is not a seed (an integer >= 0) or a range like 0-4"
+            ) from None
+        if first < 0 or last < first:
+            raise InputError(f"--seeds {spec!r}: {item!r} is not a seed (an integer >= 0) or a range like 0-4")
+        for seed in range(first, last + 1):
+            if seed in seeds:
+                raise InputError(f"--seeds {spec!r}: seed {seed} is given twice")
+            seeds.append(seed)
+    return seeds
+
+
 def asf_for(amc: Path) -> Path:
     """The skeleton of an AMC clip: `<subject>.asf` beside it, or the only .asf there."""
     found = skeleton_beside(amc)
@@ -76,54 +104,113 @@ def evaluate(
     overrides: list[str] | tuple[str, ...] = (),
     out: str | Path | None = None,
     progress: bool | None = False,
+    seeds: Sequence[int] | None = None,
 ) -> Path:
-    """Run `config` on every clip; returns the path of the markdown table.
+    """Run `config` on every clip (with `seeds`, once per seed); returns the path of the markdown table.
 
     progress: show progress bars (None: as the config's `progress` says)."""
     paths = parse_clips(clips)
+    if seeds is not None:
+        if not seeds:
+            raise InputError("--seeds names no seed")
+        if any(o.split("=", 1)[0].strip() == "seed" for o in overrides):
+            raise InputError("give the seed either as --seeds or as the override seed=..., not both")
     base = load_config(config, overrides)  # validates the config once, before any run
     out_dir = Path(out) if out else Path("logs") / f"eval-{base.name}-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
     if out_dir.exists() and any(out_dir.iterdir()):
         raise InputError(f"evaluation folder {out_dir} already exists and is not empty")
-    rows: list[tuple[str, dict | str]] = []
+    jobs = [(amc, seed) for amc in paths for seed in (seeds if seeds is not None else [None])]
+    runs: dict[str, dict[int | None, dict | str]] = {amc.stem: {} for amc in paths}
     show = base.progress if progress is None else progress
     on_terminal = sys.stderr.isatty()
-    clips_shown: Iterable[Path] = paths
+    shown: Iterable[tuple[Path, int | None]] = jobs
     if show and on_terminal:
         from tqdm.auto import tqdm
 
-        clips_shown = tqdm(paths, desc="clips", unit="clip")
-    for i, amc in enumerate(clips_shown):
-        if show and not on_terminal:  # a file or CI log: one short line per clip, no bar
-            log.info("clip %d of %d: %s", i + 1, len(paths), amc.stem)
+        shown = tqdm(jobs, desc="runs" if seeds is not None else "clips", unit="run" if seeds is not None else "clip")
+    for i, (amc, seed) in enumerate(shown):
+        name = amc.stem if seed is None else f"{amc.stem} seed {seed}"
+        if show and not on_terminal:  # a file or CI log: one short line per run, no bar
+            log.info("%s %d of %d: %s", "clip" if seed is None else "run", i + 1, len(jobs), name)
+        run_dir = out_dir / amc.stem if seed is None else out_dir / amc.stem / f"seed-{seed}"
         clip_over = [
             *overrides,
+            *([] if seed is None else [f"seed={seed}"]),
             f"data.amc={amc}",
             f"data.asf={asf_for(amc)}",
-            f"out_dir={(out_dir / amc.stem).resolve()}",
+            f"out_dir={run_dir.resolve()}",
         ]
         try:
             cfg = load_config(config, clip_over)
-            run_dir = execute(cfg, progress=progress)
-            rows.append((amc.stem, json.loads((run_dir / "metrics.json").read_text())))
+            done = execute(cfg, progress=progress)
+            runs[amc.stem][seed] = json.loads((done / "metrics.json").read_text())
         except (InputError, EstimationError) as e:  # a clip that does not fit the config (too short, ...)
             # or that the estimator failed on is reported, not fatal
-            log.warning("clip %s failed: %s", amc.stem, e)
-            rows.append((amc.stem, str(e)))
+            log.warning("%s failed: %s", name, e)
+            runs[amc.stem][seed] = str(e)
     out_dir.mkdir(parents=True, exist_ok=True)
     table = out_dir / "results.md"
-    table.write_text(markdown_table(base.name, base.method, rows), encoding="utf-8")
+    if seeds is None:
+        rows = [(clip, by_seed[None]) for clip, by_seed in runs.items()]
+        table.write_text(markdown_table(base.name, base.method, rows), encoding="utf-8")
+        results: dict = dict(rows)
+    else:
+        rows = [(clip, seed_mean(list(by_seed.values()))) for clip, by_seed in runs.items()]
+        per_seed = [(str(s), seed_mean([runs[c][s] for c in runs], count=False)) for s in seeds]
+        listed = ", ".join(str(s) for s in seeds)
+        table.write_text(
+            markdown_table(base.name, base.method, rows, note=f"seeds {listed}: each clip's row is its mean over them")
+            + "\n"
+            + markdown_table(
+                base.name, base.method, per_seed, note="each seed's mean over the clips", head=False, rows_are="seed"
+            ),
+            encoding="utf-8",
+        )
+        results = {
+            "clips": dict(rows),
+            "runs": {clip: {str(s): m for s, m in by_seed.items()} for clip, by_seed in runs.items()},
+        }
     (out_dir / "results.json").write_text(
-        json.dumps(json_safe(dict(rows)), indent=2, allow_nan=False) + "\n", encoding="utf-8"
+        json.dumps(json_safe(results), indent=2, allow_nan=False) + "\n", encoding="utf-8"
     )
     return table
 
 
-def markdown_table(config_name: str, method: str, rows: list[tuple[str, dict | str]]) -> str:
-    """Markdown table of per-clip metrics and their mean over the clips that ran."""
+def seed_mean(runs: list[dict | str], count: bool = True) -> dict | str:
+    """The mean of several runs' metrics (those that ran; each number metric over the runs that have
+    it), with count: "seeds" = how many ran; the first failure's message if none ran."""
+    ok = [m for m in runs if isinstance(m, dict)]
+    if not ok:
+        return next(m for m in runs if isinstance(m, str))
+    mean: dict = {"seeds": len(ok)} if count else {}
+    for key in ok[0]:
+        vals = [m.get(key) for m in ok]
+        nums = [v for v in vals if isinstance(v, (int, float)) and not isinstance(v, bool) and not math.isnan(v)]
+        if not nums:
+            continue
+        if all(isinstance(v, int) for v in nums) and len(set(nums)) == 1:
+            mean[key] = nums[0]  # the same count in every run (frames)
+        else:
+            mean[key] = sum(nums) / len(nums)
+    return mean
+
+
+def markdown_table(
+    config_name: str,
+    method: str,
+    rows: list[tuple[str, dict | str]],
+    note: str | None = None,
+    head: bool = True,
+    rows_are: str = "clip",
+) -> str:
+    """Markdown table of per-clip metrics and their mean over the clips that ran; `note` follows the
+    config and method in the line above it (with head=False, the note alone); `rows_are` names what a
+    row is (clip, seed) in the first column's title and the mean row's label."""
     cols = [c for c in COLUMNS if any(isinstance(m, dict) and m.get(c[0]) is not None for _, m in rows)]
-    head = f"Config `{config_name}`, method `{method}`.\n\n"
-    lines = ["| clip | " + " | ".join(c[1] for c in cols) + " |", "|---" * (len(cols) + 1) + "|"]
+    title = f"Config `{config_name}`, method `{method}`" if head else ""
+    title = f"{title}, {note}" if title and note else title or (note[0].upper() + note[1:] if note else "")
+    head_line = f"{title}.\n\n" if title else ""
+    lines = [f"| {rows_are} | " + " | ".join(c[1] for c in cols) + " |", "|---" * (len(cols) + 1) + "|"]
     ok = [m for _, m in rows if isinstance(m, dict)]
     for name, m in rows:
         if isinstance(m, str):
@@ -135,11 +222,13 @@ def markdown_table(config_name: str, method: str, rows: list[tuple[str, dict | s
         for k, _, f in cols:
             vals = [m[k] for m in ok if m.get(k) is not None and not math.isnan(m[k])]
             means.append(_fmt(sum(vals) / len(vals) if vals else None, "{:.1f}" if f == "{:d}" else f))
-        lines.append(f"| **mean ({len(ok)} clips)** | " + " | ".join(means) + " |")
-    return head + "\n".join(lines) + "\n"
+        lines.append(f"| **mean ({len(ok)} {rows_are}s)** | " + " | ".join(means) + " |")
+    return head_line + "\n".join(lines) + "\n"
 
 
 def _fmt(v, f: str) -> str:
     if v is None:
         return "–"
+    if f == "{:d}" and not isinstance(v, int):  # a count averaged over clips of different lengths
+        return f"{v:.1f}"
     return f.format(v)

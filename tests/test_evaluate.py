@@ -11,7 +11,7 @@ import pytest
 
 from ptrack.cli import main
 from ptrack.errors import InputError
-from ptrack.evaluate import COLUMNS, asf_for, evaluate, markdown_table, parse_clips
+from ptrack.evaluate import COLUMNS, asf_for, evaluate, markdown_table, parse_clips, parse_seeds, seed_mean
 
 REPO = Path(__file__).resolve().parents[1]
 EVAL = REPO / "configs" / "eval_frame.yaml"
@@ -236,3 +236,81 @@ def test_markdown_table_shows_the_visible_fraction():
     table = _table(markdown_table("cfg", "frame", rows))
     assert table[0] == ["clip", "frames", "reproj px", "visible"]
     assert table[2] == ["a", "10", "0.50", "0.25"] and table[4] == ["**mean (2 clips)**", "10.0", "1.00", "0.62"]
+
+
+# ---------------------------------------------------------------- several seeds
+
+
+def test_seeds_run_every_clip_once_per_seed(tmp_path, capsys):
+    out = tmp_path / "eval"
+    assert (
+        main(["evaluate", str(EVAL), *QUICK, "--clips", str(AMC), "--seeds", "0-1", "--out", str(out), "--quiet"]) == 0
+    )
+    assert capsys.readouterr().out == f"{out / 'results.md'}\n"
+    assert sorted(p.name for p in out.iterdir()) == ["10_02", "results.json", "results.md"]
+    assert sorted(p.name for p in (out / "10_02").iterdir()) == ["seed-0", "seed-1"]
+    runs = [json.loads((out / "10_02" / f"seed-{s}" / "metrics.json").read_text()) for s in (0, 1)]
+    for s in (0, 1):
+        assert sorted(p.name for p in (out / "10_02" / f"seed-{s}").iterdir()) == OUTPUTS
+        assert f"seed: {s}\n" in (out / "10_02" / f"seed-{s}" / "config.yaml").read_text()
+    assert runs[0]["mpjpe_mm"] != runs[1]["mpjpe_mm"]  # the seed draws the observation noise
+    md = (out / "results.md").read_text()
+    assert md.startswith("Config `eval_frame`, method `frame`, seeds 0, 1: each clip's row is its mean over them.")
+    clips_table, seeds_table = md.split("\n\nEach seed's mean over the clips.\n\n")
+    rows = _table(clips_table)
+    header, body = rows[0], rows[2:]
+    col = header.index("MPJPE mm")
+    assert header[0] == "clip" and header[-1] == "seeds"
+    assert [r[0] for r in body] == ["10_02", "**mean (1 clips)**"]
+    assert body[0][col] == f"{(runs[0]['mpjpe_mm'] + runs[1]['mpjpe_mm']) / 2:.1f}"
+    assert body[0][header.index("seeds")] == "2" and body[0][header.index("frames")] == "6"
+    rows = _table(seeds_table)
+    header, body = rows[0], rows[2:]
+    assert header[0] == "seed" and "seeds" not in header
+    assert [r[0] for r in body] == ["0", "1", "**mean (2 seeds)**"]
+    assert [r[header.index("MPJPE mm")] for r in body[:2]] == [f"{m['mpjpe_mm']:.1f}" for m in runs]
+    results = json.loads((out / "results.json").read_text())
+    assert results["runs"] == {"10_02": {"0": runs[0], "1": runs[1]}}
+    assert results["clips"]["10_02"]["seeds"] == 2
+    assert results["clips"]["10_02"]["mpjpe_mm"] == pytest.approx((runs[0]["mpjpe_mm"] + runs[1]["mpjpe_mm"]) / 2)
+
+
+def test_parse_seeds():
+    assert parse_seeds("3") == [3]
+    assert parse_seeds("0-4") == [0, 1, 2, 3, 4]
+    assert parse_seeds(" 7, 0-1 ") == [7, 0, 1]
+    for bad, match in [
+        ("x", "'x' is not a seed"),
+        ("3-1", "'3-1'"),
+        ("-1", "'-1'"),
+        ("", "''"),
+        ("1,0-2", "seed 1 is given twice"),
+    ]:
+        with pytest.raises(InputError, match=match):
+            parse_seeds(bad)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [(["--seeds", "2-0"], "--seeds '2-0'"), (["seed=3", "--seeds", "0-1"], "either as --seeds or as the override")],
+)
+def test_bad_seeds_fail_before_any_run(tmp_path, capsys, args, message):
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(EVAL), *QUICK, "--clips", str(AMC), "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ptrack: error:") and message in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_seed_mean():
+    runs: list[dict | str] = [
+        {"frames": 6, "mpjpe_mm": 1.0, "per_limb": {"a": 1}},
+        "diverged",
+        {"frames": 6, "mpjpe_mm": 3.0},
+    ]
+    assert seed_mean(runs) == {"seeds": 2, "frames": 6, "mpjpe_mm": 2.0}
+    assert seed_mean([{"frames": 6, "flip": float("nan")}, {"frames": 8, "flip": 0.5}], count=False) == {
+        "frames": 7.0,
+        "flip": 0.5,
+    }
+    assert seed_mean(["first failure", "second"]) == "first failure"
