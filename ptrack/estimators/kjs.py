@@ -34,12 +34,12 @@ Frame 0 starts from a 3D keyframe (`kjs.init: keyframe`), or, with no 3D input (
 the rest pose placed in view under `kjs.init_yaws` headings (each also leaned forward and back),
 fitted to frame 0's 2D rigidly and then in every dof under the pose prior; the `kjs.init_fits` best
 fits that differ in 3D are expanded by every flip combination of the chains (the product of their
-trees) and the K best distinct minima kept. A frame with no observed
-keypoint is carried by the dynamics. The output's `hypotheses` are the K modes of each frame;
-`q`/`joints` are the best trajectory through them by Viterbi: each mode's own frame cost (data, limits,
-collision, pose prior; `_evidence`) plus a velocity prior between consecutive choices, on the joints'
-positions relative to the root (`kjs.viterbi_space: joints`, std `kjs.viterbi_sigma_m` per frame) or on
-the dofs (`dofs`, `kjs.viterbi_sigma`).
+trees), the 4K of lowest frame-0 cost without the start prior refined, and the K best distinct minima
+kept. A frame with no observed keypoint is carried by the dynamics. The output's `hypotheses` are the
+K modes of each frame; `q`/`joints` are the best trajectory through them by Viterbi: each mode's own
+frame cost (data, limits, collision, pose prior; `_evidence`) plus a velocity prior between
+consecutive choices, on the joints' positions relative to the root (`kjs.viterbi_space: joints`, std
+`kjs.viterbi_sigma_m` per frame) or on the dofs (`dofs`, `kjs.viterbi_sigma`).
 """
 
 from __future__ import annotations
@@ -470,7 +470,10 @@ def _first_modes(s: Setup, strategy: Strategy) -> Modes:
         q = _init_tree(s)  # many candidates: polish all briefly, the 4K most promising to convergence
         mean, sigma = _start_prior(s, q)
         q, cost, hessian = _polish(s, 0, q, mean, k.polish_iterations, sigma)
-        best, _ = _select(s, q, cost, hessian, torch.ones_like(cost), q, 4 * k.modes)
+        # "most promising" by frame 0's own cost (`_evidence`), not with the start prior: flip combinations
+        # that reproject alike differ mostly in that prior, which is per dof around real people's mean pose
+        # and so would drop a raised arm (49_18) before it is ever refined; the K kept below still weigh it
+        best, _ = _select(s, q, _evidence(s, 0, q), hessian, torch.ones_like(cost), q, 4 * k.modes)
         q, cost, hessian = _polish(s, 0, q[best], mean[best], 20, sigma)
     keep, w = _select(s, q, cost, hessian, torch.ones_like(cost), q, k.modes)
     if keep.numel() == 0:
