@@ -110,6 +110,10 @@ def evaluate(
 
     progress: show progress bars (None: as the config's `progress` says)."""
     paths = parse_clips(clips)
+    stems = [p.stem for p in paths]
+    twice = sorted({x for x in stems if stems.count(x) > 1})
+    if twice:  # each clip's runs go to <out>/<clip name>/
+        raise InputError(f"--clips names {', '.join(twice)} more than once (clips are told apart by file name)")
     if seeds is not None:
         if not seeds:
             raise InputError("--seeds names no seed")

@@ -314,3 +314,12 @@ def test_seed_mean():
         "flip": 0.5,
     }
     assert seed_mean(["first failure", "second"]) == "first failure"
+
+
+def test_a_clip_listed_twice_is_refused(tmp_path, capsys):
+    other = _clip_copy(tmp_path / "elsewhere")  # the same file name in another folder
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(EVAL), *QUICK, "--clips", f"{AMC},{other}", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--clips names 10_02 more than once" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
