@@ -21,7 +21,7 @@ from collections.abc import Iterable, Sequence
 from datetime import datetime
 from pathlib import Path
 
-from ptrack.config import load_config, skeleton_beside
+from ptrack.config import load_config, parse_override, skeleton_beside
 from ptrack.errors import EstimationError, InputError
 from ptrack.run import execute, json_safe
 
@@ -114,12 +114,12 @@ def evaluate(
     twice = sorted({x for x in stems if stems.count(x) > 1})
     if twice:  # each clip's runs go to <out>/<clip name>/
         raise InputError(f"--clips names {', '.join(twice)} more than once (clips are told apart by file name)")
+    base = load_config(config, overrides)  # validates the config once, before any run
     if seeds is not None:
         if not seeds:
             raise InputError("--seeds names no seed")
-        if any(o.split("=", 1)[0].strip() == "seed" for o in overrides):
+        if any(parse_override(o)[0] == "seed" for o in overrides):
             raise InputError("give the seed either as --seeds or as the override seed=..., not both")
-    base = load_config(config, overrides)  # validates the config once, before any run
     out_dir = Path(out) if out else Path("logs") / f"eval-{base.name}-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
     if out_dir.exists() and any(out_dir.iterdir()):
         raise InputError(f"evaluation folder {out_dir} already exists and is not empty")
@@ -211,9 +211,8 @@ def markdown_table(
     config and method in the line above it (with head=False, the note alone); `rows_are` names what a
     row is (clip, seed) in the first column's title and the mean row's label."""
     cols = [c for c in COLUMNS if any(isinstance(m, dict) and m.get(c[0]) is not None for _, m in rows)]
-    title = f"Config `{config_name}`, method `{method}`" if head else ""
-    title = f"{title}, {note}" if title and note else title or (note[0].upper() + note[1:] if note else "")
-    head_line = f"{title}.\n\n" if title else ""
+    title = ", ".join([*([f"Config `{config_name}`, method `{method}`"] if head else []), *([note] if note else [])])
+    head_line = f"{title[:1].upper()}{title[1:]}.\n\n" if title else ""
     lines = [f"| {rows_are} | " + " | ".join(c[1] for c in cols) + " |", "|---" * (len(cols) + 1) + "|"]
     ok = [m for _, m in rows if isinstance(m, dict)]
     for name, m in rows:
