@@ -19,8 +19,8 @@ from frame t-1's modes to frame t's:
    prior around its mode's prediction;
 5. distinct minima (two hypotheses are one when no joint coordinate differs by more than
    `kjs.distinct_mm`; with distinct_mm 0, when no dof differs by more than `kjs.distinct_deg`),
-   weights ∝ (weight of the mode they came from) * exp(-cost / temperature), the K heaviest kept,
-   each with the covariance scale * (Gauss-Newton Hessian)^-1 for the next frame's diffusion.
+   weights ∝ (weight of the mode they came from) ** `kjs.weight_memory` * exp(-cost / temperature), the K
+   heaviest kept, each with the covariance scale * (Gauss-Newton Hessian)^-1 for the next frame's diffusion.
 
 The polishing objective holds robust reprojection, joint limits, body non-self-intersection, the
 dynamics (a prior around each mode's prediction, std per dof `kjs.dynamics` (or `kjs.prior_sigma`), widened by
@@ -370,10 +370,11 @@ def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generat
     sigma = torch.sqrt(s.dynamics_sigma**2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
     # polish everything briefly, then the most promising distinct minima to convergence
     q, cost, hessian = _polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent], tracking=True)
-    best, _ = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], 4 * k.modes)
+    prior = modes.weight**k.weight_memory  # (K,) how much of the past evidence each mode carries forward
+    best, _ = _select(s, q, cost, hessian, prior[parent], modes.q[parent], 4 * k.modes)
     q, parent = q[best], parent[best]
     q, cost, hessian = _polish(s, t, q, predicted[parent], k.refine_iterations, sigma[parent], tracking=True)
-    keep, w = _select(s, q, cost, hessian, modes.weight[parent], modes.q[parent], k.modes)
+    keep, w = _select(s, q, cost, hessian, prior[parent], modes.q[parent], k.modes)
     if keep.numel() == 0:  # every hypothesis diverged (non-finite cost): the dynamics carry the modes
         return modes._replace(q=predicted), counts
     return _modes(s, q[keep], cost[keep], hessian[keep], w, modes.q[parent[keep]]), counts
