@@ -261,9 +261,9 @@ def _flip_rates(prep, est) -> dict[str, float]:
 def test_a_mode_that_lost_out_earlier_survives(cmu_file):
     """CMU 49_18 at 1 px, nothing missing, as `ptrack evaluate --seeds 3` runs it. With every past frame's
     evidence multiplied into the weights (`kjs.weight_memory` 1) the modes on the true branch of the right
-    arm fell to weight ~0 while the two branches reprojected alike; at frame 61 they were pruned although
-    one was the cheapest, and the arm stayed flipped in depth for the rest of the clip: 0.32 of the frames
-    (best trajectory 29.1 mm). With the default 0.5 (measured): no frame, 15.3 mm."""
+    arm fell to weight ~0 while the two branches reprojected alike; at frame 61 they were pruned, though on
+    frame 60 one of them was the cheapest mode, and the arm stayed flipped in depth for the rest of the
+    clip: 0.32 of the frames (best trajectory 29.1 mm). With the default 0.5 (measured): no frame, 15.3 mm."""
     amc = cmu_file("49_18.amc")
     cfg = load_config(
         REPO / "configs" / "eval_kjs.yaml",
