@@ -219,24 +219,21 @@ def test_tree_init_when_every_flip_is_pruned(cmu_file):
     assert torch.isfinite(est.hypotheses).all() and est.hypotheses.shape[:2] == (4, K)
 
 
+def _balance_1px(cmu_file, *extra: str):
+    """`configs/eval_kjs.yaml` on CMU 49_18 (one-leg balance) at the issue's accuracy setting: 1 px noise
+    (and sigma), nothing missing."""
+    amc = cmu_file("49_18.amc")
+    overrides = [f"data.amc={amc}", f"data.asf={amc.parent / '49.asf'}", "observations.noise_px=1"]
+    overrides += ["observations.missing=0", "costs.sigma_px=1", "progress=false", *extra]
+    return load_config(REPO / "configs" / "eval_kjs.yaml", overrides)
+
+
 def test_tree_start_keeps_raised_arms(cmu_file):
     """Frame 0 of CMU 49_18 (a one-leg balance, both arms raised sideways) at 1 px, nothing missing, from
     the tree start alone. Each flip combination reprojects alike; ranked with the start prior (per dof,
     around real people's mean pose: arms down) the raised arms were never among the 4K refined and the
     best of the K modes was 82 mm off. Ranked by the frame's own cost they are: 19 mm (measured)."""
-    amc = cmu_file("49_18.amc")
-    cfg = load_config(
-        REPO / "configs" / "eval_kjs.yaml",
-        [
-            f"data.amc={amc}",
-            f"data.asf={amc.parent / '49.asf'}",
-            "kjs.init=tree",
-            "observations.noise_px=1",
-            "observations.missing=0",
-            "costs.sigma_px=1",
-            "progress=false",
-        ],
-    )
+    cfg = _balance_1px(cmu_file, "kjs.init=tree")
     prep = prepare(cfg)
     obs = prep.problem.observations
     first = dataclasses.replace(obs, keypoints=obs.keypoints[:1], confidence=obs.confidence[:1], times=obs.times[:1])
@@ -264,19 +261,7 @@ def test_a_mode_that_lost_out_earlier_survives(cmu_file):
     arm fell to weight ~0 while the two branches reprojected alike; at frame 61 they were pruned, though on
     frame 60 one of them was the cheapest mode, and the arm stayed flipped in depth for the rest of the
     clip: 0.32 of the frames (best trajectory 29.1 mm). With the default 0.5 (measured): no frame, 15.3 mm."""
-    amc = cmu_file("49_18.amc")
-    cfg = load_config(
-        REPO / "configs" / "eval_kjs.yaml",
-        [
-            f"data.amc={amc}",
-            f"data.asf={amc.parent / '49.asf'}",
-            "seed=3",
-            "observations.noise_px=1",
-            "observations.missing=0",
-            "costs.sigma_px=1",
-            "progress=false",
-        ],
-    )
+    cfg = _balance_1px(cmu_file, "seed=3")
     prep = prepare(cfg)
     est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(cfg.seed + 1))  # as `ptrack run`
     rates = _flip_rates(prep, est)
