@@ -327,7 +327,8 @@ def _select(
     s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, prior_weight: Tensor, origin: Tensor, count: int
 ) -> tuple[Tensor, Tensor]:
     """Distinct minima among polished hypotheses, the `count` heaviest first: -> indices (M,) and their
-    normalised weights (M,). prior_weight (N,): weight of the mode each came from."""
+    normalised weights (M,). prior_weight (N,): what each inherits from the mode it came from (that mode's
+    weight to the power `kjs.weight_memory`)."""
     k = s.cfg.kjs
     if k.distinct_mm > 0:  # apart in 3D: no joint coordinate closer than distinct_mm
         keep = distinct_minima(s.problem.skeleton.forward_kinematics(q).flatten(-2), cost, k.distinct_mm / 1000)
