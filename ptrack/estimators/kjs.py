@@ -323,9 +323,7 @@ def _jump(
 # ---------------------------------------------------------------- one tracking step
 
 
-def _select(
-    s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, prior_weight: Tensor, origin: Tensor, count: int
-) -> tuple[Tensor, Tensor]:
+def _select(s: Setup, q: Tensor, cost: Tensor, prior_weight: Tensor, count: int) -> tuple[Tensor, Tensor]:
     """Distinct minima among polished hypotheses, the `count` heaviest first: -> indices (M,) and their
     normalised weights (M,). prior_weight (N,): what each inherits from the mode it came from (that mode's
     weight to the power `kjs.weight_memory`)."""
@@ -370,12 +368,12 @@ def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generat
     # the dynamics' spread widens with each mode's own last motion: a fast limb may move as far again
     sigma = torch.sqrt(s.dynamics_sigma**2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
     # polish everything briefly, then the most promising distinct minima to convergence
-    q, cost, hessian = _polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent], tracking=True)
+    q, cost, _ = _polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent], tracking=True)
     prior = modes.weight**k.weight_memory  # (K,) how much of the past evidence each mode carries forward
-    best, _ = _select(s, q, cost, hessian, prior[parent], modes.q[parent], 4 * k.modes)
+    best, _ = _select(s, q, cost, prior[parent], 4 * k.modes)
     q, parent = q[best], parent[best]
     q, cost, hessian = _polish(s, t, q, predicted[parent], k.refine_iterations, sigma[parent], tracking=True)
-    keep, w = _select(s, q, cost, hessian, prior[parent], modes.q[parent], k.modes)
+    keep, w = _select(s, q, cost, prior[parent], k.modes)
     if keep.numel() == 0:  # every hypothesis diverged (non-finite cost): the dynamics carry the modes
         return modes._replace(q=predicted), counts
     return _modes(s, q[keep], cost[keep], hessian[keep], w, modes.q[parent[keep]]), counts
@@ -471,13 +469,13 @@ def _first_modes(s: Setup, strategy: Strategy) -> Modes:
     else:
         q = _init_tree(s)  # many candidates: polish all briefly, the 4K most promising to convergence
         mean, sigma = _start_prior(s, q)
-        q, cost, hessian = _polish(s, 0, q, mean, k.polish_iterations, sigma)
+        q, cost, _ = _polish(s, 0, q, mean, k.polish_iterations, sigma)
         # "most promising" by frame 0's own cost (`_evidence`), not with the start prior: flip combinations
         # that reproject alike differ mostly in that prior, which is per dof around real people's mean pose
         # and so would drop a raised arm (49_18) before it is ever refined; the K kept below still weigh it
-        best, _ = _select(s, q, _evidence(s, 0, q), hessian, torch.ones_like(cost), q, 4 * k.modes)
+        best, _ = _select(s, q, _evidence(s, 0, q), torch.ones_like(cost), 4 * k.modes)
         q, cost, hessian = _polish(s, 0, q[best], mean[best], 20, sigma)
-    keep, w = _select(s, q, cost, hessian, torch.ones_like(cost), q, k.modes)
+    keep, w = _select(s, q, cost, torch.ones_like(cost), k.modes)
     if keep.numel() == 0:
         raise EstimationError(f"method {strategy.name!r}: no start pose with a finite cost on frame 0")
     return _modes(s, q[keep], cost[keep], hessian[keep], w, q[keep])
