@@ -16,7 +16,7 @@ from ptrack.config import load_config
 from ptrack.estimators import ESTIMATORS
 from ptrack.estimators.kjs import KJS, _allocate, _chain_votes, _setup, track
 from ptrack.problem import Problem
-from ptrack.run import prepare
+from ptrack.run import compute_metrics, prepare, reprojected_keypoints
 
 REPO = Path(__file__).resolve().parents[1]
 KJS_YAML = REPO / "configs" / "kjs.yaml"
@@ -246,15 +246,6 @@ def test_tree_start_keeps_raised_arms(cmu_file):
     assert best < 30.0, f"best-of-K on frame 0: {best:.1f} mm"
 
 
-def _flip_rates(prep, est) -> dict[str, float]:
-    """Per-limb flip-error rate of the best trajectory, as `ptrack run` reports it."""
-    kps, cam = prep.problem.keypoints, prep.problem.observations.camera
-    idx = kps.index()
-    gt = prep.gt_joints.to(est.joints).index_select(-2, idx)
-    flips = M.limb_flip_errors(est.joints.index_select(-2, idx), gt, kps.limbs, cam.R.to(gt), cam.t.to(gt))
-    return {f"{kps.names[a]}-{kps.names[b]}": float(r) for (a, b), r in zip(kps.limbs, M.flip_error_rate(flips))}
-
-
 def test_a_mode_that_lost_out_earlier_survives(cmu_file):
     """CMU 49_18 at 1 px, nothing missing, as `ptrack evaluate --seeds 3` runs it. With every past frame's
     evidence multiplied into the weights (`kjs.weight_memory` 1) the modes on the true branch of the right
@@ -264,7 +255,7 @@ def test_a_mode_that_lost_out_earlier_survives(cmu_file):
     cfg = _balance_1px(cmu_file, "seed=3")
     prep = prepare(cfg)
     est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(cfg.seed + 1))  # as `ptrack run`
-    rates = _flip_rates(prep, est)
+    rates = compute_metrics(prep, est, reprojected_keypoints(prep, est))[0]["flip_error_rate_per_limb"]
     arm = max(rates["r_shoulder-r_elbow"], rates["r_elbow-r_wrist"])
     assert arm < 0.1, f"right arm flipped in {arm:.2f} of the frames"
     traj, _ = _errors(prep, est)
