@@ -75,12 +75,11 @@ def parse_seeds(spec: str) -> list[int]:
         lo, sep, hi = item.partition("-")
         try:
             first, last = int(lo), int(hi) if sep else int(lo)
+            if first < 0 or last < first:
+                raise ValueError
         except ValueError:
-            raise InputError(
-                f"--seeds {spec!r}: {item!r} is not a seed (an integer >= 0) or a range like 0-4"
-            ) from None
-        if first < 0 or last < first:
-            raise InputError(f"--seeds {spec!r}: {item!r} is not a seed (an integer >= 0) or a range like 0-4")
+            msg = f"--seeds {spec!r}: {item!r} is not a seed (an integer >= 0) or a range like 0-4"
+            raise InputError(msg) from None
         for seed in range(first, last + 1):
             if seed in seeds:
                 raise InputError(f"--seeds {spec!r}: seed {seed} is given twice")
