@@ -40,6 +40,14 @@ K modes of each frame; `q`/`joints` are the best trajectory through them by Vite
 frame cost (data, limits, collision, pose prior; `_evidence`) plus a velocity prior between
 consecutive choices, on the joints' positions relative to the root (`kjs.viterbi_space: joints`, std
 `kjs.viterbi_sigma_m` per frame) or on the dofs (`dofs`, `kjs.viterbi_sigma`).
+
+After a tree start (`kjs.backward_pass: tree`, or after any start with `always`) a second pass runs
+backwards in time from the forward pass's last modes, and each frame's K hypotheses are taken from both
+passes in turn (`_merge`): the forward trajectory's mode first, then each pass's heaviest. Without 3D
+input the forward pass can hold a limb's wrong branch from frame 0 until the motion rules it out; the
+backward pass brings the later reading back. The best trajectory stays the forward pass's: over the
+merged modes Viterbi chose flipped backward modes more often (held-out clips, 1 px, seeds 0-2: 36.1
+against 29.2 mm).
 """
 
 from __future__ import annotations
@@ -327,14 +335,38 @@ def _select(s: Setup, q: Tensor, cost: Tensor, prior_weight: Tensor, count: int)
     """Distinct minima among polished hypotheses, the `count` heaviest first: -> indices (M,) and their
     normalised weights (M,). prior_weight (N,): what each inherits from the mode it came from (that mode's
     weight to the power `kjs.weight_memory`)."""
-    k = s.cfg.kjs
-    if k.distinct_mm > 0:  # apart in 3D: no joint coordinate closer than distinct_mm
-        keep = distinct_minima(s.problem.skeleton.forward_kinematics(q).flatten(-2), cost, k.distinct_mm / 1000)
-    else:  # apart in the parameters: no dof closer than distinct_deg
-        keep = distinct_minima(q, cost, math.radians(k.distinct_deg))
-    w = posterior_weights(cost[keep] - cost[keep].min(), prior_weight[keep], k.temperature)
+    keep = _distinct(s, q, cost)
+    w = posterior_weights(cost[keep] - cost[keep].min(), prior_weight[keep], s.cfg.kjs.temperature)
     order = torch.argsort(w, descending=True)[:count]
     return keep[order], w[order] / w[order].sum()
+
+
+def _distinct(s: Setup, q: Tensor, rank: Tensor) -> Tensor:
+    """Indices of the distinct poses among q (N, D), the lowest `rank` (N,) of each group first: apart in 3D
+    (a joint coordinate `kjs.distinct_mm` or more apart) or, with distinct_mm 0, in a dof (`kjs.distinct_deg`)."""
+    k = s.cfg.kjs
+    if k.distinct_mm > 0:
+        return distinct_minima(s.problem.skeleton.forward_kinematics(q).flatten(-2), rank, k.distinct_mm / 1000)
+    return distinct_minima(q, rank, math.radians(k.distinct_deg))
+
+
+def _merge(s: Setup, forward: Modes, backward: Modes, lead: int) -> Modes:
+    """One frame's modes from the two passes: the forward mode `lead` first (the best trajectory's), then
+    taken from each pass in turn, heaviest first, distinct (`_distinct`), at most K. Each keeps its cost,
+    covariance and velocity, and its weight is the mean of its weights in the two passes (0 in the pass
+    that lacks it), renormalised. (M1), (M2) modes -> (<= K) modes, `lead` at index 0."""
+    n = min(forward.q.shape[0], backward.q.shape[0])
+    first = torch.argsort(forward.weight, descending=True)
+    first = torch.cat([first.new_tensor([lead]), first[first != lead]])
+    second = torch.argsort(backward.weight, descending=True) + forward.q.shape[0]
+    turns = torch.cat([torch.stack([first[:n], second[:n]], 1).flatten(), first[n:], second[n:]])
+    rank = torch.empty_like(turns)
+    rank[turns] = torch.arange(turns.numel(), device=turns.device)
+    both = Modes(*(torch.cat([a, b]) for a, b in zip(forward, backward)))
+    keep = _distinct(s, both.q, rank.to(both.q.dtype))
+    keep = keep[torch.argsort(rank[keep])][: s.cfg.kjs.modes]
+    weight = both.weight[keep]
+    return Modes(both.q[keep], weight / weight.sum(), both.cost[keep], both.chol[keep], both.velocity[keep])
 
 
 def _modes(s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, weight: Tensor, origin: Tensor) -> Modes:
@@ -525,6 +557,29 @@ def principal_directions(sk, q: Tensor, chol: Tensor, scale: float) -> Tensor:
     return sk.forward_kinematics(q + dq) - sk.forward_kinematics(q)
 
 
+def _lattice(s: Setup, per_frame: list[Modes]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Each frame's modes padded to K -> q (T, K, D), weights (T, K), costs (T, K), covariance factors
+    (T, K, D, D)."""
+    padded = [_pad(m, s.cfg.kjs.modes) for m in per_frame]
+    hq, hw, hc, hl = (torch.stack(x) for x in zip(*padded))
+    return hq, hw, hc, hl
+
+
+def _best_path(s: Setup, hq: Tensor, hw: Tensor) -> Tensor:
+    """Viterbi through the lattice q (T, K, D), weights (T, K): each mode's own frame cost (`_evidence`)
+    plus a velocity prior between consecutive choices (`kjs.viterbi_space`); padding (weight 0) is never
+    chosen. -> mode index per frame (T,)."""
+    k = s.cfg.kjs
+    unary = torch.stack([_evidence(s, t, q) for t, q in enumerate(hq)])
+    with torch.no_grad():
+        if k.viterbi_space == "joints":  # the body's motion in metres: every joint relative to the root
+            joints = s.problem.skeleton.forward_kinematics(hq)
+            feats, sigma = (joints - joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
+        else:
+            feats, sigma = hq, k.viterbi_sigma
+        return viterbi(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma)
+
+
 def track(
     problem: Problem,
     cfg,
@@ -546,34 +601,33 @@ def _track(
     s = _setup(problem, cfg, strategy)
     sk, obs = problem.skeleton, problem.observations
     k = cfg.kjs
-    qs: list[Tensor] = []
-    ws: list[Tensor] = []
-    cs: list[Tensor] = []
-    ls: list[Tensor] = []
-    es: list[Tensor] = []
-    jumps = []
+    steps = range(obs.num_frames)
+    backward = k.backward_pass == "always" or (k.backward_pass == "tree" and k.init == "tree")
+    schedule = [(t, False) for t in steps] + ([(t, True) for t in reversed(steps)] if backward else [])
+    passes: list[list[tuple[Modes, Tensor]]] = [[], []]  # forward, backward (in reverse time order)
     modes = None
-    for t in progress(range(obs.num_frames)):
+    for t, back in progress(schedule):
         if modes is None:
             modes, counts = _first_modes(s, strategy), torch.zeros(len(s.chains), dtype=torch.long)
+        elif back and not passes[1]:  # the backward pass starts from the forward pass's last modes
+            modes, counts = modes._replace(velocity=-modes.velocity), torch.zeros_like(counts)
         else:
             modes, counts = _step(s, t, modes, strategy, generator)
-        for out, x in zip((qs, ws, cs, ls), _pad(modes, k.modes)):
-            out.append(x)
-        es.append(_evidence(s, t, qs[-1]))
-        jumps.append(counts.to(modes.q.device))
-    hq, hw, hc = torch.stack(qs), torch.stack(ws), torch.stack(cs)  # (T, K, D), (T, K), (T, K)
-    unary = torch.stack(es)
+        passes[back].append((modes, counts.to(modes.q.device)))
+    forward = [m for m, _ in passes[0]]
+    jumps = [c for _, c in passes[0]]
+    hq, hw, hc, hl = _lattice(s, forward)
+    path = _best_path(s, hq, hw)
+    if backward:  # the hypotheses of both passes; the best trajectory stays the forward pass's (see _merge)
+        merged = [_merge(s, a, b, int(p)) for a, (b, _), p in zip(forward, reversed(passes[1]), path)]
+        hq, hw, hc, hl = _lattice(s, merged)
+        path = torch.zeros_like(path)
+        jumps = [a + b for a, (_, b) in zip(jumps, reversed(passes[1]))]
     with torch.no_grad():
         hyp_joints = sk.forward_kinematics(hq)  # (T, K, J, 3)
-        if k.viterbi_space == "joints":  # the body's motion in metres: every joint relative to the root
-            feats, sigma = (hyp_joints - hyp_joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
-        else:
-            feats, sigma = hq, k.viterbi_sigma
-        path = viterbi(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma)
         frames = torch.arange(hq.shape[0], device=hq.device)
         joints = hyp_joints[frames, path]
-        directions = principal_directions(sk, hq, torch.stack(ls), k.scale)
+        directions = principal_directions(sk, hq, hl, k.scale)
     q = hq[frames, path]
     return Estimate(
         q=q,
