@@ -46,8 +46,8 @@ backwards in time from the forward pass's last modes, and each frame's K hypothe
 passes in turn (`_merge`): the forward trajectory's mode first, then each pass's heaviest. Without 3D
 input the forward pass can hold a limb's wrong branch from frame 0 until the motion rules it out; the
 backward pass brings the later reading back. The best trajectory stays the forward pass's: over the
-merged modes Viterbi chose flipped backward modes more often (held-out clips, 1 px, seeds 0-2: 36.1
-against 29.2 mm).
+merged modes Viterbi took flipped backward modes where the forward pass had been right (held-out 35_01,
+02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 mm; docs/results.md).
 """
 
 from __future__ import annotations
@@ -356,6 +356,7 @@ def _merge(s: Setup, forward: Modes, backward: Modes, lead: int) -> Modes:
     covariance and velocity, and its weight is the mean of its weights in the two passes (0 in the pass
     that lacks it), renormalised. (M1), (M2) modes -> (<= K) modes, `lead` at index 0."""
     n = min(forward.q.shape[0], backward.q.shape[0])
+    lead = lead if lead < forward.q.shape[0] else 0  # a padding slot (`_pad`) is a copy of mode 0
     first = torch.argsort(forward.weight, descending=True)
     first = torch.cat([first.new_tensor([lead]), first[first != lead]])
     second = torch.argsort(backward.weight, descending=True) + forward.q.shape[0]
