@@ -193,8 +193,9 @@ class KjsMethodConfig:
     # hypotheses are then the forward trajectory's mode and both passes' modes in turn, heaviest first, and
     # the best trajectory stays the forward pass's: "tree" (after a tree start only), "always" or "never".
     # It doubles the time. Without 3D input the forward pass may hold a limb's wrong branch from frame 0
-    # until the motion rules it out; the backward pass carries the later reading back. Tree start, dev
-    # clips, 1 px, five seeds, best-of-K: 25.2 -> 22.4 mm (49_18 37.7 -> 25.8, 02_01 27.9 -> 29.6)
+    # until the motion rules it out; the backward pass carries the later reading back. Dev clips, five
+    # seeds, best-of-K: tree start 1 px 25.2 -> 22.4 mm (49_18 37.7 -> 25.8, 02_01 27.9 -> 29.6); keyframe
+    # start (always) 1 px 17.2 -> 15.9, 2 px 24.8 -> 23.1, but at half the speed (docs/results.md)
     backward_pass: str = "tree"
 
 
