@@ -517,8 +517,9 @@ def _first_modes(s: Setup, strategy: Strategy) -> Modes:
 # ---------------------------------------------------------------- the estimator
 
 
-def _evidence(s: Setup, t: int, q: Tensor) -> Tensor:
-    """Frame t's own cost of poses q (K, D) -> (K,): robust reprojection, limits, collision and the pose
+def _evidence(s: Setup, t: int, q: Tensor, joints: Tensor | None = None) -> Tensor:
+    """Frame t's own cost of poses q (K, D) (joints (K, J, 3): their forward kinematics, if already at
+    hand) -> (K,): robust reprojection, limits, collision and the pose
     prior, without the dynamics term. It is the unary term of the best-trajectory Viterbi pass, whose
     pairwise term is the dynamics: a mode's tracking cost and weight already hold the dynamics around the
     mode it came from (and, through the weights, every earlier frame), so using them there would count
@@ -526,7 +527,8 @@ def _evidence(s: Setup, t: int, q: Tensor) -> Tensor:
     prob = s.problem
     sk = prob.skeleton
     with torch.no_grad():
-        ev = pose_eval_from_joints(prob.observations.camera, prob.keypoints, q, sk.forward_kinematics(q))
+        joints = sk.forward_kinematics(q) if joints is None else joints
+        ev = pose_eval_from_joints(prob.observations.camera, prob.keypoints, q, joints)
         return _objective(s, t, None, tracking=True)(ev).total
 
 
@@ -558,23 +560,23 @@ def principal_directions(sk, q: Tensor, chol: Tensor, scale: float) -> Tensor:
     return sk.forward_kinematics(q + dq) - sk.forward_kinematics(q)
 
 
-def _lattice(s: Setup, per_frame: list[Modes]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _lattice(s: Setup, per_frame: list[Modes]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Each frame's modes padded to K -> q (T, K, D), weights (T, K), costs (T, K), covariance factors
-    (T, K, D, D)."""
+    (T, K, D, D) and joint positions (T, K, J, 3)."""
     padded = [_pad(m, s.cfg.kjs.modes) for m in per_frame]
     hq, hw, hc, hl = (torch.stack(x) for x in zip(*padded))
-    return hq, hw, hc, hl
+    with torch.no_grad():
+        return hq, hw, hc, hl, s.problem.skeleton.forward_kinematics(hq)
 
 
-def _best_path(s: Setup, hq: Tensor, hw: Tensor) -> Tensor:
-    """Viterbi through the lattice q (T, K, D), weights (T, K): each mode's own frame cost (`_evidence`)
-    plus a velocity prior between consecutive choices (`kjs.viterbi_space`); padding (weight 0) is never
-    chosen. -> mode index per frame (T,)."""
+def _best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> Tensor:
+    """Viterbi through the lattice q (T, K, D), weights (T, K), joints (T, K, J, 3): each mode's own frame
+    cost (`_evidence`) plus a velocity prior between consecutive choices (`kjs.viterbi_space`); padding
+    (weight 0) is never chosen. -> mode index per frame (T,)."""
     k = s.cfg.kjs
-    unary = torch.stack([_evidence(s, t, q) for t, q in enumerate(hq)])
+    unary = torch.stack([_evidence(s, t, q, j) for t, (q, j) in enumerate(zip(hq, joints))])
     with torch.no_grad():
         if k.viterbi_space == "joints":  # the body's motion in metres: every joint relative to the root
-            joints = s.problem.skeleton.forward_kinematics(hq)
             feats, sigma = (joints - joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
         else:
             feats, sigma = hq, k.viterbi_sigma
@@ -617,15 +619,14 @@ def _track(
         passes[back].append((modes, counts.to(modes.q.device)))
     forward = [m for m, _ in passes[0]]
     jumps = [c for _, c in passes[0]]
-    hq, hw, hc, hl = _lattice(s, forward)
-    path = _best_path(s, hq, hw)
+    hq, hw, hc, hl, hyp_joints = _lattice(s, forward)
+    path = _best_path(s, hq, hw, hyp_joints)
     if backward:  # the hypotheses of both passes; the best trajectory stays the forward pass's (see _merge)
         merged = [_merge(s, a, b, int(p)) for a, (b, _), p in zip(forward, reversed(passes[1]), path)]
-        hq, hw, hc, hl = _lattice(s, merged)
+        hq, hw, hc, hl, hyp_joints = _lattice(s, merged)
         path = torch.zeros_like(path)
         jumps = [a + b for a, (_, b) in zip(jumps, reversed(passes[1]))]
     with torch.no_grad():
-        hyp_joints = sk.forward_kinematics(hq)  # (T, K, J, 3)
         frames = torch.arange(hq.shape[0], device=hq.device)
         joints = hyp_joints[frames, path]
         directions = principal_directions(sk, hq, hl, k.scale)
