@@ -292,11 +292,11 @@ def test_a_mode_that_lost_out_earlier_survives(cmu_file):
 
 def test_backward_pass_keeps_a_branch_the_forward_pass_lost(cmu_file):
     """CMU 49_18 at 1 px from the tree start (no 3D input), as `ptrack evaluate` runs seed 0. On frame 0
-    the true branch of the right arm reprojects like the flipped one but costs more in the pose prior:
-    the forward pass weighted it 0.01, lost it by frame 57, and found it again only once the motion ruled
-    the flip out (frame 72). The backward pass from the last frame's modes carries that reading back to
-    frame 0 (measured best-of-K: 32.6 mm forward only, 19.2 mm with both passes). The best trajectory
-    is the forward pass's either way."""
+    the true branch of the right arm reprojects like the flipped one but costs more in the start prior:
+    the forward pass weighted it 0.01 and lost it by frame 57; its modes are right again only from frame
+    75. The backward pass from the last frame's modes carries that reading back to frame 0 (measured
+    best-of-K: 32.6 mm forward only, 19.2 mm with both passes). The best trajectory is the forward pass's
+    either way."""
     runs = {}
     for backward in ("tree", "never"):
         cfg = _balance_1px(cmu_file, "kjs.init=tree", "seed=0", f"kjs.backward_pass={backward}")
