@@ -26,14 +26,16 @@ def _total(e: dict[str, Tensor]) -> Tensor:
     return cast(Tensor, sum(e.values()))
 
 
-def rest_pose_in_view(problem: Problem, dtype: torch.dtype) -> Tensor:
-    """A rest pose (all angles 0) whose root sits on the camera ray of the first observed pelvis-like
-    keypoint, at the depth that makes the observed 2D body size match the model's. -> (D,)"""
+def rest_pose_in_view(problem: Problem, dtype: torch.dtype, frame: int | None = None) -> Tensor:
+    """A rest pose (all angles 0) whose root sits on the camera ray through the centre of the observed
+    keypoints of `frame` (None: the first frame with any), at the depth that makes the observed 2D body
+    size match the model's. `frame` must have an observed keypoint. -> (D,)"""
     sk, obs, kps = problem.skeleton, problem.observations, problem.keypoints
     device = obs.keypoints.device
     q = torch.zeros(sk.num_dofs, dtype=dtype, device=device)
     conf = obs.confidence
-    frame = int(torch.nonzero(conf.sum(-1) > 0)[0, 0])
+    if frame is None:
+        frame = int(torch.nonzero(conf.sum(-1) > 0)[0, 0])
     valid = conf[frame] > 0
     pix = obs.keypoints[frame][valid].to(dtype)
     rest = sk.forward_kinematics(q)

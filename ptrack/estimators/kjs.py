@@ -42,10 +42,11 @@ consecutive choices, on the joints' positions relative to the root (`kjs.viterbi
 `kjs.viterbi_sigma_m` per frame) or on the dofs (`dofs`, `kjs.viterbi_sigma`).
 
 After a tree start (`kjs.backward_pass: tree`, or after any start with `always`) a second pass runs
-backwards in time from the forward pass's last modes, and each frame's K hypotheses are taken from both
-passes in turn (`_merge`): the forward trajectory's mode first, then each pass's heaviest. Without 3D
-input the forward pass can hold a limb's wrong branch from frame 0 until the motion rules it out; the
-backward pass brings the later reading back. The best trajectory stays the forward pass's: over the
+backwards in time from the forward pass's last modes (after a tree start, with a tree start on the last
+frame beside them: `_backward_start`), and each frame's K hypotheses are taken from both passes in turn
+(`_merge`): the forward trajectory's mode first, then each pass's heaviest. Without 3D input the forward
+pass can hold a limb's wrong branch, or the whole body's, from frame 0 on; the backward pass brings the
+later reading back. The best trajectory stays the forward pass's: over the
 merged modes Viterbi took flipped backward modes where the forward pass had been right (held-out 35_01,
 02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 mm; docs/results.md).
 """
@@ -461,30 +462,30 @@ def _root_starts(s: Setup, q: Tensor, yaws: int, tilts: tuple[float, ...]) -> Te
     return torch.stack(starts)
 
 
-def _init_tree(s: Setup) -> Tensor:
-    """No 3D input: the rest pose in view under every heading, each fitted rigidly to frame 0's 2D
+def _init_tree(s: Setup, t: int = 0) -> Tensor:
+    """No 3D input: the rest pose in view under every heading, each fitted rigidly to frame t's 2D
     (root dofs only), then in every dof with the rest prior; the distinct fits (by cost, at most
     `kjs.init_fits`) are expanded by every flip combination of the chains. -> candidates (N, D)."""
     prob = s.problem
     sk, obs = prob.skeleton, prob.observations
     k = s.cfg.kjs
-    rest = torch.clamp(rest_pose_in_view(prob, s.lower.dtype), s.lower, s.upper)
+    rest = torch.clamp(rest_pose_in_view(prob, s.lower.dtype, t), s.lower, s.upper)
     q = project_to_limits(
         _root_starts(s, rest, k.init_yaws, (0.0, 0.5, -0.5)), s.lower, s.upper, s.angular, mode="reflect"
     )
     lo = torch.where(s.root, s.lower, q[0])
     hi = torch.where(s.root, s.upper, q[0])
     q, _ = levenberg_marquardt(
-        objective_linearization(sk, _objective(s, 0, None), obs.camera, prob.keypoints, True), q, lo, hi, max_iter=30
+        objective_linearization(sk, _objective(s, t, None), obs.camera, prob.keypoints, True), q, lo, hi, max_iter=30
     )
     mean, sigma = _start_prior(s, q)
-    q, cost, _ = _polish(s, 0, q, mean, 30, sigma)
+    q, cost, _ = _polish(s, t, q, mean, 30, sigma)
     # distinct in 3D (no joint 5 cm apart): headings 2 pi apart, or the two Euler triples of one
     # rotation, are one fit
     joints = sk.forward_kinematics(q)
     pick = distinct_minima(joints.flatten(-2), cost, 0.05, limit=k.init_fits)
     fits = q[pick]
-    px, conf = joint_observations(prob.keypoints, obs.keypoints[0], obs.confidence[0], sk.num_joints)
+    px, conf = joint_observations(prob.keypoints, obs.keypoints[t], obs.confidence[t], sk.num_joints)
     trees = interpretation_trees(s.chains, joints[pick], obs.camera, px, conf)
     prod = product(trees)
     results = [chain_ik(plan, fits, tree.positions, mode="project") for plan, tree in zip(s.plans, trees)]
@@ -494,24 +495,37 @@ def _init_tree(s: Setup) -> Tensor:
     return torch.cat([fits, ik.q[keep]])
 
 
-def _first_modes(s: Setup, strategy: Strategy) -> Modes:
+def _first_modes(s: Setup, strategy: Strategy, t: int = 0) -> Modes:
+    """The modes of a start: frame 0's keyframe (`kjs.init: keyframe`), or a tree start on frame t."""
     k = s.cfg.kjs
     if k.init == "keyframe":  # the user's 3D pose, held by a tight prior (0.01 rad / m): it is their word
         q = _init_keyframe(s)
         q, cost, hessian = _polish(s, 0, q, q, 20, 0.01)
     else:
-        q = _init_tree(s)  # many candidates: polish all briefly, the 4K most promising to convergence
+        q = _init_tree(s, t)  # many candidates: polish all briefly, the 4K most promising to convergence
         mean, sigma = _start_prior(s, q)
-        q, cost, _ = _polish(s, 0, q, mean, k.polish_iterations, sigma)
+        q, cost, _ = _polish(s, t, q, mean, k.polish_iterations, sigma)
         # "most promising" by frame 0's own cost (`_evidence`), not with the start prior: flip combinations
         # that reproject alike differ mostly in that prior, which is per dof around real people's mean pose
         # and so would drop a raised arm (49_18) before it is ever refined; the K kept below still weigh it
-        best, _ = _select(s, q, _evidence(s, 0, q), torch.ones_like(cost), 4 * k.modes)
-        q, cost, hessian = _polish(s, 0, q[best], mean[best], 20, sigma)
+        best, _ = _select(s, q, _evidence(s, t, q), torch.ones_like(cost), 4 * k.modes)
+        q, cost, hessian = _polish(s, t, q[best], mean[best], 20, sigma)
     keep, w = _select(s, q, cost, torch.ones_like(cost), k.modes)
     if keep.numel() == 0:
-        raise EstimationError(f"method {strategy.name!r}: no start pose with a finite cost on frame 0")
+        raise EstimationError(f"method {strategy.name!r}: no start pose with a finite cost on frame {t}")
     return _modes(s, q[keep], cost[keep], hessian[keep], w, q[keep])
+
+
+def _backward_start(s: Setup, last: Modes, strategy: Strategy) -> Modes:
+    """The backward pass's first modes: the forward pass's last ones, moving the other way, and after a
+    tree start also a tree start on the last frame, taken in turn (`_merge`, the forward pass's heaviest
+    first). The forward pass may have lost the true reading of the whole body from frame 0 on (49_18 at
+    2 px); the last frame's own tree start gives the backward pass a second chance at it."""
+    last = last._replace(velocity=-last.velocity)
+    t = s.problem.observations.num_frames - 1
+    if s.cfg.kjs.init != "tree" or not bool((s.problem.observations.confidence[t] > 0).any()):
+        return last
+    return _merge(s, last, _first_modes(s, strategy, t), 0)
 
 
 # ---------------------------------------------------------------- the estimator
@@ -613,7 +627,7 @@ def _track(
         if modes is None:
             modes, counts = _first_modes(s, strategy), torch.zeros(len(s.chains), dtype=torch.long)
         elif back and not passes[1]:  # the backward pass starts from the forward pass's last modes
-            modes, counts = modes._replace(velocity=-modes.velocity), torch.zeros_like(counts)
+            modes, counts = _backward_start(s, modes, strategy), torch.zeros_like(counts)
         else:
             modes, counts = _step(s, t, modes, strategy, generator)
         passes[back].append((modes, counts.to(modes.q.device)))
