@@ -6,6 +6,7 @@ clip's first pose as the frame-0 keyframe), so these are end-to-end checks of th
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -137,6 +138,28 @@ def test_rest_pose_in_view(keyframe_run):
     rest = torch.ones_like(q, dtype=torch.bool)
     rest[trans] = False
     assert (q[rest] == 0).all()
+
+
+def test_rest_pose_in_view_of_a_given_frame(keyframe_run):
+    """`frame` picks the keypoints the pose is centred on; a frame with none observed falls back to the
+    first frame with any."""
+    prep, _ = keyframe_run
+    last = prep.problem.observations.num_frames - 1
+    pixels = prep.problem.observations.keypoints.clone()
+    pixels[last] += 60.0  # the last frame's body 85 px away from the others'
+    obs = dataclasses.replace(prep.problem.observations, keypoints=pixels)
+    prob = dataclasses.replace(prep.problem, observations=obs)
+
+    def centre_error(q, frame):
+        ev = evaluate_pose(prob.skeleton, obs.camera.to(dtype=torch.float64), prob.keypoints, q)
+        return float((ev.pixels.mean(0) - obs.keypoints[frame].double().mean(0)).norm())
+
+    assert centre_error(rest_pose_in_view(prob, torch.float64, last), last) < 5.0
+    assert centre_error(rest_pose_in_view(prob, torch.float64), last) > 50.0  # frame 0's by default
+    conf = obs.confidence.clone()
+    conf[last] = 0.0
+    blind = dataclasses.replace(prob, observations=dataclasses.replace(obs, confidence=conf))
+    assert torch.equal(rest_pose_in_view(blind, torch.float64, last), rest_pose_in_view(prob, torch.float64))
 
 
 def test_deterministic(keyframe_run):

@@ -28,13 +28,13 @@ def _total(e: dict[str, Tensor]) -> Tensor:
 
 def rest_pose_in_view(problem: Problem, dtype: torch.dtype, frame: int | None = None) -> Tensor:
     """A rest pose (all angles 0) whose root sits on the camera ray through the centre of the observed
-    keypoints of `frame` (None: the first frame with any), at the depth that makes the observed 2D body
-    size match the model's. `frame` must have an observed keypoint. -> (D,)"""
+    keypoints of `frame` (None, or a frame with none observed: the first frame with any), at the depth
+    that makes the observed 2D body size match the model's. -> (D,)"""
     sk, obs, kps = problem.skeleton, problem.observations, problem.keypoints
     device = obs.keypoints.device
     q = torch.zeros(sk.num_dofs, dtype=dtype, device=device)
     conf = obs.confidence
-    if frame is None:
+    if frame is None or not bool((conf[frame] > 0).any()):
         frame = int(torch.nonzero(conf.sum(-1) > 0)[0, 0])
     valid = conf[frame] > 0
     pix = obs.keypoints[frame][valid].to(dtype)

@@ -505,7 +505,7 @@ def _first_modes(s: Setup, strategy: Strategy, t: int = 0) -> Modes:
         q = _init_tree(s, t)  # many candidates: polish all briefly, the 4K most promising to convergence
         mean, sigma = _start_prior(s, q)
         q, cost, _ = _polish(s, t, q, mean, k.polish_iterations, sigma)
-        # "most promising" by frame 0's own cost (`_evidence`), not with the start prior: flip combinations
+        # "most promising" by the frame's own cost (`_evidence`), not with the start prior: flip combinations
         # that reproject alike differ mostly in that prior, which is per dof around real people's mean pose
         # and so would drop a raised arm (49_18) before it is ever refined; the K kept below still weigh it
         best, _ = _select(s, q, _evidence(s, t, q), torch.ones_like(cost), 4 * k.modes)
