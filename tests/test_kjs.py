@@ -110,6 +110,21 @@ def test_frames_without_keypoints_are_carried():
     assert torch.equal(est.hypotheses[4], est.hypotheses[3])  # carried by the (constant-position) dynamics
 
 
+def test_tree_start_with_a_blind_last_frame():
+    """With nothing seen on the last frame the backward pass starts from the forward pass's last modes
+    alone (no tree start there); blind frames in between are carried in both passes."""
+    cfg = load_config(KJS_YAML, [*EXACT, "data.stop=32", "kjs.init=tree"])
+    prep = prepare(cfg)
+    obs = prep.problem.observations
+    conf = obs.confidence.clone()
+    conf[4:6] = 0.0
+    conf[-1] = 0.0
+    blind = Problem(prep.problem.skeleton, prep.problem.keypoints, dataclasses.replace(obs, confidence=conf))
+    est = track(blind, cfg, torch.Generator().manual_seed(0), KJS)
+    assert torch.isfinite(est.q).all() and torch.isfinite(est.hypotheses).all()
+    assert torch.allclose(est.hypothesis_weights.sum(-1), torch.ones(obs.num_frames, dtype=est.q.dtype))
+
+
 def test_chain_votes_follow_the_covariance(kjs_run):
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, EXACT)
