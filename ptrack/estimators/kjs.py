@@ -626,7 +626,7 @@ def _track(
     for t, back in progress(schedule):
         if modes is None:
             modes, counts = _first_modes(s, strategy), torch.zeros(len(s.chains), dtype=torch.long)
-        elif back and not passes[1]:  # the backward pass starts from the forward pass's last modes
+        elif back and not passes[1]:  # the forward pass's last modes (and a tree start there: _backward_start)
             modes, counts = _backward_start(s, modes, strategy), torch.zeros_like(counts)
         else:
             modes, counts = _step(s, t, modes, strategy, generator)
