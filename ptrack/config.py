@@ -190,15 +190,14 @@ class KjsMethodConfig:
     init_yaws: int = 8  # init tree: headings of the rest pose tried (each also leaned forward and back)
     init_fits: int = 4  # init tree: distinct fitted poses whose chains are flipped (every combination)
     # after the forward pass, a second pass backwards in time from its last frame's modes (after a tree
-    # start, with the last frame's own tree start beside them); each frame's K hypotheses are then the
-    # forward trajectory's mode and both passes' modes in turn, heaviest first, and the best trajectory
-    # stays the forward pass's: "tree" (after a tree start only), "always" or "never". It doubles the
-    # time. Without 3D input the forward pass may hold a limb's wrong branch, or the whole body's, from
-    # frame 0 on; the backward pass carries the later reading back. Dev clips, five seeds, best-of-K: tree
-    # start 1 px 25.2 -> 22.0 mm (49_18 37.7 -> 22.8, 02_01 27.9 -> 30.4), 2 px 47.9 -> 32.4 (49_18 143 ->
-    # 41); keyframe start (always) 1 px 17.2 -> 15.9, 2 px 24.8 -> 23.1, but at half the speed
-    # (docs/results.md)
-    backward_pass: str = "tree"
+    # start, with the last frame's own tree start beside them; after a keyframe start, fed each frame by
+    # the forward pass's modes of the frame after); each frame's K hypotheses are then the forward
+    # trajectory's mode and both passes' modes in turn, each depth order of the limbs before any repeat,
+    # and the best trajectory stays the forward pass's: "always" (after either start), "tree" (after a
+    # tree start only) or "never". It doubles the time. Dev clips, five seeds, best-of-K: keyframe start
+    # 1 px 17.2 -> 15.3 mm (02_01 22.5 -> 18.8), 2 px 24.8 -> 22.6; tree start 1 px 25.2 -> 21.5
+    # (02_01 28.4), 2 px 47.9 -> 32.2 (docs/results.md)
+    backward_pass: str = "always"
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -96,8 +97,9 @@ def test_sampling_baselines_run_at_the_same_budget(method):
     assert est.hypotheses.shape[1] == K and best < 25.0
 
 
-def test_frames_without_keypoints_are_carried():
-    cfg = load_config(KJS_YAML, [*EXACT, "data.stop=32"])
+@pytest.mark.parametrize("backward", ["tree", "always"])  # after a keyframe start: forward pass only, both
+def test_frames_without_keypoints_are_carried(backward):
+    cfg = load_config(KJS_YAML, [*EXACT, "data.stop=32", f"kjs.backward_pass={backward}"])
     prep = prepare(cfg)
     obs = prep.problem.observations
     conf = obs.confidence.clone()
@@ -106,8 +108,10 @@ def test_frames_without_keypoints_are_carried():
         prep.problem.skeleton, prep.problem.keypoints, dataclasses.replace(obs, confidence=conf), prep.problem.keyframes
     )
     est = track(blind, cfg, torch.Generator().manual_seed(0), KJS)
-    assert torch.isfinite(est.q).all()
-    assert torch.equal(est.hypotheses[4], est.hypotheses[3])  # carried by the (constant-position) dynamics
+    assert torch.isfinite(est.q).all() and torch.isfinite(est.hypotheses).all()
+    assert torch.allclose(est.hypothesis_weights.sum(-1), torch.ones(obs.num_frames, dtype=est.q.dtype))
+    if backward == "tree":  # one pass: the modes carried by the (constant-position) dynamics
+        assert torch.equal(est.hypotheses[4], est.hypotheses[3])
 
 
 def test_tree_start_with_a_blind_last_frame():
@@ -163,6 +167,37 @@ def test_merge_takes_the_two_passes_in_turn(kjs_run):
     torch.testing.assert_close(torch.rad2deg(got.q[:, 5]), torch.tensor([20.0, 30.0, 0.0, 10.5]))
     torch.testing.assert_close(got.weight, torch.tensor([0.05, 0.25, 0.3, 0.2]) / 0.8)
     torch.testing.assert_close(got.cost, -torch.log(torch.tensor([0.1, 0.5, 0.6, 0.4])))
+
+
+def test_merge_serves_each_depth_order_first(kjs_run):
+    """Both passes often hold one reading of the body many times over and the other reading of a limb only
+    in a light mode: the first mode of each depth order of the limbs is taken before any repeat, so K
+    slots keep the light one (02_01's left thigh after it crosses the image plane)."""
+    from ptrack.estimators.kjs import _depth_orders, _merge
+    from ptrack.mixture import Modes
+
+    prep, _ = kjs_run
+    cfg = load_config(KJS_YAML, [*EXACT, "kjs.modes=4"])
+    s = _setup(prep.problem, cfg, KJS)
+    names = prep.problem.skeleton.dof_names
+    neck, thigh = names.index("lowerneck.ry"), names.index("lfemur.rx")
+    q0 = prep.gt_q[0].to(prep.problem.observations.keypoints.dtype)
+
+    def modes(turns_deg, weights):
+        q = q0.repeat(len(weights), 1)
+        for i, (dof, deg) in enumerate(turns_deg):
+            q[i, dof] += math.radians(deg)
+        w = torch.tensor(weights)
+        D = q.shape[1]
+        return Modes(q, w, -torch.log(w), torch.eye(D).expand(len(w), D, D), torch.zeros_like(q))
+
+    forward = modes([(neck, 0.0), (neck, 5.0), (neck, 10.0)], [0.5, 0.3, 0.2])
+    backward = modes([(neck, 15.0), (neck, 20.0), (thigh, -40.0)], [0.6, 0.3, 0.1])  # the last: knee behind
+    orders = _depth_orders(s, torch.cat([forward.q, backward.q]))
+    assert (orders[:5] == orders[0]).all() and not (orders[5] == orders[0]).all()  # one order, then another
+    got = _merge(s, forward, backward, lead=0)
+    # in turn: f0, b0, f1, b1 would fill K = 4; b2 is the only mode of its order, so it comes second
+    torch.testing.assert_close(got.q, torch.stack([forward.q[0], backward.q[2], backward.q[0], forward.q[1]]))
 
 
 def test_allocation_splits_an_even_share_over_the_modes():
@@ -323,6 +358,40 @@ def test_backward_pass_keeps_a_branch_the_forward_pass_lost(cmu_file):
     assert best < 25.0, f"best-of-K {best:.1f} mm"
     assert torch.equal(est.joints, runs["never"].joints)  # the same best trajectory
     assert torch.equal(est.joints, est.hypotheses[:, 0])  # which is the first hypothesis of every frame
+
+
+def test_backward_pass_carries_a_limb_across_the_image_plane(cmu_file):
+    """CMU 02_01 (walk) at 1 px, nothing missing, after a keyframe start, as `ptrack evaluate --seeds 0`
+    runs it. The left knee passes from in front of the hip to behind it over frames 7-8, and the forward
+    pass, lagging behind, keeps every mode on the mirrored side until frame 19 (the 2D cannot tell the two
+    apart). The backward pass, fed each frame by the forward pass's modes (`_feed`), carries the true side
+    found on frame 19 back to frame 13 (measured: the true side among the K modes on 0 of frames 13-18
+    with the forward pass alone, 6 of 6 with both; best-of-K 24.3 -> 20.0 mm)."""
+    amc = cmu_file("02_01.amc")
+    runs = {}
+    for backward in ("tree", "always"):  # after a keyframe start "tree" means the forward pass alone
+        overrides = [f"data.amc={amc}", f"data.asf={amc.parent / '02.asf'}", "observations.noise_px=1"]
+        overrides += ["observations.missing=0", "costs.sigma_px=1", "progress=false", f"kjs.backward_pass={backward}"]
+        cfg = load_config(REPO / "configs" / "eval_kjs.yaml", overrides)
+        prep = prepare(cfg)
+        runs[backward] = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(1))  # as `ptrack run`
+    cam, names = prep.problem.observations.camera, prep.problem.skeleton.joint_names
+    hip, knee = names.index("lhipjoint"), names.index("lfemur")
+
+    def knee_behind(joints):  # (..., J, 3) -> (...) depth of the left knee behind the hip, metres
+        depth = joints @ cam.R[2].to(joints) + cam.t[2].to(joints)
+        return depth[..., knee] - depth[..., hip]
+
+    truth = knee_behind(prep.gt_joints[13:19])
+    assert (truth > 0.05).all()  # well off the image plane: the depth order is defined
+    found = {
+        b: int((knee_behind(est.hypotheses[13:19]) * truth[:, None].to(est.hypotheses) > 0).any(-1).sum())
+        for b, est in runs.items()
+    }  # frames with a mode on the true side
+    assert found["tree"] <= 1 and found["always"] >= 5, f"true side on frames 13-18: {found}"
+    best = {b: _errors(prep, est)[1] for b, est in runs.items()}
+    assert best["always"] < 21.0 and best["always"] < best["tree"] - 2.0, f"best-of-K {best}"
+    assert torch.equal(runs["always"].joints, runs["tree"].joints)  # the best trajectory is the forward pass's
 
 
 def test_backward_pass_restarts_on_the_last_frame(cmu_file):

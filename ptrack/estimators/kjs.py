@@ -41,14 +41,17 @@ frame cost (data, limits, collision, pose prior; `_evidence`) plus a velocity pr
 consecutive choices, on the joints' positions relative to the root (`kjs.viterbi_space: joints`, std
 `kjs.viterbi_sigma_m` per frame) or on the dofs (`dofs`, `kjs.viterbi_sigma`).
 
-After a tree start (`kjs.backward_pass: tree`, or after any start with `always`) a second pass runs
-backwards in time from the forward pass's last modes (after a tree start, with a tree start on the last
-frame beside them: `_backward_start`), and each frame's K hypotheses are taken from both passes in turn
-(`_merge`): the forward trajectory's mode first, then each pass's heaviest. Without 3D input the forward
-pass can hold a limb's wrong branch, or the whole body's, from frame 0 on; the backward pass brings the
-later reading back. The best trajectory stays the forward pass's: over the
-merged modes Viterbi took flipped backward modes where the forward pass had been right (held-out 35_01,
-02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 mm; docs/results.md).
+A second pass runs backwards in time from the forward pass's last modes (`kjs.backward_pass: always`;
+`tree`: after a tree start only). After a tree start it also starts from a tree start on the last frame
+(`_backward_start`): without 3D input the forward pass can hold a limb's wrong branch, or the whole
+body's, from frame 0 on, and the backward pass brings the later reading back. After a keyframe start each
+backward step also starts from the forward pass's modes of the frame after (`_feed`): where a limb crosses
+the image plane both passes lag on the side they came from, and the forward pass's true reading, found a
+few frames after the crossing in a light mode, is carried back to the crossing. Each frame's K
+hypotheses are taken from both passes in turn (`_merge`): the forward trajectory's mode first, then each
+pass's heaviest, each depth order of the limbs before any order twice. The best trajectory stays the
+forward pass's: over the merged modes Viterbi took flipped backward modes where the forward pass had
+been right (held-out 35_01, 02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 mm; docs/results.md).
 """
 
 from __future__ import annotations
@@ -351,10 +354,33 @@ def _distinct(s: Setup, q: Tensor, rank: Tensor) -> Tensor:
     return distinct_minima(q, rank, math.radians(k.distinct_deg))
 
 
+#: a limb whose ends lie nearer than this in depth (metres) has no depth order in `_depth_orders`
+DEPTH_ORDER_MARGIN_M = 0.05
+
+
+def _depth_orders(s: Setup, q: Tensor) -> Tensor:
+    """Which end of each limb of the keypoint set (`KeypointSet.limbs`, the flip metric's) is nearer the
+    camera, for poses q (N, D): -> (N, L) in {-1, 0, 1}, 0 where the ends are within
+    `DEPTH_ORDER_MARGIN_M` of each other in depth (near the image plane, where 2D barely tells)."""
+    kp, cam = s.problem.keypoints, s.problem.observations.camera
+    if not kp.limbs:
+        return torch.zeros(q.shape[0], 0, dtype=torch.long, device=q.device)
+    with torch.no_grad():
+        joints = s.problem.skeleton.forward_kinematics(q).index_select(-2, kp.index(q.device))
+        depth = joints @ cam.R[2].to(joints) + cam.t[2].to(joints)  # (N, P)
+        limbs = torch.as_tensor(kp.limbs, device=q.device)
+        gap = depth[:, limbs[:, 1]] - depth[:, limbs[:, 0]]
+        return (gap > DEPTH_ORDER_MARGIN_M).long() - (gap < -DEPTH_ORDER_MARGIN_M).long()
+
+
 def _merge(s: Setup, forward: Modes, backward: Modes, lead: int) -> Modes:
-    """One frame's modes from the two passes: the forward mode `lead` first (the best trajectory's), then
-    taken from each pass in turn, heaviest first, distinct (`_distinct`), at most K. Each keeps its cost,
-    covariance and velocity, and its weight is the mean of its weights in the two passes (0 in the pass
+    """One frame's modes from two mixtures (the forward and the backward pass; or, inside the backward
+    pass, its own modes and the forward pass's): the mode `lead` of the first first (the best
+    trajectory's), then taken from each in turn, heaviest first, distinct (`_distinct`), at most K, with
+    each depth order of the limbs (`_depth_orders`) served before any order is served twice: the
+    two mixtures often hold the same reading many times over and the other reading of a limb near the
+    image plane only in a light mode, which K slots would otherwise leave out. Each keeps its cost,
+    covariance and velocity, and its weight is the mean of its weights in the two mixtures (0 in the one
     that lacks it), renormalised. (M1), (M2) modes -> (<= K) modes, `lead` at index 0."""
     n = min(forward.q.shape[0], backward.q.shape[0])
     lead = lead if lead < forward.q.shape[0] else 0  # a padding slot (`_pad`) is a copy of mode 0
@@ -365,6 +391,9 @@ def _merge(s: Setup, forward: Modes, backward: Modes, lead: int) -> Modes:
     rank = torch.empty_like(turns)
     rank[turns] = torch.arange(turns.numel(), device=turns.device)
     both = Modes(*(torch.cat([a, b]) for a, b in zip(forward, backward)))
+    _, order = torch.unique(_depth_orders(s, both.q), dim=0, return_inverse=True)
+    earliest = torch.full_like(rank, rank.numel()).scatter_reduce(0, order, rank, "amin")
+    rank = rank + rank.numel() * (rank != earliest[order])  # a repeated depth order after every new one
     keep = _distinct(s, both.q, rank.to(both.q.dtype))
     keep = keep[torch.argsort(rank[keep])][: s.cfg.kjs.modes]
     weight = both.weight[keep]
@@ -528,6 +557,19 @@ def _backward_start(s: Setup, last: Modes, strategy: Strategy) -> Modes:
     return _merge(s, last, _first_modes(s, strategy, t), 0)
 
 
+def _feed(s: Setup, backward: Modes, forward: Modes) -> Modes:
+    """The backward pass's modes of frame t+1 joined by the forward pass's (`_merge`, its own heaviest
+    first; the forward modes' velocity turned round), before the step to frame t. A limb crossing the
+    image plane is read on the wrong side by both passes when each arrives from its own side of the
+    crossing, lagging behind the motion (02_01, 1 px: the left thigh over frames 9-18). The forward pass finds
+    the true side a few frames after the crossing, in a light mode, and carried backwards from there
+    that reading stays on its side back to the crossing. Only after a keyframe start: after a tree start
+    the forward pass may hold a wrong reading of the whole body, and fed to the backward pass it crowded
+    out the last frame's own tree start (dev clips at 2 px, five seeds: best-of-K 32.2 -> 35.9 mm, 49_18
+    38.0 -> 67.1)."""
+    return _merge(s, backward, forward._replace(velocity=-forward.velocity), int(backward.weight.argmax()))
+
+
 # ---------------------------------------------------------------- the estimator
 
 
@@ -628,6 +670,8 @@ def _track(
             modes, counts = _first_modes(s, strategy), torch.zeros(len(s.chains), dtype=torch.long)
         elif back and not passes[1]:  # the forward pass's last modes (and a tree start there: _backward_start)
             modes, counts = _backward_start(s, modes, strategy), torch.zeros_like(counts)
+        elif back and k.init == "keyframe":  # from its own modes of frame t+1 and the forward pass's (`_feed`)
+            modes, counts = _step(s, t, _feed(s, modes, passes[0][t + 1][0]), strategy, generator)
         else:
             modes, counts = _step(s, t, modes, strategy, generator)
         passes[back].append((modes, counts.to(modes.q.device)))
