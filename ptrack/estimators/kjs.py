@@ -375,8 +375,8 @@ def _depth_orders(s: Setup, q: Tensor) -> Tensor:
 
 def _merge(s: Setup, forward: Modes, backward: Modes, lead: int) -> Modes:
     """One frame's modes from two mixtures (the forward and the backward pass; or, inside the backward
-    pass, its own modes and the forward pass's): the mode `lead` of the first first (the best
-    trajectory's), then taken from each in turn, heaviest first, distinct (`_distinct`), at most K, with
+    pass, its own modes and the forward pass's): the first mixture's mode `lead` first (after both passes:
+    the best trajectory's), then taken from each in turn, heaviest first, distinct (`_distinct`), at most K, with
     each depth order of the limbs (`_depth_orders`) served before any order is served twice: the
     two mixtures often hold the same reading many times over and the other reading of a limb near the
     image plane only in a light mode, which K slots would otherwise leave out. Each keeps its cost,
