@@ -379,7 +379,7 @@ def test_backward_pass_carries_a_limb_across_the_image_plane(cmu_file):
     hip, knee = names.index("lhipjoint"), names.index("lfemur")
 
     def knee_behind(joints):  # (..., J, 3) -> (...) depth of the left knee behind the hip, metres
-        depth = joints @ cam.R[2].to(joints) + cam.t[2].to(joints)
+        depth = cam.world_to_camera(joints)[..., 2]
         return depth[..., knee] - depth[..., hip]
 
     truth = knee_behind(prep.gt_joints[13:19])

@@ -367,7 +367,7 @@ def _depth_orders(s: Setup, q: Tensor) -> Tensor:
         return torch.zeros(q.shape[0], 0, dtype=torch.long, device=q.device)
     with torch.no_grad():
         joints = s.problem.skeleton.forward_kinematics(q).index_select(-2, kp.index(q.device))
-        depth = joints @ cam.R[2].to(joints) + cam.t[2].to(joints)  # (N, P)
+        depth = cam.world_to_camera(joints)[..., 2]  # (N, P)
         limbs = torch.as_tensor(kp.limbs, device=q.device)
         gap = depth[:, limbs[:, 1]] - depth[:, limbs[:, 0]]
         return (gap > DEPTH_ORDER_MARGIN_M).long() - (gap < -DEPTH_ORDER_MARGIN_M).long()
