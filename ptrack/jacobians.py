@@ -446,5 +446,14 @@ def pose_eval_and_jacobian(
     proj, dpix = camera.project_jacobian(joints.index_select(-2, idx))
     _, R, _ = camera._params_like(joints)
     ev = PoseEval(q=q, joints=joints, pixels=proj.pixels, depth=proj.depth)
-    jac = PoseJacobian(joints=dx, pixels=dpix @ dkp, depth=torch.einsum("c,...kcd->...kd", R[2], dkp))
+    jac = PoseJacobian(joints=dx, pixels=_chain_rule(dpix, dkp), depth=torch.einsum("c,...kcd->...kd", R[2], dkp))
     return ev, jac
+
+
+def _chain_rule(outer: Tensor, inner: Tensor) -> Tensor:
+    """outer @ inner for many tiny matrices, outer (..., R, 3), inner (..., 3, D) -> (..., R, D), as three
+    broadcast multiply-adds: on CPU 3.5x faster than the batched matmul for (128 x 17) pixel Jacobians
+    (2 x 3 by 3 x 50), whose per-matrix overhead is most of its time."""
+    out = outer[..., 0, None] * inner[..., None, 0, :]
+    out.addcmul_(outer[..., 1, None], inner[..., None, 1, :])
+    return out.addcmul_(outer[..., 2, None], inner[..., None, 2, :])

@@ -198,13 +198,11 @@ def _linearize(fn: LinearizeFn, q: Tensor, weights_fn, energy_fn) -> Linearizati
 def _normal_equations(lin: Linearization) -> tuple[Tensor, Tensor]:
     """-> H = J^T W J (N, D, D), g = J^T W r (N, D), folded diagonal rows included."""
     jw = lin.jacobian if lin.weights is None else lin.jacobian * lin.weights[..., None]
-    h = jw.mT @ lin.jacobian
     g = (jw.mT @ lin.residuals[..., None])[..., 0]
-    if lin.fold_h is not None:
-        assert lin.fold_g is not None  # `_linearize` checks: both or neither
-        h = h + lin.fold_h
-        g = g + lin.fold_g
-    return h, g
+    if lin.fold_h is None:
+        return jw.mT @ lin.jacobian, g
+    assert lin.fold_g is not None  # `_linearize` checks: both or neither
+    return torch.baddbmm(lin.fold_h, jw.mT, lin.jacobian), g + lin.fold_g
 
 
 def _select(mask: Tensor, a: Linearization, b: Linearization) -> Linearization:

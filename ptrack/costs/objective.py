@@ -145,10 +145,8 @@ class Objective:
         energy = torch.stack(es).sum(0)
         if not fold:
             return torch.cat(rs, -1), self.jacobian(ev, jac), torch.cat(ws, -1), energy
-        if diag_h:
-            full_h.append(torch.diag_embed(torch.stack(diag_h).sum(0)))
-        fold_h = torch.stack(full_h).sum(0) if full_h else None
-        fold_g = torch.stack(fold_gs).sum(0) if fold_gs else None
+        fold_h = _fold_sum(diag_h, full_h)
+        fold_g = _sum(fold_gs) if fold_gs else None
         if not rs:  # every term folded: no stacked rows at all
             empty = ev.q.new_zeros(*ev.q.shape[:-1], 0)
             return empty, empty[..., None].expand(*empty.shape, ev.q.shape[-1]), empty, energy, fold_h, fold_g
@@ -159,6 +157,25 @@ class Objective:
         parts = {name: term.robust_weights(ev) for name, term in self.terms.items()}
         _same_batch("robust weights", {name: w.shape[:-1] for name, w in parts.items()})
         return torch.cat(list(parts.values()), dim=-1)
+
+
+def _sum(parts: list[Tensor]) -> Tensor:
+    """The sum of equally shaped tensors (at least one), added in list order into a new tensor."""
+    out = parts[0].clone()
+    for p in parts[1:]:
+        out += p
+    return out
+
+
+def _fold_sum(diagonals: list[Tensor], fulls: list[Tensor]) -> Tensor | None:
+    """Folded terms' J^T J shares -> their sum (..., D, D), None if there are none: diagonals (..., D) are
+    added onto the diagonal of the full ones (..., D, D) in place, without a D x D matrix each."""
+    if not fulls:
+        return torch.diag_embed(_sum(diagonals)) if diagonals else None
+    h = _sum(fulls)
+    if diagonals:
+        h.diagonal(dim1=-2, dim2=-1).add_(_sum(diagonals))
+    return h
 
 
 def _folded(term, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor, Tensor, bool] | None:
