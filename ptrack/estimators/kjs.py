@@ -47,7 +47,9 @@ A second pass runs backwards in time from the forward pass's last modes (`kjs.ba
 body's, from frame 0 on, and the backward pass brings the later reading back. After a keyframe start each
 backward step also starts from the forward pass's modes of the frame after (`_feed`): where a limb crosses
 the image plane both passes lag on the side they came from, and the forward pass's true reading, found a
-few frames after the crossing in a light mode, is carried back to the crossing. Each frame's K
+few frames after the crossing in a light mode, is carried back to the crossing; the backward pass keeps
+the heaviest mode of each depth order of the limbs before any order's second (`_orders_first`), so that
+such a light mode is not crowded out by many heavier copies of the other reading. Each frame's K
 hypotheses are taken from both passes in turn (`_merge`): the forward trajectory's mode first, then each
 pass's heaviest, each depth order of the limbs before any order twice. The best trajectory stays the
 forward pass's: over the merged modes Viterbi took flipped backward modes where the forward pass had
@@ -373,6 +375,15 @@ def _depth_orders(s: Setup, q: Tensor) -> Tensor:
         return (gap > DEPTH_ORDER_MARGIN_M).long() - (gap < -DEPTH_ORDER_MARGIN_M).long()
 
 
+def _orders_first(s: Setup, q: Tensor, rank: Tensor) -> Tensor:
+    """Poses q (N, D) in the order `rank` (N,) (distinct integers, lowest first) -> a new rank (N,) that keeps
+    the first pose of each depth order of the limbs (`_depth_orders`) where it was and puts every repeat of
+    a depth order after all of them (in their old order)."""
+    _, order = torch.unique(_depth_orders(s, q), dim=0, return_inverse=True)
+    earliest = torch.full_like(rank, rank.numel()).scatter_reduce(0, order, rank, "amin")
+    return rank + rank.numel() * (rank != earliest[order])
+
+
 def _merge(s: Setup, forward: Modes, backward: Modes, lead: int) -> Modes:
     """One frame's modes from two mixtures (the forward and the backward pass; or, inside the backward
     pass, its own modes and the forward pass's): the first mixture's mode `lead` first (after both passes:
@@ -391,9 +402,7 @@ def _merge(s: Setup, forward: Modes, backward: Modes, lead: int) -> Modes:
     rank = torch.empty_like(turns)
     rank[turns] = torch.arange(turns.numel(), device=turns.device)
     both = Modes(*(torch.cat([a, b]) for a, b in zip(forward, backward)))
-    _, order = torch.unique(_depth_orders(s, both.q), dim=0, return_inverse=True)
-    earliest = torch.full_like(rank, rank.numel()).scatter_reduce(0, order, rank, "amin")
-    rank = rank + rank.numel() * (rank != earliest[order])  # a repeated depth order after every new one
+    rank = _orders_first(s, both.q, rank)
     keep = _distinct(s, both.q, rank.to(both.q.dtype))
     keep = keep[torch.argsort(rank[keep])][: s.cfg.kjs.modes]
     weight = both.weight[keep]
@@ -405,8 +414,12 @@ def _modes(s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, weight: Tensor, o
     return Modes(q=q, weight=weight, cost=cost, chol=_cholesky(s, hessian), velocity=q - origin)
 
 
-def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generator) -> tuple[Modes, Tensor]:
-    """Frame t-1's modes -> frame t's, and the flipped leaves kept per chain (C,) (see the module docstring)."""
+def _step(
+    s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generator, orders: bool = False
+) -> tuple[Modes, Tensor]:
+    """Frame t-1's modes -> frame t's, and the flipped leaves kept per chain (C,) (see the module docstring).
+    With `orders` the K kept are the heaviest of each depth order of the limbs before any order's second
+    (`_orders_first`), else the K heaviest."""
     k = s.cfg.kjs
     obs = s.problem.observations
     predicted = modes.q + k.momentum * modes.velocity  # (K, D): the dynamics' prediction of each mode
@@ -436,7 +449,10 @@ def _step(s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generat
     best, _ = _select(s, q, cost, prior[parent], 4 * k.modes)
     q, parent = q[best], parent[best]
     q, cost, hessian = _polish(s, t, q, predicted[parent], k.refine_iterations, sigma[parent], tracking=True)
-    keep, w = _select(s, q, cost, prior[parent], k.modes)
+    keep, w = _select(s, q, cost, prior[parent], 4 * k.modes if orders else k.modes)
+    if orders and keep.numel():
+        pick = torch.argsort(_orders_first(s, q[keep], torch.arange(keep.numel(), device=keep.device)))[: k.modes]
+        keep, w = keep[pick], w[pick] / w[pick].sum()
     if keep.numel() == 0:  # every hypothesis diverged (non-finite cost): the dynamics carry the modes
         return modes._replace(q=predicted), counts
     return _modes(s, q[keep], cost[keep], hessian[keep], w, modes.q[parent[keep]]), counts
@@ -671,7 +687,7 @@ def _track(
         elif back and not passes[1]:  # the forward pass's last modes (and a tree start there: _backward_start)
             modes, counts = _backward_start(s, modes, strategy), torch.zeros_like(counts)
         elif back and k.init == "keyframe":  # from its own modes of frame t+1 and the forward pass's (`_feed`)
-            modes, counts = _step(s, t, _feed(s, modes, passes[0][t + 1][0]), strategy, generator)
+            modes, counts = _step(s, t, _feed(s, modes, passes[0][t + 1][0]), strategy, generator, orders=True)
         else:
             modes, counts = _step(s, t, modes, strategy, generator)
         passes[back].append((modes, counts.to(modes.q.device)))
