@@ -205,15 +205,6 @@ def _normal_equations(lin: Linearization) -> tuple[Tensor, Tensor]:
     return torch.baddbmm(lin.fold_h, jw.mT, lin.jacobian), g + lin.fold_g
 
 
-def _select(mask: Tensor, a: Linearization, b: Linearization) -> Linearization:
-    """Per-problem select of two `_linearize` outputs (the same fields set): a where mask, else b."""
-
-    def pick(x: Tensor | None, y: Tensor | None) -> Tensor | None:
-        return None if x is None or y is None else _where(mask, x, y)
-
-    return Linearization._make(pick(x, y) for x, y in zip(a, b))
-
-
 def _energy(lin: Linearization) -> Tensor:
     """The energy of a `_linearize` output (which always sets it)."""
     assert lin.energy is not None
@@ -270,6 +261,7 @@ def levenberg_marquardt(
     eye = torch.eye(d, dtype=q.dtype, device=q.device)
     tiny = torch.finfo(q.dtype).tiny
     h, g = _normal_equations(lin)
+    energy = _energy(lin)  # (N,) at q; only this, h and g of the accepted linearisation are used again
     lam = float(damping) * h.diagonal(dim1=-2, dim2=-1).amax(-1).clamp(min=tiny)
     nu = q.new_full((n,), 2.0)
     done = torch.zeros(n, dtype=torch.bool, device=q.device)
@@ -282,42 +274,45 @@ def levenberg_marquardt(
         if bool(done.all()):
             break
         free = _free(q, g, lo, hi)
-        both = free[:, :, None] & free[:, None, :]
-        a = torch.where(both, h + lam[:, None, None] * eye, eye)
+        a = h + lam[:, None, None] * eye
+        if not bool(free.all()):  # a bound holds some dofs: their rows and columns become the identity's
+            a = torch.where(free[:, :, None] & free[:, None, :], a, eye)
         chol, info = torch.linalg.cholesky_ex(a)
         ok = info == 0
         b = -torch.where(free, g, 0.0)
-        dq = torch.cholesky_solve(b[..., None], torch.where(ok[:, None, None], chol, eye))[..., 0]
+        if not bool(ok.all()):
+            chol = torch.where(ok[:, None, None], chol, eye)
+        dq = torch.cholesky_solve(b[..., None], chol)[..., 0]
         trial = torch.minimum(torch.maximum(q + dq, lo), hi)
         step = trial - q
         new = _linearize(linearize, trial, weights_fn, energy_fn)
         evaluations += 1
         predicted = -((g * step).sum(-1) + 0.5 * (step * (h @ step[..., None])[..., 0]).sum(-1))
-        actual = _energy(lin) - _energy(new)
+        actual = energy - _energy(new)
         active = ~done
         iterations += active.long()
         accept = active & ok & torch.isfinite(_energy(new)) & (actual > 0)
         rho = actual / predicted.clamp(min=tiny)
         step_norm = step.norm(dim=-1)
         tiny_step = step_norm <= tol * (q.norm(dim=-1) + tol)
-        small_drop = accept & (actual <= tol * _energy(lin))
+        small_drop = accept & (actual <= tol * energy)
         lam = torch.where(
             accept, lam * torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3), torch.where(active, lam * nu, lam)
         )
         nu = torch.where(accept, torch.full_like(nu, 2.0), torch.where(active, nu * 2, nu))
         q = _where(accept, trial, q)
-        lin = _select(accept, new, lin)
+        energy = torch.where(accept, _energy(new), energy)
         h_new, g_new = _normal_equations(new)
         h, g = _where(accept, h_new, h), _where(accept, g_new, g)
         stop = active & ok & (small_drop | tiny_step)
         converged |= stop
         done |= stop | (lam > 1e30)  # damping this high: no step lowers the energy any more
         if callback is not None:
-            callback(it, q, _energy(lin))
+            callback(it, q, energy)
     return q, LMInfo(
         iterations=iterations,
         converged=converged,
-        cost=_energy(lin),
+        cost=energy,
         hessian=h,
         gradient=g,
         damping=lam,
