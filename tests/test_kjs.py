@@ -297,13 +297,33 @@ def test_tree_init_when_every_flip_is_pruned(cmu_file):
     assert torch.isfinite(est.hypotheses).all() and est.hypotheses.shape[:2] == (4, K)
 
 
-def _balance_1px(cmu_file, *extra: str):
-    """`configs/eval_kjs.yaml` on CMU 49_18 (one-leg balance) at the issue's accuracy setting: 1 px noise
-    (and sigma), nothing missing."""
-    amc = cmu_file("49_18.amc")
-    overrides = [f"data.amc={amc}", f"data.asf={amc.parent / '49.asf'}", "observations.noise_px=1"]
-    overrides += ["observations.missing=0", "costs.sigma_px=1", "progress=false", *extra]
+def _clip_1px(cmu_file, name: str, *extra: str):
+    """`configs/eval_kjs.yaml` on the CMU clip `name` (e.g. "49_18.amc") at the issue's accuracy setting:
+    1 px noise (and sigma), nothing missing."""
+    amc = cmu_file(name)
+    overrides = [f"data.amc={amc}", f"data.asf={amc.parent / (name.split('_')[0] + '.asf')}"]
+    overrides += ["observations.noise_px=1", "observations.missing=0", "costs.sigma_px=1", "progress=false", *extra]
     return load_config(REPO / "configs" / "eval_kjs.yaml", overrides)
+
+
+def _balance_1px(cmu_file, *extra: str):
+    """`_clip_1px` on CMU 49_18 (one-leg balance)."""
+    return _clip_1px(cmu_file, "49_18.amc", *extra)
+
+
+def _left_knee_true_side(prep, hypotheses, frames: slice) -> int:
+    """How many of `frames` have a hypothesis (T, K, J, 3) whose left knee is on the truth's side of the
+    hip in depth; the truth must be well off the image plane there (5 cm), where the order is defined."""
+    cam, names = prep.problem.observations.camera, prep.problem.skeleton.joint_names
+    hip, knee = names.index("lhipjoint"), names.index("lfemur")
+
+    def knee_behind(joints):  # (..., J, 3) -> (...) depth of the left knee behind the hip, metres
+        depth = cam.world_to_camera(joints)[..., 2]
+        return depth[..., knee] - depth[..., hip]
+
+    truth = knee_behind(prep.gt_joints[frames])
+    assert (truth > 0.05).all()
+    return int((knee_behind(hypotheses[frames]) * truth[:, None].to(hypotheses) > 0).any(-1).sum())
 
 
 def test_tree_start_keeps_raised_arms(cmu_file):
@@ -396,27 +416,12 @@ def test_backward_pass_carries_a_limb_across_the_image_plane(cmu_file):
     Which seed shows it is a matter of float rounding: the polishing's summation order changed on
     2026-11-24 and seed 0, the earlier example, lost the true side in both passes (five seeds, frames
     13-18: 12 of 30 forward only, 24 of 30 with both)."""
-    amc = cmu_file("02_01.amc")
     runs = {}
     for backward in ("tree", "always"):  # after a keyframe start "tree" means the forward pass alone
-        overrides = [f"data.amc={amc}", f"data.asf={amc.parent / '02.asf'}", "observations.noise_px=1"]
-        overrides += ["observations.missing=0", "costs.sigma_px=1", "progress=false", f"kjs.backward_pass={backward}"]
-        cfg = load_config(REPO / "configs" / "eval_kjs.yaml", [*overrides, "seed=3"])
+        cfg = _clip_1px(cmu_file, "02_01.amc", f"kjs.backward_pass={backward}", "seed=3")
         prep = prepare(cfg)
         runs[backward] = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(4))  # as `ptrack run`
-    cam, names = prep.problem.observations.camera, prep.problem.skeleton.joint_names
-    hip, knee = names.index("lhipjoint"), names.index("lfemur")
-
-    def knee_behind(joints):  # (..., J, 3) -> (...) depth of the left knee behind the hip, metres
-        depth = cam.world_to_camera(joints)[..., 2]
-        return depth[..., knee] - depth[..., hip]
-
-    truth = knee_behind(prep.gt_joints[13:19])
-    assert (truth > 0.05).all()  # well off the image plane: the depth order is defined
-    found = {
-        b: int((knee_behind(est.hypotheses[13:19]) * truth[:, None].to(est.hypotheses) > 0).any(-1).sum())
-        for b, est in runs.items()
-    }  # frames with a mode on the true side
+    found = {b: _left_knee_true_side(prep, est.hypotheses, slice(13, 19)) for b, est in runs.items()}
     assert found["tree"] <= 1 and found["always"] >= 5, f"true side on frames 13-18: {found}"
     best = {b: _errors(prep, est)[1] for b, est in runs.items()}
     assert best["always"] < 20.0 and best["always"] < best["tree"] - 2.0, f"best-of-K {best}"
@@ -431,22 +436,10 @@ def test_backward_pass_keeps_a_light_depth_order(cmu_file):
     mirrored one; keeping the K heaviest dropped it at frame 33 (true side among the modes on 0 of frames
     24-34, best-of-K 26.4 mm). Keeping the heaviest of each depth order first (`_orders_first`) carries it
     back to frame 24 (measured: 11 of 11 frames, best-of-K 20.2 mm)."""
-    amc = cmu_file("07_05.amc")
-    overrides = [f"data.amc={amc}", f"data.asf={amc.parent / '07.asf'}", "observations.noise_px=1"]
-    overrides += ["observations.missing=0", "costs.sigma_px=1", "progress=false", "seed=5"]
-    cfg = load_config(REPO / "configs" / "eval_kjs.yaml", overrides)
+    cfg = _clip_1px(cmu_file, "07_05.amc", "seed=5")
     prep = prepare(cfg)
     est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(6))  # as `ptrack run`
-    cam, names = prep.problem.observations.camera, prep.problem.skeleton.joint_names
-    hip, knee = names.index("lhipjoint"), names.index("lfemur")
-
-    def knee_behind(joints):  # (..., J, 3) -> (...) depth of the left knee behind the hip, metres
-        depth = cam.world_to_camera(joints)[..., 2]
-        return depth[..., knee] - depth[..., hip]
-
-    truth = knee_behind(prep.gt_joints[24:35])
-    assert (truth > 0.05).all()  # well off the image plane: the depth order is defined
-    found = int((knee_behind(est.hypotheses[24:35]) * truth[:, None].to(est.hypotheses) > 0).any(-1).sum())
+    found = _left_knee_true_side(prep, est.hypotheses, slice(24, 35))
     assert found >= 9, f"true side on {found} of frames 24-34"
     _, best = _errors(prep, est)
     assert best < 22.0, f"best-of-K {best:.1f} mm"
