@@ -322,7 +322,7 @@ def _left_knee_true_side(prep, hypotheses, frames: slice) -> int:
         return depth[..., knee] - depth[..., hip]
 
     truth = knee_behind(prep.gt_joints[frames])
-    assert (truth > 0.05).all()
+    assert (truth > 0.05).all(), f"the truth's knee is near the image plane: {truth.tolist()}"
     return int((knee_behind(hypotheses[frames]) * truth[:, None].to(hypotheses) > 0).any(-1).sum())
 
 
@@ -431,7 +431,7 @@ def test_backward_pass_carries_a_limb_across_the_image_plane(cmu_file):
 def test_backward_pass_keeps_a_light_depth_order(cmu_file):
     """CMU 07_05 (slow walk) at 1 px, nothing missing, after a keyframe start, as `ptrack evaluate --seeds
     5` runs it. The left knee passes behind the hip at frame 22 and the forward pass holds the mirrored
-    reading from there to frame 34 (truth +6 to +23 cm behind, modes 5 to 26 cm in front). The backward
+    reading from there to frame 34 (frames 24-34: truth 8 to 23 cm behind, modes 6 to 26 cm in front). The backward
     pass has the true reading on frames 35 and 34, but in one light mode beside heavier copies of the
     mirrored one; keeping the K heaviest dropped it at frame 33 (true side among the modes on 0 of frames
     24-34, best-of-K 26.4 mm). Keeping the heaviest of each depth order first (`_orders_first`) carries it
