@@ -16,6 +16,7 @@ from ptrack.cli import main
 from ptrack.config import load_config
 from ptrack.estimators import ESTIMATORS
 from ptrack.estimators.kjs import KJS, _allocate, _chain_votes, _setup, track
+from ptrack.evaluate import asf_for
 from ptrack.problem import Problem
 from ptrack.run import compute_metrics, prepare, reprojected_keypoints
 
@@ -283,11 +284,7 @@ def test_tree_init_when_every_flip_is_pruned(cmu_file):
     """On the first frame of CMU 09_06 (a run) seen as configs/eval_kjs.yaml sees it, every flipped leaf
     broke the limits and the tracker crashed with no candidate left; the fitted pose itself always stays
     a candidate. (The camera frames the whole 3 s, so the problem is cut to 4 frames after `prepare`.)"""
-    amc = cmu_file("09_06.amc")
-    cfg = load_config(
-        REPO / "configs" / "eval_kjs.yaml",
-        [f"data.amc={amc}", f"data.asf={amc.parent / '09.asf'}", "kjs.init=tree", "progress=false"],
-    )
+    cfg = _clip(cmu_file, "09_06.amc", "kjs.init=tree")
     prep = prepare(cfg)
     obs = prep.problem.observations
     short = dataclasses.replace(obs, keypoints=obs.keypoints[:4], confidence=obs.confidence[:4], times=obs.times[:4])
@@ -297,13 +294,17 @@ def test_tree_init_when_every_flip_is_pruned(cmu_file):
     assert torch.isfinite(est.hypotheses).all() and est.hypotheses.shape[:2] == (4, K)
 
 
-def _clip_1px(cmu_file, name: str, *extra: str):
-    """`configs/eval_kjs.yaml` on the CMU clip `name` (e.g. "49_18.amc") at the issue's accuracy setting:
-    1 px noise (and sigma), nothing missing."""
+def _clip(cmu_file, name: str, *extra: str):
+    """`configs/eval_kjs.yaml` on the CMU clip `name` (e.g. "49_18.amc") and its skeleton, as `ptrack
+    evaluate` runs it (2 px noise, 10% missing), with the overrides `extra`."""
     amc = cmu_file(name)
-    overrides = [f"data.amc={amc}", f"data.asf={amc.parent / (name.split('_')[0] + '.asf')}"]
-    overrides += ["observations.noise_px=1", "observations.missing=0", "costs.sigma_px=1", "progress=false", *extra]
+    overrides = [f"data.amc={amc}", f"data.asf={asf_for(amc)}", "progress=false", *extra]
     return load_config(REPO / "configs" / "eval_kjs.yaml", overrides)
+
+
+def _clip_1px(cmu_file, name: str, *extra: str):
+    """`_clip` at the issue's accuracy setting: 1 px noise (and sigma), nothing missing."""
+    return _clip(cmu_file, name, "observations.noise_px=1", "observations.missing=0", "costs.sigma_px=1", *extra)
 
 
 def _balance_1px(cmu_file, *extra: str):
@@ -451,9 +452,7 @@ def test_backward_pass_restarts_on_the_last_frame(cmu_file):
     off over seeds 0-4) and the forward pass never finds it (best trajectory 243 mm). The backward pass
     also starts from the last frame's own tree start, which gets it right (measured best-of-K: 22.2 mm;
     98.3 when the backward pass started from the forward pass's last modes alone)."""
-    amc = cmu_file("49_18.amc")
-    overrides = [f"data.amc={amc}", f"data.asf={amc.parent / '49.asf'}", "kjs.init=tree", "progress=false"]
-    cfg = load_config(REPO / "configs" / "eval_kjs.yaml", overrides)
+    cfg = _clip(cmu_file, "49_18.amc", "kjs.init=tree")
     prep = prepare(cfg)
     est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(1))  # as `ptrack run`
     _, best = _errors(prep, est)
