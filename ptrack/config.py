@@ -193,7 +193,8 @@ class KjsMethodConfig:
     # start, with the last frame's own tree start beside them; after a keyframe start, fed each frame by
     # the forward pass's modes of the frame after); each frame's K hypotheses are then the forward
     # trajectory's mode and both passes' modes in turn, each depth order of the limbs before any repeat,
-    # and the best trajectory stays the forward pass's: "always" (after either start), "tree" (after a
+    # and the best trajectory stays the forward pass's (after a tree start the backward pass's when the two
+    # trajectories face more than 30 degrees apart and it costs less): "always" (after either start), "tree" (after a
     # tree start only) or "never". It doubles the time. Dev clips, five seeds, best-of-K: keyframe start
     # 1 px 17.2 -> 15.3 mm (02_01 22.5 -> 18.8), 2 px 24.8 -> 22.6; tree start 1 px 25.2 -> 21.5
     # (02_01 28.4), 2 px 47.9 -> 32.2 (docs/results.md)

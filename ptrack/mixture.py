@@ -76,6 +76,12 @@ def viterbi(unary: Tensor, q: Tensor, sigma: float) -> Tensor:
     unary entries are never chosen (unless a frame has nothing else).
     unary: (T, K); q: (T, K, D) -> (T,) int64 hypothesis index per frame.
     """
+    return viterbi_with_cost(unary, q, sigma)[0]
+
+
+def viterbi_with_cost(unary: Tensor, q: Tensor, sigma: float) -> tuple[Tensor, Tensor]:
+    """`viterbi` and the minimised sum along its path: unary (T, K), q (T, K, D) -> path (T,) int64,
+    cost () (a huge finite number where the path has to take a non-finite unary entry)."""
     if unary.ndim != 2 or q.shape[:2] != unary.shape:
         raise InputError(
             f"viterbi: unary (T, K) and q (T, K, D) expected, got {tuple(unary.shape)} and {tuple(q.shape)}"
@@ -94,4 +100,4 @@ def viterbi(unary: Tensor, q: Tensor, sigma: float) -> Tensor:
     path = [int(score.argmin())]
     for arg in reversed(back):
         path.append(int(arg[path[-1]]))
-    return torch.as_tensor(path[::-1], dtype=torch.long, device=unary.device)
+    return torch.as_tensor(path[::-1], dtype=torch.long, device=unary.device), score.min()

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from ptrack.errors import InputError
-from ptrack.mixture import distinct_minima, nearest, posterior_weights, viterbi
+from ptrack.mixture import distinct_minima, nearest, posterior_weights, viterbi, viterbi_with_cost
 
 
 def test_distinct_minima_suppresses_duplicates_and_orders_by_cost():
@@ -56,6 +56,8 @@ def test_viterbi_matches_brute_force():
 
     best = min(itertools.product(range(K), repeat=T), key=total)
     assert viterbi(unary, q, sigma).tolist() == list(best)
+    path, cost = viterbi_with_cost(unary, q, sigma)
+    assert path.tolist() == list(best) and float(cost) == pytest.approx(total(best), rel=1e-12)
 
 
 def test_viterbi_avoids_non_finite_and_prefers_smooth_paths():

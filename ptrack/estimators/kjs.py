@@ -54,6 +54,8 @@ hypotheses are taken from both passes in turn (`_merge`): the forward trajectory
 pass's heaviest, each depth order of the limbs before any order twice. The best trajectory stays the
 forward pass's: over the merged modes Viterbi took flipped backward modes where the forward pass had
 been right (held-out 35_01, 02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 mm; docs/results.md).
+After a tree start the backward pass's own best trajectory replaces it when the two face directions more
+than `HEADING_SPLIT_DEG` apart (two readings of the whole body) and it costs less (`_lead_pass`).
 """
 
 from __future__ import annotations
@@ -89,7 +91,7 @@ from ptrack.jumps import (
     joint_observations,
     product,
 )
-from ptrack.mixture import Modes, distinct_minima, posterior_weights, viterbi
+from ptrack.mixture import Modes, distinct_minima, posterior_weights, viterbi_with_cost
 from ptrack.pose_prior import pose_prior, smoothing_prior
 from ptrack.problem import Estimate, Problem, first_keyframe, pose_eval_from_joints
 from ptrack.samplers import css_proposal, project_to_limits, scaled_covariance, spherical_proposal
@@ -641,10 +643,10 @@ def _lattice(s: Setup, per_frame: list[Modes]) -> tuple[Tensor, Tensor, Tensor, 
         return hq, hw, hc, hl, s.problem.skeleton.forward_kinematics(hq)
 
 
-def _best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> Tensor:
+def _best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor, Tensor]:
     """Viterbi through the lattice q (T, K, D), weights (T, K), joints (T, K, J, 3): each mode's own frame
     cost (`_evidence`) plus a velocity prior between consecutive choices (`kjs.viterbi_space`); padding
-    (weight 0) is never chosen. -> mode index per frame (T,)."""
+    (weight 0) is never chosen. -> mode index per frame (T,), and the path's cost ()."""
     k = s.cfg.kjs
     unary = torch.stack([_evidence(s, t, q, j) for t, (q, j) in enumerate(zip(hq, joints))])
     with torch.no_grad():
@@ -652,7 +654,48 @@ def _best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> Tensor:
             feats, sigma = (joints - joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
         else:
             feats, sigma = hq, k.viterbi_sigma
-        return viterbi(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma)
+        return viterbi_with_cost(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma)
+
+
+#: after a tree start, the passes' best trajectories whose bodies face directions this far apart (mean over
+#: the frames, degrees) hold two readings of the whole body, and the cheaper one is taken (`_lead_pass`)
+HEADING_SPLIT_DEG = 30.0
+
+
+def _heading(s: Setup, joints: Tensor) -> Tensor | None:
+    """The direction of the hip line (left hip minus right hip keypoint) about the world's up axis (+Y),
+    joints (T, J, 3) -> (T,) radians; None when the keypoint set names no "l_hip" and "r_hip"."""
+    kp = s.problem.keypoints
+    if "l_hip" not in kp.names or "r_hip" not in kp.names:
+        return None
+    line = joints[:, kp.joints[kp.names.index("l_hip")]] - joints[:, kp.joints[kp.names.index("r_hip")]]
+    return torch.atan2(line[:, 2], line[:, 0])
+
+
+def _lead_pass(
+    s: Setup, forward: tuple[Tensor, Tensor], backward: list[Modes], forward_joints: Tensor
+) -> tuple[bool, Tensor]:
+    """After a tree start: does the backward pass's best trajectory replace the forward pass's? forward:
+    its path (T,) and cost (); forward_joints (T, J, 3) along it. -> (backward leads, the leading path).
+
+    Each pass starts from its own tree start (frame 0, the last frame), and either can hold a wrong reading
+    of the whole body throughout (49_18 and 49_19 at 2 px: the forward pass's body turned 48-58° from the
+    truth, 240-260 mm MPJPE; the backward pass's 2-4°). Where the two trajectories face apart by more than
+    `HEADING_SPLIT_DEG` on average the cheaper (frame costs plus the velocity prior, what Viterbi
+    minimises) is taken: it was the right one on every such run measured. Where they face alike and differ
+    limb by limb the cost does not tell them apart (the backward one was the cheaper on most held-out runs
+    and worse in MPJPE on most of those), so the forward pass's stays (docs/results.md)."""
+    path, cost = forward
+    bq, bw, _, _, bj = _lattice(s, backward)
+    back_path, back_cost = _best_path(s, bq, bw, bj)
+    frames = torch.arange(path.shape[0], device=path.device)
+    ahead, behind = _heading(s, forward_joints), _heading(s, bj[frames, back_path])
+    if ahead is None or behind is None:
+        return False, path
+    apart = torch.remainder(ahead - behind + math.pi, 2 * math.pi) - math.pi
+    if float(apart.abs().mean()) > math.radians(HEADING_SPLIT_DEG) and bool(back_cost < cost):
+        return True, back_path
+    return False, path
 
 
 def track(
@@ -694,9 +737,14 @@ def _track(
     forward = [m for m, _ in passes[0]]
     jumps = [c for _, c in passes[0]]
     hq, hw, hc, hl, hyp_joints = _lattice(s, forward)
-    path = _best_path(s, hq, hw, hyp_joints)
-    if backward:  # the hypotheses of both passes; the best trajectory stays the forward pass's (see _merge)
-        merged = [_merge(s, a, b, int(p)) for a, (b, _), p in zip(forward, reversed(passes[1]), path)]
+    path, cost = _best_path(s, hq, hw, hyp_joints)
+    if backward:  # the hypotheses of both passes, the best trajectory's mode first in each frame (`_merge`)
+        lead, other = forward, [m for m, _ in reversed(passes[1])]
+        if k.init == "tree":
+            frames = torch.arange(path.shape[0], device=path.device)
+            swap, path = _lead_pass(s, (path, cost), other, hyp_joints[frames, path])
+            lead, other = (other, lead) if swap else (lead, other)
+        merged = [_merge(s, a, b, int(p)) for a, b, p in zip(lead, other, path)]
         hq, hw, hc, hl, hyp_joints = _lattice(s, merged)
         path = torch.zeros_like(path)
         jumps = [a + b for a, (_, b) in zip(jumps, reversed(passes[1]))]
