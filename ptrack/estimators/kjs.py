@@ -662,21 +662,25 @@ def _best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor
 HEADING_SPLIT_DEG = 30.0
 
 
-def _heading(s: Setup, joints: Tensor) -> Tensor | None:
-    """The direction of the hip line (left hip minus right hip keypoint) about the world's up axis (+Y),
-    joints (T, J, 3) -> (T,) radians; None when the keypoint set names no "l_hip" and "r_hip"."""
+def _hips(s: Setup) -> tuple[int, int] | None:
+    """The skeleton joints of the keypoints "l_hip" and "r_hip", or None when the keypoint set lacks one."""
     kp = s.problem.keypoints
     if "l_hip" not in kp.names or "r_hip" not in kp.names:
         return None
-    line = joints[:, kp.joints[kp.names.index("l_hip")]] - joints[:, kp.joints[kp.names.index("r_hip")]]
+    return kp.joints[kp.names.index("l_hip")], kp.joints[kp.names.index("r_hip")]
+
+
+def _heading(joints: Tensor, hips: tuple[int, int]) -> Tensor:
+    """The direction of the hip line (left hip minus right hip, `_hips`) about the world's up axis (+Y):
+    joints (T, J, 3) -> (T,) radians."""
+    line = joints[:, hips[0]] - joints[:, hips[1]]
     return torch.atan2(line[:, 2], line[:, 0])
 
 
-def _lead_pass(
-    s: Setup, forward: tuple[Tensor, Tensor], backward: list[Modes], forward_joints: Tensor
-) -> tuple[bool, Tensor]:
-    """After a tree start: does the backward pass's best trajectory replace the forward pass's? forward:
-    its path (T,) and cost (); forward_joints (T, J, 3) along it. -> (backward leads, the leading path).
+def _lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: list[Modes]) -> tuple[bool, Tensor]:
+    """After a tree start: does the backward pass's best trajectory replace the forward pass's? path (T,),
+    cost () and joints (T, K, J, 3): the forward pass's best trajectory, its cost and its lattice's joints.
+    -> (backward leads, the leading path).
 
     Each pass starts from its own tree start (frame 0, the last frame), and either can hold a wrong reading
     of the whole body throughout (49_18 and 49_19 at 2 px: the forward pass's body turned 48-58° from the
@@ -684,15 +688,16 @@ def _lead_pass(
     `HEADING_SPLIT_DEG` on average the cheaper (frame costs plus the velocity prior, what Viterbi
     minimises) is taken: it was the right one on every such run measured. Where they face alike and differ
     limb by limb the cost does not tell them apart (the backward one was the cheaper on most held-out runs
-    and worse in MPJPE on most of those), so the forward pass's stays (docs/results.md)."""
-    path, cost = forward
+    and worse in MPJPE on most of those), so the forward pass's stays (docs/results.md). Without hip
+    keypoints the forward pass's stays."""
+    hips = _hips(s)
+    if hips is None:
+        return False, path
     bq, bw, _, _, bj = _lattice(s, backward)
     back_path, back_cost = _best_path(s, bq, bw, bj)
     frames = torch.arange(path.shape[0], device=path.device)
-    ahead, behind = _heading(s, forward_joints), _heading(s, bj[frames, back_path])
-    if ahead is None or behind is None:
-        return False, path
-    apart = torch.remainder(ahead - behind + math.pi, 2 * math.pi) - math.pi
+    apart = _heading(joints[frames, path], hips) - _heading(bj[frames, back_path], hips)
+    apart = torch.remainder(apart + math.pi, 2 * math.pi) - math.pi
     if float(apart.abs().mean()) > math.radians(HEADING_SPLIT_DEG) and bool(back_cost < cost):
         return True, back_path
     return False, path
@@ -741,8 +746,7 @@ def _track(
     if backward:  # the hypotheses of both passes, the best trajectory's mode first in each frame (`_merge`)
         lead, other = forward, [m for m, _ in reversed(passes[1])]
         if k.init == "tree":
-            frames = torch.arange(path.shape[0], device=path.device)
-            swap, path = _lead_pass(s, (path, cost), other, hyp_joints[frames, path])
+            swap, path = _lead_pass(s, path, cost, hyp_joints, other)
             lead, other = (other, lead) if swap else (lead, other)
         merged = [_merge(s, a, b, int(p)) for a, b, p in zip(lead, other, path)]
         hq, hw, hc, hl, hyp_joints = _lattice(s, merged)
