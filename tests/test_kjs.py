@@ -463,6 +463,21 @@ def test_backward_pass_restarts_on_the_last_frame(cmu_file):
     assert torch.equal(est.joints, est.hypotheses[:, 0])  # the best trajectory's mode leads every frame
 
 
+def test_best_trajectory_beats_frame(cmu_file):
+    """The issue's third accuracy target on a seeded dev clip, CMU 09_06 (a run), at the evaluation setting
+    (2 px, 10% missing, seed 0 as `ptrack evaluate` runs it), both methods on the same observations.
+    Measured: kjs (keyframe start) best trajectory 39.5 mm, flip rate 0.035; `frame` 63.1 mm, 0.104. On
+    49_18 (the one-leg balance) the two are level in flip rate, seed for seed (docs/results.md)."""
+    cfg = _clip(cmu_file, "09_06.amc")
+    prep = prepare(cfg)
+    got = {}
+    for method in ("kjs", "frame"):
+        est = ESTIMATORS[method](prep.problem, cfg, torch.Generator().manual_seed(cfg.seed + 1))
+        metrics, _ = compute_metrics(prep, est, reprojected_keypoints(prep, est))
+        got[method] = (metrics["mpjpe_mm"], metrics["flip_error_rate"])
+    assert got["kjs"][0] < got["frame"][0] and got["kjs"][1] < got["frame"][1], f"(MPJPE mm, flip rate): {got}"
+
+
 def test_tree_start_headings(kjs_run):
     """The tree start turns the rest pose to 8 headings about the world's up axis (Y), each leaned
     forward and back: the hip line sweeps the circle, the spine stays vertical at lean 0."""
