@@ -1,5 +1,5 @@
 """Command line: `ptrack run CONFIG [key=value ...]`, `ptrack evaluate CONFIG --clips LIST`,
-`ptrack fit-motion CONFIG [--out FILE]`, `ptrack replay RUN_DIR`.
+`ptrack compare EVAL_A EVAL_B`, `ptrack fit-motion CONFIG [--out FILE]`, `ptrack replay RUN_DIR`.
 
 stdout carries only what a script reads: the run folder's path (the table's for `evaluate`), or with
 `--json` the metrics (`results.json` for `evaluate`); messages and progress go to stderr, progress bars
@@ -49,6 +49,17 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--out", default=None, help="output folder (default logs/eval-<config>-<time>)")
     e.add_argument("--quiet", action="store_true", help="no progress (bar on a terminal, one line per clip elsewhere)")
     e.add_argument("--json", action="store_true", help="print results.json on stdout instead of the table's path")
+    c = sub.add_parser("compare", help="two evaluations seed by seed: means, differences with their spread, wins")
+    c.add_argument("a", help="a `ptrack evaluate` folder (or its results.json)")
+    c.add_argument("b", help="another, on the same clips and seeds")
+    c.add_argument(
+        "--metrics",
+        nargs="+",
+        default=None,
+        help="metrics.json keys to compare (default: mpjpe_mm best_of_k_mpjpe_mm flip_error_rate)",
+    )
+    c.add_argument("--names", nargs=2, default=None, metavar=("A", "B"), help="column names (default: the folders')")
+    c.add_argument("--json", action="store_true", help="print the comparison as JSON instead of a markdown table")
     f = sub.add_parser("fit-motion", help="fit a PCA motion model to the config's motion.clips and write it")
     f.add_argument("config", help="YAML config with a motion: section, e.g. configs/golf_motion.yaml")
     f.add_argument("overrides", nargs="*", help="dotted.key=value overrides, e.g. motion.components=3")
@@ -82,6 +93,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def _eval_name(path: str) -> str:
+    """An evaluation's name for `compare`: its folder's (the folder holding results.json if given the file)."""
+    p = Path(path)
+    return (p.parent if p.name == "results.json" else p).resolve().name or str(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="ptrack: %(levelname)s: %(message)s")
@@ -108,6 +125,12 @@ def main(argv: list[str] | None = None) -> int:
             )
             json_path = table.with_name("results.json")
             print(json_path.read_text() if args.json else table, end="" if args.json else "\n", flush=True)
+        elif args.command == "compare":
+            from ptrack.compare import as_json, compare, load_runs, markdown
+
+            names = args.names or [_eval_name(args.a), _eval_name(args.b)]
+            rows = compare(load_runs(args.a), load_runs(args.b), args.metrics)
+            print((as_json if args.json else markdown)(rows, *names), end="", flush=True)
         elif args.command == "fit-motion":
             import time
 
