@@ -78,9 +78,10 @@ def _number(m: dict, metric: str) -> float | None:
 
 
 def compare(a: Runs, b: Runs, metrics: list[str] | tuple[str, ...] | None = None) -> list[Row]:
-    """Rows for every clip in both (in A's order) and metric, over the seeds both ran with that metric.
-    metrics: None for those of `DEFAULT_METRICS` that some run has (`frame` has no best-of-K); a metric
-    named here that no run has is an error."""
+    """Rows for every clip in both (in A's order) and metric, over the seeds both ran with that metric; then,
+    with two clips or more, a row per metric over the clips ("mean (N clips)"): each seed's mean over the
+    clips in A and in B, over the seeds every clip ran. metrics: None for those of `DEFAULT_METRICS` that
+    some run has (`frame` has no best-of-K); a metric named here that no run has is an error."""
     clips = [c for c in a if c in b]
     if not clips:
         raise InputError(
@@ -98,36 +99,47 @@ def compare(a: Runs, b: Runs, metrics: list[str] | tuple[str, ...] | None = None
         if not present(metric):
             raise InputError(f"no run of either evaluation has the metric {metric!r}")
     rows = []
-    for clip in clips:
-        for metric in metrics:
-            pairs = []
-            for seed, ma in a[clip].items():
-                mb = b[clip].get(seed)
-                x, y = _number(ma, metric), None if mb is None else _number(mb, metric)
-                if x is not None and y is not None:
-                    pairs.append((x, y))
-            if not pairs:
-                continue
-            n = len(pairs)
-            diffs = [x - y for x, y in pairs]
-            mean = sum(diffs) / n
-            stderr = math.sqrt(sum((d - mean) ** 2 for d in diffs) / (n - 1) / n) if n > 1 else None
-            rows.append(
-                Row(
-                    clip,
-                    metric,
-                    sum(x for x, _ in pairs) / n,
-                    sum(y for _, y in pairs) / n,
-                    mean,
-                    stderr,
-                    sum(d < 0 for d in diffs),
-                    sum(d == 0 for d in diffs),
-                    n,
-                )
-            )
+    pairs = {(clip, metric): _pairs(a[clip], b[clip], metric) for clip in clips for metric in metrics}
+    for (clip, metric), by_seed in pairs.items():
+        if by_seed:
+            rows.append(_row(clip, metric, list(by_seed.values())))
     if not rows:
         raise InputError("the two evaluations ran no seed of a shared clip in common")
+    for metric in metrics:  # over the clips: each seed's mean over the clips, the seeds every clip ran
+        ran = [pairs[clip, metric] for clip in clips if pairs[clip, metric]]
+        seeds = [s for s in ran[0] if all(s in p for p in ran)] if len(ran) > 1 else []
+        if seeds:
+            means = [(sum(p[s][0] for p in ran) / len(ran), sum(p[s][1] for p in ran) / len(ran)) for s in seeds]
+            rows.append(_row(f"mean ({len(ran)} clips)", metric, means))
     return rows
+
+
+def _pairs(a: dict[str, dict], b: dict[str, dict], metric: str) -> dict[str, tuple[float, float]]:
+    """One clip's runs in A and B -> {seed: (A's metric, B's)} for the seeds where both have it."""
+    out = {}
+    for seed, ma in a.items():
+        x, y = _number(ma, metric), _number(b[seed], metric) if seed in b else None
+        if x is not None and y is not None:
+            out[seed] = (x, y)
+    return out
+
+
+def _row(label: str, metric: str, pairs: list[tuple[float, float]]) -> Row:
+    n = len(pairs)
+    diffs = [x - y for x, y in pairs]
+    mean = sum(diffs) / n
+    stderr = math.sqrt(sum((d - mean) ** 2 for d in diffs) / (n - 1) / n) if n > 1 else None
+    return Row(
+        label,
+        metric,
+        sum(x for x, _ in pairs) / n,
+        sum(y for _, y in pairs) / n,
+        mean,
+        stderr,
+        sum(d < 0 for d in diffs),
+        sum(d == 0 for d in diffs),
+        n,
+    )
 
 
 def _fmt(v: float, fine: bool) -> str:
@@ -143,7 +155,13 @@ def markdown(rows: list[Row], name_a: str, name_b: str) -> str:
     for r in rows:
         fine = max(abs(r.a), abs(r.b)) < 1  # rates to four places, millimetres and seconds to one
         spread = "" if r.stderr is None else f" ± {_fmt(r.stderr, fine)}"
-        cells = [r.clip, r.metric, _fmt(r.a, fine), _fmt(r.b, fine), _fmt(r.diff, fine) + spread]
+        cells = [
+            f"**{r.clip}**" if r.clip.startswith("mean (") else r.clip,
+            r.metric,
+            _fmt(r.a, fine),
+            _fmt(r.b, fine),
+            _fmt(r.diff, fine) + spread,
+        ]
         level = f" ({r.level} level)" if r.level else ""
         lines.append("| " + " | ".join(cells) + f" | {r.a_lower} of {r.seeds}{level} |")
     return "\n".join(lines) + "\n"

@@ -61,6 +61,21 @@ def test_seed_by_seed(tmp_path):
     assert body[1][2:4] == ["0.1000", "0.0667"] and body[1][-1] == "0 of 3 (2 level)"
 
 
+def test_mean_over_the_clips(tmp_path):
+    """With two clips or more, a row per metric over the clips: each seed's mean over the clips, on the seeds
+    every clip ran (seed 2: only walk in B)."""
+    a = _results(tmp_path / "a", {"walk": {"0": {"mpjpe_mm": 10.0}, "1": {"mpjpe_mm": 20.0}, "2": {"mpjpe_mm": 5.0}},
+                                  "run": {"0": {"mpjpe_mm": 30.0}, "1": {"mpjpe_mm": 40.0}}})  # fmt: skip
+    b = _results(tmp_path / "b", {"walk": {"0": {"mpjpe_mm": 14.0}, "1": {"mpjpe_mm": 18.0}, "2": {"mpjpe_mm": 9.0}},
+                                  "run": {"0": {"mpjpe_mm": 30.0}, "1": {"mpjpe_mm": 44.0}}})  # fmt: skip
+    rows = compare(load_runs(a), load_runs(b), ["mpjpe_mm"])
+    assert [r.clip for r in rows] == ["walk", "run", "mean (2 clips)"]
+    mean = rows[-1]  # seed 0: 20 against 22; seed 1: 30 against 31
+    assert (mean.a, mean.b, mean.diff, mean.a_lower, mean.seeds) == (25.0, 26.5, -1.5, 2, 2)
+    assert mean.stderr == pytest.approx(0.5)
+    assert _rows(markdown(rows, "a", "b"))[-1][0] == "**mean (2 clips)**"
+
+
 def test_evaluations_without_seeds_count_one_run_per_clip(tmp_path):
     for name, v in (("a", 3.0), ("b", 4.0)):
         (tmp_path / name).mkdir()
