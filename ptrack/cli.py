@@ -129,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
             from ptrack.compare import as_json, compare, load_runs, markdown
 
             names = args.names or [_eval_name(args.a), _eval_name(args.b)]
+            if names[0] == names[1]:  # two folders of one name (runs/x/eval, runs/y/eval)
+                names = ["A", "B"]
             rows = compare(load_runs(args.a), load_runs(args.b), args.metrics)
             print((as_json if args.json else markdown)(rows, *names), end="", flush=True)
         elif args.command == "fit-motion":

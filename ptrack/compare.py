@@ -104,7 +104,10 @@ def compare(a: Runs, b: Runs, metrics: list[str] | tuple[str, ...] | None = None
         if by_seed:
             rows.append(_row(clip, metric, list(by_seed.values())))
     if not rows:
-        raise InputError("the two evaluations ran no seed of a shared clip in common")
+        raise InputError(
+            "the two evaluations ran no seed of a shared clip in common (one evaluated without --seeds pairs "
+            "only with another without --seeds)"
+        )
     for metric in metrics:  # over the clips: each seed's mean over the clips, the seeds every clip ran
         ran = [pairs[clip, metric] for clip in clips if pairs[clip, metric]]
         seeds = [s for s in ran[0] if all(s in p for p in ran)] if len(ran) > 1 else []

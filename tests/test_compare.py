@@ -10,6 +10,7 @@ import pytest
 
 from ptrack.cli import main
 from ptrack.compare import compare, load_runs, markdown
+from ptrack.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 EVAL = REPO / "configs" / "eval_frame.yaml"
@@ -82,6 +83,16 @@ def test_evaluations_without_seeds_count_one_run_per_clip(tmp_path):
         (tmp_path / name / "results.json").write_text(json.dumps({"walk": {"mpjpe_mm": v}, "run": "failed: x"}))
     (row,) = compare(load_runs(tmp_path / "a"), load_runs(tmp_path / "b" / "results.json"), ["mpjpe_mm"])
     assert (row.diff, row.stderr, row.a_lower, row.seeds) == (-1.0, None, 1, 1)
+    seeded = _results(tmp_path / "seeded" / "a", {"walk": {"0": {"mpjpe_mm": 1.0}}})
+    with pytest.raises(InputError, match="pairs only with another without --seeds"):
+        compare(load_runs(seeded), load_runs(tmp_path / "b"))
+
+
+def test_two_folders_of_one_name_are_a_and_b(tmp_path, capsys):
+    for side, v in (("x", 1.0), ("y", 2.0)):
+        _results(tmp_path / side / "eval", {"walk": {"0": {"mpjpe_mm": v}}})
+    assert main(["compare", str(tmp_path / "x" / "eval"), str(tmp_path / "y" / "eval" / "results.json")]) == 0
+    assert capsys.readouterr().out.startswith("| clip | metric | A | B | A - B (± s.e.) | A lower on |")
 
 
 def test_two_real_evaluations(tmp_path, capsys):
