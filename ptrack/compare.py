@@ -27,8 +27,9 @@ Runs = dict[str, dict[str, dict]]  # clip -> seed ("-" without seeds) -> that ru
 
 @dataclass(frozen=True)
 class Row:
-    """One clip and metric: means over the seeds both ran, A - B's mean and standard error (None with one
-    seed), the seeds where A is lower, where the two are level, and where both have the metric."""
+    """One clip (or, with `clips` > 1, the mean over that many clips) and metric: means over the seeds both
+    ran, A - B's mean and standard error (None with one seed), the seeds where A is lower, where the two
+    are level, and where both have the metric."""
 
     clip: str
     metric: str
@@ -39,6 +40,7 @@ class Row:
     a_lower: int
     level: int
     seeds: int
+    clips: int = 1
 
 
 def load_runs(path: str | Path) -> Runs:
@@ -113,7 +115,7 @@ def compare(a: Runs, b: Runs, metrics: list[str] | tuple[str, ...] | None = None
         seeds = [s for s in ran[0] if all(s in p for p in ran)] if len(ran) > 1 else []
         if seeds:
             means = [(sum(p[s][0] for p in ran) / len(ran), sum(p[s][1] for p in ran) / len(ran)) for s in seeds]
-            rows.append(_row(f"mean ({len(ran)} clips)", metric, means))
+            rows.append(_row(f"mean ({len(ran)} clips)", metric, means, clips=len(ran)))
     return rows
 
 
@@ -127,7 +129,7 @@ def _pairs(a: dict[str, dict], b: dict[str, dict], metric: str) -> dict[str, tup
     return out
 
 
-def _row(label: str, metric: str, pairs: list[tuple[float, float]]) -> Row:
+def _row(label: str, metric: str, pairs: list[tuple[float, float]], clips: int = 1) -> Row:
     n = len(pairs)
     diffs = [x - y for x, y in pairs]
     mean = sum(diffs) / n
@@ -142,6 +144,7 @@ def _row(label: str, metric: str, pairs: list[tuple[float, float]]) -> Row:
         sum(d < 0 for d in diffs),
         sum(d == 0 for d in diffs),
         n,
+        clips,
     )
 
 
@@ -159,7 +162,7 @@ def markdown(rows: list[Row], name_a: str, name_b: str) -> str:
         fine = max(abs(r.a), abs(r.b)) < 1  # rates to four places, millimetres and seconds to one
         spread = "" if r.stderr is None else f" ± {_fmt(r.stderr, fine)}"
         cells = [
-            f"**{r.clip}**" if r.clip.startswith("mean (") else r.clip,
+            f"**{r.clip}**" if r.clips > 1 else r.clip,
             r.metric,
             _fmt(r.a, fine),
             _fmt(r.b, fine),

@@ -72,7 +72,7 @@ def test_mean_over_the_clips(tmp_path):
     rows = compare(load_runs(a), load_runs(b), ["mpjpe_mm"])
     assert [r.clip for r in rows] == ["walk", "run", "mean (2 clips)"]
     mean = rows[-1]  # seed 0: 20 against 22; seed 1: 30 against 31
-    assert (mean.a, mean.b, mean.diff, mean.a_lower, mean.seeds) == (25.0, 26.5, -1.5, 2, 2)
+    assert (mean.a, mean.b, mean.diff, mean.a_lower, mean.seeds, mean.clips) == (25.0, 26.5, -1.5, 2, 2, 2)
     assert mean.stderr == pytest.approx(0.5)
     assert _rows(markdown(rows, "a", "b"))[-1][0] == "**mean (2 clips)**"
 
