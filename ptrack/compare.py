@@ -16,6 +16,7 @@ import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TypeGuard
 
 from ptrack.errors import InputError
 
@@ -72,11 +73,14 @@ def load_runs(path: str | Path) -> Runs:
     return out
 
 
+def is_number(v: object) -> TypeGuard[int | float]:
+    """Whether a metrics.json value counts as a number: an int or float, not a boolean, not NaN."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and not math.isnan(v)
+
+
 def _number(m: dict, metric: str) -> float | None:
     v = m.get(metric)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or math.isnan(v):
-        return None
-    return float(v)
+    return float(v) if is_number(v) else None
 
 
 def compare(a: Runs, b: Runs, metrics: list[str] | tuple[str, ...] | None = None) -> list[Row]:

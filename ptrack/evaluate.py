@@ -21,6 +21,7 @@ from collections.abc import Iterable, Sequence
 from datetime import datetime
 from pathlib import Path
 
+from ptrack.compare import is_number
 from ptrack.config import load_config, parse_override, skeleton_beside
 from ptrack.errors import EstimationError, InputError
 from ptrack.run import execute, json_safe
@@ -188,7 +189,7 @@ def seed_mean(runs: list[dict | str], count: bool = True) -> dict | str:
     mean: dict = {"seeds": len(ok)} if count else {}
     for key in ok[0]:
         vals = [m.get(key) for m in ok]
-        nums = [v for v in vals if isinstance(v, (int, float)) and not isinstance(v, bool) and not math.isnan(v)]
+        nums = [v for v in vals if is_number(v)]
         if not nums:
             continue
         if all(isinstance(v, int) for v in nums) and len(set(nums)) == 1:
