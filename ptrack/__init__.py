@@ -19,6 +19,7 @@ _EXPORTS = {
     "Camera": "ptrack.camera",
     "camera_for_motion": "ptrack.camera",
     "look_at": "ptrack.camera",
+    "load_config": "ptrack.config",
     "InputError": "ptrack.errors",
     "KeypointSet": "ptrack.keypoints",
     "make_keypoints": "ptrack.keypoints",
@@ -26,6 +27,7 @@ _EXPORTS = {
     "ChannelConfig": "ptrack.observations",
     "Observations": "ptrack.observations",
     "simulate_observations": "ptrack.observations",
+    "estimate": "ptrack.run",
     "Motion": "ptrack.skeleton",
     "Skeleton": "ptrack.skeleton",
     "load_amc": "ptrack.skeleton",
@@ -48,8 +50,10 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:
     from ptrack.camera import Camera, camera_for_motion, look_at
+    from ptrack.config import load_config
     from ptrack.errors import InputError
     from ptrack.keypoints import KeypointSet, make_keypoints
     from ptrack.kinematics import forward_kinematics
     from ptrack.observations import ChannelConfig, Observations, simulate_observations
+    from ptrack.run import estimate
     from ptrack.skeleton import Motion, Skeleton, load_amc

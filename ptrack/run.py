@@ -1,7 +1,8 @@
 """One config-driven run: data -> observations -> estimator -> metrics -> outputs.
 
 `prepare(cfg)` loads the skeleton, the clip and the camera and makes (or reads) the observations;
-`execute(cfg)` runs the configured estimator, computes metrics and writes the run folder:
+`estimate(cfg)` runs the configured estimator on them and returns both, writing nothing (the Python API);
+`execute(cfg)` does that, computes metrics and writes the run folder:
 
     config.yaml   resolved config
     metrics.json  every applicable metric, plus seconds and frames
@@ -365,16 +366,22 @@ def check_out_dir(out: Path) -> None:
         raise InputError(f"out_dir {out} cannot be made: cannot write in {parent} ({e.strerror})") from None
 
 
+def estimate(cfg: RunConfig, progress: bool = False) -> tuple[Prepared, Estimate]:
+    """The data and observations of `cfg` (`prepare`) and the configured method's estimate of them, as
+    `execute` computes them (same seed, same result), without writing anything. progress: a progress
+    bar on stderr (on a terminal only)."""
+    prep = prepare(cfg)
+    gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)  # the samplers' draws (cfg.seed: the observations')
+    return prep, ESTIMATORS[cfg.method](prep.problem, cfg, gen, _progress(progress, cfg.method))
+
+
 def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
     """Run `cfg` end to end and write its folder; returns the folder's path."""
     out = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
     check_out_dir(out)
     cfg = dataclasses.replace(cfg, out_dir=str(out.resolve()))  # config.yaml records the folder used
     t0 = time.perf_counter()
-    prep = prepare(cfg)
-    gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
-    show = cfg.progress if progress is None else progress
-    est = ESTIMATORS[cfg.method](prep.problem, cfg, gen, _progress(show, cfg.method))
+    prep, est = estimate(cfg, cfg.progress if progress is None else progress)
     seconds = time.perf_counter() - t0
     check_finite(est, cfg.method)
     reproj = reprojected_keypoints(prep, est)
