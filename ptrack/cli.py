@@ -47,6 +47,12 @@ def _parser() -> argparse.ArgumentParser:
         "a second table gives each seed's mean over the clips",
     )
     e.add_argument("--out", default=None, help="output folder (default logs/eval-<config>-<time>)")
+    e.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="runs at once, each in its own process on one thread (default 1); the results do not change",
+    )
     e.add_argument("--quiet", action="store_true", help="no progress (bar on a terminal, one line per clip elsewhere)")
     e.add_argument("--json", action="store_true", help="print results.json on stdout instead of the table's path")
     c = sub.add_parser("compare", help="two evaluations seed by seed: means, differences with their spread, wins")
@@ -122,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
                 out=args.out,
                 progress=False if args.quiet else None,
                 seeds=seeds,
+                jobs=args.jobs,
             )
             json_path = table.with_name("results.json")
             print(json_path.read_text() if args.json else table, end="" if args.json else "\n", flush=True)

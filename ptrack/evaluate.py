@@ -9,6 +9,11 @@ observation noise, the missing keypoints and the samplers' randomness) into `<ou
 each clip's row is then the mean over its seeds, a second table gives each seed's mean over the clips
 (the spread a single seed hides), and results.json holds {"clips": {clip: mean}, "runs": {clip:
 {seed: metrics}}}.
+
+With `jobs` > 1 (`--jobs N`) that many runs go at once, each in its own worker process on one intra-op
+thread. Every run is seeded by its own config and the trackers and `method: batch` run on one thread either
+way, so their results are those of the runs made one after another (`frame` and `pca` use torch's threads
+when run in this process: their sums may round differently).
 """
 
 from __future__ import annotations
@@ -16,8 +21,10 @@ from __future__ import annotations
 import json
 import logging
 import math
+import multiprocessing
 import sys
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from datetime import datetime
 from pathlib import Path
 
@@ -105,15 +112,20 @@ def evaluate(
     out: str | Path | None = None,
     progress: bool | None = False,
     seeds: Sequence[int] | None = None,
+    jobs: int = 1,
 ) -> Path:
     """Run `config` on every clip (with `seeds`, once per seed); returns the path of the markdown table.
 
-    progress: show progress bars (None: as the config's `progress` says)."""
+    progress: show progress bars (None: as the config's `progress` says). jobs: runs at once, each in a
+    worker process on one intra-op thread (1: one after another in this process). With several at once each
+    run's `seconds` and `fps` are measured while the others share the machine."""
     paths = parse_clips(clips)
     stems = [p.stem for p in paths]
     twice = sorted({x for x in stems if stems.count(x) > 1})
     if twice:  # each clip's runs go to <out>/<clip name>/
         raise InputError(f"--clips names {', '.join(twice)} more than once (clips are told apart by file name)")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise InputError(f"--jobs must be a whole number >= 1, got {jobs!r}")
     base = load_config(config, overrides)  # validates the config once, before any run
     if seeds is not None:
         if not seeds:
@@ -123,35 +135,30 @@ def evaluate(
     out_dir = Path(out) if out else Path("logs") / f"eval-{base.name}-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
     if out_dir.exists() and any(out_dir.iterdir()):
         raise InputError(f"evaluation folder {out_dir} already exists and is not empty")
-    jobs = [(amc, seed) for amc in paths for seed in (seeds if seeds is not None else [None])]
+    jobs_list = [(amc, seed) for amc in paths for seed in (seeds if seeds is not None else [None])]
     runs: dict[str, dict[int | None, dict | str]] = {amc.stem: {} for amc in paths}
     show = base.progress if progress is None else progress
-    on_terminal = sys.stderr.isatty()
-    shown: Iterable[tuple[Path, int | None]] = jobs
-    if show and on_terminal:
-        from tqdm.auto import tqdm
+    unit = "clip" if seeds is None else "run"
 
-        shown = tqdm(jobs, desc="runs" if seeds is not None else "clips", unit="run" if seeds is not None else "clip")
-    for i, (amc, seed) in enumerate(shown):
-        name = amc.stem if seed is None else f"{amc.stem} seed {seed}"
-        if show and not on_terminal:  # a file or CI log: one short line per run, no bar
-            log.info("%s %d of %d: %s", "clip" if seed is None else "run", i + 1, len(jobs), name)
+    def overrides_of(amc: Path, seed: int | None) -> list[str]:
         run_dir = out_dir / amc.stem if seed is None else out_dir / amc.stem / f"seed-{seed}"
-        clip_over = [
-            *overrides,
-            *([] if seed is None else [f"seed={seed}"]),
-            f"data.amc={amc}",
-            f"data.asf={asf_for(amc)}",
-            f"out_dir={run_dir.resolve()}",
-        ]
-        try:
-            cfg = load_config(config, clip_over)
-            done = execute(cfg, progress=progress)
-            runs[amc.stem][seed] = json.loads((done / "metrics.json").read_text())
-        except (InputError, EstimationError) as e:  # a clip that does not fit the config (too short, ...)
-            # or that the estimator failed on is reported, not fatal
-            log.warning("%s failed: %s", name, e)
-            runs[amc.stem][seed] = str(e)
+        seed_over = [] if seed is None else [f"seed={seed}"]
+        return [*overrides, *seed_over, f"data.amc={amc}", f"data.asf={asf_for(amc)}", f"out_dir={run_dir.resolve()}"]
+
+    tasks = [(str(config), overrides_of(amc, seed)) for amc, seed in jobs_list]
+    names = [_name(amc, seed) for amc, seed in jobs_list]
+    bar = _Progress(show, len(jobs_list), unit)
+    if jobs == 1:
+        outcomes = []
+        for i, (task, name) in enumerate(zip(tasks, names)):
+            bar.started(i, name)
+            outcomes.append(_reported(name, run_one(*task, progress)))
+            bar.done()
+    else:
+        outcomes = _in_workers(jobs, tasks, names, bar)
+    bar.close()
+    for (amc, seed), outcome in zip(jobs_list, outcomes):
+        runs[amc.stem][seed] = outcome
     out_dir.mkdir(parents=True, exist_ok=True)
     table = out_dir / "results.md"
     if seeds is None:
@@ -178,6 +185,87 @@ def evaluate(
         json.dumps(json_safe(results), indent=2, allow_nan=False) + "\n", encoding="utf-8"
     )
     return table
+
+
+def run_one(config: str, overrides: list[str], progress: bool | None) -> dict | str:
+    """One run of an evaluation: its metrics.json, or the message of the user error or estimation failure
+    that stopped it (any other exception propagates)."""
+    try:
+        done = execute(load_config(config, overrides), progress=progress)
+        return json.loads((done / "metrics.json").read_text())
+    except (InputError, EstimationError) as e:
+        return str(e)
+
+
+def _in_workers(jobs: int, tasks: list[tuple[str, list[str]]], names: list[str], bar: _Progress) -> list[dict | str]:
+    """`run_one(config, overrides)` of every task in `jobs` worker processes at once -> the outcomes in the
+    order of the tasks; reported as each finishes."""
+    context = multiprocessing.get_context("spawn")  # no forked torch state; the same on every platform
+    pool = ProcessPoolExecutor(max_workers=min(jobs, len(tasks)), mp_context=context, initializer=_worker)
+    try:
+        futures = [pool.submit(run_one, config, overrides, False) for config, overrides in tasks]
+        index = {fut: i for i, fut in enumerate(futures)}
+        for fut in as_completed(futures):
+            _reported(names[index[fut]], fut.result())
+            bar.finished(names[index[fut]])
+    except BaseException:  # a bug in a run, or Ctrl-C: stop the others rather than wait for them
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
+    return [fut.result() for fut in futures]
+
+
+def _reported(name: str, outcome: dict | str) -> dict | str:
+    """A run's outcome, logged as a warning when it is a failure: a clip that does not fit the config (too
+    short, ...) or that the estimator failed on is reported, not fatal."""
+    if isinstance(outcome, str):
+        log.warning("%s failed: %s", name, outcome)
+    return outcome
+
+
+def _worker() -> None:
+    """A worker process of `evaluate(jobs > 1)`: one intra-op thread (the runs share the cores) and the
+    command line's message format."""
+    import torch
+
+    torch.set_num_threads(1)
+    logging.basicConfig(level=logging.WARNING, format="ptrack: %(levelname)s: %(message)s")
+
+
+def _name(amc: Path, seed: int | None) -> str:
+    return amc.stem if seed is None else f"{amc.stem} seed {seed}"
+
+
+class _Progress:
+    """An evaluation's progress: a bar on a terminal, else one log line per run (started, or with several
+    at once, finished); nothing when not shown."""
+
+    def __init__(self, show: bool, total: int, unit: str) -> None:
+        self.total, self.unit, self.count = total, unit, 0
+        self.lines = show and not sys.stderr.isatty()
+        self.tqdm = None
+        if show and not self.lines:
+            from tqdm.auto import tqdm
+
+            self.tqdm = tqdm(total=total, desc=f"{unit}s", unit=unit)
+
+    def started(self, i: int, name: str) -> None:
+        if self.lines:
+            log.info("%s %d of %d: %s", self.unit, i + 1, self.total, name)
+
+    def done(self) -> None:
+        if self.tqdm is not None:
+            self.tqdm.update()
+
+    def finished(self, name: str) -> None:
+        self.count += 1
+        if self.lines:
+            log.info("%s %d of %d done: %s", self.unit, self.count, self.total, name)
+        self.done()
+
+    def close(self) -> None:
+        if self.tqdm is not None:
+            self.tqdm.close()
 
 
 def seed_mean(runs: list[dict | str], count: bool = True) -> dict | str:

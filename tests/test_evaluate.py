@@ -323,3 +323,42 @@ def test_a_clip_listed_twice_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--clips names 10_02 more than once" in err and len(err.strip().splitlines()) == 1
     assert not out.exists()
+
+
+def _without_timing(runs: dict) -> dict:
+    """results.json's runs without each run's seconds and fps (a failed run's message stays as it is)."""
+
+    def untimed(m: dict | str) -> dict | str:
+        return m if isinstance(m, str) else {k: v for k, v in m.items() if k not in ("seconds", "fps")}
+
+    return {clip: {seed: untimed(m) for seed, m in by_seed.items()} for clip, by_seed in runs.items()}
+
+
+def test_jobs_give_the_results_of_runs_one_after_another(tmp_path, caplog):
+    """--jobs 2 runs the (clip, seed) runs in two worker processes: the same metrics (timings apart), in the
+    same order, the same folders; a run that fails is reported in its row, as without --jobs."""
+    short = _clip_copy(tmp_path / "short", frames=20, stem="10_99")
+    kjs = [*QUICK, "method=kjs", "kjs.samples=32", "data.start=100", "data.stop=124"]
+    clips = f"{AMC},{short}"
+    one, two = tmp_path / "one", tmp_path / "two"
+    assert main(["evaluate", str(EVAL), *kjs, "--clips", clips, "--seeds", "0-2", "--out", str(one)]) == 0
+    assert (
+        main(["evaluate", str(EVAL), "--jobs", "2", *kjs, "--clips", clips, "--seeds", "0-2", "--out", str(two)]) == 0
+    )
+    failed = [r.getMessage() for r in caplog.records if "failed" in r.getMessage()]
+    assert len(failed) == 6 and all(m.startswith("10_99 seed") for m in failed)  # 3 in each evaluation
+    a, b = (json.loads((d / "results.json").read_text()) for d in (one, two))
+    assert list(b["runs"]["10_02"]) == ["0", "1", "2"]
+    assert isinstance(b["runs"]["10_99"]["1"], str) and "data.start" in b["runs"]["10_99"]["1"]
+    assert _without_timing(a["runs"]) == _without_timing(b["runs"])
+    assert b["runs"]["10_02"]["0"]["mpjpe_mm"] != b["runs"]["10_02"]["1"]["mpjpe_mm"]  # three different runs
+    assert sorted(p.relative_to(two).as_posix() for p in two.glob("*/*")) == [f"10_02/seed-{s}" for s in range(3)]
+
+
+@pytest.mark.parametrize("jobs", ["0", "-1"])
+def test_bad_jobs_fail_before_any_run(tmp_path, capsys, jobs):
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(EVAL), *QUICK, "--clips", str(AMC), "--out", str(out), "--jobs", jobs]) == 2
+    err = capsys.readouterr().err
+    assert err == f"ptrack: error: --jobs must be a whole number >= 1, got {jobs}\n"
+    assert not out.exists()
