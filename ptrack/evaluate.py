@@ -24,14 +24,13 @@ import math
 import multiprocessing
 import sys
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from datetime import datetime
 from pathlib import Path
 
 from ptrack.compare import is_number
 from ptrack.config import load_config, parse_override, skeleton_beside
 from ptrack.errors import EstimationError, InputError
-from ptrack.run import execute, json_safe
+from ptrack.run import execute, json_safe, remove_partial
 
 log = logging.getLogger(__name__)
 
@@ -155,7 +154,7 @@ def evaluate(
             outcomes.append(_reported(name, run_one(*task, progress)))
             bar.done()
     else:
-        outcomes = _in_workers(jobs, tasks, names, bar)
+        outcomes = _in_workers(jobs, tasks, names, bar, out_dir)
     bar.close()
     for (amc, seed), outcome in zip(jobs_list, outcomes):
         runs[amc.stem][seed] = outcome
@@ -197,22 +196,33 @@ def run_one(config: str, overrides: list[str], progress: bool | None) -> dict | 
         return str(e)
 
 
-def _in_workers(jobs: int, tasks: list[tuple[str, list[str]]], names: list[str], bar: _Progress) -> list[dict | str]:
+def _in_workers(
+    jobs: int, tasks: list[tuple[str, list[str]]], names: list[str], bar: _Progress, out_dir: Path
+) -> list[dict | str]:
     """`run_one(config, overrides)` of every task in `jobs` worker processes at once -> the outcomes in the
-    order of the tasks; reported as each finishes."""
-    context = multiprocessing.get_context("spawn")  # no forked torch state; the same on every platform
-    pool = ProcessPoolExecutor(max_workers=min(jobs, len(tasks)), mp_context=context, initializer=_worker)
+    order of the tasks, reported as each finishes. On Ctrl-C (the workers ignore it) or a bug in a run the
+    workers are stopped at once, and what a run killed while writing its folder left in `out_dir` removed:
+    the runs that finished keep their folders, as when the runs go one after another."""
+    pool = multiprocessing.get_context("spawn").Pool(min(jobs, len(tasks)), initializer=_worker)
+    outcomes: list[dict | str] = ["not run"] * len(tasks)
     try:
-        futures = [pool.submit(run_one, config, overrides, False) for config, overrides in tasks]
-        index = {fut: i for i, fut in enumerate(futures)}
-        for fut in as_completed(futures):
-            _reported(names[index[fut]], fut.result())
-            bar.finished(names[index[fut]])
-    except BaseException:  # a bug in a run, or Ctrl-C: stop the others rather than wait for them
-        pool.shutdown(wait=False, cancel_futures=True)
+        for i, outcome in pool.imap_unordered(_numbered_run, list(enumerate(tasks))):
+            outcomes[i] = _reported(names[i], outcome)
+            bar.finished(names[i])
+    except BaseException:
+        pool.terminate()
+        pool.join()
+        remove_partial(out_dir)
         raise
-    pool.shutdown()
-    return [fut.result() for fut in futures]
+    pool.close()
+    pool.join()
+    return outcomes
+
+
+def _numbered_run(item: tuple[int, tuple[str, list[str]]]) -> tuple[int, dict | str]:
+    """A worker's task: (i, (config, overrides)) -> (i, `run_one`'s outcome)."""
+    i, (config, overrides) = item
+    return i, run_one(config, overrides, False)
 
 
 def _reported(name: str, outcome: dict | str) -> dict | str:
@@ -224,10 +234,13 @@ def _reported(name: str, outcome: dict | str) -> dict | str:
 
 
 def _worker() -> None:
-    """A worker process of `evaluate(jobs > 1)`: one intra-op thread (the runs share the cores) and the
-    command line's message format."""
+    """A worker process of `evaluate(jobs > 1)`: one intra-op thread (the runs share the cores), the command
+    line's message format, and Ctrl-C left to the parent (which stops the workers)."""
+    import signal
+
     import torch
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.WARNING, format="ptrack: %(levelname)s: %(message)s")
 

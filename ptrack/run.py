@@ -50,6 +50,7 @@ from ptrack.skeleton import Motion, Skeleton, load_amc
 log = logging.getLogger(__name__)
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
+PARTIAL = ".partial"  # the suffix of the hidden sibling a run folder is assembled in (`_write_outputs`)
 
 
 @dataclass(frozen=True)
@@ -397,6 +398,14 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
     return out
 
 
+def remove_partial(folder: Path) -> None:
+    """Remove what runs that were killed while writing left under `folder`: the hidden siblings their
+    folders were being assembled in (a run stopped any other way removes its own)."""
+    for tmp in sorted(folder.rglob(f".*{PARTIAL}")):
+        if tmp.is_dir():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
 def _progress(show: bool, desc: str) -> Callable[[Iterable], Iterable]:
     """A progress bar on stderr, drawn only on a terminal (in a file or CI log each update would be a line)."""
     if not show or not sys.stderr.isatty():
@@ -468,7 +477,7 @@ def _write_outputs(
     from ptrack.viz import RunLog, write_recording
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=PARTIAL, dir=out.parent))
     umask = os.umask(0)
     os.umask(umask)
     tmp.chmod(0o777 & ~umask)  # mkdtemp makes 0700; the run folder gets a new folder's usual mode

@@ -4,7 +4,11 @@ markdown table with a mean row) and results.json; clip lists; failures reported 
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -12,6 +16,7 @@ import pytest
 from ptrack.cli import main
 from ptrack.errors import InputError
 from ptrack.evaluate import COLUMNS, asf_for, evaluate, markdown_table, parse_clips, parse_seeds, seed_mean
+from ptrack.run import remove_partial
 
 REPO = Path(__file__).resolve().parents[1]
 EVAL = REPO / "configs" / "eval_frame.yaml"
@@ -362,3 +367,49 @@ def test_bad_jobs_fail_before_any_run(tmp_path, capsys, jobs):
     err = capsys.readouterr().err
     assert err == f"ptrack: error: --jobs must be a whole number >= 1, got {jobs}\n"
     assert not out.exists()
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="process groups and SIGINT are POSIX")
+def test_ctrl_c_with_jobs_stops_every_worker(tmp_path):
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) during `--jobs 2`: the command ends
+    at once with `ptrack: interrupted` and status 130, no traceback; runs that finished keep complete
+    folders, and nothing half-written is left."""
+    out = tmp_path / "eval"
+    cmd = [sys.executable, "-m", "ptrack.cli", "evaluate", str(EVAL), *QUICK, "progress=true", "--clips", str(AMC)]
+    cmd += ["--seeds", "0-9", "--jobs", "2", "--out", str(out)]
+
+    def own_group() -> None:  # a shell's background job would ignore SIGINT; a terminal's foreground one does not
+        os.setpgrp()
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+    proc = subprocess.Popen(cmd, cwd=REPO, stderr=subprocess.PIPE, text=True, preexec_fn=own_group)
+    assert proc.stderr is not None
+    lines = []
+    for line in proc.stderr:  # wait until one run has finished, then interrupt the others
+        lines.append(line)
+        if " done: " in line:
+            break
+    os.killpg(proc.pid, signal.SIGINT)
+    _, rest = proc.communicate(timeout=60)
+    err = "".join(lines) + rest
+    assert proc.returncode == 130, err
+    assert err.rstrip().endswith("ptrack: interrupted") and "Traceback" not in err
+    runs = sorted((out / "10_02").iterdir())
+    assert 1 <= len(runs) < 10  # the finished ones
+    for run in runs:
+        assert sorted(p.name for p in run.iterdir()) == OUTPUTS
+    assert [p.name for p in (out / "10_02").iterdir() if p.name.startswith(".")] == []
+    assert not (out / "results.md").exists()
+
+
+def test_remove_partial(tmp_path):
+    """What a run killed while writing leaves (its folder's hidden sibling) goes; finished folders stay."""
+    done = tmp_path / "10_02" / "seed-0"
+    done.mkdir(parents=True)
+    (done / "metrics.json").write_text("{}")
+    left = tmp_path / "10_02" / ".seed-1.k3j9.partial"
+    left.mkdir()
+    (left / "config.yaml").write_text("x")
+    remove_partial(tmp_path)
+    assert sorted(p.name for p in (tmp_path / "10_02").iterdir()) == ["seed-0"]
+    assert (done / "metrics.json").is_file()
