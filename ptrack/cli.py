@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from ptrack import __version__
-from ptrack.errors import EstimationError, InputError  # light: torch is imported only by the commands
+from ptrack.errors import EstimationError, InputError, log_to_stderr  # light: torch is imported only by the commands
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -107,7 +107,7 @@ def _eval_name(path: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="ptrack: %(levelname)s: %(message)s")
+    log_to_stderr()
     logging.getLogger("ptrack.evaluate").setLevel(logging.INFO)  # its one line per clip off a terminal
     try:
         if args.command == "run":

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from ptrack.compare import is_number
 from ptrack.config import load_config, parse_override, skeleton_beside
-from ptrack.errors import EstimationError, InputError
+from ptrack.errors import EstimationError, InputError, log_to_stderr
 from ptrack.run import execute, json_safe, remove_partial
 
 log = logging.getLogger(__name__)
@@ -242,7 +242,7 @@ def _worker() -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(1)
-    logging.basicConfig(level=logging.WARNING, format="ptrack: %(levelname)s: %(message)s")
+    log_to_stderr()
 
 
 def _name(amc: Path, seed: int | None) -> str:
