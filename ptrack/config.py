@@ -199,6 +199,18 @@ class KjsMethodConfig:
     # 1 px 17.2 -> 15.3 mm (02_01 22.5 -> 18.8), 2 px 24.8 -> 22.6; tree start 1 px 25.2 -> 21.5
     # (02_01 28.4), 2 px 47.9 -> 32.2 (docs/results.md)
     backward_pass: str = "always"
+    # after the passes, sweeps of a smoother over every frame's hypotheses: each is polished again on its
+    # frame with the tracking prior around the mean of its nearest neighbours in the frames before and after
+    # (linked where their joints, relative to the root, are within smooth_link_m metres on average), std
+    # smooth_scale times the dynamics'; 0 sweeps: the passes' modes as they are. Dev clips, five seeds, best
+    # trajectory mm / best-of-K mm / flip rate / acceleration error mm per frame², 0 sweeps -> 1 sweep at
+    # 0.2: keyframe start 2 px 27.7 / 22.7 / 0.0505 / 25.7 -> 25.8 / 21.4 / 0.0485 / 15.9, 1 px 21.0 / 15.8 /
+    # 0.0477 / 19.0 -> 19.7 / 15.0 / 0.0473 / 12.6; tree start 2 px 44.9 / 31.9 / 0.141 / 25.5 -> 43.6 / 31.1
+    # / 0.141 / 16.2. Scale 0.3 measured alike; more sweeps lost best-of-K (keyframe start 2 px, 2 sweeps at
+    # 0.3: 25.5 / 21.7 / 0.0480 / 16.4; tree start 2 px, 3 sweeps: best-of-K 31.7)
+    smooth_sweeps: int = 1
+    smooth_scale: float = 0.2
+    smooth_link_m: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -649,6 +661,8 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         "start_prior_scale",
         "prior_tail_scale",
         "dynamics_scale",
+        "smooth_scale",
+        "smooth_link_m",
     ):
         if not getattr(kc, key) > 0:
             raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(kc, key)}")
@@ -664,6 +678,8 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         raise InputError(
             "config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' must be >= 0"
         )
+    if kc.smooth_sweeps < 0:
+        raise InputError(f"config key 'kjs.smooth_sweeps' must be >= 0, got {kc.smooth_sweeps}")
     for key in ("motion_scale", "pose_prior_weight", "distinct_mm"):
         if getattr(kc, key) < 0:
             raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")

@@ -56,6 +56,12 @@ forward pass's: over the merged modes Viterbi took flipped backward modes where 
 been right (held-out 35_01, 02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 mm; docs/results.md).
 After a tree start the backward pass's own best trajectory replaces it when the two face directions more
 than `HEADING_SPLIT_DEG` apart (two readings of the whole body) and it costs less (`_lead_pass`).
+
+Last, `kjs.smooth_sweeps` sweeps of a smoother (`_smooth`) re-polish every frame's hypotheses with the prior
+around the mean of their nearest neighbours in the frames before and after. The passes are filters: each
+mode holds its own frame's evidence and the past's (or the future's), so its depth jitters from frame to
+frame where the 2D leaves it loose; the smoother brings in both sides. It keeps the weights and the best
+trajectory's choice of mode per frame.
 """
 
 from __future__ import annotations
@@ -703,6 +709,57 @@ def _lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: l
     return False, path
 
 
+#: Levenberg-Marquardt iterations of each hypothesis in a smoothing sweep (`_smooth`): it starts at a
+#: minimum of its own frame's objective and moves only as far as its neighbours pull it
+SMOOTH_ITERATIONS = 5
+
+
+def _smooth(s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """`kjs.smooth_sweeps` sweeps of a smoother over the finished hypothesis lattice. Each tracked mode holds
+    the evidence of its own frame and, through the dynamics, of the frames before (a filter): its depth
+    jitters from frame to frame wherever the 2D leaves it loose. In a sweep each hypothesis of frame t is
+    linked to the nearest hypothesis of frames t-1 and t+1 (mean distance of the joints relative to the root
+    under `kjs.smooth_link_m`; none where the other frame holds no such pose, e.g. a limb's other branch)
+    and polished again on frame t's objective with the tracking prior around the mean of its linked
+    neighbours, std `kjs.smooth_scale` times the dynamics' (times sqrt 2 with one neighbour). A
+    hypothesis with no linked neighbour, and padding, keep their pose. Each sweep uses the poses of the
+    sweep before (Jacobi). hq (T, K, D), hw (T, K) weights (0: padding), hc (T, K) costs, hl (T, K, D, D)
+    covariance factors -> hq, hc, hl (the smoothed poses' objective and covariance)."""
+    k = s.cfg.kjs
+    sk = s.problem.skeleton
+    T, K, D = hq.shape
+    base = torch.as_tensor(s.dynamics_sigma, dtype=hq.dtype, device=hq.device).expand(D) * k.smooth_scale
+    for _ in range(k.smooth_sweeps):
+        with torch.no_grad():
+            joints = sk.forward_kinematics(hq)
+            rel = joints - joints[..., :1, :]  # (T, K, J, 3)
+        new_q, new_c, new_l = hq.clone(), hc.clone(), hl.clone()
+        for t in range(T):
+            pull = torch.zeros_like(hq[t])  # (K, D): sum of the wrapped steps to the linked neighbours
+            count = torch.zeros(K, 1, dtype=hq.dtype, device=hq.device)
+            for u in (t - 1, t + 1):
+                if not 0 <= u < T:
+                    continue
+                gap = (rel[t][:, None] - rel[u][None]).norm(dim=-1).mean(-1)  # (K, K)
+                gap = torch.where(hw[u][None] > 0, gap, torch.full_like(gap, math.inf))
+                near, j = gap.min(1)
+                linked = (near < k.smooth_link_m).to(hq.dtype)[:, None]
+                step = hq[u][j] - hq[t]
+                step = torch.where(s.angular, torch.remainder(step + math.pi, 2 * math.pi) - math.pi, step)
+                pull = pull + linked * step
+                count = count + linked
+            move = (hw[t] > 0) & (count[:, 0] > 0)
+            if not bool(move.any()):
+                continue
+            n = count[move].clamp_min(1)
+            mean = hq[t][move] + pull[move] / n
+            sigma = base * torch.sqrt(2 / n)
+            q, cost, hessian = _polish(s, t, hq[t][move], mean, SMOOTH_ITERATIONS, sigma, tracking=True)
+            new_q[t, move], new_c[t, move], new_l[t, move] = q, cost, _cholesky(s, hessian)
+        hq, hc, hl = new_q, new_c, new_l
+    return hq, hc, hl
+
+
 def track(
     problem: Problem,
     cfg,
@@ -752,6 +809,10 @@ def _track(
         hq, hw, hc, hl, hyp_joints = _lattice(s, merged)
         path = torch.zeros_like(path)
         jumps = [a + b for a, (_, b) in zip(jumps, reversed(passes[1]))]
+    if k.smooth_sweeps > 0:  # the poses of both passes smoothed in time, the best trajectory's choice kept
+        hq, hc, hl = _smooth(s, hq, hw, hc, hl)
+        with torch.no_grad():
+            hyp_joints = sk.forward_kinematics(hq)
     with torch.no_grad():
         frames = torch.arange(hq.shape[0], device=hq.device)
         joints = hyp_joints[frames, path]
