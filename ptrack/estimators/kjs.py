@@ -809,7 +809,7 @@ def _track(
         hq, hw, hc, hl, hyp_joints = _lattice(s, merged)
         path = torch.zeros_like(path)
         jumps = [a + b for a, (_, b) in zip(jumps, reversed(passes[1]))]
-    if k.smooth_sweeps > 0:  # the poses of both passes smoothed in time, the best trajectory's choice kept
+    if k.smooth_sweeps > 0:  # every frame's hypotheses smoothed in time (`_smooth`); the choice of mode kept
         hq, hc, hl = _smooth(s, hq, hw, hc, hl)
         with torch.no_grad():
             hyp_joints = sk.forward_kinematics(hq)
