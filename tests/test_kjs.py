@@ -64,7 +64,7 @@ def test_outputs(kjs_run):
 def test_keyframe_accuracy(kjs_run):
     """Issue target: best-of-K under 20 mm at 1 px, nothing missing, keyframe start (measured on frames
     0-116 of 10_02: best-of-K 7.0 mm, best trajectory 7.7 mm (7.4 with `kjs.weight_memory` 1); 6.6 and 7.3
-    with `kjs.dynamics` null)."""
+    with `kjs.dynamics` null; with the smoother, the default since 2026-11-25: 6.6 and 6.7)."""
     traj, best = _errors(*kjs_run)
     assert best < 20.0, f"best-of-K {best:.1f} mm"
     assert traj < 25.0, f"best trajectory {traj:.1f} mm"
@@ -81,7 +81,8 @@ def test_deterministic_per_seed():
 def test_tree_init_needs_no_3d():
     """init: tree fits the rest pose in view and enumerates every flip: no keyframe used. The issue's
     target, best-of-K under 30 mm (measured here, frames 0-76 of 10_02: best-of-K 15.6 mm, best trajectory
-    24.2 mm; without the backward pass, `kjs.backward_pass` never, 20.4 and 24.2)."""
+    24.2 mm; without the backward pass, `kjs.backward_pass` never, 20.4 and 24.2; at the defaults of
+    2026-11-25, with the smoother, 16.7 and 23.8)."""
     cfg = load_config(KJS_YAML, [*EXACT, "kjs.init=tree", "data.stop=80"])
     prep = prepare(cfg)
     bare = Problem(prep.problem.skeleton, prep.problem.keypoints, prep.problem.observations)  # no keyframes
@@ -355,7 +356,8 @@ def test_a_mode_that_lost_out_earlier_survives(cmu_file):
     evidence multiplied into the weights (`kjs.weight_memory` 1) the modes on the true branch of the right
     arm fell to weight ~0 while the two branches reprojected alike; at frame 61 they were pruned, though on
     frame 60 one of them was the cheapest mode, and the arm stayed flipped in depth for the rest of the
-    clip: 0.32 of the frames (best trajectory 29.1 mm). With the default 0.5 (measured): no frame, 15.3 mm."""
+    clip: 0.32 of the frames (best trajectory 29.1 mm). With the default 0.5 (measured): no frame, 15.3 mm
+    (14.0 with the smoother, 2026-11-25)."""
     cfg = _balance_1px(cmu_file, "seed=3")
     prep = prepare(cfg)
     est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(cfg.seed + 1))  # as `ptrack run`
@@ -443,7 +445,8 @@ def test_backward_pass_keeps_a_light_depth_order(cmu_file):
     pass has the true reading on frames 35 and 34, but in one light mode beside heavier copies of the
     mirrored one; keeping the K heaviest dropped it at frame 33 (true side among the modes on 0 of frames
     24-34, best-of-K 26.4 mm). Keeping the heaviest of each depth order first (`_orders_first`) carries it
-    back to frame 24 (measured: 11 of 11 frames, best-of-K 20.2 mm)."""
+    back to frame 24 (measured: 11 of 11 frames, best-of-K 20.2 mm; with the smoother, 2026-11-25: 11 of 11,
+    19.1 mm)."""
     cfg = _clip_1px(cmu_file, "07_05.amc", "seed=5")
     prep = prepare(cfg)
     est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(6))  # as `ptrack run`
@@ -460,7 +463,8 @@ def test_backward_pass_restarts_on_the_last_frame(cmu_file):
     from the truth's). The backward pass also starts from the last frame's own tree start, which gets it
     right (measured best-of-K: 22.2 mm; 98.3 when the backward pass started from the forward pass's last
     modes alone). The two passes' trajectories face 52° apart, and the backward one, the cheaper, is the
-    best trajectory (`_lead_pass`; measured 26.7 mm)."""
+    best trajectory (`_lead_pass`; measured 26.7 mm; with the smoother, 2026-11-25: best-of-K 21.4 mm,
+    best trajectory 24.8 mm)."""
     cfg = _clip(cmu_file, "49_18.amc", "kjs.init=tree")
     prep = prepare(cfg)
     est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(1))  # as `ptrack run`
@@ -473,7 +477,8 @@ def test_backward_pass_restarts_on_the_last_frame(cmu_file):
 def test_best_trajectory_beats_frame(cmu_file):
     """The issue's third accuracy target on a seeded dev clip, CMU 09_06 (a run), at the evaluation setting
     (2 px, 10% missing, seed 0 as `ptrack evaluate` runs it), both methods on the same observations.
-    Measured: kjs (keyframe start) best trajectory 39.5 mm, flip rate 0.035; `frame` 63.1 mm, 0.104. On
+    Measured: kjs (keyframe start) best trajectory 39.5 mm, flip rate 0.035 (37.2 mm, 0.029 with the
+    smoother, 2026-11-25); `frame` 63.1 mm, 0.104. On
     49_18 (the one-leg balance) the two are level in flip rate, seed for seed (docs/results.md)."""
     cfg = _clip(cmu_file, "09_06.amc")
     prep = prepare(cfg)
