@@ -114,6 +114,12 @@ def wrap_to_limits(q: Tensor, lower: Tensor, upper: Tensor, angular: Tensor) -> 
     return torch.where(limited, shifted, q)
 
 
+def wrapped_difference(diff: Tensor, angular: Tensor) -> Tensor:
+    """Differences of poses with each angle's brought into [-pi, pi) (translations unchanged).
+    diff: (..., D); angular: (D,) bool (periodic dofs). -> (..., D)"""
+    return torch.where(angular, torch.remainder(diff + math.pi, TAU) - math.pi, diff)
+
+
 def outside_limits(q: Tensor, lower: Tensor, upper: Tensor, angular: Tensor | None = None) -> Tensor:
     """How far each entry lies outside its limits (0 inside; radians or metres).
 

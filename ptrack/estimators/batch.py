@@ -69,7 +69,7 @@ from ptrack.errors import InputError
 from ptrack.ik import ik_plan
 from ptrack.jacobians import joint_jacobian, joint_jacobian_product
 from ptrack.jumps import check_independent, default_chains
-from ptrack.limits import wrap_to_limits
+from ptrack.limits import wrap_to_limits, wrapped_difference
 from ptrack.pose_prior import smoothing_prior
 from ptrack.problem import Estimate, Problem
 from ptrack.solvers import BandedLinearization, BandedLMInfo, banded_levenberg_marquardt
@@ -290,11 +290,6 @@ def trajectory_objective(
     )
 
 
-def _wrapped(diff: Tensor, angular: Tensor) -> Tensor:
-    """Angle differences into [-pi, pi) (translations unchanged). (..., D) -> (..., D)."""
-    return torch.where(angular, torch.remainder(diff + math.pi, 2 * math.pi) - math.pi, diff)
-
-
 class Evaluation(NamedTuple):
     """`evaluate`'s result: terms {name: (B, T)} (reprojection, limits, smooth, keyframes; each
     smoothing residual counted at its middle frame), h (B, T, D, D) the per-frame blocks J_t^T W J_t
@@ -353,7 +348,7 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
     # the smoothing's derivatives only where used: l2's gradient and band come from the fixed band
     robust = with_jacobian and obj.smooth_loss != "l2"
     terms["smooth"], smooth_grad, smooth_weights = robust_smoothing(obj, q, derivatives=robust)
-    kf_r = _wrapped(q[:, obj.kf_frames] - obj.kf_target, obj.angular) * obj.kf_weight  # (B, F, D)
+    kf_r = wrapped_difference(q[:, obj.kf_frames] - obj.kf_target, obj.angular) * obj.kf_weight  # (B, F, D)
     keyframes = q.new_zeros(b_len, t_len).index_add(1, obj.kf_frames, 0.5 * kf_r.square().sum(-1))
     jk_r = (ev.joints[:, obj.jk_frames] - obj.jk_target) * obj.jk_weight[..., None]  # (B, G, J, 3)
     terms["keyframes"] = keyframes.index_add(1, obj.jk_frames, 0.5 * jk_r.square().sum((-1, -2)))
@@ -568,7 +563,7 @@ def warp_to_keyframes(q: Tensor, obj: Trajectory) -> Tensor:
     the solver refines that stretch instead of first dragging it there."""
     if obj.kf_frames.numel() == 0:
         return q
-    diff = _wrapped(obj.kf_target - q[obj.kf_frames], obj.angular)  # (F, D)
+    diff = wrapped_difference(obj.kf_target - q[obj.kf_frames], obj.angular)  # (F, D)
     given = (obj.kf_weight > 0).cpu().numpy()
     frames = obj.kf_frames.cpu().numpy()
     # a dof the start already meets within 3 of its keyframe's std is an anchor: offset 0 there

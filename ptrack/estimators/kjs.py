@@ -97,6 +97,7 @@ from ptrack.jumps import (
     joint_observations,
     product,
 )
+from ptrack.limits import wrapped_difference
 from ptrack.mixture import Modes, distinct_minima, posterior_weights, viterbi_with_cost
 from ptrack.pose_prior import pose_prior, smoothing_prior
 from ptrack.problem import Estimate, Problem, first_keyframe, pose_eval_from_joints
@@ -744,8 +745,7 @@ def _smooth(s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor) -> tuple[T
                 gap = torch.where(hw[u][None] > 0, gap, torch.full_like(gap, math.inf))
                 near, j = gap.min(1)
                 linked = (near < k.smooth_link_m).to(hq.dtype)[:, None]
-                step = hq[u][j] - hq[t]
-                step = torch.where(s.angular, torch.remainder(step + math.pi, 2 * math.pi) - math.pi, step)
+                step = wrapped_difference(hq[u][j] - hq[t], s.angular)
                 pull = pull + linked * step
                 count = count + linked
             move = (hw[t] > 0) & (count[:, 0] > 0)
