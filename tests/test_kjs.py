@@ -552,11 +552,12 @@ def test_smoothing_moves_only_linked_hypotheses(kjs_run):
     hw = torch.tensor([[1.0, 0.0], [0.5, 0.5], [1.0, 0.0]])  # the turned body is padding on frames 10 and 12
     hc = torch.zeros(3, 2)
     hl = torch.zeros(3, 2, sk.num_dofs, sk.num_dofs)
-    sq, sc, sl = _smooth(s, hq, hw, hc, hl)
+    sq, sc, sl, sj = _smooth(s, hq, hw, hc, hl, sk.forward_kinematics(hq))
     assert torch.equal(sq[:, 1], hq[:, 1]) and torch.equal(sc[:, 1], hc[:, 1])  # unlinked, padding
     thigh = sk.dof_names.index("lfemur.rx")
     assert abs(float(sq[1, 0, thigh] - q[1, thigh])) < 0.5 * 0.3  # drawn back towards its neighbours
     assert bool(torch.isfinite(sc[:, 0]).all()) and float(sl[1, 0].abs().sum()) > 0
+    torch.testing.assert_close(sj, sk.forward_kinematics(sq))  # the smoothed poses' joints
 
 
 def test_smoothing_steadies_the_trajectory(kjs_run):

@@ -715,7 +715,9 @@ def _lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: l
 SMOOTH_ITERATIONS = 5
 
 
-def _smooth(s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _smooth(
+    s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor, joints: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """`kjs.smooth_sweeps` sweeps of a smoother over the finished hypothesis lattice. Each tracked mode holds
     the evidence of its own frame and, through the dynamics, of the frames before (a filter): its depth
     jitters from frame to frame wherever the 2D leaves it loose. In a sweep each hypothesis of frame t is
@@ -725,15 +727,14 @@ def _smooth(s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor) -> tuple[T
     neighbours, std `kjs.smooth_scale` times the dynamics' (times sqrt 2 with one neighbour). A
     hypothesis with no linked neighbour, and padding, keep their pose. Each sweep uses the poses of the
     sweep before (Jacobi). hq (T, K, D), hw (T, K) weights (0: padding), hc (T, K) costs, hl (T, K, D, D)
-    covariance factors -> hq, hc, hl (the smoothed poses' objective and covariance)."""
+    covariance factors, joints (T, K, J, 3) their forward kinematics -> hq, hc, hl, joints (the smoothed
+    poses, their objective, covariance and joints)."""
     k = s.cfg.kjs
     sk = s.problem.skeleton
     T, K, D = hq.shape
     base = torch.as_tensor(s.dynamics_sigma, dtype=hq.dtype, device=hq.device).expand(D) * k.smooth_scale
     for _ in range(k.smooth_sweeps):
-        with torch.no_grad():
-            joints = sk.forward_kinematics(hq)
-            rel = joints - joints[..., :1, :]  # (T, K, J, 3)
+        rel = joints - joints[..., :1, :]  # (T, K, J, 3)
         new_q, new_c, new_l = hq.clone(), hc.clone(), hl.clone()
         for t in range(T):
             pull = torch.zeros_like(hq[t])  # (K, D): sum of the wrapped steps to the linked neighbours
@@ -757,7 +758,9 @@ def _smooth(s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor) -> tuple[T
             q, cost, hessian = _polish(s, t, hq[t][move], mean, SMOOTH_ITERATIONS, sigma, tracking=True)
             new_q[t, move], new_c[t, move], new_l[t, move] = q, cost, _cholesky(s, hessian)
         hq, hc, hl = new_q, new_c, new_l
-    return hq, hc, hl
+        with torch.no_grad():
+            joints = sk.forward_kinematics(hq)
+    return hq, hc, hl, joints
 
 
 def track(
@@ -810,9 +813,7 @@ def _track(
         path = torch.zeros_like(path)
         jumps = [a + b for a, (_, b) in zip(jumps, reversed(passes[1]))]
     if k.smooth_sweeps > 0:  # every frame's hypotheses smoothed in time (`_smooth`); the choice of mode kept
-        hq, hc, hl = _smooth(s, hq, hw, hc, hl)
-        with torch.no_grad():
-            hyp_joints = sk.forward_kinematics(hq)
+        hq, hc, hl, hyp_joints = _smooth(s, hq, hw, hc, hl, hyp_joints)
     with torch.no_grad():
         frames = torch.arange(hq.shape[0], device=hq.device)
         joints = hyp_joints[frames, path]
