@@ -115,7 +115,7 @@ def wrap_to_limits(q: Tensor, lower: Tensor, upper: Tensor, angular: Tensor) -> 
 
 
 def wrapped_difference(diff: Tensor, angular: Tensor) -> Tensor:
-    """Differences of poses with each angle's brought into [-pi, pi) (translations unchanged).
+    """Differences of poses, each angle's brought into [-pi, pi) (translations' unchanged).
     diff: (..., D); angular: (D,) bool (periodic dofs). -> (..., D)"""
     return torch.where(angular, torch.remainder(diff + math.pi, TAU) - math.pi, diff)
 

@@ -752,7 +752,7 @@ def _smooth(
             move = (hw[t] > 0) & (count[:, 0] > 0)
             if not bool(move.any()):
                 continue
-            n = count[move].clamp_min(1)
+            n = count[move]  # (M, 1): 1 or 2 linked neighbours
             mean = hq[t][move] + pull[move] / n
             sigma = base * torch.sqrt(2 / n)
             q, cost, hessian = _polish(s, t, hq[t][move], mean, SMOOTH_ITERATIONS, sigma, tracking=True)
