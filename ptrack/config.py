@@ -211,6 +211,12 @@ class KjsMethodConfig:
     smooth_sweeps: int = 1
     smooth_scale: float = 0.2
     smooth_link_m: float = 0.1
+    # after the passes, one more hypothesis per frame (in place of padding or the lightest mode other than the
+    # best trajectory's): the best trajectory's pose with each chain's reading chosen by its own Viterbi pass
+    # over the modes (velocity std recombine_sigma_m per frame on the chain's grafted joints). The modes hold
+    # the limbs' readings in combinations, and often no mode holds the right reading of every limb at once
+    recombine: bool = True
+    recombine_sigma_m: float = 0.15
 
 
 @dataclass(frozen=True)
@@ -663,6 +669,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         "dynamics_scale",
         "smooth_scale",
         "smooth_link_m",
+        "recombine_sigma_m",
     ):
         if not getattr(kc, key) > 0:
             raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(kc, key)}")

@@ -15,7 +15,7 @@ from ptrack import metrics as M
 from ptrack.cli import main
 from ptrack.config import load_config
 from ptrack.estimators import ESTIMATORS
-from ptrack.estimators.kjs import KJS, _allocate, _chain_votes, _setup, _smooth, track
+from ptrack.estimators.kjs import KJS, _allocate, _chain_votes, _recombine, _setup, _smooth, track
 from ptrack.evaluate import asf_for
 from ptrack.problem import Problem
 from ptrack.run import compute_metrics, prepare, reprojected_keypoints
@@ -233,6 +233,8 @@ def test_allocation_splits_an_even_share_over_the_modes():
         ("kjs.smooth_sweeps=-1", "kjs.smooth_sweeps"),
         ("kjs.smooth_scale=0", "kjs.smooth_scale"),
         ("kjs.smooth_link_m=-0.1", "kjs.smooth_link_m"),
+        ("kjs.recombine_sigma_m=0", "kjs.recombine_sigma_m"),
+        ("kjs.recombine=maybe", "kjs.recombine"),
     ],
 )
 def test_bad_settings_are_one_line_errors(tmp_path, capsys, override, key):
@@ -558,6 +560,37 @@ def test_smoothing_moves_only_linked_hypotheses(kjs_run):
     assert abs(float(sq[1, 0, thigh] - q[1, thigh])) < 0.5 * 0.3  # drawn back towards its neighbours
     assert bool(torch.isfinite(sc[:, 0]).all()) and float(sl[1, 0].abs().sum()) > 0
     torch.testing.assert_close(sj, sk.forward_kinematics(sq))  # the smoothed poses' joints
+
+
+def test_recombination_joins_the_right_reading_of_each_chain(kjs_run):
+    """`_recombine`: the best trajectory's mode has the left arm wrong, another mode the right leg, a third
+    both; no mode is right in both. The recombined pose takes each chain's reading on its own and is the
+    truth; it fills the padding slot, and the best trajectory's mode is kept as it was."""
+    prep, _ = kjs_run
+    cfg = load_config(KJS_YAML, EXACT)
+    s = _setup(prep.problem, cfg, KJS)
+    sk = prep.problem.skeleton
+    q = prep.gt_q[:6].to(torch.float32)
+    arm, leg = sk.dof_names.index("lhumerus.rx"), sk.dof_names.index("rfemur.rx")
+    hq = q[:, None].repeat(1, 4, 1)  # (6, 4, D)
+    hq[:, 0, arm] += 0.8
+    hq[:, 1, leg] += 0.8
+    hq[:, 2, arm] += 0.8
+    hq[:, 2, leg] += 0.8
+    hw = torch.tensor([0.5, 0.3, 0.2, 0.0]).repeat(6, 1)  # slot 3: padding
+    hc = torch.zeros(6, 4)
+    hl = torch.zeros(6, 4, sk.num_dofs, sk.num_dofs)
+    path = torch.zeros(6, dtype=torch.long)
+    rq, rw, rc, rl, rj = _recombine(s, hq, hw, hc, hl, sk.forward_kinematics(hq), path)
+    idx = prep.problem.keypoints.index()
+    gt = prep.gt_joints[:6].to(rj).index_select(-2, idx)
+    err = M.mpjpe(rj.index_select(-2, idx), gt[:, None].expand(-1, 4, -1, -1), root=0)  # (6, 4)
+    assert float(err[:, 3].max()) < 10.0 and float(err[:, :3].min()) > 30.0, err  # 1 px noise: 3-7 mm
+    assert torch.equal(rq[:, :3], hq[:, :3])  # the modes as they were, their weights in the same ratios
+    torch.testing.assert_close(rw[:, :3] / rw[:, :1], hw[:, :3] / hw[:, :1])
+    torch.testing.assert_close(rw.sum(1), torch.ones(6))
+    assert float(rw[:, 3].min()) > 0 and bool(torch.isfinite(rc[:, 3]).all()) and float(rl[:, 3].abs().sum()) > 0
+    torch.testing.assert_close(rj, sk.forward_kinematics(rq))
 
 
 def test_smoothing_steadies_the_trajectory(kjs_run):

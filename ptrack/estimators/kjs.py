@@ -57,6 +57,11 @@ been right (held-out 35_01, 02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 
 After a tree start the backward pass's own best trajectory replaces it when the two face directions more
 than `HEADING_SPLIT_DEG` apart (two readings of the whole body) and it costs less (`_lead_pass`).
 
+Then (`kjs.recombine`, `_recombine`) each frame gets one more hypothesis: the best trajectory's pose with
+each chain's reading (which way each limb points in depth) chosen on its own, by a Viterbi pass per chain
+over the modes' readings of it. The modes hold the readings in combinations, and often none holds the right
+reading of every limb at once.
+
 Last, `kjs.smooth_sweeps` sweeps of a smoother (`_smooth`) re-polish every frame's hypotheses with the prior
 around the mean of their nearest neighbours in the frames before and after. The passes are filters: each
 mode holds its own frame's evidence and the past's (or the future's), so its depth jitters from frame to
@@ -710,6 +715,73 @@ def _lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: l
     return False, path
 
 
+#: Levenberg-Marquardt iterations of each graft in `_recombine` (a mode's chain on the best trajectory's pose)
+#: and of the recombined pose: the chain moves little, the rest of the body settles around it
+GRAFT_ITERATIONS, RECOMBINED_ITERATIONS = 3, 5
+
+
+def _recombine(
+    s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor, joints: Tensor, path: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """One more hypothesis per frame: the best trajectory's pose with each chain's reading chosen on its own.
+
+    The modes hold the chains' readings (which way each limb points in depth) in combinations: one mode
+    may have the left arm right and the right leg wrong, another the reverse, and no mode both (49_18 at
+    2 px after a tree start: the best trajectory's mode 99 mm off, each of two others right in one limb).
+    The 2D cannot tell the combinations apart, but each chain's own reading can be followed in time. For
+    every frame t, chain c and mode m, the chain's dofs of mode m are grafted onto the best trajectory's
+    pose and polished briefly around that graft; each chain then gets its own Viterbi pass over the modes:
+    the graft's frame cost (`_evidence`) plus a velocity prior on the graft's joints relative to the root
+    (std `kjs.recombine_sigma_m` per frame). The chosen readings of all chains on the best trajectory's pose,
+    polished, replace frame t's padding or its lightest mode other than the best trajectory's, with that
+    slot's weight (the lightest weight for padding), unless they are a mode already (`_distinct`). The
+    best trajectory keeps its modes. hq (T, K, D), hw (T, K) (0: padding), hc (T, K), hl (T, K, D, D),
+    joints (T, K, J, 3), path (T,) -> hq, hw, hc, hl, joints."""
+    k = s.cfg.kjs
+    sk = s.problem.skeleton
+    T, K, D = hq.shape
+    C = len(s.chains)
+    if C == 0 or K < 2:
+        return hq, hw, hc, hl, joints
+    frames = torch.arange(T, device=hq.device)
+    lead = hq[frames, path]  # (T, D)
+    chain_dofs = s.chain_dofs[:, None]  # (C, 1, D)
+    unary, feats = [], []
+    for t in range(T):
+        graft = torch.where(chain_dofs, hq[t][None], lead[t][None, None]).reshape(C * K, D)
+        graft, _, _ = _polish(s, t, graft, graft, GRAFT_ITERATIONS, s.dynamics_sigma)
+        with torch.no_grad():
+            j = sk.forward_kinematics(graft)
+        cost = _evidence(s, t, graft, j).reshape(C, K)
+        unary.append(torch.where(hw[t][None] > 0, cost, torch.full_like(cost, math.inf)))
+        feats.append((j - j[:, :1]).reshape(C, K, -1))
+    unary_ck, feats_ck = torch.stack(unary), torch.stack(feats)  # (T, C, K), (T, C, K, 3J)
+    choice = torch.stack([viterbi_with_cost(unary_ck[:, c], feats_ck[:, c], k.recombine_sigma_m)[0] for c in range(C)])
+    hq, hw, hc, hl, joints = hq.clone(), hw.clone(), hc.clone(), hl.clone(), joints.clone()
+    for t in range(T):
+        if bool((choice[:, t] == path[t]).all()):
+            continue  # every chain keeps the best trajectory's reading: nothing new
+        q = lead[t]
+        for c in range(C):
+            q = torch.where(s.chain_dofs[c], hq[t, choice[c, t]], q)
+        q, cost, hessian = _polish(s, t, q[None], q[None], RECOMBINED_ITERATIONS, s.dynamics_sigma)
+        real = hw[t] > 0
+        pool = torch.cat([hq[t][real], q])
+        rank = torch.arange(pool.shape[0], dtype=hq.dtype, device=hq.device)
+        if int(_distinct(s, pool, rank).max()) < pool.shape[0] - 1:
+            continue  # the recombined pose is one of the modes
+        order = torch.where(real, hw[t], torch.full_like(hw[t], -1.0))
+        order[path[t]] = math.inf
+        slot = int(order.argmin())
+        weight = hw[t, slot] if bool(real[slot]) else hw[t][real].min()
+        hq[t, slot], hc[t, slot], hl[t, slot] = q[0], cost[0], _cholesky(s, hessian)[0]
+        hw[t, slot] = weight
+        hw[t] = hw[t] / hw[t].sum()
+        with torch.no_grad():
+            joints[t, slot] = sk.forward_kinematics(q)[0]
+    return hq, hw, hc, hl, joints
+
+
 #: Levenberg-Marquardt iterations of each hypothesis in a smoothing sweep (`_smooth`): it starts at a
 #: minimum of its own frame's objective and moves only as far as its neighbours pull it
 SMOOTH_ITERATIONS = 5
@@ -812,6 +884,8 @@ def _track(
         hq, hw, hc, hl, hyp_joints = _lattice(s, merged)
         path = torch.zeros_like(path)
         jumps = [a + b for a, (_, b) in zip(jumps, reversed(passes[1]))]
+    if k.recombine:  # each chain's reading chosen on its own, on the best trajectory's pose (`_recombine`)
+        hq, hw, hc, hl, hyp_joints = _recombine(s, hq, hw, hc, hl, hyp_joints, path)
     if k.smooth_sweeps > 0:  # every frame's hypotheses smoothed in time (`_smooth`); the choice of mode kept
         hq, hc, hl, hyp_joints = _smooth(s, hq, hw, hc, hl, hyp_joints)
     with torch.no_grad():
