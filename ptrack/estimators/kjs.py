@@ -735,8 +735,9 @@ def _recombine(
     (std `kjs.recombine_sigma_m` per frame). The chosen readings of all chains on the best trajectory's pose,
     polished, replace frame t's padding or its lightest mode other than the best trajectory's, with that
     slot's weight (the lightest weight for padding), unless they are a mode already (`_distinct`). The
-    best trajectory keeps its modes. hq (T, K, D), hw (T, K) (0: padding), hc (T, K), hl (T, K, D, D),
-    joints (T, K, J, 3), path (T,) -> hq, hw, hc, hl, joints."""
+    best trajectory keeps its modes. Without chains (css and ss after a keyframe start) or with K = 1 nothing
+    changes. hq (T, K, D), hw (T, K) (0: padding), hc (T, K), hl (T, K, D, D), joints (T, K, J, 3), path (T,)
+    -> hq, hw, hc, hl, joints."""
     k = s.cfg.kjs
     sk = s.problem.skeleton
     T, K, D = hq.shape
