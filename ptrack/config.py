@@ -216,8 +216,9 @@ class KjsMethodConfig:
     # over the modes (velocity std recombine_sigma_m per frame on the chain's grafted joints). The modes hold
     # the limbs' readings in combinations, and often no mode holds the right reading of every limb at once.
     # css and ss have chains only after a tree start (`kjs.chains` serve the jumps and the trees), so only then.
-    # Dev clips, five seeds, 2 px, best-of-K mm: tree start 31.1 -> 30.1, keyframe start 21.4 -> 21.1; on saved
-    # lattices sigma 0.05 / 0.15 / 0.3 / 1.0 gave 31.4 / 30.9 / 30.9 / 31.0 (tree start, before the smoother)
+    # Dev clips, five seeds, best-of-K mm: 2 px tree start 31.1 -> 30.0, keyframe start 21.4 -> 20.8; 1 px
+    # keyframe start 15.0 -> 14.6; the best trajectory is the same. On saved lattices sigma 0.05 / 0.15 / 0.3 /
+    # 1.0 gave 31.4 / 30.9 / 30.9 / 31.0 (tree start, 2 px, before the smoother)
     recombine: bool = True
     recombine_sigma_m: float = 0.15
 

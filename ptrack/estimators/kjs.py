@@ -57,16 +57,16 @@ been right (held-out 35_01, 02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 
 After a tree start the backward pass's own best trajectory replaces it when the two face directions more
 than `HEADING_SPLIT_DEG` apart (two readings of the whole body) and it costs less (`_lead_pass`).
 
-Then (`kjs.recombine`, `_recombine`) each frame gets one more hypothesis: the best trajectory's pose with
-each chain's reading (which way each limb points in depth) chosen on its own, by a Viterbi pass per chain
-over the modes' readings of it. The modes hold the readings in combinations, and often none holds the right
-reading of every limb at once.
-
-Last, `kjs.smooth_sweeps` sweeps of a smoother (`_smooth`) re-polish every frame's hypotheses with the prior
+Then `kjs.smooth_sweeps` sweeps of a smoother (`_smooth`) re-polish every frame's hypotheses with the prior
 around the mean of their nearest neighbours in the frames before and after. The passes are filters: each
 mode holds its own frame's evidence and the past's (or the future's), so its depth jitters from frame to
 frame where the 2D leaves it loose; the smoother brings in both sides. It keeps the weights and the best
 trajectory's choice of mode per frame.
+
+Last (`kjs.recombine`, `_recombine`) each frame gets one more hypothesis: the best trajectory's pose with
+each chain's reading (which way each limb points in depth) chosen on its own, by a Viterbi pass per chain
+over the modes' readings of it. The modes hold the readings in combinations, and often none holds the right
+reading of every limb at once. It replaces a light mode and leaves the best trajectory as it was.
 """
 
 from __future__ import annotations
@@ -728,7 +728,8 @@ def _recombine(
     The modes hold the chains' readings (which way each limb points in depth) in combinations: one mode
     may have the left arm right and the right leg wrong, another the reverse, and no mode both (49_18 at
     2 px after a tree start: the best trajectory's mode 99 mm off, each of two others right in one limb).
-    The 2D cannot tell the combinations apart, but each chain's own reading can be followed in time. For
+    The 2D cannot tell the combinations apart, but each chain's own reading can be followed in time. It runs
+    after the smoother (`_smooth`), which then does not link the best trajectory's modes to it. For
     every frame t, chain c and mode m, the chain's dofs of mode m are grafted onto the best trajectory's
     pose and polished briefly around that graft; each chain then gets its own Viterbi pass over the modes:
     the graft's frame cost (`_evidence`) plus a velocity prior on the graft's joints relative to the root
@@ -885,10 +886,11 @@ def _track(
         hq, hw, hc, hl, hyp_joints = _lattice(s, merged)
         path = torch.zeros_like(path)
         jumps = [a + b for a, (_, b) in zip(jumps, reversed(passes[1]))]
-    if k.recombine:  # each chain's reading chosen on its own, on the best trajectory's pose (`_recombine`)
-        hq, hw, hc, hl, hyp_joints = _recombine(s, hq, hw, hc, hl, hyp_joints, path)
     if k.smooth_sweeps > 0:  # every frame's hypotheses smoothed in time (`_smooth`); the choice of mode kept
         hq, hc, hl, hyp_joints = _smooth(s, hq, hw, hc, hl, hyp_joints)
+    if k.recombine:  # each chain's reading chosen on its own, on the best trajectory's pose (`_recombine`); after
+        # the smoother, so that the best trajectory is the same with it and without
+        hq, hw, hc, hl, hyp_joints = _recombine(s, hq, hw, hc, hl, hyp_joints, path)
     with torch.no_grad():
         frames = torch.arange(hq.shape[0], device=hq.device)
         joints = hyp_joints[frames, path]
