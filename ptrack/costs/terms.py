@@ -37,7 +37,9 @@ class Reprojection(_Robust):
     there); *O is () for one frame or (T,) for a trajectory. Reads ev.pixels (..., *O, K, 2).
     residual (..., |O|*K*2): r_k = sqrt(confidence_k) (pixels_k - observed_k) / sigma_px, the x, y
     of keypoint k adjacent; rho(s, scale) is applied to s_k = |r_k|^2 (both coordinates together),
-    so `scale` is in units of sigma_px.
+    so `scale` is in units of sigma_px. With `per_problem` the first axis of observed (N, K, 2) and
+    confidence (N, K) runs over N independent problems, each pose with its own frame's keypoints: ev.pixels
+    (N, K, 2) -> residual (N, K*2), not one problem's (N*K*2) residual over a trajectory.
     """
 
     observed: Tensor
@@ -45,6 +47,7 @@ class Reprojection(_Robust):
     sigma_px: float = 1.0
     loss: str = "cauchy"
     scale: float = 1.0
+    per_problem: bool = False
     _group: ClassVar[int] = 2
     _target: Tensor = field(init=False, repr=False)
     _sqrt_conf: Tensor = field(init=False, repr=False)
@@ -58,6 +61,8 @@ class Reprojection(_Robust):
                 f"Reprojection.confidence must have shape {_shape(obs)[:-1]} to "
                 f"match observed {_shape(obs)}, got {_shape(conf)}"
             )
+        if self.per_problem and obs.ndim != 3:
+            raise InputError(f"Reprojection.observed must have shape (N, K, 2) with per_problem, got {_shape(obs)}")
         if not (torch.isfinite(conf).all() and (conf >= 0).all()):
             raise InputError("Reprojection.confidence must be finite and >= 0")
         valid = conf > 0
@@ -83,11 +88,11 @@ class Reprojection(_Robust):
                 f"Reprojection: ev.pixels {_shape(p)} must end in observed's shape {_shape(self.observed)}"
             )
         r = (p - self._target.to(p)) * self._sqrt_conf.to(p)[..., None]
-        return r.flatten(-n)
+        return r.flatten(-(n - self.per_problem))
 
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
         """jac.pixels (..., *O, K, 2, D) -> (..., |O|*K*2, D), rows as in `residual`."""
-        n = self.observed.ndim
+        n = self.observed.ndim - self.per_problem
         j = jac.pixels * self._sqrt_conf.to(jac.pixels)[..., None, None]
         return j.flatten(-n - 1, -2)
 
