@@ -148,6 +148,21 @@ def test_reprojection_trajectory_shapes():
     torch.testing.assert_close(term.energy(ev(pixels=pix)), per_frame)
 
 
+def test_reprojection_per_problem():
+    """per_problem: observed (N, K, 2) holds each pose's own frame, and the residual stays per pose (N, K*2),
+    equal to N one-frame terms; without it the same observed is one trajectory's (N*K*2)."""
+    obs = torch.rand(3, 4, 2, generator=gen(8), dtype=D64) * 50
+    conf = torch.rand(3, 4, generator=gen(9), dtype=D64)
+    pix = obs + torch.randn(3, 4, 2, generator=gen(10), dtype=D64)
+    term = Reprojection(obs, conf, loss="cauchy", per_problem=True)
+    assert term.residual(ev(pixels=pix)).shape == (3, 8)
+    loop = torch.stack([Reprojection(obs[i], conf[i], loss="cauchy").energy(ev(pixels=pix[i])) for i in range(3)])
+    torch.testing.assert_close(term.energy(ev(pixels=pix)), loop)
+    assert Reprojection(obs, conf).residual(ev(pixels=pix)).shape == (24,)
+    with pytest.raises(InputError, match="per_problem"):
+        Reprojection(obs[0], conf[0], per_problem=True)
+
+
 def test_reprojection_float32():
     obs = torch.rand(4, 2, generator=gen(5), dtype=D64)
     term = Reprojection(obs, torch.ones(4))
