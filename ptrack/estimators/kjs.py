@@ -724,7 +724,7 @@ def _lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: l
 #: Levenberg-Marquardt iterations of each graft in `_recombine` (a mode's chain on the best trajectory's pose)
 #: and of the recombined pose: the chain moves little, the rest of the body settles around it
 GRAFT_ITERATIONS, RECOMBINED_ITERATIONS = 3, 5
-#: poses of many frames polished in one batched call (`_polish_rows`, `_recombine`'s grafts): one call per
+#: poses of many frames polished in one batched call (`_polish_rows`): one call per
 #: frame costs a linearisation's overhead per frame; on the bundled clip 320 rows a call measured faster than
 #: 1280 or 5920 (`_recombine` 1.5 s against 1.8 and 2.8 s), and memory stays bounded on long clips
 POLISH_CHUNK = 320
@@ -770,18 +770,13 @@ def _recombine(
         return hq, hw, hc, hl, joints
     frames = torch.arange(T, device=hq.device)
     lead = hq[frames, path]  # (T, D)
-    unary, feats = [], []
-    for chunk in torch.split(frames, max(POLISH_CHUNK // (C * K), 1)):  # each graft with its own frame's 2D
-        graft = torch.where(s.chain_dofs[None, :, None], hq[chunk, None], lead[chunk, None, None])  # (F, C, K, D)
-        graft = graft.reshape(-1, D)
-        rows = chunk.repeat_interleave(C * K)
-        graft, _, _ = _polish(s, rows, graft, graft, GRAFT_ITERATIONS, s.dynamics_sigma)
-        with torch.no_grad():
-            j = sk.forward_kinematics(graft)
-        unary.append(_evidence(s, rows, graft, j).reshape(-1, C, K))
-        feats.append((j - j[:, :1]).reshape(-1, C, K, j[0].numel()))
-    cost_tck = torch.where(hw[:, None] > 0, torch.cat(unary), math.inf)  # (T, C, K)
-    feats_tck = torch.cat(feats)  # (T, C, K, 3J)
+    graft = torch.where(s.chain_dofs[None, :, None], hq[:, None], lead[:, None, None]).reshape(-1, D)  # (T C K, D)
+    rows = frames.repeat_interleave(C * K)  # each graft with its own frame's 2D
+    graft, _, _ = _polish_rows(s, rows, graft, graft, GRAFT_ITERATIONS, s.dynamics_sigma)
+    with torch.no_grad():
+        j = sk.forward_kinematics(graft)
+    cost_tck = torch.where(hw[:, None] > 0, _evidence(s, rows, graft, j).reshape(T, C, K), math.inf)
+    feats_tck = (j - j[:, :1]).reshape(T, C, K, -1)  # the grafts' joints relative to the root
     choice = torch.stack([viterbi_with_cost(cost_tck[:, c], feats_tck[:, c], k.recombine_sigma_m)[0] for c in range(C)])
     new = (choice != path[None]).any(0)  # (T,): some chain takes another mode's reading
     if not bool(new.any()):
