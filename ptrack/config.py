@@ -689,9 +689,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         raise InputError(
             "config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' must be >= 0"
         )
-    if kc.smooth_sweeps < 0:
-        raise InputError(f"config key 'kjs.smooth_sweeps' must be >= 0, got {kc.smooth_sweeps}")
-    for key in ("motion_scale", "pose_prior_weight", "distinct_mm"):
+    for key in ("motion_scale", "pose_prior_weight", "distinct_mm", "smooth_sweeps"):
         if getattr(kc, key) < 0:
             raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")
     for key in ("momentum", "even_share", "weight_memory"):

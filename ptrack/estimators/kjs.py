@@ -800,10 +800,10 @@ def _recombine(
         order = torch.where(real, hw[t], torch.full_like(hw[t], -1.0))
         order[path[t]] = math.inf
         slot = int(order.argmin())
-        weight = hw[t, slot] if bool(real[slot]) else hw[t][real].min()
         hq[t, slot], hc[t, slot], hl[t, slot], joints[t, slot] = q[i], cost[i], chol[i], q_joints[i]
-        hw[t, slot] = weight
-        hw[t] = hw[t] / hw[t].sum()
+        if not bool(real[slot]):  # padding (weight 0) takes the lightest mode's weight
+            hw[t, slot] = hw[t][real].min()
+            hw[t] = hw[t] / hw[t].sum()
     return hq, hw, hc, hl, joints
 
 
