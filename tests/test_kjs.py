@@ -34,6 +34,12 @@ def _run(*extra: str, seed: int = 1):
     return prep, est
 
 
+def _metrics(prep, cfg, method: str = "kjs") -> dict:
+    """`method` on `prep`'s problem, seeded as `ptrack run` seeds it -> its metrics.json values."""
+    est = ESTIMATORS[method](prep.problem, cfg, torch.Generator().manual_seed(cfg.seed + 1))
+    return compute_metrics(prep, est, reprojected_keypoints(prep, est))[0]
+
+
 def _errors(prep, est) -> tuple[float, float]:
     """-> (best trajectory MPJPE, best-of-K MPJPE) over the 17 keypoints, mm."""
     idx = prep.problem.keypoints.index()
@@ -487,8 +493,7 @@ def test_best_trajectory_beats_frame(cmu_file):
     prep = prepare(cfg)
     got = {}
     for method in ("kjs", "frame"):
-        est = ESTIMATORS[method](prep.problem, cfg, torch.Generator().manual_seed(cfg.seed + 1))
-        metrics, _ = compute_metrics(prep, est, reprojected_keypoints(prep, est))
+        metrics = _metrics(prep, cfg, method)
         got[method] = (metrics["mpjpe_mm"], metrics["flip_error_rate"])
     assert got["kjs"][0] < got["frame"][0] and got["kjs"][1] < got["frame"][1], f"(MPJPE mm, flip rate): {got}"
 
@@ -601,9 +606,7 @@ def test_recombination_after_a_tree_start(cmu_file):
     got = {}
     for on in ("true", "false"):
         cfg = _clip(cmu_file, "09_06.amc", "kjs.init=tree", "seed=3", f"kjs.recombine={on}")
-        prep = prepare(cfg)
-        est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(cfg.seed + 1))
-        metrics, _ = compute_metrics(prep, est, reprojected_keypoints(prep, est))
+        metrics = _metrics(prepare(cfg), cfg)
         got[on] = (metrics["best_of_k_mpjpe_mm"], metrics["mpjpe_mm"])
     assert got["true"][0] < got["false"][0] - 5.0, f"(best-of-K mm, best trajectory mm): {got}"
     assert got["true"][1] == got["false"][1], got
