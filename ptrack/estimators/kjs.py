@@ -666,7 +666,9 @@ def _best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor
     cost (`_evidence`) plus a velocity prior between consecutive choices (`kjs.viterbi_space`); padding
     (weight 0) is never chosen. -> mode index per frame (T,), and the path's cost ()."""
     k = s.cfg.kjs
-    unary = torch.stack([_evidence(s, t, q, j) for t, (q, j) in enumerate(zip(hq, joints))])
+    T, K, D = hq.shape
+    rows = torch.arange(T, device=hq.device).repeat_interleave(K)  # every mode with its own frame's 2D
+    unary = _evidence(s, rows, hq.reshape(-1, D), joints.flatten(0, 1)).reshape(T, K)
     with torch.no_grad():
         if k.viterbi_space == "joints":  # the body's motion in metres: every joint relative to the root
             feats, sigma = (joints - joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
