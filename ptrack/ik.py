@@ -281,10 +281,13 @@ def _solved_slots(plan: ChainIK) -> dict[int, tuple[tuple[int, int], ...]]:
 
 
 def _tensors(plan: ChainIK, dtype: torch.dtype, device: torch.device) -> dict:
+    out = plan._cache.get((dtype, str(device)))
+    return _new_tensors(plan, dtype, device) if out is None else out
+
+
+@torch.inference_mode(False)  # cached: ordinary tensors even when first built in a tracker's inference mode
+def _new_tensors(plan: ChainIK, dtype: torch.dtype, device: torch.device) -> dict:
     key = (dtype, str(device))
-    out = plan._cache.get(key)
-    if out is not None:
-        return out
     sk = plan.sk
 
     def t(x):

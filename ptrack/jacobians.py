@@ -93,10 +93,13 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
     """Per-skeleton constants, cached like the FK plan: slot axes, which slots are driven, the dof
     each slot drives, and the (joint, slot) pairs where the slot's joint is the joint or one of its
     ancestors, with where their three entries go in a flattened (J, 3, D) Jacobian."""
+    c = sk._cache.get(("jacobian", dtype, str(device)))
+    return _new_constants(sk, dtype, device) if c is None else c
+
+
+@torch.inference_mode(False)  # cached: ordinary tensors even when first built in a tracker's inference mode
+def _new_constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
     key = ("jacobian", dtype, str(device))
-    c = sk._cache.get(key)
-    if c is not None:
-        return c
     j = sk.num_joints
     anc = torch.zeros(j, j, dtype=torch.bool)  # anc[y, i]: i is y or an ancestor of y
     for y in range(j):
@@ -292,17 +295,20 @@ def _row_constants(
     order (row-major, then slot), with where their entries go in a flattened (Y, 3, D) Jacobian;
     likewise for prismatic sliders."""
     rows = tuple(int(y) for y in (joints.tolist() if isinstance(joints, Tensor) else joints))
+    rc = sk._cache.get(("jacobian rows", dtype, str(device), rows))
+    return _new_row_constants(sk, c, rows, dtype, device) if rc is None else rc
+
+
+@torch.inference_mode(False)  # cached: ordinary tensors even when first built in a tracker's inference mode
+def _new_row_constants(sk: Skeleton, c: dict, rows: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> dict:
     key = ("jacobian rows", dtype, str(device), rows)
-    rc = sk._cache.get(key)
-    if rc is not None:
-        return rc
     j = sk.num_joints
     if any(not -j <= y < j for y in rows):
         raise ValueError(f"joint_jacobian: joints {list(rows)} outside the skeleton's {j} joints")
     rows = tuple(y % j for y in rows)
     sel = torch.as_tensor(rows, dtype=torch.long)
     pt = _pair_tables(sk, c["ancestors"][sel], dtype)
-    rc = {name: x.to(device) for name, x in pt.items()}  # for `joint_jacobian_product`: pair_row, pair_dof, ...
+    rc: dict = {name: x.to(device) for name, x in pt.items()}  # for `joint_jacobian_product`: pair_row, pair_dof, ...
     rc["rows"] = len(rows)
     rc["pair_joint"] = sel[pt["pair_row"]].to(device)
     sk._cache[key] = rc
@@ -346,23 +352,9 @@ def _point_rows(
 ) -> tuple[Tensor, Tensor]:
     """`point_jacobian`'s points (..., P, 3) and jac (..., P, 3, D) from an FK pass of q (..., D) (joints
     (..., J, 3), world rotations (..., J, 3, 3)) and its slot axes and pivots a, o (..., S, 3)."""
-    key = ("point_jacobian", q.dtype, str(q.device))
-    pc = sk._cache.get(key)
-    if pc is None:  # (J, S) slot s turns joint y's body; (S, D) each slot's dof with its multiplier; same for sliders
-        d = sk.num_dofs
-        n_slot = int(c["slot_joint"].numel())
-        anc = c["ancestors"][:, c["slot_joint"].cpu()].to(q.device)  # (J, S): slot s's joint is y or above it
-        slot_dof = c["slot_index"].flatten()[c["slot_flat"]]
-        select = torch.zeros(n_slot, d, dtype=q.dtype, device=q.device)
-        select[torch.arange(n_slot, device=q.device), slot_dof] = c["mask"].flatten()[c["slot_flat"]]
-        sliders = torch.as_tensor(np.flatnonzero(sk.slide_dof >= 0), dtype=torch.long)
-        slide_anc = c["ancestors"][:, sliders].to(q.device)  # (J, Q): slider i is y or above it
-        sliders = sliders.to(q.device)
-        slide_select = torch.zeros(sliders.numel(), d, dtype=q.dtype, device=q.device)
-        slide_dof = torch.as_tensor(sk.slide_dof, dtype=torch.long, device=q.device)
-        slide_select[torch.arange(sliders.numel(), device=q.device), slide_dof[sliders]] = 1.0
-        pc = {"anc": anc, "select": select, "sliders": sliders, "slide_anc": slide_anc, "slide_select": slide_select}
-        sk._cache[key] = pc
+    pc = sk._cache.get(("point_jacobian", q.dtype, str(q.device)))
+    if pc is None:
+        pc = _point_constants(sk, c, q.dtype, q.device)
     batch = torch.broadcast_shapes(q.shape[:-1], joint.shape[:-1], local.shape[:-2])
     n_pts = joint.shape[-1]
     joint = joint.to(q.device).expand(*batch, n_pts)
@@ -382,6 +374,28 @@ def _point_rows(
     if c["trans_dof"].numel():
         jac[..., c["trans_axis"], c["trans_dof"]] = 1.0
     return points, jac
+
+
+@torch.inference_mode(False)  # cached: ordinary tensors even when first built in a tracker's inference mode
+def _point_constants(sk: Skeleton, c: dict, dtype: torch.dtype, device: torch.device) -> dict:
+    """`_point_rows`' cached tables: (J, S) slot s turns joint y's body; (S, D) each slot's dof with its
+    multiplier; the same for prismatic sliders."""
+    key = ("point_jacobian", dtype, str(device))
+    d = sk.num_dofs
+    n_slot = int(c["slot_joint"].numel())
+    anc = c["ancestors"][:, c["slot_joint"].cpu()].to(device)  # (J, S): slot s's joint is y or above it
+    slot_dof = c["slot_index"].flatten()[c["slot_flat"]]
+    select = torch.zeros(n_slot, d, dtype=dtype, device=device)
+    select[torch.arange(n_slot, device=device), slot_dof] = c["mask"].flatten()[c["slot_flat"]]
+    sliders = torch.as_tensor(np.flatnonzero(sk.slide_dof >= 0), dtype=torch.long)
+    slide_anc = c["ancestors"][:, sliders].to(device)  # (J, Q): slider i is y or above it
+    sliders = sliders.to(device)
+    slide_select = torch.zeros(sliders.numel(), d, dtype=dtype, device=device)
+    slide_dof = torch.as_tensor(sk.slide_dof, dtype=torch.long, device=device)
+    slide_select[torch.arange(sliders.numel(), device=device), slide_dof[sliders]] = 1.0
+    pc = {"anc": anc, "select": select, "sliders": sliders, "slide_anc": slide_anc, "slide_select": slide_select}
+    sk._cache[key] = pc
+    return pc
 
 
 def residual_jacobian(

@@ -74,10 +74,13 @@ def _frames_of(sk: Skeleton) -> np.ndarray | None:
 
 
 def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool = False) -> _Plan:
+    plan = sk._cache.get(("plan", dtype, str(device), generic))
+    return _new_plan(sk, dtype, device, generic) if plan is None else plan
+
+
+@torch.inference_mode(False)  # cached: ordinary tensors even when first built in a tracker's inference mode
+def _new_plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool) -> _Plan:
     key = ("plan", dtype, str(device), generic)
-    plan = sk._cache.get(key)
-    if plan is not None:
-        return plan
 
     def t(x):
         return torch.as_tensor(np.ascontiguousarray(x), dtype=dtype, device=device)
