@@ -3,6 +3,7 @@ stays among the K modes, the outputs are well formed and reproducible, bad setti
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -82,6 +83,28 @@ def test_deterministic_per_seed():
     assert torch.equal(again.hypotheses, est.hypotheses)
     _, other = _run("data.stop=24", seed=2)
     assert not torch.equal(other.hypotheses, est.hypotheses)
+
+
+def test_inference_mode_changes_nothing(monkeypatch):
+    """The tracker runs in torch.inference_mode (faster bookkeeping): the same result bit for bit as without
+    it, handed back as ordinary tensors that callers may modify in place; the L-BFGS polisher, which needs
+    autograd, runs outside it."""
+    prep, est = _run("data.stop=24", "kjs.init=tree", seed=3)
+    tensors = [v for v in est if isinstance(v, torch.Tensor)] + list(est.terms.values())
+    assert tensors and not any(t.is_inference() for t in tensors)
+    est.q.add_(0.0)  # an inference tensor would refuse this outside inference mode
+    # the skeleton's cached FK plan was built during the run: autograd through it works afterwards
+    q = est.q[:2].clone().requires_grad_(True)
+    prep.problem.skeleton.forward_kinematics(q).square().sum().backward()
+    assert q.grad is not None and torch.isfinite(q.grad).all()
+    with monkeypatch.context() as m:
+        m.setattr(torch, "inference_mode", lambda mode=True: contextlib.nullcontext())
+        _, plain = _run("data.stop=24", "kjs.init=tree", seed=3)
+    for a, b in zip(est, plain):
+        if isinstance(a, torch.Tensor):
+            assert torch.equal(a, b)
+    prep, lb = _run("data.stop=12", "kjs.polisher=lbfgs", seed=3)
+    assert torch.isfinite(lb.hypotheses).all() and _errors(prep, lb)[1] < 30.0
 
 
 def test_tree_init_needs_no_3d():
