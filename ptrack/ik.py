@@ -281,13 +281,15 @@ def _solved_slots(plan: ChainIK) -> dict[int, tuple[tuple[int, int], ...]]:
 
 
 def _tensors(plan: ChainIK, dtype: torch.dtype, device: torch.device) -> dict:
-    out = plan._cache.get((dtype, str(device)))
-    return _new_tensors(plan, dtype, device) if out is None else out
+    key = (dtype, str(device))
+    out = plan._cache.get(key)
+    if out is None:
+        out = plan._cache[key] = _new_tensors(plan, dtype, device)
+    return out
 
 
 @torch.inference_mode(False)  # cached: ordinary tensors even when first built in a tracker's inference mode
 def _new_tensors(plan: ChainIK, dtype: torch.dtype, device: torch.device) -> dict:
-    key = (dtype, str(device))
     sk = plan.sk
 
     def t(x):
@@ -350,7 +352,6 @@ def _new_tensors(plan: ChainIK, dtype: torch.dtype, device: torch.device) -> dic
             length_e=float(sk.lengths[plan.hinge]),
         )
         out["limb"] = lt
-    plan._cache[key] = out
     return out
 
 

@@ -93,13 +93,15 @@ def _constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
     """Per-skeleton constants, cached like the FK plan: slot axes, which slots are driven, the dof
     each slot drives, and the (joint, slot) pairs where the slot's joint is the joint or one of its
     ancestors, with where their three entries go in a flattened (J, 3, D) Jacobian."""
-    c = sk._cache.get(("jacobian", dtype, str(device)))
-    return _new_constants(sk, dtype, device) if c is None else c
+    key = ("jacobian", dtype, str(device))
+    c = sk._cache.get(key)
+    if c is None:
+        c = sk._cache[key] = _new_constants(sk, dtype, device)
+    return c
 
 
 @torch.inference_mode(False)  # cached: ordinary tensors even when first built in a tracker's inference mode
 def _new_constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> dict:
-    key = ("jacobian", dtype, str(device))
     j = sk.num_joints
     anc = torch.zeros(j, j, dtype=torch.bool)  # anc[y, i]: i is y or an ancestor of y
     for y in range(j):
@@ -138,7 +140,6 @@ def _new_constants(sk: Skeleton, dtype: torch.dtype, device: torch.device) -> di
         "slide_axis": torch.as_tensor(sk.slide_axis, dtype=dtype, device=device),  # (J, 3) in G_i's frame
         "slide_index": pt["slide_index"].to(device),  # (3 Q,)
     }
-    sk._cache[key] = c
     return c
 
 
@@ -295,13 +296,15 @@ def _row_constants(
     order (row-major, then slot), with where their entries go in a flattened (Y, 3, D) Jacobian;
     likewise for prismatic sliders."""
     rows = tuple(int(y) for y in (joints.tolist() if isinstance(joints, Tensor) else joints))
-    rc = sk._cache.get(("jacobian rows", dtype, str(device), rows))
-    return _new_row_constants(sk, c, rows, dtype, device) if rc is None else rc
+    key = ("jacobian rows", dtype, str(device), rows)
+    rc = sk._cache.get(key)
+    if rc is None:
+        rc = sk._cache[key] = _new_row_constants(sk, c, rows, dtype, device)
+    return rc
 
 
 @torch.inference_mode(False)  # cached: ordinary tensors even when first built in a tracker's inference mode
 def _new_row_constants(sk: Skeleton, c: dict, rows: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> dict:
-    key = ("jacobian rows", dtype, str(device), rows)
     j = sk.num_joints
     if any(not -j <= y < j for y in rows):
         raise ValueError(f"joint_jacobian: joints {list(rows)} outside the skeleton's {j} joints")
@@ -311,7 +314,6 @@ def _new_row_constants(sk: Skeleton, c: dict, rows: tuple[int, ...], dtype: torc
     rc: dict = {name: x.to(device) for name, x in pt.items()}  # for `joint_jacobian_product`: pair_row, pair_dof, ...
     rc["rows"] = len(rows)
     rc["pair_joint"] = sel[pt["pair_row"]].to(device)
-    sk._cache[key] = rc
     return rc
 
 
@@ -352,9 +354,10 @@ def _point_rows(
 ) -> tuple[Tensor, Tensor]:
     """`point_jacobian`'s points (..., P, 3) and jac (..., P, 3, D) from an FK pass of q (..., D) (joints
     (..., J, 3), world rotations (..., J, 3, 3)) and its slot axes and pivots a, o (..., S, 3)."""
-    pc = sk._cache.get(("point_jacobian", q.dtype, str(q.device)))
+    key = ("point_jacobian", q.dtype, str(q.device))
+    pc = sk._cache.get(key)
     if pc is None:
-        pc = _point_constants(sk, c, q.dtype, q.device)
+        pc = sk._cache[key] = _point_constants(sk, c, q.dtype, q.device)
     batch = torch.broadcast_shapes(q.shape[:-1], joint.shape[:-1], local.shape[:-2])
     n_pts = joint.shape[-1]
     joint = joint.to(q.device).expand(*batch, n_pts)
@@ -380,7 +383,6 @@ def _point_rows(
 def _point_constants(sk: Skeleton, c: dict, dtype: torch.dtype, device: torch.device) -> dict:
     """`_point_rows`' cached tables: (J, S) slot s turns joint y's body; (S, D) each slot's dof with its
     multiplier; the same for prismatic sliders."""
-    key = ("point_jacobian", dtype, str(device))
     d = sk.num_dofs
     n_slot = int(c["slot_joint"].numel())
     anc = c["ancestors"][:, c["slot_joint"].cpu()].to(device)  # (J, S): slot s's joint is y or above it
@@ -393,9 +395,7 @@ def _point_constants(sk: Skeleton, c: dict, dtype: torch.dtype, device: torch.de
     slide_select = torch.zeros(sliders.numel(), d, dtype=dtype, device=device)
     slide_dof = torch.as_tensor(sk.slide_dof, dtype=torch.long, device=device)
     slide_select[torch.arange(sliders.numel(), device=device), slide_dof[sliders]] = 1.0
-    pc = {"anc": anc, "select": select, "sliders": sliders, "slide_anc": slide_anc, "slide_select": slide_select}
-    sk._cache[key] = pc
-    return pc
+    return {"anc": anc, "select": select, "sliders": sliders, "slide_anc": slide_anc, "slide_select": slide_select}
 
 
 def residual_jacobian(

@@ -74,14 +74,15 @@ def _frames_of(sk: Skeleton) -> np.ndarray | None:
 
 
 def _plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool = False) -> _Plan:
-    plan = sk._cache.get(("plan", dtype, str(device), generic))
-    return _new_plan(sk, dtype, device, generic) if plan is None else plan
+    key = ("plan", dtype, str(device), generic)
+    plan = sk._cache.get(key)
+    if plan is None:
+        plan = sk._cache[key] = _new_plan(sk, dtype, device, generic)
+    return plan
 
 
 @torch.inference_mode(False)  # cached: ordinary tensors even when first built in a tracker's inference mode
 def _new_plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: bool) -> _Plan:
-    key = ("plan", dtype, str(device), generic)
-
     def t(x):
         return torch.as_tensor(np.ascontiguousarray(x), dtype=dtype, device=device)
 
@@ -148,7 +149,6 @@ def _new_plan(sk: Skeleton, dtype: torch.dtype, device: torch.device, generic: b
         trans_index=torch.as_tensor(np.clip(sk.translation_dof, 0, None), device=device),
         trans_mask=t((sk.translation_dof >= 0).astype(np.float64)),
     )
-    sk._cache[key] = plan
     return plan
 
 
