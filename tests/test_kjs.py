@@ -16,7 +16,10 @@ from ptrack import metrics as M
 from ptrack.cli import main
 from ptrack.config import load_config
 from ptrack.estimators import ESTIMATORS
-from ptrack.estimators.kjs import KJS, _allocate, _chain_votes, _recombine, _setup, _smooth, track
+from ptrack.estimators.kjs import KJS, track
+from ptrack.estimators.kjs.lattice import _recombine, _smooth
+from ptrack.estimators.kjs.model import _setup
+from ptrack.estimators.kjs.step import _allocate, _chain_votes
 from ptrack.evaluate import asf_for
 from ptrack.problem import Problem
 from ptrack.run import compute_metrics, prepare, reprojected_keypoints
@@ -180,7 +183,7 @@ def test_merge_takes_the_two_passes_in_turn(kjs_run):
     """A frame's modes after the backward pass: the best trajectory's forward mode first, then the two
     passes' modes in turn, heaviest first; a mode within distinct_deg of one ranked before it is dropped;
     at most K; weights the mean of the two passes' weights, renormalised."""
-    from ptrack.estimators.kjs import _merge
+    from ptrack.estimators.kjs.step import _merge
     from ptrack.mixture import Modes
 
     prep, _ = kjs_run
@@ -207,7 +210,7 @@ def test_merge_serves_each_depth_order_first(kjs_run):
     """Both passes often hold one reading of the body many times over and the other reading of a limb only
     in a light mode: the first mode of each depth order of the limbs is taken before any repeat, so K
     slots keep the light one (02_01's left thigh after it crosses the image plane)."""
-    from ptrack.estimators.kjs import _depth_orders, _merge
+    from ptrack.estimators.kjs.step import _depth_orders, _merge
     from ptrack.mixture import Modes
 
     prep, _ = kjs_run
@@ -403,7 +406,7 @@ def test_a_mode_that_lost_out_earlier_survives(cmu_file):
 def test_orders_first_ranks_each_depth_order_before_repeats(kjs_run):
     """`_orders_first` keeps the first pose of each depth order where it was and moves every repeat of an
     order behind all of them, in their old order: the ranking the backward pass keeps its K modes by."""
-    from ptrack.estimators.kjs import _depth_orders, _orders_first
+    from ptrack.estimators.kjs.step import _depth_orders, _orders_first
 
     prep, _ = kjs_run
     s = _setup(prep.problem, load_config(KJS_YAML, EXACT), KJS)
@@ -524,7 +527,7 @@ def test_best_trajectory_beats_frame(cmu_file):
 def test_tree_start_headings(kjs_run):
     """The tree start turns the rest pose to 8 headings about the world's up axis (Y), each leaned
     forward and back: the hip line sweeps the circle, the spine stays vertical at lean 0."""
-    from ptrack.estimators.kjs import _root_starts
+    from ptrack.estimators.kjs.start import _root_starts
 
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, [*EXACT, "kjs.init=tree"])

@@ -1,0 +1,243 @@
+"""After the passes: every frame's modes as a (T, K) lattice, the best trajectory through it (Viterbi),
+the choice between the two passes' trajectories after a tree start, the smoother over the hypotheses and
+the recombination of each chain's reading.
+
+Shapes: T frames, K modes (`kjs.modes`), D dofs, J joints, C chains."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from ptrack.estimators.kjs.model import Setup, _cholesky, _distinct, _evidence, _polish_rows
+from ptrack.limits import wrapped_difference
+from ptrack.mixture import Modes, viterbi_with_cost
+
+
+def _pad(modes: Modes, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Modes (M) -> (K, D) q, (K,) weights, (K,) costs, (K, D, D) covariance factors, padding with copies
+    of the best at weight 0."""
+    m = modes.q.shape[0]
+    if m >= k:
+        return modes.q, modes.weight, modes.cost, modes.chol
+    fill = k - m
+    return (
+        torch.cat([modes.q, modes.q[:1].expand(fill, -1)]),
+        torch.cat([modes.weight, modes.weight.new_zeros(fill)]),
+        torch.cat([modes.cost, modes.cost[:1].expand(fill)]),
+        torch.cat([modes.chol, modes.chol[:1].expand(fill, -1, -1)]),
+    )
+
+
+def principal_directions(sk, q: Tensor, chol: Tensor, scale: float) -> Tensor:
+    """Each mode's most uncertain direction, as 3D joint displacements: the top eigenvector of its
+    covariance (chol chol^T / scale: the inverse Gauss-Newton Hessian, regularised, without the
+    sampling scale), one standard deviation long, through forward kinematics. The sign is fixed so
+    that the eigenvector's largest entry is positive. q (..., D), chol (..., D, D) -> (..., J, 3) metres."""
+    cov = chol @ chol.transpose(-1, -2) / scale
+    val, vec = torch.linalg.eigh(cov)
+    v = vec[..., -1]  # (..., D)
+    sign = torch.sign(v.gather(-1, v.abs().argmax(-1, keepdim=True)))
+    dq = v * sign * val[..., -1:].clamp_min(0).sqrt()
+    return sk.forward_kinematics(q + dq) - sk.forward_kinematics(q)
+
+
+def _lattice(s: Setup, per_frame: list[Modes]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Each frame's modes padded to K -> q (T, K, D), weights (T, K), costs (T, K), covariance factors
+    (T, K, D, D) and joint positions (T, K, J, 3)."""
+    padded = [_pad(m, s.cfg.kjs.modes) for m in per_frame]
+    hq, hw, hc, hl = (torch.stack(x) for x in zip(*padded))
+    with torch.no_grad():
+        return hq, hw, hc, hl, s.problem.skeleton.forward_kinematics(hq)
+
+
+def _best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor, Tensor]:
+    """Viterbi through the lattice q (T, K, D), weights (T, K), joints (T, K, J, 3): each mode's own frame
+    cost (`_evidence`) plus a velocity prior between consecutive choices (`kjs.viterbi_space`); padding
+    (weight 0) is never chosen. -> mode index per frame (T,), and the path's cost ()."""
+    k = s.cfg.kjs
+    T, K, D = hq.shape
+    rows = torch.arange(T, device=hq.device).repeat_interleave(K)  # every mode with its own frame's 2D
+    unary = _evidence(s, rows, hq.reshape(-1, D), joints.flatten(0, 1)).reshape(T, K)
+    with torch.no_grad():
+        if k.viterbi_space == "joints":  # the body's motion in metres: every joint relative to the root
+            feats, sigma = (joints - joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
+        else:
+            feats, sigma = hq, k.viterbi_sigma
+        return viterbi_with_cost(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma)
+
+
+# ---------------------------------------------------------------- which pass leads after a tree start
+
+
+#: after a tree start, the passes' best trajectories whose bodies face directions this far apart (mean over
+#: the frames, degrees) hold two readings of the whole body, and the cheaper one is taken (`_lead_pass`)
+HEADING_SPLIT_DEG = 30.0
+
+
+def _hips(s: Setup) -> tuple[int, int] | None:
+    """The skeleton joints of the keypoints "l_hip" and "r_hip", or None when the keypoint set lacks one."""
+    kp = s.problem.keypoints
+    if "l_hip" not in kp.names or "r_hip" not in kp.names:
+        return None
+    return kp.joints[kp.names.index("l_hip")], kp.joints[kp.names.index("r_hip")]
+
+
+def _heading(joints: Tensor, hips: tuple[int, int]) -> Tensor:
+    """The direction of the hip line (left hip minus right hip, `_hips`) about the world's up axis (+Y):
+    joints (T, J, 3) -> (T,) radians."""
+    line = joints[:, hips[0]] - joints[:, hips[1]]
+    return torch.atan2(line[:, 2], line[:, 0])
+
+
+def _lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: list[Modes]) -> tuple[bool, Tensor]:
+    """After a tree start: does the backward pass's best trajectory replace the forward pass's? path (T,),
+    cost () and joints (T, K, J, 3): the forward pass's best trajectory, its cost and its lattice's joints.
+    -> (backward leads, the leading path).
+
+    Each pass starts from its own tree start (frame 0, the last frame), and either can hold a wrong reading
+    of the whole body throughout (49_18 and 49_19 at 2 px: the forward pass's body turned 48-58° from the
+    truth, 240-260 mm MPJPE; the backward pass's 2-4°). Where the two trajectories face apart by more than
+    `HEADING_SPLIT_DEG` on average the cheaper (frame costs plus the velocity prior, what Viterbi
+    minimises) is taken: it was the right one on every such run measured. Where they face alike and differ
+    limb by limb the cost does not tell them apart (the backward one was the cheaper on most held-out runs
+    and worse in MPJPE on most of those), so the forward pass's stays (docs/results.md). Without hip
+    keypoints the forward pass's stays."""
+    hips = _hips(s)
+    if hips is None:
+        return False, path
+    bq, bw, _, _, bj = _lattice(s, backward)
+    back_path, back_cost = _best_path(s, bq, bw, bj)
+    frames = torch.arange(path.shape[0], device=path.device)
+    apart = _heading(joints[frames, path], hips) - _heading(bj[frames, back_path], hips)
+    apart = torch.remainder(apart + math.pi, 2 * math.pi) - math.pi
+    if float(apart.abs().mean()) > math.radians(HEADING_SPLIT_DEG) and bool(back_cost < cost):
+        return True, back_path
+    return False, path
+
+
+# ---------------------------------------------------------------- each chain's reading on its own
+
+
+#: Levenberg-Marquardt iterations of each graft in `_recombine` (a mode's chain on the best trajectory's pose)
+#: and of the recombined pose: the chain moves little, the rest of the body settles around it
+GRAFT_ITERATIONS, RECOMBINED_ITERATIONS = 3, 5
+
+
+def _recombine(
+    s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor, joints: Tensor, path: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """One more hypothesis per frame: the best trajectory's pose with each chain's reading chosen on its own.
+
+    The modes hold the chains' readings (which way each limb points in depth) in combinations: one mode
+    may have the left arm right and the right leg wrong, another the reverse, and no mode both (49_18 at
+    2 px after a tree start: the best trajectory's mode 99 mm off, each of two others right in one limb).
+    The 2D cannot tell the combinations apart, but each chain's own reading can be followed in time. It runs
+    after the smoother (`_smooth`), which then does not link the best trajectory's modes to it. For
+    every frame t, chain c and mode m, the chain's dofs of mode m are grafted onto the best trajectory's
+    pose and polished briefly around that graft; each chain then gets its own Viterbi pass over the modes:
+    the graft's frame cost (`_evidence`) plus a velocity prior on the graft's joints relative to the root
+    (std `kjs.recombine_sigma_m` per frame). The chosen readings of all chains on the best trajectory's pose,
+    polished, replace frame t's padding or its lightest mode other than the best trajectory's, with that
+    slot's weight (the lightest weight for padding), unless they are a mode already (`_distinct`). The
+    best trajectory keeps its modes. Without chains (css and ss after a keyframe start) or with K = 1 nothing
+    changes. hq (T, K, D), hw (T, K) (0: padding), hc (T, K), hl (T, K, D, D), joints (T, K, J, 3), path (T,)
+    -> hq, hw, hc, hl, joints."""
+    k = s.cfg.kjs
+    sk = s.problem.skeleton
+    T, K, D = hq.shape
+    C = len(s.chains)
+    if C == 0 or K < 2:
+        return hq, hw, hc, hl, joints
+    frames = torch.arange(T, device=hq.device)
+    lead = hq[frames, path]  # (T, D)
+    graft = torch.where(s.chain_dofs[None, :, None], hq[:, None], lead[:, None, None]).reshape(-1, D)  # (T C K, D)
+    rows = frames.repeat_interleave(C * K)  # each graft with its own frame's 2D
+    graft, _, _ = _polish_rows(s, rows, graft, graft, GRAFT_ITERATIONS, s.dynamics_sigma)
+    with torch.no_grad():
+        j = sk.forward_kinematics(graft)
+    cost_tck = torch.where(hw[:, None] > 0, _evidence(s, rows, graft, j).reshape(T, C, K), math.inf)
+    feats_tck = (j - j[:, :1]).reshape(T, C, K, -1)  # the grafts' joints relative to the root
+    choice = torch.stack([viterbi_with_cost(cost_tck[:, c], feats_tck[:, c], k.recombine_sigma_m)[0] for c in range(C)])
+    new = (choice != path[None]).any(0)  # (T,): some chain takes another mode's reading
+    if not bool(new.any()):
+        return hq, hw, hc, hl, joints
+    picked = hq[frames[:, None], choice.T]  # (T, C, D)
+    q = lead
+    for c in range(C):
+        q = torch.where(s.chain_dofs[c], picked[:, c], q)
+    todo = frames[new]
+    q, cost, hessian = _polish_rows(s, todo, q[new], q[new], RECOMBINED_ITERATIONS, s.dynamics_sigma)
+    chol = _cholesky(s, hessian)
+    with torch.no_grad():
+        q_joints = sk.forward_kinematics(q)
+    hq, hw, hc, hl, joints = hq.clone(), hw.clone(), hc.clone(), hl.clone(), joints.clone()
+    for i, t in enumerate(todo.tolist()):
+        real = hw[t] > 0
+        pool = torch.cat([hq[t][real], q[i : i + 1]])
+        rank = torch.arange(pool.shape[0], dtype=hq.dtype, device=hq.device)
+        if int(_distinct(s, pool, rank).max()) < pool.shape[0] - 1:
+            continue  # the recombined pose is one of the modes
+        order = torch.where(real, hw[t], torch.full_like(hw[t], -1.0))
+        order[path[t]] = math.inf
+        slot = int(order.argmin())
+        hq[t, slot], hc[t, slot], hl[t, slot], joints[t, slot] = q[i], cost[i], chol[i], q_joints[i]
+        if not bool(real[slot]):  # padding (weight 0) takes the lightest mode's weight
+            hw[t, slot] = hw[t][real].min()
+            hw[t] = hw[t] / hw[t].sum()
+    return hq, hw, hc, hl, joints
+
+
+# ---------------------------------------------------------------- the smoother
+
+
+#: Levenberg-Marquardt iterations of each hypothesis in a smoothing sweep (`_smooth`): it starts at a
+#: minimum of its own frame's objective and moves only as far as its neighbours pull it
+SMOOTH_ITERATIONS = 5
+
+
+def _smooth(
+    s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor, joints: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """`kjs.smooth_sweeps` sweeps of a smoother over the finished hypothesis lattice. Each tracked mode holds
+    the evidence of its own frame and, through the dynamics, of the frames before (a filter): its depth
+    jitters from frame to frame wherever the 2D leaves it loose. In a sweep each hypothesis of frame t is
+    linked to the nearest hypothesis of frames t-1 and t+1 (mean distance of the joints relative to the root
+    under `kjs.smooth_link_m`; none where the other frame holds no such pose, e.g. a limb's other branch)
+    and polished again on frame t's objective with the tracking prior around the mean of its linked
+    neighbours, std `kjs.smooth_scale` times the dynamics' (times sqrt 2 with one neighbour). A
+    hypothesis with no linked neighbour, and padding, keep their pose. Each sweep uses the poses of the
+    sweep before (Jacobi). hq (T, K, D), hw (T, K) weights (0: padding), hc (T, K) costs, hl (T, K, D, D)
+    covariance factors, joints (T, K, J, 3) their forward kinematics -> hq, hc, hl, joints (the smoothed
+    poses, their objective, covariance and joints)."""
+    k = s.cfg.kjs
+    sk = s.problem.skeleton
+    T, K, D = hq.shape
+    base = torch.as_tensor(s.dynamics_sigma, dtype=hq.dtype, device=hq.device).expand(D) * k.smooth_scale
+    frames = torch.arange(T, device=hq.device)[:, None].expand(T, K)
+    for _ in range(k.smooth_sweeps):
+        rel = joints - joints[..., :1, :]  # (T, K, J, 3)
+        pull = torch.zeros_like(hq)  # (T, K, D): sum of the wrapped steps to the linked neighbours
+        count = torch.zeros(T, K, 1, dtype=hq.dtype, device=hq.device)
+        for here, there in ((slice(1, None), slice(None, -1)), (slice(None, -1), slice(1, None))):  # t-1, t+1
+            gap = (rel[here][:, :, None] - rel[there][:, None]).norm(dim=-1).mean(-1)  # (T-1, K, K)
+            gap = torch.where(hw[there][:, None] > 0, gap, math.inf)
+            near, j = gap.min(-1)  # (T-1, K)
+            linked = (near < k.smooth_link_m).to(hq.dtype)[..., None]
+            neighbour = torch.gather(hq[there], 1, j[..., None].expand(-1, -1, D))
+            pull[here] += linked * wrapped_difference(neighbour - hq[here], s.angular)
+            count[here] += linked
+        move = (hw > 0) & (count[..., 0] > 0)  # (T, K)
+        if not bool(move.any()):
+            break
+        n = count[move]  # (M, 1): 1 or 2 linked neighbours
+        q, cost, hessian = _polish_rows(
+            s, frames[move], hq[move], hq[move] + pull[move] / n, SMOOTH_ITERATIONS, base * torch.sqrt(2 / n), True
+        )
+        hq, hc, hl = hq.clone(), hc.clone(), hl.clone()
+        hq[move], hc[move], hl[move] = q, cost, _cholesky(s, hessian)
+        with torch.no_grad():
+            joints = sk.forward_kinematics(hq)
+    return hq, hc, hl, joints
