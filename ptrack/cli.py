@@ -86,7 +86,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    """Parse argv; flags and `key=value` overrides may come in any order (after the config)."""
+    """Parse argv; the config, flags and `key=value` overrides may come in any order."""
     parser = _parser()
     args, extra = parser.parse_known_args(argv)
     # argparse hands the positional `overrides` only the run of them right after the config; later
@@ -96,7 +96,25 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     if extra:
         args.overrides = [*args.overrides, *extra]
+    if hasattr(args, "overrides"):
+        _config_first(parser, args)
     return args
+
+
+def _config_first(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """The config file may stand anywhere among the `key=value` overrides (`ptrack run seed=3 x.yaml`):
+    argparse takes the first positional as the config, so when that one is an override, the first
+    argument without '=' is the config and the overrides keep their order. A config path that holds '='
+    and exists is taken as it is."""
+    if "=" not in args.config or Path(args.config).exists():
+        return
+    given = [args.config, *args.overrides]
+    plain = [a for a in given if "=" not in a]
+    if not plain:
+        parser.error(f"no config file given: every argument is a key=value override ({' '.join(given)})")
+    args.config = plain[0]
+    given.remove(plain[0])
+    args.overrides = given
 
 
 def _eval_name(path: str) -> str:

@@ -18,7 +18,7 @@ import torch
 from cli_errors import fail
 
 import ptrack.viz
-from ptrack.cli import main
+from ptrack.cli import main, parse_args
 from ptrack.config import load_config
 from ptrack.run import prepare
 
@@ -317,6 +317,20 @@ def test_flags_and_overrides_in_any_order(tmp_path):
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("ptrack: error: unknown config key 'camera.fov'"), proc.stderr
+    assert not out.exists()
+
+
+def test_config_among_the_overrides(tmp_path):
+    # the config file after overrides is found as the first argument without '=', the overrides keep
+    # their order (data.amc=gone.amc comes last, so the run stops at loading it)
+    out = tmp_path / "o"
+    proc = _cli("run", "seed=3", f"out_dir={out}", str(DEMO), "--quiet", "data.amc=gone.amc", cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [f"ptrack: error: AMC file not found: {tmp_path / 'gone.amc'}"]
+    args = parse_args(["run", "data.stop=8", "seed=1", str(DEMO), "seed=2"])
+    assert args.config == str(DEMO) and args.overrides == ["data.stop=8", "seed=1", "seed=2"]
+    proc = _cli("run", "seed=3", "data.stop=8", cwd=tmp_path)
+    assert proc.returncode == 2 and "no config file given: every argument is a key=value override" in proc.stderr
     assert not out.exists()
 
 
