@@ -152,7 +152,7 @@ class KjsMethodConfig:
     # / 29.6 / 0.057 -> 32.2 / 27.8 / 0.063 -> 27.5 / 25.0 / 0.050 -> 29.1 / 25.6 / 0.054, seed 1 35.3 / 31.5
     # / 0.072 -> 30.8 / 26.5 / 0.061 -> 28.9 / 24.5 / 0.056; held-out clips (configs/clips/heldout_batch.txt,
     # never used to choose) 2 px 42.8 / 39.6 / 0.090 -> 42.9 / 36.4 / 0.087 -> 37.0 / 32.9 / 0.073
-    # (docs/results.md). Fitted to the dev clips ("cmu", scale 1) it helped the dev clips but not the held-out
+    # (docs/notes/kjs-history.md). Fitted to the dev clips ("cmu", scale 1) it helped the dev clips but not the held-out
     # ones (2 px 45.5 / 38.3 / 0.098)
     dynamics: str | None = "cmu-train"
     dynamics_scale: float = 1.5
@@ -197,7 +197,7 @@ class KjsMethodConfig:
     # trajectories face more than 30 degrees apart and it costs less): "always" (after either start), "tree" (after a
     # tree start only) or "never". It doubles the time. Dev clips, five seeds, best-of-K: keyframe start
     # 1 px 17.2 -> 15.3 mm (02_01 22.5 -> 18.8), 2 px 24.8 -> 22.6; tree start 1 px 25.2 -> 21.5
-    # (02_01 28.4), 2 px 47.9 -> 32.2 (docs/results.md)
+    # (02_01 28.4), 2 px 47.9 -> 32.2 (docs/notes/kjs-history.md)
     backward_pass: str = "always"
     # after the passes, sweeps of a smoother over every frame's hypotheses: each is polished again on its
     # frame with the tracking prior around the mean of its nearest neighbours in the frames before and after
@@ -289,11 +289,11 @@ class BatchMethodConfig:
     tol: float = 1e-9  # relative energy decrease (or step) at which it stops
     # initial lambda relative to the Hessian's largest diagonal entry, which is the smoothing prior's (linear
     # terms, no damping needed): 1e-8 converges in about half the iterations of 1e-4 to the same solutions
-    # (dev and held-out clips, docs/results.md)
+    # (dev and held-out clips, docs/notes/batch-history.md)
     damping: float = 1e-8
     # dynamic smoothing, per second (units: rad/s, rad/s^2 for angles; m/s, m/s^2 for the root
     # position); null drops the term
-    # (chosen on the dev clips, docs/results.md: velocity 3 rad/s + acceleration 8 rad/s^2 gave a
+    # (chosen on the dev clips, docs/notes/batch-history.md: velocity 3 rad/s + acceleration 8 rad/s^2 gave a
     # mean MPJPE of 33.2 mm against 41.8 for acceleration 20 alone)
     velocity_sigma: float | None = 3.0
     accel_sigma: float | None = 8.0

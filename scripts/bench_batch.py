@@ -21,7 +21,7 @@ with `--threads 2` (a budget of 2, what `method: batch` gets from torch's defaul
 machine) the linearisation's two halves of the sequence also run on two Python threads. One thread
 is the default because it was as fast or faster on the shared 2-core machine these numbers come
 from: the two-thread linearisation is ~25% of an iteration and only gains while a second core is
-free (docs/results.md, `method: batch`).
+free (docs/notes/batch-history.md, speed).
 """
 
 from __future__ import annotations

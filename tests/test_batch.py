@@ -199,7 +199,7 @@ def test_joint_std_is_calibrated_and_logged(tmp_path):
         within = float((err <= 2 * std).mean())
         # 2 sqrt(trace) holds 95-99% of a Gaussian's 3D errors (anisotropic .. isotropic); measured 1.00
         # here with batch.uncertainty branches (the default, true) and with laplace alike: this clip's
-        # 40 frames hold no flip. The dev clips, where they matter, are in docs/results.md
+        # 40 frames hold no flip. The dev clips, where they matter, are in docs/notes/batch-history.md
         assert 0.95 <= within <= 1.0, within
         assert z["solver_cost"][-1] < z["solver_cost"][0]
     metrics = json.loads((out / "metrics.json").read_text())

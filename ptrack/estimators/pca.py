@@ -25,7 +25,7 @@ window's weights, sigma_alpha the spread of the training swings' weights (the mo
 mu_0 the start's timing (below; `pca.timing_sigma`, null drops it). Beyond the paper's eq. 7, which has
 none of them, time never runs backwards (each window's times are bounded below by the time of the frame
 that last left a window), the weights are boxed in `pca.alpha_bound` training stds, and the timing prior
-is there: without it the tracker read a held-out downswing as the backswing reversed (docs/results.md).
+is there: without it the tracker read a held-out downswing as the backswing reversed (docs/notes/golf-history.md).
 Each window is one Levenberg-Marquardt solve of `ptrack.solvers` with a closed-form Jacobian: the
 decoder is linear in alpha and piecewise linear in mu, the joints' Jacobian is the geometric one
 (`ptrack.jacobians.joint_jacobian`), the projections' is the camera's, and the silhouette term's comes

@@ -53,7 +53,7 @@ such a light mode is not crowded out by many heavier copies of the other reading
 hypotheses are taken from both passes in turn (`_merge`): the forward trajectory's mode first, then each
 pass's heaviest, each depth order of the limbs before any order twice. The best trajectory stays the
 forward pass's: over the merged modes Viterbi took flipped backward modes where the forward pass had
-been right (held-out 35_01, 02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 mm; docs/results.md).
+been right (held-out 35_01, 02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 mm; docs/notes/kjs-history.md).
 After a tree start the backward pass's own best trajectory replaces it when the two face directions more
 than `HEADING_SPLIT_DEG` apart (two readings of the whole body) and it costs less (`_lead_pass`).
 

@@ -103,7 +103,7 @@ def _lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: l
     `HEADING_SPLIT_DEG` on average the cheaper (frame costs plus the velocity prior, what Viterbi
     minimises) is taken: it was the right one on every such run measured. Where they face alike and differ
     limb by limb the cost does not tell them apart (the backward one was the cheaper on most held-out runs
-    and worse in MPJPE on most of those), so the forward pass's stays (docs/results.md). Without hip
+    and worse in MPJPE on most of those), so the forward pass's stays (docs/notes/kjs-history.md). Without hip
     keypoints the forward pass's stays."""
     hips = _hips(s)
     if hips is None:
