@@ -296,11 +296,13 @@ def _axis_angle_np(r: np.ndarray) -> tuple[np.ndarray, float]:
     """(unit axis, angle in [0, pi]) of the rotation matrix r (3, 3), accurate near 0 and pi."""
     v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])  # 2 sin(a) axis
     angle = math.atan2(0.5 * float(np.linalg.norm(v)), 0.5 * (float(np.trace(r)) - 1.0))
+    if angle == 0.0:
+        return np.eye(3)[0], 0.0
     if angle < 3.0:
         return v / np.linalg.norm(v), angle
     s = 0.5 * (r + r.T) - math.cos(angle) * np.eye(3)  # (1 - cos a) axis axis^T
     k = int(np.argmax(np.diag(s)))
-    axis = s[k] / math.sqrt(s[k, k])
+    axis = s[k] / np.linalg.norm(s[k])
     if np.dot(axis, v) < 0:
         axis = -axis
     return axis, angle
@@ -353,11 +355,9 @@ def _merge_chain(chain: list[UrdfJoint], motion: dict[str, tuple[int, float, flo
             if any(j.xyz):
                 w = w + np.asarray(j.xyz, dtype=np.float64)
             if r_o is not None:
-                if (
-                    j.type == "fixed" and not any(j.xyz) and may_rotate()
-                ):  # a slot held at its angle: R Rot(b, a) = Rot(R b, a) R
-                    b, a = _axis_angle_np(r_o)
-                    slots.append((rest @ b, -1, 1.0, a))
+                held = _axis_angle_np(r_o) if j.type == "fixed" and not any(j.xyz) else None
+                if held is not None and held[1] != 0.0 and may_rotate():
+                    slots.append((rest @ held[0], -1, 1.0, held[1]))  # R Rot(b, a) = Rot(R b, a) R
                 else:
                     turn(r_o)
         if j.type == "fixed":

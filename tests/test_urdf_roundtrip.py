@@ -89,11 +89,29 @@ def test_cmu_skeleton_with_limits_comes_back_as_it_was(tmp_path, cmu_file, limit
     assert back.name == "64"  # a file is named after its stem
 
 
-def test_reduced_model_comes_back_with_its_frozen_slots(cmu_file):
+@pytest.mark.parametrize("value", [0.25, -3.1])
+def test_reduced_model_comes_back_with_its_frozen_slots(cmu_file, value):
     """Slots held at a non-zero angle (written as fixed rotations) come back as held slots."""
-    sk = Skeleton.from_asf(cmu_file("64.asf")).freeze(["*fingers", "*thumb", "lfemur.rz", "rradius"], value=0.25)
+    sk = Skeleton.from_asf(cmu_file("64.asf")).freeze(["*fingers", "*thumb", "lfemur.rz", "rradius"], value=value)
     back = Skeleton.from_urdf(sk.to_urdf())
     _assert_same_model(sk, back, _poses(sk))
+
+
+def test_axis_angle_of_a_fixed_rotation():
+    """The angle and axis of a fixed joint's rotation, to rounding at any angle (0 to pi)."""
+    from ptrack.rotations import axis_angle_matrix
+    from ptrack.urdf import _axis_angle_np
+
+    rng = np.random.default_rng(0)
+    for angle in (0.0, 1e-9, 0.3, 2.999, 3.0, 3.1, np.pi - 1e-7, np.pi):
+        for _ in range(10):
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            r = axis_angle_matrix(torch.tensor(axis), torch.tensor(angle, dtype=torch.float64)).numpy()
+            b, a = _axis_angle_np(r)
+            assert 0.0 <= a <= np.pi and abs(a - angle) < 1e-7
+            back = axis_angle_matrix(torch.tensor(b), torch.tensor(a, dtype=torch.float64)).numpy()
+            np.testing.assert_allclose(back, r, rtol=0, atol=1e-14)
 
 
 def test_the_fast_forward_kinematics_path_is_kept():
