@@ -311,8 +311,9 @@ def _axis_angle_np(r: np.ndarray) -> tuple[np.ndarray, float]:
 def _merge_chain(chain: list[UrdfJoint], motion: dict[str, tuple[int, float, float]], is_root: bool) -> _Piece | int:
     """The chain of URDF joints from one kept link down to the next (the links between merged) as
     one ptrack joint, or the index of the first joint that this form cannot hold (a rotation after
-    a translation or a slide, more than three rotations, two slides). `motion` maps each moving joint to (dof or -1
-    for one held at its offset, multiplier, offset). The first joint's origin is the offset u and
+    a translation or a slide, more than three rotations, two slides). `motion` maps each moving
+    joint to (dof or -1 for one held at its offset, multiplier, offset). The first joint's origin is
+    the offset u and
     the rest rotation; fixed rotations after it become slots held at their angle while slots are
     free, and translations after it are w. For the root, slides along the world axes before any
     rotation are its translation dofs.
