@@ -168,7 +168,7 @@ class Skeleton:
         return _from_asf(parse_asf(path))
 
     @staticmethod
-    def from_urdf(path: str | Path, floating_base: bool | None = None) -> Skeleton:
+    def from_urdf(path: str | Path, floating_base: bool | None = None, collapse: bool | None = None) -> Skeleton:
         """Any URDF articulated model (ptrack's own reader of the kinematic elements: `ptrack.urdf`),
         from a file path or from URDF text (a string starting with '<', e.g. `to_urdf()`'s).
 
@@ -180,12 +180,22 @@ class Skeleton:
         `floating_base`, the base link gets a free translation and rotation (dofs "root.tx" ...
         "root.rz"), as a tracked human's pelvis has.
         None (default): a floating base unless the file moves its base itself (written by
-        `to_urdf`, or three prismatic joints translating the root link), so that
-        `Skeleton.from_urdf(sk.to_urdf())` gives `sk` back.
+        `to_urdf`, or three prismatic joints translating the root link).
+
+        `collapse` merges links into the joint below them (bare links, no visual, collision or
+        inertial, with one child joint, not the root link, where the merged chain fits one ptrack
+        joint: an offset, up to three rotations, then a slide and an offset). None (default): only the links that
+        `to_urdf` adds (its base link "world" and the "<joint>__link..." links between a joint's
+        axes), in files `to_urdf` wrote, so that `Skeleton.from_urdf(sk.to_urdf())` gives `sk`
+        back: the same joints, parents, offsets, rest rotations, dofs, axes in order and limits,
+        and the same forward kinematics to rounding (undriven axis slots, which FK ignores, may
+        differ; `freeze`'s record and ASF's `amc_layout` are not in the file). Other files come
+        back one joint per link. True: every such link of any file. False: one joint per link
+        always (for `to_urdf`'s files, a joint per axis, as other URDF readers see them).
         """
         from ptrack.urdf import skeleton_from_urdf
 
-        return skeleton_from_urdf(path, floating_base=floating_base)
+        return skeleton_from_urdf(path, floating_base=floating_base, collapse=collapse)
 
     def to_urdf(self) -> str:
         """A URDF string of this model (root translation as prismatic joints, see `ptrack.urdf`)."""

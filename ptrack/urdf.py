@@ -10,7 +10,9 @@ frame; revolute and continuous joints become a rotation dof, prismatic joints a 
 depth), fixed joints no dof, and mimic joints follow their leader (multiplier * q + offset) without
 a dof of their own. Floating and planar joints are refused. `skeleton_to_urdf` writes a ptrack
 model as URDF (root translation as three prismatic joints, each rotation axis as a revolute or
-continuous joint, mimic joints as `<mimic>`), read back the same by both.
+continuous joint, with a link between each two, mimic joints as `<mimic>`). Reading such a file
+merges the links it added back into their joints (`collapse`, see `Skeleton.from_urdf`), so that
+the model comes back as it was; other readers see one link per axis, with the same kinematics.
 """
 
 from __future__ import annotations
@@ -66,6 +68,7 @@ class UrdfModel:
     joints: tuple[UrdfJoint, ...]
     root: str
     floating_base: bool | None  # as recorded by `skeleton_to_urdf`, None for other files
+    bare: frozenset[str] = frozenset()  # links without <visual>, <collision> or <inertial>
 
 
 def _vector(text: str | None, default, what: str, where: str) -> tuple[float, float, float]:
@@ -108,6 +111,7 @@ def parse_urdf(text: str, source: str = "<string>") -> UrdfModel:
     if robot.tag != "robot":
         raise InputError(f"{source}: not a URDF: the top element is <{robot.tag}>, not <robot>")
     links: list[str] = []
+    bare: set[str] = set()
     for el in robot.findall("link"):
         name = el.get("name")
         if not name:
@@ -115,6 +119,8 @@ def parse_urdf(text: str, source: str = "<string>") -> UrdfModel:
         if name in links:
             raise InputError(f"{source}: link {name!r} is not unique")
         links.append(name)
+        if all(el.find(tag) is None for tag in ("visual", "collision", "inertial")):
+            bare.add(name)
     if not links:
         raise InputError(f"{source}: no <link> in <robot>")
     joints: list[UrdfJoint] = []
@@ -188,6 +194,7 @@ def parse_urdf(text: str, source: str = "<string>") -> UrdfModel:
         joints=tuple(joints),
         root=roots[0],
         floating_base=None if mark is None else mark.strip().lower() == "true",
+        bare=frozenset(bare),
     )
 
 
@@ -252,11 +259,12 @@ def _moves_its_base(model: UrdfModel, children: dict[str, list[UrdfJoint]]) -> b
     return len(dirs) >= 3 and np.linalg.matrix_rank(np.asarray(dirs), tol=1e-6) == 3
 
 
-def skeleton_from_urdf(path: str | Path, floating_base: bool | None = None) -> Skeleton:
+def skeleton_from_urdf(path: str | Path, floating_base: bool | None = None, collapse: bool | None = None) -> Skeleton:
     """Build a Skeleton from a URDF file, or from URDF text such as `to_urdf`'s (a string that starts
     with '<'); see `Skeleton.from_urdf`."""
     if isinstance(path, str) and path.lstrip("\ufeff \t\r\n").startswith("<"):
-        return skeleton_from_model(parse_urdf(path, "<URDF text>"), floating_base=floating_base, source="<URDF text>")
+        model = parse_urdf(path, "<URDF text>")
+        return skeleton_from_model(model, floating_base=floating_base, source="<URDF text>", collapse=collapse)
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"URDF file not found: {p}")
@@ -266,52 +274,214 @@ def skeleton_from_urdf(path: str | Path, floating_base: bool | None = None) -> S
         text = p.read_bytes().decode("utf-8")
     except UnicodeDecodeError as e:
         raise InputError(f"{p}: not a readable URDF (not UTF-8 text: {e})") from None
-    return skeleton_from_model(parse_urdf(text, str(p)), floating_base=floating_base, name=p.stem, source=str(p))
+    return skeleton_from_model(
+        parse_urdf(text, str(p)), floating_base=floating_base, name=p.stem, source=str(p), collapse=collapse
+    )
+
+
+@dataclass
+class _Piece:
+    """One ptrack joint made of a chain of URDF joints (see `_merge_chain`): its transform from the
+    parent joint's frame is Trans(u) Rot(slot 1) Rot(slot 2) Rot(slot 3) E Trans(w + slide q)."""
+
+    u: np.ndarray  # (3,) translation in the parent's frame (the root: its rest position)
+    slots: list[tuple[np.ndarray, int, float, float]]  # (unit axis, dof or -1, scale, constant angle)
+    rest: np.ndarray  # (3, 3) E
+    w: np.ndarray  # (3,) translation in the joint's own frame
+    slide: tuple[np.ndarray, int] | None  # (displacement per unit of q in the joint's frame, dof)
+    translation: dict[int, int]  # the root: world axis (0, 1, 2) -> dof of a translation along it
+
+
+def _axis_angle_np(r: np.ndarray) -> tuple[np.ndarray, float]:
+    """(unit axis, angle in [0, pi]) of the rotation matrix r (3, 3), accurate near 0 and pi."""
+    v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])  # 2 sin(a) axis
+    angle = math.atan2(0.5 * float(np.linalg.norm(v)), 0.5 * (float(np.trace(r)) - 1.0))
+    if angle == 0.0:
+        return np.eye(3)[0], 0.0
+    if angle < 3.0:
+        return v / np.linalg.norm(v), angle
+    s = 0.5 * (r + r.T) - math.cos(angle) * np.eye(3)  # (1 - cos a) axis axis^T
+    k = int(np.argmax(np.diag(s)))
+    axis = s[k] / np.linalg.norm(s[k])
+    if np.dot(axis, v) < 0:
+        axis = -axis
+    return axis, angle
+
+
+def _merge_chain(chain: list[UrdfJoint], motion: dict[str, tuple[int, float, float]], is_root: bool) -> _Piece | int:
+    """The chain of URDF joints from one kept link down to the next (the links between merged) as
+    one ptrack joint, or the index of the first joint that this form cannot hold (a rotation after
+    a translation or a slide, more than three rotations, two slides). `motion` maps each moving
+    joint to (dof or -1 for one held at its offset, multiplier, offset). The first joint's origin is
+    the offset u and
+    the rest rotation; fixed rotations after it become slots held at their angle while slots are
+    free, and translations after it are w. For the root, slides along the world axes before any
+    rotation are its translation dofs.
+
+    Kept as the transform Trans(u) S R Trans(w), S the slots so far, R the pending rest rotation and
+    w in the current frame, so that a chain with nothing after its first joint is read exactly."""
+    u = np.zeros(3)
+    rest = np.eye(3)
+    w = np.zeros(3)
+    slots: list[tuple[np.ndarray, int, float, float]] = []
+    slide: tuple[np.ndarray, int] | None = None
+    translation: dict[int, int] = {}
+
+    def may_rotate() -> bool:
+        """Whether a slot can be added (moving w into u while there is no slot yet)."""
+        nonlocal u, w
+        if slide is not None or len(slots) == 3:
+            return False
+        if np.any(w):
+            if slots:
+                return False
+            u, w = u + rest @ w, np.zeros(3)
+        return True
+
+    def turn(r: np.ndarray) -> None:
+        """Fold a constant rotation into R: Trans(w) r = r Trans(r^T w)."""
+        nonlocal rest, w, slide
+        rest = rest @ r
+        if np.any(w):
+            w = r.T @ w
+        if slide is not None:
+            slide = (r.T @ slide[0], slide[1])
+
+    for n, j in enumerate(chain):
+        r_o = euler_matrix_np(j.rpy, "XYZ") if any(j.rpy) else None
+        if n == 0:
+            u = np.asarray(j.xyz, dtype=np.float64)
+            rest = r_o if r_o is not None else np.eye(3)
+        else:
+            if any(j.xyz):
+                w = w + np.asarray(j.xyz, dtype=np.float64)
+            if r_o is not None:
+                held = _axis_angle_np(r_o) if j.type == "fixed" and not any(j.xyz) else None
+                if held is not None and held[1] != 0.0 and may_rotate():
+                    slots.append((rest @ held[0], -1, 1.0, held[1]))  # R Rot(b, a) = Rot(R b, a) R
+                else:
+                    turn(r_o)
+        if j.type == "fixed":
+            continue
+        ax = np.asarray(j.axis, dtype=np.float64)
+        d, mult, off = motion[j.name]
+        if j.type == "prismatic":
+            if np.any(off):
+                w = w + off * ax
+            if d < 0:
+                continue
+            world = rest @ ax
+            k = int(np.argmax(np.abs(world)))
+            if (
+                is_root
+                and not slots
+                and mult == 1.0
+                and k not in translation
+                and np.allclose(world, np.eye(3)[k], rtol=0, atol=1e-12)
+            ):
+                translation[k] = d  # commutes with the rest of the root's chain
+            elif slide is None:
+                slide = (mult * ax, d)
+            else:
+                return n
+        elif d < 0:  # a revolute held at its offset: a constant rotation
+            if may_rotate():
+                slots.append((rest @ ax, -1, 1.0, off))
+            else:
+                turn(axis_angle_matrix(torch.as_tensor(ax), torch.tensor(off, dtype=torch.float64)).numpy())
+        elif may_rotate():
+            slots.append((rest @ ax, d, mult, off))
+        else:
+            return n
+    return _Piece(u, slots, rest, w, slide, translation)
+
+
+def _slot_frame(slots: list[tuple[np.ndarray, int, float, float]]) -> np.ndarray:
+    """Axes (3, 3) for slots 0..2 holding `slots`' axes in order, the free slots filled so that the
+    three are the (z, y, x) columns of a right-handed frame when the given axes allow it (the closed
+    form of `ptrack.kinematics`, as ASF skeletons have); of three, a held slot's axis is negated
+    (its angle too, by the caller) where that makes the frame right-handed."""
+    given = [a / np.linalg.norm(a) for a, *_ in slots]
+    if len(given) == 0:
+        return np.eye(3)[::-1].copy()
+    if len(given) == 1:
+        return _frame_with_z(given[0])
+    if len(given) == 2:
+        z, y = given
+        return np.stack([z, y, np.cross(y, z)])
+    axes = np.stack(given)
+    held = [k for k, (_, d, _, _) in enumerate(slots) if d < 0]
+    if held and np.linalg.det(axes[::-1].T) < 0:  # columns (x, y, z)
+        axes[held[0]] = -axes[held[0]]
+    return axes
+
+
+def _merge_links(
+    model: UrdfModel, children: dict[str, list[UrdfJoint]], floating_base: bool, collapse: bool | None
+) -> set[str]:
+    """The links to merge into the joint below them: each bare (no visual, collision or inertial)
+    with one child joint, not the root link but `skeleton_to_urdf`'s base "world" where the base
+    is not floating. collapse None: only the links `skeleton_to_urdf` adds (in files it wrote:
+    "<joint>__link", "<joint>__link__<k>" above that joint, and that base); True: all such links
+    of any file; False: none."""
+    if collapse is False or (collapse is None and model.floating_base is None):
+        return set()
+    merge = {ln for ln in model.links if ln in model.bare and len(children.get(ln, ())) == 1}
+    if floating_base or model.floating_base is None or not _BASE_LINK.fullmatch(model.root):
+        merge.discard(model.root)
+    if collapse:
+        return merge
+    merge = {ln for ln in merge if ln == model.root or _ADDED_LINK.fullmatch(ln)}
+    while True:  # to_urdf's names: an added link is named after the joint below it
+        bad = set()
+        for ln in merge:
+            end = ln
+            while end in merge:
+                end = children[end][0].child
+            m = _ADDED_LINK.fullmatch(ln)
+            if ln != model.root and (m is None or m[1] != end):
+                bad.add(ln)
+        if not bad:
+            return merge
+        merge -= bad
+
+
+_ADDED_LINK = re.compile(r"(.+)__link(?:__\d+)?")
+_BASE_LINK = re.compile(r"world(?:__\d+)?")
 
 
 def skeleton_from_model(
-    model: UrdfModel, floating_base: bool | None = None, name: str | None = None, source: str = "<urdf>"
+    model: UrdfModel,
+    floating_base: bool | None = None,
+    name: str | None = None,
+    source: str = "<urdf>",
+    collapse: bool | None = None,
 ) -> Skeleton:
     """Build a Skeleton from a parsed URDF (see `Skeleton.from_urdf`)."""
     children: dict[str, list[UrdfJoint]] = {}
+    incoming: dict[str, UrdfJoint] = {}
     for j in model.joints:
         children.setdefault(j.parent, []).append(j)
+        incoming[j.child] = j
     if floating_base is None:
         floating_base = model.floating_base if model.floating_base is not None else not _moves_its_base(model, children)
 
     # links depth-first from the root, children in file order: parents precede children
-    order: list[tuple[str, UrdfJoint | None]] = []
-    stack: list[tuple[str, UrdfJoint | None]] = [(model.root, None)]
+    order: list[str] = []
+    stack = [model.root]
     while stack:
-        link, joint = stack.pop()
-        order.append((link, joint))
-        stack.extend((j.child, j) for j in reversed(children.get(link, [])))
+        link = stack.pop()
+        order.append(link)
+        stack.extend(j.child for j in reversed(children.get(link, [])))
     if len(order) != len(model.links):
-        missing = sorted(set(model.links) - {ln for ln, _ in order})
+        missing = sorted(set(model.links) - set(order))
         raise InputError(f"{source}: links not connected to the root link {model.root!r}: {missing[:5]}")
-    index = {ln: i for i, (ln, _) in enumerate(order)}
 
-    j_count = len(order)
-    axes = np.zeros((j_count, 3, 3))
-    axes[:] = np.eye(3)[::-1]  # slots (z, y, x) of the identity frame
-    axis_dof = -np.ones((j_count, 3), dtype=np.int64)
-    axis_scale = np.ones((j_count, 3))
-    frozen = np.zeros((j_count, 3))
-    rest = np.broadcast_to(np.eye(3), (j_count, 3, 3)).copy()
-    offset = np.zeros((j_count, 3))
-    slide_axis = np.zeros((j_count, 3))
-    slide_dof = -np.ones(j_count, dtype=np.int64)
     dof_names: list[str] = []
     lower: list[float] = []
     upper: list[float] = []
-    trans = -np.ones(3, dtype=np.int64)
     if floating_base:
-        for k, a in enumerate("xyz"):
-            trans[k] = len(dof_names)
-            dof_names.append(f"root.t{a}")
-        for k in range(3):  # G_root = Rz Ry Rx
-            axis_dof[0, k] = len(dof_names) + 2 - k
-        dof_names.extend(f"root.r{a}" for a in "xyz")
+        dof_names.extend(["root.tx", "root.ty", "root.tz", "root.rx", "root.ry", "root.rz"])
         lower.extend([-math.inf] * 6)
         upper.extend([math.inf] * 6)
         clash = sorted(set(dof_names) & {j.name for j in model.joints})
@@ -320,54 +490,90 @@ def skeleton_from_model(
                 f"{source}: joint names {clash} are the floating base's dof names; "
                 "use floating_base=False or rename them"
             )
-
-    source_of = _mimic_source(model, source)
+    ours = model.floating_base is not None  # written by skeleton_to_urdf: +-UNLIMITED_PRISMATIC is no limit
     dof_of: dict[str, int] = {}
     for j in model.joints:  # independent moving joints get dofs in file order
         if j.type != "fixed" and j.mimic is None:
             dof_of[j.name] = len(dof_names)
             dof_names.append(j.name)
-            lower.append(j.lower)
-            upper.append(j.upper)
-    for i, (_, incoming) in enumerate(order[1:], start=1):
-        assert incoming is not None  # only the root link, order[0], has no joint moving it
-        j = incoming
-        r0 = euler_matrix_np(j.rpy, "XYZ")
-        t0 = np.asarray(j.xyz, dtype=np.float64)
-        rest[i] = r0
-        ax = np.asarray(j.axis, dtype=np.float64)
-        if j.type != "fixed" and source_of[j.name][0] is None:  # held at its offset
-            off = source_of[j.name][2]
-            if j.type == "prismatic":
-                t0 = t0 + off * (r0 @ ax)
+            wide = ours and j.type == "prismatic"
+            lower.append(-math.inf if wide and j.lower <= -UNLIMITED_PRISMATIC else j.lower)
+            upper.append(math.inf if wide and j.upper >= UNLIMITED_PRISMATIC else j.upper)
+    motion = {
+        jn: (-1 if leader is None else dof_of[leader], mult, off)
+        for jn, (leader, mult, off) in _mimic_source(model, source).items()
+    }
+
+    # each kept link is a ptrack joint, with the chain of URDF joints from the kept link above
+    merge = _merge_links(model, children, floating_base, collapse)
+    while True:
+        kept = [ln for ln in order if ln not in merge]
+        pieces: dict[str, _Piece] = {}
+        chains: dict[str, list[UrdfJoint]] = {}
+        failed: set[str] = set()
+        for ln in kept[1:] if model.root not in merge else kept:
+            chain, up = [incoming[ln]], incoming[ln].parent
+            while up in merge and up != model.root:
+                chain.insert(0, incoming[up])
+                up = incoming[up].parent
+            piece = _merge_chain(chain, motion, is_root=up in merge)
+            if isinstance(piece, int):  # keep the link above the joint that does not fit
+                assert piece > 0  # a chain's first joint always fits
+                failed.add(chain[piece].parent)
             else:
-                rest[i] = r0 @ axis_angle_matrix(torch.as_tensor(ax), torch.tensor(off, dtype=torch.float64)).numpy()
-        elif j.type != "fixed":
-            leader, mult, off = source_of[j.name]
-            assert leader is not None  # the branch above took the joints held at their offset
-            d = dof_of[leader]
-            if j.type == "prismatic":
-                slide_dof[i] = d
-                slide_axis[i] = mult * ax
-                t0 = t0 + off * (r0 @ ax)  # a mimic offset is a constant slide: part of the origin
-            else:  # R0 Rot(ax, th) = Rot(R0 ax, th) R0
-                axes[i] = _frame_with_z(r0 @ ax)
-                axis_dof[i, 0] = d
-                axis_scale[i, 0] = mult
-                frozen[i, 0] = off
-        offset[i] = t0
-    lengths = np.linalg.norm(offset, axis=1)
+                pieces[ln], chains[ln] = piece, chain
+        if not failed:
+            break
+        merge -= failed
+    index = {ln: i for i, ln in enumerate(kept)}
+
+    j_count = len(kept)
+    axes = np.zeros((j_count, 3, 3))
+    axes[:] = np.eye(3)[::-1]  # slots (z, y, x) of the identity frame
+    axis_dof = -np.ones((j_count, 3), dtype=np.int64)
+    axis_scale = np.ones((j_count, 3))
+    frozen = np.zeros((j_count, 3))
+    rest = np.broadcast_to(np.eye(3), (j_count, 3, 3)).copy()
+    u = np.zeros((j_count, 3))
+    w = np.zeros((j_count, 3))
+    slide_axis = np.zeros((j_count, 3))
+    slide_dof = -np.ones(j_count, dtype=np.int64)
+    trans = -np.ones(3, dtype=np.int64)
+    root_position = np.zeros(3)
+    parents = [-1] * j_count
+    if floating_base:
+        trans[:] = [0, 1, 2]
+        axis_dof[0] = [5, 4, 3]  # G_root = Rz Ry Rx
+    for ln, p in pieces.items():
+        i = index[ln]
+        top = chains[ln][0].parent
+        parents[i] = index.get(top, -1)
+        if parents[i] < 0:  # the root, below merged links
+            root_position = p.u
+            for k, d in p.translation.items():
+                trans[k] = d
+        else:
+            u[i] = p.u
+        rest[i], w[i] = p.rest, p.w
+        axes[i] = _slot_frame(p.slots)
+        for k, (_, d, scale, angle) in enumerate(p.slots):
+            sign = 1.0 if np.dot(axes[i, k], p.slots[k][0]) > 0 else -1.0  # a held slot's axis may be negated
+            axis_dof[i, k], axis_scale[i, k], frozen[i, k] = d, scale, sign * angle
+        if p.slide is not None:
+            slide_axis[i], slide_dof[i] = p.slide
+    lengths = np.where(np.any(u, axis=1), np.linalg.norm(u, axis=1), np.linalg.norm(w, axis=1))
+    safe = np.where(lengths > 0, lengths, 1.0)[:, None]
     return Skeleton(
         name=name if name is not None else (model.name or "urdf"),
-        joint_names=tuple(ln for ln, _ in order),
-        parents=tuple(-1 if j is None else index[j.parent] for _, j in order),
+        joint_names=tuple(kept),
+        parents=tuple(parents),
         axes=axes,
         axis_dof=axis_dof,
         rest_rotation=rest,
-        offset_parent=np.divide(offset, lengths[:, None], out=np.zeros_like(offset), where=lengths[:, None] > 0),
-        offset_local=np.zeros((j_count, 3)),
+        offset_parent=u / safe,
+        offset_local=w / safe,
         lengths=lengths,
-        root_position=np.zeros(3),
+        root_position=root_position,
         translation_dof=trans,
         dof_names=tuple(dof_names),
         lower=np.asarray(lower, dtype=np.float64),

@@ -41,6 +41,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from _bench import machine_line  # noqa: E402
+
 from ptrack.banded import one_thread  # noqa: E402
 from ptrack.config import load_config  # noqa: E402
 from ptrack.estimators.batch import (  # noqa: E402
@@ -424,6 +426,8 @@ if __name__ == "__main__":
         "--threads", type=int, default=1, help="torch's thread budget (default 1; 2: two-thread linearisation)"
     )
     a = ap.parse_args()
+    if not a.memory_child:
+        print(machine_line())
     if a.memory_child:
         memory_one(a.memory_child)
     elif a.memory:

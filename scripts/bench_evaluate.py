@@ -18,6 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _bench import machine_line
+
 from ptrack.evaluate import evaluate, parse_seeds
 
 REPO = Path(__file__).resolve().parents[1]
@@ -43,6 +45,7 @@ def main() -> None:
     ap.add_argument("--config", default=str(REPO / "configs" / "eval_kjs.yaml"))
     args = ap.parse_args()
     seeds = parse_seeds(args.seeds)
+    print(machine_line())
     print(f"load average before: {os.getloadavg()[0]:.2f}; {len(seeds)} runs of {Path(args.config).name}")
     with tempfile.TemporaryDirectory() as tmp:
         one, res_one = timed(Path(args.config), seeds, args.stop, 1, Path(tmp) / "one")

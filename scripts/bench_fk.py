@@ -36,6 +36,7 @@ from pathlib import Path
 
 import pytorch_kinematics as pk
 import torch
+from _bench import machine_line
 
 from ptrack.skeleton import Skeleton
 
@@ -234,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         f"skeleton {sk.name!r} ({args.asf.name}): J={sk.num_joints} joints, D={sk.num_dofs} dofs; "
         f"poses: {q_real.shape[0]} frames of {args.amc.name}, cycled + N(0, 0.02) perturbation"
     )
+    print(machine_line())
     print(
         f"torch {torch.__version__}, pytorch-kinematics {_pk_version()}, device {device}, "
         f"threads {torch.get_num_threads()}, {platform.processor() or platform.machine()}, "

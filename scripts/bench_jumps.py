@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 import torch
+from _bench import machine_line
 
 from ptrack.camera import camera_for_motion
 from ptrack.ik import chain_ik, ik_plan, product_ik
@@ -78,6 +79,7 @@ def main() -> None:
     plans = [ik_plan(sk, c) for c in chains]
     leaves = 1 << sum(c.num_links for c in chains)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(machine_line())
     print(
         f"bench_jumps: CMU skeleton 10 (J={sk.num_joints}, D={sk.num_dofs}), {args.hypotheses} hypotheses x "
         f"{leaves} leaves (larm 2 links x neck 1 link), torch {torch.__version__}, "

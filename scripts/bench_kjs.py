@@ -20,6 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _bench import machine_line
+
 from ptrack.config import load_config
 from ptrack.run import execute
 
@@ -53,6 +55,7 @@ def main() -> None:
     ap.add_argument("--modes", type=int, default=8, help="K")
     args = ap.parse_args()
     args.methods = [m for m in dict.fromkeys(args.methods) if m != "frame"]  # each once; frame is the baseline
+    print(machine_line())
     print(f"load average before: {os.getloadavg()[0]:.2f}")
     with tempfile.TemporaryDirectory() as tmp:
         base = run("frame", args, Path(tmp))

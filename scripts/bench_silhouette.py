@@ -28,6 +28,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
+from _bench import machine_line
 from torch import Tensor
 
 from ptrack.camera import camera_for_motion
@@ -95,6 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
+    print(machine_line())
 
     masks = clip_masks(args.frames)
     n_old = args.old_frames if 0 < args.old_frames < args.frames else args.frames

@@ -38,6 +38,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
+from _bench import machine_line
 
 from ptrack.camera import camera_for_motion
 from ptrack.costs import JointLimits, Objective, Reprojection
@@ -208,6 +209,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="smaller budgets (for a smoke run)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    print(machine_line())
     sk, cam, kps, obj, q0, lo, hi = build(args.n, args.perturb)
     print(
         f"ptrack bench_solver: torch {torch.__version__}, {args.threads} thread(s), N={args.n}, "

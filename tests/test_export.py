@@ -123,10 +123,10 @@ def test_bvh_of_urdf_model(tmp_path, clip):
     # the root translation exports as prismatic joints below the file's base link, which BVH cannot hold
     (tmp_path / "m.urdf").write_text(sk.to_urdf())
     with pytest.raises(InputError, match="prismatic"):
-        bvh_text(Skeleton.from_urdf(tmp_path / "m.urdf"), q, fps=30.0)
+        bvh_text(Skeleton.from_urdf(tmp_path / "m.urdf", collapse=False), q, fps=30.0)
     fixed = sk.freeze(["root.t*"])
     (tmp_path / "m.urdf").write_text(fixed.to_urdf())
-    model = Skeleton.from_urdf(tmp_path / "m.urdf", floating_base=False)
+    model = Skeleton.from_urdf(tmp_path / "m.urdf", floating_base=False, collapse=False)
     qm = q[:, [sk.dof_names.index(n) for n in model.dof_names]]
     assert _check_against_fk(model, qm, bvh_text(model, qm, fps=30.0)) < 1e-6
 

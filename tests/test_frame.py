@@ -238,7 +238,7 @@ def test_urdf_model_is_trackable(tmp_path):
     asf = Skeleton.from_asf(REPO / "ptrack" / "data" / "10.asf")
     q_asf = load_amc(REPO / "ptrack" / "data" / "10_02.amc", asf).q[:48:4]
     (tmp_path / "body.urdf").write_text(asf.to_urdf())
-    model = Skeleton.from_urdf(tmp_path / "body.urdf", floating_base=False)
+    model = Skeleton.from_urdf(tmp_path / "body.urdf", floating_base=False, collapse=False)  # a link per axis
     q = q_asf[:, [asf.dof_names.index(n) for n in model.dof_names]].float()
     joints = model.forward_kinematics(q)
     kps = make_keypoints(model)  # the CMU joint names are link names of the URDF

@@ -36,7 +36,8 @@ whose whole energy is lower than the solution's shows the solve stopped in a loc
 other branch, and the solve continues from it.
 
 The start is the per-frame fit (`method: frame`), or an earlier run's trajectory (`init_from`, warped
-onto the keyframes: `warp_to_keyframes`), or the keyframes interpolated (`batch.init: keyframes`).
+onto the keyframes: `warp_to_keyframes`), or the keyframes interpolated (`batch.init: keyframes`;
+the per-frame fit where no keyframe gives every dof, e.g. a user's file of partial or joint keyframes).
 """
 
 from __future__ import annotations
@@ -523,6 +524,12 @@ def load_init(run_dir: str | Path, problem: Problem, dtype: torch.dtype, device:
     return torch.as_tensor(q, dtype=dtype, device=device)
 
 
+def has_full_keyframe(problem: Problem) -> bool:
+    """Whether some keyframe gives every dof (an angle keyframe with no dof left out)."""
+    kf = problem.keyframes
+    return kf is not None and kf.frames.numel() > 0 and (kf.mask is None or bool(kf.mask.all(-1).any()))
+
+
 def interpolate_keyframes(problem: Problem, lower: Tensor, upper: Tensor) -> Tensor:
     """A start from the full angle keyframes: linear between them, constant beyond. -> (T, D)."""
     kf = problem.keyframes
@@ -612,9 +619,11 @@ def _estimate(
     lower, upper = obj.lower, obj.upper
     if cfg.init_from:
         q0 = warp_to_keyframes(load_init(cfg.init_from, problem, dtype, device), obj)
-    elif bc.init == "keyframes":
+    elif bc.init == "keyframes" and has_full_keyframe(problem):
         q0 = interpolate_keyframes(problem, lower, upper)
     else:
+        if bc.init == "keyframes":
+            log.info("batch: no keyframe gives every dof, so the start is the per-frame fits (as batch.init=frame)")
         from ptrack.estimators.frame import estimate_frames
 
         kf = problem.keyframes
