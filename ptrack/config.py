@@ -219,7 +219,7 @@ class KjsMethodConfig:
     pose_prior_weight: float = 0.1
     collision_weight: float = 1.0  # body non-self-intersection term
     floor_deg: float = 0.5  # smallest sampling std per dof (unobservable directions)
-    ceiling_deg: float = 30.0  # largest sampling std per dof (inf: none)
+    ceiling_deg: float = 30.0  # largest sampling std per dof
     # the best trajectory through the modes (Viterbi): its velocity prior on the joints' positions relative
     # to the root (joints; std viterbi_sigma_m metres per frame and coordinate) or on the dofs (dofs; std
     # viterbi_sigma radians per frame). On the same recorded modes of the dev clips (best trajectory mm):
@@ -446,13 +446,9 @@ _SCALARS = {
 }
 
 
-#: number keys that may be inf (+inf only; no key may be nan)
-_INFINITE_OK = {"kjs.ceiling_deg"}
-
-
 def _check_type(key: str, value: Any, tp: Any) -> Any:
     """Check (and lightly coerce: int -> float, list -> tuple) `value` against annotation `tp`. A number must be
-    finite, except +inf where `_INFINITE_OK` allows it."""
+    finite."""
     origin = typing.get_origin(tp)
     if origin in (Union, types.UnionType):
         args = typing.get_args(tp)
@@ -474,9 +470,8 @@ def _check_type(key: str, value: Any, tp: Any) -> Any:
     if tp in _SCALARS:
         what, accepts = _SCALARS[tp]
         if accepts(value) and not (isinstance(value, bool) and tp is not bool):
-            if tp is float and not math.isfinite(value) and not (value > 0 and key in _INFINITE_OK):
-                allowed = " (or inf)" if key in _INFINITE_OK else ""
-                raise InputError(f"config key {key!r} must be a finite number{allowed}, got {value!r}")
+            if tp is float and not math.isfinite(value):  # no setting has a meaning for nan or inf
+                raise InputError(f"config key {key!r} must be a finite number, got {value!r}")
             return tp(value)
         raise InputError(f"config key {key!r} must be {what}, got {value!r}")
     if origin is tuple:

@@ -4,6 +4,7 @@ package's own data found from any working directory, and progress lines off a te
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import subprocess
@@ -64,13 +65,6 @@ def test_non_finite_refused(text):
         load_config(None, [*DATA, f"batch.accel_sigma={text}"])  # float | None
 
 
-def test_inf_where_the_key_allows():
-    assert load_config(None, [*DATA, "kjs.ceiling_deg=inf"]).kjs.ceiling_deg == math.inf
-    for text in ("nan", "-inf"):
-        with pytest.raises(InputError, match=r"'kjs.ceiling_deg' must be a finite number \(or inf\)"):
-            load_config(None, [*DATA, f"kjs.ceiling_deg={text}"])
-
-
 def test_non_finite_in_a_config_file_is_one_cli_line(tmp_path):
     p = tmp_path / "c.yaml"
     p.write_text(f"data:\n  asf: {ASF}\n  amc: {AMC}\ncamera:\n  focal_px: .nan\n", encoding="utf-8")
@@ -87,7 +81,7 @@ def test_non_finite_in_a_config_file_is_one_cli_line(tmp_path):
 
 def test_strings_that_look_like_numbers_round_trip(tmp_path):
     """config.yaml quotes a string the loader would read as a number, and writes numbers it reads back."""
-    cfg = load_config(None, [*DATA, "name=x", "observations.noise_px=1e-7", "kjs.ceiling_deg=inf"])
+    cfg = load_config(None, [*DATA, "name=x", "observations.noise_px=1e-7"])
     import dataclasses
 
     cfg = dataclasses.replace(cfg, name="1e9", model=dataclasses.replace(cfg.model, keypoints={"inf": "root"}))
@@ -111,3 +105,59 @@ def test_keyframe_file_numbers_as_written(tmp_path):
     i, j = sk.dof_names.index("lfemur.rx"), sk.dof_names.index("rfemur.rx")
     assert float(kf.q[0, i]) == pytest.approx(math.radians(10.0))
     assert float(kf.q[0, j]) == pytest.approx(math.radians(-25.0))
+
+
+# ---------------------------------------------------------------- package data found by the package
+
+# Python in a folder whose `ptrack/` subfolder (a clone's root: no __init__.py) shadows the name ptrack, with the
+# package itself imported through a finder after the path's own, as setuptools' editable installs do: `ptrack` is
+# then the subfolder's namespace package while its modules load from the package. Prints the limits, pose prior
+# and smoothing tables it reads.
+_SHADOWED = r"""
+import importlib.abc, importlib.machinery, importlib.util, json, sys
+from pathlib import Path
+
+PKG = Path(sys.argv[1])
+
+
+class Finder(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if not name.startswith("ptrack."):
+            return None
+        p = PKG.joinpath(*name.split(".")[1:])
+        if (p / "__init__.py").is_file():
+            return importlib.util.spec_from_file_location(name, p / "__init__.py", submodule_search_locations=[str(p)])
+        if p.with_suffix(".py").is_file():
+            return importlib.util.spec_from_file_location(name, p.with_suffix(".py"))
+        return None
+
+
+at = sys.meta_path.index(importlib.machinery.PathFinder)
+sys.meta_path.insert(at + 1, Finder())
+import ptrack
+
+assert getattr(ptrack, "__file__", None) is None, ptrack.__file__  # the namespace package of ./ptrack
+from ptrack.pose_prior import read_pose_prior, smoothing_prior
+from ptrack.skeleton import Skeleton
+
+sk = Skeleton.from_asf(PKG / "data" / "10.asf").with_limits("data")
+print(json.dumps({"lower": sk.lower.tolist(), "prior": read_pose_prior(), "smooth": smoothing_prior("cmu-train")}))
+"""
+
+
+def test_package_data_found_from_a_shadowing_folder(tmp_path):
+    from ptrack.pose_prior import read_pose_prior, smoothing_prior
+    from ptrack.skeleton import Skeleton
+
+    (tmp_path / "ptrack" / "data").mkdir(parents=True)
+    (tmp_path / "ptrack" / "data" / "cmu_limits.json").write_text('{"limits_deg": {}}', encoding="utf-8")
+    (tmp_path / "data").mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    r = subprocess.run(
+        [sys.executable, "-c", _SHADOWED, str(REPO / "ptrack")], cwd=tmp_path, capture_output=True, text=True, env=env
+    )
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout)
+    assert got["lower"] == Skeleton.from_asf(ASF).with_limits("data").lower.tolist()
+    assert got["prior"] == {k: list(v) for k, v in read_pose_prior().items()}
+    assert got["smooth"] == smoothing_prior("cmu-train")
