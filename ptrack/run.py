@@ -187,6 +187,7 @@ def prepare(cfg: RunConfig) -> Prepared:
         if cfg.method != "pca":
             log.warning("method %s does not use the point correspondences (only method pca does)", cfg.method)
     check_visibility(visible)
+    check_observed(obs.confidence[::upsample] > 0, visible[::upsample])  # the frames meant to be observed
     obs = obs.to(device=device, dtype=dtype)
     keyframes = joint_keyframes = None
     kc = cfg.keyframes
@@ -247,6 +248,54 @@ def check_visibility(visible: torch.Tensor) -> None:
         )
 
 
+#: under this share of observed keypoints (confidence > 0) a run warns, as it does under this share of visible ones
+OBSERVED_WARN = 0.5
+
+
+def check_observed(observed: torch.Tensor, visible: torch.Tensor) -> None:
+    """Warn when under OBSERVED_WARN of the keypoints are observed though the camera sees more (where it sees
+    little, `check_visibility` has said so). observed, visible: (T, K) bool."""
+    fraction, seen = float(observed.float().mean()), float(visible.float().mean())
+    if fraction < OBSERVED_WARN <= seen:
+        log.warning(
+            "only %.0f%% of the keypoints are observed (observed_fraction %.3f; the camera sees %.0f%%): the "
+            "estimate rests on few observations (observations.missing, occlusion_bursts, dropped_frames)",
+            100 * fraction,
+            fraction,
+            100 * seen,
+        )
+
+
+#: the estimate explains the observations poorly when the median distance of its keypoints to the observed ones is
+#: over both REPROJECTION_SIGMAS times costs.sigma_px and REPROJECTION_DIAGONAL of the image's diagonal
+REPROJECTION_SIGMAS, REPROJECTION_DIAGONAL = 10.0, 0.05
+
+
+def check_reprojection(prep: Prepared, reproj: torch.Tensor, sigma_px: float) -> float:
+    """Warn when no pose explains the observations (see REPROJECTION_SIGMAS); -> the median distance, pixels
+    (NaN when nothing is observed). reproj: (T, K, 2) from `reprojected_keypoints`."""
+    obs = prep.problem.observations
+    seen = obs.confidence > 0
+    err = (reproj.to(obs.keypoints) - obs.keypoints).norm(dim=-1)[seen]
+    if err.numel() == 0:
+        return math.nan
+    median = float(err.double().median())
+    diagonal = math.hypot(obs.camera.width, obs.camera.height)
+    limit = max(REPROJECTION_SIGMAS * sigma_px, REPROJECTION_DIAGONAL * diagonal)
+    if not median <= limit:
+        log.warning(
+            "the estimate's keypoints lie a median %.3g px from the observed ones, over %.3g px (%g times "
+            "costs.sigma_px %g and %.0f%% of the image's diagonal): no pose explains these observations; "
+            "check the observations (observations.*), the camera (camera.*) and costs.sigma_px",
+            median,
+            limit,
+            REPROJECTION_SIGMAS,
+            sigma_px,
+            100 * REPROJECTION_DIAGONAL,
+        )
+    return median
+
+
 def reprojected_keypoints(prep: Prepared, est: Estimate) -> torch.Tensor:
     """The estimate's keypoints in the image: (T, K, 2) pixels."""
     prob = prep.problem
@@ -273,6 +322,7 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
     put("reprojection_error_px", M.reprojection_error_px(reproj, obs.keypoints, obs.confidence))
     if prep.visible is not None:  # a small reprojection error means little when the camera sees little
         summary["visible_fraction"] = float(prep.visible.float().mean())
+    summary["observed_fraction"] = float((obs.confidence > 0).float().mean())  # what the estimator was given
     lower, upper = sk.limits(dtype=est.q.dtype, device=est.q.device)
     angular = torch.as_tensor(sk.angular_dofs(), device=est.q.device)
     report = M.joint_limit_violations(est.q.detach(), lower, upper, angular=angular)
@@ -387,6 +437,7 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
     check_finite(est, cfg.method)
     reproj = reprojected_keypoints(prep, est)
     summary, series = compute_metrics(prep, est, reproj)
+    check_reprojection(prep, reproj, cfg.costs.sigma_px)
     summary = {
         "method": cfg.method,
         "frames": int(est.q.shape[0]),

@@ -161,3 +161,119 @@ def test_package_data_found_from_a_shadowing_folder(tmp_path):
     assert got["lower"] == Skeleton.from_asf(ASF).with_limits("data").lower.tolist()
     assert got["prior"] == {k: list(v) for k, v in read_pose_prior().items()}
     assert got["smooth"] == smoothing_prior("cmu-train")
+
+
+# ---------------------------------------------------------------- progress lines off a terminal
+
+
+def test_progress_lines_throttled_by_the_clock(caplog):
+    from ptrack.run import progress_lines
+
+    ticks = iter([0.0, 1.0, 9.0, 10.5, 12.0, 20.0, 30.0, 31.0, 50.0, 51.0, 52.0])  # start, then one per item
+    items = list(range(10))
+    with caplog.at_level("INFO", logger="ptrack.run.progress"):
+        got = list(progress_lines(items, "kjs", every=15.0, first=10.0, clock=lambda: next(ticks)))
+    assert got == items
+    # item 2 is taken at 10.5 s (2 done: 2 / 10.5 s), then none before 10.5 + 15 = 25.5 s: item 5 at 30 s
+    # (5 / 30 s), then item 7 at 50 s (>= 45 s)
+    assert [r.getMessage() for r in caplog.records] == [
+        "kjs: frame 2/10 (20%), 0.19 frames/s, about 42 s left",
+        "kjs: frame 5/10 (50%), 0.167 frames/s, about 30 s left",
+        "kjs: frame 7/10 (70%), 0.14 frames/s, about 21 s left",
+    ]
+    assert {r.levelname for r in caplog.records} == {"INFO"}
+
+
+def test_progress_lines_without_a_total(caplog):
+    from ptrack.run import progress_lines
+
+    ticks = iter([0.0, 0.0, 20.0, 21.0])
+    with caplog.at_level("INFO", logger="ptrack.run.progress"):
+        assert list(progress_lines(iter("abc"), "pca", every=15.0, first=10.0, clock=lambda: next(ticks))) == [
+            "a",
+            "b",
+            "c",
+        ]
+    assert [r.getMessage() for r in caplog.records] == ["pca: frame 1, 0.05 frames/s"]
+
+
+def test_progress_lines_leave_the_result_unchanged(monkeypatch, caplog):
+    from ptrack.run import estimate
+
+    cfg = load_config(REPO / "configs" / "demo.yaml", ["data.stop=24"])
+    _, quiet = estimate(cfg, progress=False)
+    monkeypatch.setenv("PTRACK_PROGRESS_SECONDS", "0")
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False)
+    with caplog.at_level("INFO", logger="ptrack.run.progress"):
+        _, shown = estimate(cfg, progress=True)
+    assert [r.getMessage().split(",")[0] for r in caplog.records] == [
+        f"frame: frame {i}/6 ({i / 6:.0%})" for i in range(1, 6)
+    ]
+    assert (shown.q == quiet.q).all()  # the same computation on the same thread: bit for bit
+
+
+def test_cli_run_logs_progress_lines_off_a_terminal(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "PTRACK_PROGRESS_SECONDS": "0"}
+    cmd = [sys.executable, "-m", "ptrack.cli", "run", str(REPO / "configs" / "demo.yaml"), "data.stop=24"]
+    r = subprocess.run([*cmd, f"out_dir={tmp_path / 'run'}"], capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.splitlines()
+    assert len(lines) == 5 and lines[0].startswith("ptrack: INFO: frame: frame 1/6 (17%), "), r.stderr
+    assert lines[-1].startswith("ptrack: INFO: frame: frame 5/6 (83%), ") and lines[-1].endswith(" s left")
+
+
+# ---------------------------------------------------------------- garbage in, a warning out
+
+
+def _warnings(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+
+
+def test_observations_no_pose_explains_warn(tmp_path, caplog):
+    from ptrack.run import execute
+
+    cfg = load_config(
+        REPO / "configs" / "demo.yaml", ["data.stop=24", "observations.noise_px=1.0e+9", f"out_dir={tmp_path / 'r'}"]
+    )
+    with caplog.at_level("WARNING"):
+        out = execute(cfg, progress=False)
+    (message,) = _warnings(caplog)
+    assert "no pose explains these observations" in message and "over 40 px" in message
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["reprojection_error_px"] > 1e8
+    assert metrics["observed_fraction"] == pytest.approx(0.95, abs=0.05)  # observations.missing 0.05
+    assert metrics["visible_fraction"] == 1.0
+
+
+def test_few_observed_keypoints_warn_before_estimating(caplog):
+    from ptrack.run import prepare
+
+    cfg = load_config(REPO / "configs" / "demo.yaml", ["data.stop=24", "observations.missing=0.99"])
+    with caplog.at_level("WARNING"):
+        prep = prepare(cfg)
+    (message,) = _warnings(caplog)
+    observed = float((prep.problem.observations.confidence > 0).float().mean())
+    assert observed < 0.05
+    assert message.startswith(f"only {100 * observed:.0f}% of the keypoints are observed (observed_fraction ")
+    assert "the camera sees 100%" in message
+
+
+def test_observed_fraction_is_what_the_estimator_got(caplog):
+    from ptrack.run import check_observed, check_reprojection, compute_metrics, estimate, reprojected_keypoints
+
+    cfg = load_config(REPO / "configs" / "demo.yaml", ["data.stop=24", "observations.missing=0.3"])
+    with caplog.at_level("WARNING"):
+        prep, est = estimate(cfg)
+        reproj = reprojected_keypoints(prep, est)
+        summary, _ = compute_metrics(prep, est, reproj)
+        median = check_reprojection(prep, reproj, cfg.costs.sigma_px)
+    assert _warnings(caplog) == []  # a normal run says nothing
+    conf = prep.problem.observations.confidence
+    assert summary["observed_fraction"] == pytest.approx(float((conf > 0).float().mean()))
+    assert 0.6 < summary["observed_fraction"] < 0.8 and summary["visible_fraction"] == 1.0
+    assert median < 5.0  # 2 px noise
+    import torch
+
+    few = torch.rand(10, 17) < 0.2
+    check_observed(few, few)  # a keypoint file: what is observed is what the camera sees, check_visibility warns
+    assert _warnings(caplog) == []
