@@ -133,6 +133,7 @@ def main(argv: list[str] | None = None) -> int:
             from ptrack.run import execute
 
             cfg = load_config(args.config, args.overrides)
+            logging.getLogger("ptrack.run.progress").setLevel(logging.INFO)  # its lines off a terminal
             out = execute(cfg, progress=False if args.quiet else None)
             print((out / "metrics.json").read_text() if args.json else out, end="" if args.json else "\n", flush=True)
         elif args.command == "evaluate":

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -22,6 +24,50 @@ from ptrack.errors import InputError
 from ptrack.pose_prior import check_smoothing_table
 
 log = logging.getLogger(__name__)
+
+_FLOAT_TAG = "tag:yaml.org,2002:float"
+#: a float as people write it (YAML 1.2's core schema, which YAML 1.1 and so PyYAML's SafeLoader read as a string
+#: when it has an exponent without a dot, `1e9`, or a signed exponent without a dot, `1E-6`), plus the words inf,
+#: infinity and nan, with or without YAML's dot, in any case
+_FLOAT = re.compile(
+    r"""^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?
+    |[-+]?\.?(?:inf|infinity)
+    |\.?nan)$""",
+    re.X | re.I,
+)
+
+
+class YamlLoader(yaml.SafeLoader):
+    """PyYAML's SafeLoader with floats read as YAML 1.2 does (`_FLOAT`): `1e9`, `1E-6`, `.5`, `5.`, `+2.0`,
+    `.inf`, `nan`. Integers stay integers (`+2` is 2). Every config file, override and keyframe file goes
+    through it."""
+
+
+class YamlDumper(yaml.SafeDumper):
+    """PyYAML's SafeDumper that quotes every string `YamlLoader` would read as a float (`"1e9"`), so that a
+    config.yaml it writes reads back the same."""
+
+
+def _float_resolvers(cls) -> None:
+    cls.yaml_implicit_resolvers = {
+        first: [(tag, rx) for tag, rx in resolvers if tag != _FLOAT_TAG]
+        for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+    }
+    cls.add_implicit_resolver(_FLOAT_TAG, _FLOAT, list("-+0123456789.iInN"))
+
+
+def _construct_float(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> float:
+    return float(re.sub(r"^([-+]?)\.(?=[a-zA-Z])", r"\1", str(loader.construct_scalar(node))))  # .inf -> inf
+
+
+_float_resolvers(YamlLoader)
+_float_resolvers(YamlDumper)
+YamlLoader.add_constructor(_FLOAT_TAG, _construct_float)
+
+
+def load_yaml(text: str) -> Any:
+    """YAML text -> Python objects, floats as people write them (`YamlLoader`)."""
+    return yaml.load(text, Loader=YamlLoader)  # a SafeLoader subclass
 
 
 @dataclass(frozen=True)
@@ -401,7 +447,8 @@ _SCALARS = {
 
 
 def _check_type(key: str, value: Any, tp: Any) -> Any:
-    """Check (and lightly coerce: int -> float, list -> tuple) `value` against annotation `tp`."""
+    """Check (and lightly coerce: int -> float, list -> tuple) `value` against annotation `tp`. A number must be
+    finite."""
     origin = typing.get_origin(tp)
     if origin in (Union, types.UnionType):
         args = typing.get_args(tp)
@@ -423,6 +470,8 @@ def _check_type(key: str, value: Any, tp: Any) -> Any:
     if tp in _SCALARS:
         what, accepts = _SCALARS[tp]
         if accepts(value) and not (isinstance(value, bool) and tp is not bool):
+            if tp is float and not math.isfinite(value):  # no setting has a meaning for nan or inf
+                raise InputError(f"config key {key!r} must be a finite number, got {value!r}")
             return tp(value)
         raise InputError(f"config key {key!r} must be {what}, got {value!r}")
     if origin is tuple:
@@ -495,7 +544,7 @@ def parse_override(text: str) -> tuple[str, Any]:
     if value.strip().startswith(("*", "&")):  # a shell pattern such as *toes, not a YAML alias
         return key, value.strip()
     try:
-        return key, yaml.safe_load(value) if value.strip() else None
+        return key, load_yaml(value) if value.strip() else None
     except yaml.YAMLError as e:
         raise InputError(f"override {text!r}: value is not valid YAML ({_one_line(e)})") from None
 
@@ -546,7 +595,7 @@ def load_config(
             found = sorted(p.glob("*.yaml"))
             raise InputError(f"config {p} is a folder; give a YAML file" + (f", e.g. {found[0]}" if found else ""))
         try:
-            loaded = yaml.safe_load(p.read_text(encoding="utf-8"))
+            loaded = load_yaml(p.read_text(encoding="utf-8"))
         except (yaml.YAMLError, UnicodeDecodeError) as e:
             raise InputError(f"config file {p} is not valid YAML: {_one_line(e)}") from None
         if loaded is None:
@@ -821,4 +870,5 @@ def to_dict(cfg) -> dict:
 
 
 def dump_yaml(cfg: RunConfig) -> str:
-    return yaml.safe_dump(to_dict(cfg), sort_keys=False)
+    """The config as YAML that `load_config` reads back the same (`YamlDumper`)."""
+    return yaml.dump(to_dict(cfg), Dumper=YamlDumper, sort_keys=False)

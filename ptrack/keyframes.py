@@ -34,6 +34,7 @@ import torch
 import yaml
 from torch import Tensor
 
+from ptrack.config import load_yaml
 from ptrack.errors import InputError
 from ptrack.problem import JointKeyframes, Keyframes
 from ptrack.skeleton import Skeleton
@@ -103,7 +104,7 @@ def read_keyframes(
         raise FileNotFoundError(f"keyframe file not found: {p}")
     text = p.read_text(encoding="utf-8", errors="replace")
     try:
-        raw = json.loads(text) if p.suffix.lower() == ".json" else yaml.safe_load(text)
+        raw = json.loads(text) if p.suffix.lower() == ".json" else load_yaml(text)
     except json.JSONDecodeError as e:
         raise InputError(f"keyframe file {p} is not valid JSON: {e.msg} at line {e.lineno}, column {e.colno}") from None
     except yaml.YAMLError as e:

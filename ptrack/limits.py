@@ -23,7 +23,6 @@ import json
 import logging
 import math
 from dataclasses import replace
-from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -32,6 +31,7 @@ import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
+from ptrack.package_data import data_file
 
 if TYPE_CHECKING:
     from ptrack.skeleton import Skeleton
@@ -44,7 +44,7 @@ TAU = 2.0 * math.pi
 
 def data_limits_path() -> Path:
     """The shipped file of CMU data-derived limits."""
-    return Path(str(resources.files("ptrack") / "data" / "cmu_limits.json"))
+    return data_file("cmu_limits.json")
 
 
 def read_limits_file(path: str | Path | None = None) -> dict[str, tuple[float, float]]:

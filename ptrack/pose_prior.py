@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import math
-from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -31,6 +30,7 @@ from torch import Tensor
 
 from ptrack.errors import InputError
 from ptrack.limits import wrap_to_limits
+from ptrack.package_data import data_file
 
 if TYPE_CHECKING:
     from ptrack.skeleton import Skeleton
@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 
 def pose_prior_path() -> Path:
     """The shipped CMU pose prior file."""
-    return Path(str(resources.files("ptrack") / "data" / "cmu_pose_prior.json"))
+    return data_file("cmu_pose_prior.json")
 
 
 def read_pose_prior(path: str | Path | None = None) -> dict[str, tuple[float, float]]:
@@ -103,8 +103,7 @@ def smoothing_prior(name: str | None, key: str = "batch.prior") -> dict[str, dic
     check_smoothing_table(name, key)
     if name is None:
         return {}
-    with resources.files("ptrack").joinpath("data").joinpath(SMOOTHING_TABLES[name]).open() as f:
-        doc = json.load(f)
+    doc = json.loads(data_file(SMOOTHING_TABLES[name]).read_text(encoding="utf-8"))
     return {"velocity": doc["velocity"], "accel": doc["accel"]}
 
 

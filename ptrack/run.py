@@ -25,7 +25,7 @@ import shutil
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sized
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -187,6 +187,7 @@ def prepare(cfg: RunConfig) -> Prepared:
         if cfg.method != "pca":
             log.warning("method %s does not use the point correspondences (only method pca does)", cfg.method)
     check_visibility(visible)
+    check_observed(obs.confidence[::upsample] > 0, visible[::upsample])  # the frames meant to be observed
     obs = obs.to(device=device, dtype=dtype)
     keyframes = joint_keyframes = None
     kc = cfg.keyframes
@@ -247,6 +248,54 @@ def check_visibility(visible: torch.Tensor) -> None:
         )
 
 
+#: under this share of observed keypoints (confidence > 0) a run warns, as it does under this share of visible ones
+OBSERVED_WARN = 0.5
+
+
+def check_observed(observed: torch.Tensor, visible: torch.Tensor) -> None:
+    """Warn when under OBSERVED_WARN of the keypoints are observed though the camera sees more (where it sees
+    little, `check_visibility` has said so). observed, visible: (T, K) bool."""
+    fraction, seen = float(observed.float().mean()), float(visible.float().mean())
+    if fraction < OBSERVED_WARN <= seen:
+        log.warning(
+            "only %.0f%% of the keypoints are observed (observed_fraction %.3f; the camera sees %.0f%%): the "
+            "estimate rests on few observations (observations.missing, occlusion_bursts, dropped_frames)",
+            100 * fraction,
+            fraction,
+            100 * seen,
+        )
+
+
+#: the estimate explains the observations poorly when the median distance of its keypoints to the observed ones is
+#: over both REPROJECTION_SIGMAS times costs.sigma_px and REPROJECTION_DIAGONAL of the image's diagonal
+REPROJECTION_SIGMAS, REPROJECTION_DIAGONAL = 10.0, 0.05
+
+
+def check_reprojection(prep: Prepared, reproj: torch.Tensor, sigma_px: float) -> float:
+    """Warn when no pose explains the observations (see REPROJECTION_SIGMAS); -> the median distance, pixels
+    (NaN when nothing is observed). reproj: (T, K, 2) from `reprojected_keypoints`."""
+    obs = prep.problem.observations
+    seen = obs.confidence > 0
+    err = (reproj.to(obs.keypoints) - obs.keypoints).norm(dim=-1)[seen]
+    if err.numel() == 0:
+        return math.nan
+    median = float(err.double().median())
+    diagonal = math.hypot(obs.camera.width, obs.camera.height)
+    limit = max(REPROJECTION_SIGMAS * sigma_px, REPROJECTION_DIAGONAL * diagonal)
+    if not median <= limit:
+        log.warning(
+            "the estimate's keypoints lie a median %.3g px from the observed ones, over %.3g px (%g times "
+            "costs.sigma_px %g and %.0f%% of the image's diagonal): no pose explains these observations; "
+            "check the observations (observations.*), the camera (camera.*) and costs.sigma_px",
+            median,
+            limit,
+            REPROJECTION_SIGMAS,
+            sigma_px,
+            100 * REPROJECTION_DIAGONAL,
+        )
+    return median
+
+
 def reprojected_keypoints(prep: Prepared, est: Estimate) -> torch.Tensor:
     """The estimate's keypoints in the image: (T, K, 2) pixels."""
     prob = prep.problem
@@ -273,6 +322,7 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
     put("reprojection_error_px", M.reprojection_error_px(reproj, obs.keypoints, obs.confidence))
     if prep.visible is not None:  # a small reprojection error means little when the camera sees little
         summary["visible_fraction"] = float(prep.visible.float().mean())
+    summary["observed_fraction"] = float((obs.confidence > 0).float().mean())  # what the estimator was given
     lower, upper = sk.limits(dtype=est.q.dtype, device=est.q.device)
     angular = torch.as_tensor(sk.angular_dofs(), device=est.q.device)
     report = M.joint_limit_violations(est.q.detach(), lower, upper, angular=angular)
@@ -387,6 +437,7 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
     check_finite(est, cfg.method)
     reproj = reprojected_keypoints(prep, est)
     summary, series = compute_metrics(prep, est, reproj)
+    check_reprojection(prep, reproj, cfg.costs.sigma_px)
     summary = {
         "method": cfg.method,
         "frames": int(est.q.shape[0]),
@@ -406,13 +457,68 @@ def remove_partial(folder: Path) -> None:
             shutil.rmtree(tmp, ignore_errors=True)
 
 
+#: off a terminal, progress is a log line (logger `ptrack.run.progress`, INFO) at most every PROGRESS_SECONDS, the
+#: first after PROGRESS_FIRST_SECONDS (a short run says nothing); the environment variable PTRACK_PROGRESS_SECONDS
+#: replaces both (read at each run)
+PROGRESS_SECONDS, PROGRESS_FIRST_SECONDS = 20.0, 10.0
+progress_log = logging.getLogger(f"{__name__}.progress")
+
+
 def _progress(show: bool, desc: str) -> Callable[[Iterable], Iterable]:
-    """A progress bar on stderr, drawn only on a terminal (in a file or CI log each update would be a line)."""
-    if not show or not sys.stderr.isatty():
+    """A progress bar on stderr on a terminal; elsewhere (a file, a CI log: each update of a bar would be a line)
+    a log line now and then (`progress_lines`)."""
+    if not show:
         return lambda it: it
+    if not sys.stderr.isatty():
+        env = os.environ.get("PTRACK_PROGRESS_SECONDS", "").strip()
+        try:
+            every = first = float(env) if env else math.nan
+        except ValueError:
+            raise InputError(f"environment variable PTRACK_PROGRESS_SECONDS must be seconds, got {env!r}") from None
+        if not env:
+            every, first = PROGRESS_SECONDS, PROGRESS_FIRST_SECONDS
+        return lambda it: progress_lines(it, desc, every=every, first=first)
     from tqdm.auto import tqdm
 
     return lambda it: tqdm(it, desc=desc, unit="frame", leave=False)
+
+
+def progress_lines(
+    items: Iterable, desc: str, every: float, first: float, clock: Callable[[], float] = time.monotonic
+) -> Iterable:
+    """`items` one by one, logging (`progress_log`, INFO) how far the loop is, its rate and the time left, when an
+    item is taken `first` seconds or more after the start and then at most every `every` seconds:
+    "kjs: frame 400/2751 (14%), 12.3 frames/s, about 3 min left" (without a total, the count and rate)."""
+    total = len(items) if isinstance(items, Sized) else None
+    start = clock()
+    due = start + first
+    for i, item in enumerate(items):
+        now = clock()
+        if i and now >= due:
+            rate = i / max(now - start, 1e-9)
+            if total:
+                progress_log.info(
+                    "%s: frame %d/%d (%.0f%%), %.3g frames/s, about %s left",
+                    desc,
+                    i,
+                    total,
+                    100 * i / total,
+                    rate,
+                    _duration((total - i) / rate),
+                )
+            else:
+                progress_log.info("%s: frame %d, %.3g frames/s", desc, i, rate)
+            due = now + every
+        yield item
+
+
+def _duration(seconds: float) -> str:
+    """A rough duration: "40 s", "3 min", "1.5 h"."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[str, np.ndarray]:
