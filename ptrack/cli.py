@@ -140,7 +140,8 @@ class Terminated(KeyboardInterrupt):
 
 def _on_signals() -> dict[int, object]:
     """Turn SIGTERM and SIGHUP into `Terminated` (the first of them only: a second one does not cut the
-    cleanup short); -> the handlers they replace. Only the main thread can set handlers: elsewhere, nothing."""
+    cleanup short); -> the handlers they replace. A signal ignored already (`nohup`) stays ignored. Only the
+    main thread can set handlers: elsewhere, nothing."""
     if threading.current_thread() is not threading.main_thread():
         return {}
     raised: list[int] = []
@@ -150,8 +151,8 @@ def _on_signals() -> dict[int, object]:
             raised.append(signum)
             raise Terminated(signum)
 
-    wanted = [s for s in ("SIGTERM", "SIGHUP") if hasattr(signal, s)]
-    return {int(getattr(signal, s)): signal.signal(getattr(signal, s), handler) for s in wanted}
+    wanted = [getattr(signal, s) for s in ("SIGTERM", "SIGHUP") if hasattr(signal, s)]
+    return {int(s): signal.signal(s, handler) for s in wanted if signal.getsignal(s) is not signal.SIG_IGN}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -260,3 +260,25 @@ def test_a_later_run_removes_what_a_killed_run_left_but_not_a_live_runs_claim(tm
         os.kill(live.pid, signal.SIGCONT)
         live.kill()
         live.wait(timeout=WAIT_S)
+
+
+def test_an_ignored_hangup_stays_ignored_and_handlers_are_restored(monkeypatch):
+    """Under `nohup` (SIGHUP ignored) the command does not start ending on a hangup; SIGTERM is handled; after
+    `main` returns (in-process callers) both signals have their handlers back."""
+    import ptrack.cli
+
+    old_hup = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    old_term = signal.getsignal(signal.SIGTERM)
+    try:
+        seen = {}
+
+        def handlers(args) -> int:
+            seen.update(hup=signal.getsignal(signal.SIGHUP), term=signal.getsignal(signal.SIGTERM))
+            return 0
+
+        monkeypatch.setattr(ptrack.cli, "_main", handlers)
+        assert main(["replay", "x.rrd"]) == 0
+        assert seen["hup"] is signal.SIG_IGN and callable(seen["term"]) and seen["term"] is not old_term
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN and signal.getsignal(signal.SIGTERM) is old_term
+    finally:
+        signal.signal(signal.SIGHUP, old_hup)
