@@ -8,6 +8,11 @@ only on a terminal. A closed stdout (`| head`) ends the command quietly with sta
 The only module that reads argv. User errors (`InputError`, missing files, bad YAML) print one
 line `ptrack: error: ...` and exit 2; an estimator failure (`EstimationError`, e.g. non-finite
 poses) prints one such line and exits 1; anything else is a bug and keeps its traceback.
+
+Ctrl-C ends a command with `ptrack: interrupted` and status 130; SIGTERM (`kill PID`) and SIGHUP end it the
+same way (`ptrack: terminated`, status 128 + the signal's number: 143, 129): the signal is raised as
+`Terminated` (a KeyboardInterrupt) in the main thread, so the same cleanup runs: an evaluation's workers
+are stopped, replay's viewer or server is stopped, a run's half-written folder is removed.
 """
 
 from __future__ import annotations
@@ -15,7 +20,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from ptrack import __version__
@@ -123,8 +130,42 @@ def _eval_name(path: str) -> str:
     return (p.parent if p.name == "results.json" else p).resolve().name or str(path)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP received: raised where the main thread is, so that the cleanup Ctrl-C runs runs too."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _on_signals() -> dict[int, object]:
+    """Turn SIGTERM and SIGHUP into `Terminated` (the first of them only: a second one does not cut the
+    cleanup short); -> the handlers they replace. A signal ignored already (`nohup`) stays ignored. Only the
+    main thread can set handlers: elsewhere, nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    raised: list[int] = []
+
+    def handler(signum: int, frame: object) -> None:
+        if not raised:
+            raised.append(signum)
+            raise Terminated(signum)
+
+    wanted = [getattr(signal, s) for s in ("SIGTERM", "SIGHUP") if hasattr(signal, s)]
+    return {int(s): signal.signal(s, handler) for s in wanted if signal.getsignal(s) is not signal.SIG_IGN}
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    previous = _on_signals()
+    try:
+        return _main(args)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)  # type: ignore[arg-type]  # what signal.signal returned
+
+
+def _main(args: argparse.Namespace) -> int:
     log_to_stderr()
     logging.getLogger("ptrack.evaluate").setLevel(logging.INFO)  # its one line per clip off a terminal
     try:
@@ -187,14 +228,12 @@ def main(argv: list[str] | None = None) -> int:
             if not rrd.exists():
                 raise FileNotFoundError(f"no recording at {rrd} (give a run folder holding run.rrd)")
             if args.web:
-                import subprocess
+                from ptrack.viz import run_child, web_viewer_command
 
-                from ptrack.viz import web_viewer_command
-
-                cmd, url = web_viewer_command(rrd, args.bind)
+                cmd, url = web_viewer_command(rrd, args.bind)  # checks that rrd is a recording
                 print(url, flush=True)
                 print(f"ptrack: serving {rrd} to the web viewer at {url} (Ctrl-C stops)", file=sys.stderr, flush=True)
-                return subprocess.run(cmd, env={**os.environ, "RUST_LOG": "warn"}).returncode
+                return run_child(cmd, env={**os.environ, "RUST_LOG": "warn"})
             return open_viewer(rrd) or 0
     except (InputError, FileNotFoundError, IsADirectoryError, NotADirectoryError) as e:
         print(f"ptrack: error: {e}", file=sys.stderr)
@@ -205,6 +244,10 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # the reader of stdout has gone (`| head -0`): no traceback, no flush error at exit
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except Terminated as e:
+        name = "" if e.signum == getattr(signal, "SIGTERM", None) else f" ({signal.Signals(e.signum).name})"
+        print(f"ptrack: terminated{name}", file=sys.stderr)
+        return 128 + e.signum
     except KeyboardInterrupt:
         print("ptrack: interrupted", file=sys.stderr)
         return 130

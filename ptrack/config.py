@@ -697,6 +697,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         )
     if cfg.dtype not in ("float32", "float64"):
         raise InputError(f"config key 'dtype' must be float32 or float64, got {cfg.dtype!r}")
+    check_device(cfg.device)
     if cfg.frame.init not in ("keyframe", "rest"):
         raise InputError(f"config key 'frame.init' must be 'keyframe' or 'rest', got {cfg.frame.init!r}")
     if cfg.frame.iterations < 1 or cfg.frame.first_iterations < 1:
@@ -797,6 +798,30 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     if cfg.costs.loss not in ROBUST_LOSSES:
         raise InputError(f"config key 'costs.loss' must be one of {', '.join(ROBUST_LOSSES)}, got {cfg.costs.loss!r}")
     validate_pca(cfg.pca, cfg.model.keypoints, names=cfg.method == "pca")
+
+
+def check_device(device: str) -> None:
+    """InputError unless torch can run on `device` here: cpu; cuda, cuda:N where a CUDA GPU is; mps where
+    Apple's GPU is. The error lists this machine's choices."""
+    import torch
+
+    cuda = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    mps = torch.backends.mps.is_available()
+    here = ["cpu", *(["cuda", *(f"cuda:{i}" for i in range(cuda))] if cuda else []), *(["mps"] if mps else [])]
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        dev = None
+    if dev is not None and (
+        dev.type == "cpu"
+        or (dev.type == "cuda" and cuda and (dev.index is None or dev.index < cuda))
+        or (dev.type == "mps" and mps and not dev.index)
+    ):
+        return
+    raise InputError(
+        f"config key 'device' must be a device this machine has: {', '.join(here)} (cuda and cuda:N need a CUDA GPU, "
+        f"mps an Apple GPU), got {device!r}"
+    )
 
 
 def validate_pca(p: PcaMethodConfig, keypoints: dict[str, str] | None = None, names: bool = True) -> None:

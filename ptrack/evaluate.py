@@ -200,22 +200,29 @@ def _in_workers(
     jobs: int, tasks: list[tuple[str, list[str]]], names: list[str], bar: _Progress, out_dir: Path
 ) -> list[dict | str]:
     """`run_one(config, overrides)` of every task in `jobs` worker processes at once -> the outcomes in the
-    order of the tasks, reported as each finishes. On Ctrl-C (the workers ignore it) or a bug in a run the
-    workers are stopped at once, and what a run killed while writing its folder left in `out_dir` removed:
-    the runs that finished keep their folders, as when the runs go one after another."""
-    pool = multiprocessing.get_context("spawn").Pool(min(jobs, len(tasks)), initializer=_worker)
+    order of the tasks, reported as each finishes. On Ctrl-C (the workers ignore it), SIGTERM (raised as an
+    exception by the command line) or a bug in a run the workers are stopped and waited for (none writes
+    after this returns), and what a run killed while writing its folder left in `out_dir` removed: the runs
+    that finished keep their folders, as when the runs go one after another."""
+    before = set(multiprocessing.active_children())
+    pool = None
     outcomes: list[dict | str] = ["not run"] * len(tasks)
     try:
+        pool = multiprocessing.get_context("spawn").Pool(min(jobs, len(tasks)), initializer=_worker)
         for i, outcome in pool.imap_unordered(_numbered_run, list(enumerate(tasks))):
             outcomes[i] = _reported(names[i], outcome)
             bar.finished(names[i])
-    except BaseException:
-        pool.terminate()
+        pool.close()
         pool.join()
+    except BaseException:
+        if pool is not None:
+            pool.terminate()
+            pool.join()
+        for worker in set(multiprocessing.active_children()) - before:  # a pool stopped while being made
+            worker.terminate()
+            worker.join()
         remove_partial(out_dir)
         raise
-    pool.close()
-    pool.join()
     return outcomes
 
 

@@ -10,18 +10,23 @@
     result.bvh    the estimated motion for animation tools (ptrack.export)
     run.rrd       rerun recording (ptrack.viz)
 
-The folder is assembled in a hidden sibling and renamed into place at the end, so a failed run
-leaves nothing half-written at `out_dir`.
+The folder is assembled in a hidden sibling `.NAME.partial` and renamed into place at the end, so a
+failed run leaves nothing half-written at `out_dir`. That sibling is also the run's claim on `out_dir`,
+taken before any work: a second run into the same `out_dir` refuses at once. The run holds a lock on it
+(flock) while it lives, so what a killed run left (SIGKILL, a power cut) is told from a live run's and
+removed by the next run into the same parent folder (`remove_partial`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import logging
 import math
 import os
 import shutil
+import stat
 import sys
 import tempfile
 import time
@@ -47,10 +52,16 @@ from ptrack.problem import Estimate, Problem
 from ptrack.silhouette import capsule_radii, render_silhouettes
 from ptrack.skeleton import Motion, Skeleton, load_amc
 
+try:
+    import fcntl
+except ImportError:  # Windows: no flock; runs' claims still exclude each other, but none is ever judged stale
+    fcntl = None  # type: ignore[assignment]
+
 log = logging.getLogger(__name__)
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
-PARTIAL = ".partial"  # the suffix of the hidden sibling a run folder is assembled in (`_write_outputs`)
+PARTIAL = ".partial"  # the suffix of the hidden sibling a run folder is assembled in (`claim_out_dir`)
+CLAIMING = ".claim"  # the suffix of the folder a claim is prepared in before it is renamed to `.NAME.partial`
 
 
 @dataclass(frozen=True)
@@ -415,6 +426,139 @@ def check_out_dir(out: Path) -> None:
         os.rmdir(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".probe", dir=parent))
     except OSError as e:
         raise InputError(f"out_dir {out} cannot be made: cannot write in {parent} ({e.strerror})") from None
+    if out.is_dir() and hasattr(os, "geteuid"):  # an empty folder: the finished run replaces it
+        there, folder = parent.stat(), out.stat()
+        if there.st_mode & stat.S_ISVTX and os.geteuid() not in (0, there.st_uid, folder.st_uid):
+            raise InputError(
+                f"out_dir {out} belongs to another user in the sticky folder {parent}, so the run could not "
+                f"put its folder there; choose another out_dir"
+            )
+
+
+@dataclass
+class Claim:
+    """A run's hold on its `out_dir`: the hidden sibling `.NAME.partial` (holding the file `pid`) that the run
+    folder is assembled in, locked through `fd` for as long as the run lives. `made`: the parent folders the
+    claim created (removed again when the run fails, if still empty)."""
+
+    path: Path
+    fd: int
+    made: list[Path]
+
+    def finish(self, out: Path) -> None:
+        """Put the assembled folder at `out` (absent or empty) in one rename; InputError when that fails."""
+        (self.path / "pid").unlink()
+        try:
+            if os.name == "nt" and out.exists():
+                out.rmdir()  # empty (checked before the run); POSIX renames over it in one step
+            os.replace(self.path, out)
+        except OSError as e:
+            self.release()
+            raise InputError(
+                f"cannot put the finished run at out_dir {out} ({e.strerror}); nothing was written there"
+            ) from None
+        self._unlock()
+
+    def release(self) -> None:
+        """Remove the claim and what it holds, and the parent folders it made that are still empty."""
+        shutil.rmtree(self.path, ignore_errors=True)
+        self._unlock()
+        for folder in reversed(self.made):
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+    def _unlock(self) -> None:
+        _close(self.fd)
+        self.fd = -1  # closed once: a later release does not close a descriptor opened since
+
+
+def claim_out_dir(out: Path) -> Claim:
+    """Take `out` for this run before any work: make its parent folders, remove the partial siblings that
+    killed runs left there (`remove_partial`), and create the locked `.NAME.partial` sibling in one rename.
+    InputError when another live run holds it ("being written by another run (pid N)")."""
+    parent = out.absolute().parent
+    made = []
+    for folder in reversed([parent, *parent.parents]):
+        if not folder.exists():
+            try:
+                folder.mkdir()
+            except FileExistsError:  # made at the same moment by another run
+                continue
+            made.append(folder)
+    remove_partial(parent, recursive=False)
+    target = parent / f".{out.name}{PARTIAL}"
+    umask = os.umask(0)
+    os.umask(umask)
+    for _ in range(5):  # a claim that vanished or went stale between two looks: look again
+        try:
+            tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=CLAIMING, dir=parent))
+        except FileNotFoundError:  # the parent, empty, was removed by a run that failed at that moment
+            parent.mkdir(parents=True, exist_ok=True)
+            continue
+        fd = -1
+        try:
+            if fcntl is not None:
+                fd = os.open(tmp, os.O_RDONLY)
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # a new folder: never held
+            tmp.chmod(0o777 & ~umask)  # mkdtemp makes 0700; the run folder gets a new folder's usual mode
+            (tmp / "pid").write_text(f"{os.getpid()}\n", encoding="utf-8")
+            os.rename(tmp, target)  # fails while another claim (never empty: it holds `pid`) stands there
+            return Claim(target, fd, made)
+        except OSError as e:
+            _close(fd)
+            shutil.rmtree(tmp, ignore_errors=True)
+            if e.errno not in (errno.EEXIST, errno.ENOTEMPTY, errno.ENOENT, errno.EAGAIN, errno.EWOULDBLOCK):
+                raise
+        except BaseException:
+            _close(fd)
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        if not _remove_if_stale(target):
+            try:
+                owner = f" (pid {int((target / 'pid').read_text(encoding='utf-8'))})"
+            except (OSError, ValueError):
+                owner = ""
+            for folder in reversed(made):
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break
+            raise InputError(f"out_dir {out} is being written by another run{owner}; choose another out_dir")
+    raise InputError(f"out_dir {out} cannot be claimed: {target} keeps reappearing; remove it and run again")
+
+
+def _close(fd: int) -> None:
+    if fd >= 0:
+        os.close(fd)
+
+
+def _remove_if_stale(path: Path) -> bool:
+    """Remove `path`, a run's claim, when no live process holds its lock (its run was killed); False when one
+    does (or, without flock, always: no claim is judged stale)."""
+    if fcntl is None:
+        return not path.exists()
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return True
+    except OSError:
+        return False
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        try:
+            if os.path.samestat(os.fstat(fd), os.stat(path)):  # still the folder locked, not a new claim
+                log.info("removing %s, left by a run that was killed", path)
+                shutil.rmtree(path, ignore_errors=True)
+        except FileNotFoundError:
+            pass
+        return True
+    finally:
+        os.close(fd)
 
 
 def estimate(cfg: RunConfig, progress: bool = False) -> tuple[Prepared, Estimate]:
@@ -430,31 +574,39 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
     """Run `cfg` end to end and write its folder; returns the folder's path."""
     out = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
     check_out_dir(out)
-    cfg = dataclasses.replace(cfg, out_dir=str(out.resolve()))  # config.yaml records the folder used
-    t0 = time.perf_counter()
-    prep, est = estimate(cfg, cfg.progress if progress is None else progress)
-    seconds = time.perf_counter() - t0
-    check_finite(est, cfg.method)
-    reproj = reprojected_keypoints(prep, est)
-    summary, series = compute_metrics(prep, est, reproj)
-    check_reprojection(prep, reproj, cfg.costs.sigma_px)
-    summary = {
-        "method": cfg.method,
-        "frames": int(est.q.shape[0]),
-        "seconds": seconds,
-        "fps": float(est.q.shape[0] / seconds),
-        **summary,
-    }
-    _write_outputs(out, cfg, prep, est, result_arrays(prep, est, reproj), summary, series)
+    claim = claim_out_dir(out)  # a second run into `out` refuses from here on
+    try:
+        cfg = dataclasses.replace(cfg, out_dir=str(out.resolve()))  # config.yaml records the folder used
+        t0 = time.perf_counter()
+        prep, est = estimate(cfg, cfg.progress if progress is None else progress)
+        seconds = time.perf_counter() - t0
+        check_finite(est, cfg.method)
+        reproj = reprojected_keypoints(prep, est)
+        summary, series = compute_metrics(prep, est, reproj)
+        check_reprojection(prep, reproj, cfg.costs.sigma_px)
+        summary = {
+            "method": cfg.method,
+            "frames": int(est.q.shape[0]),
+            "seconds": seconds,
+            "fps": float(est.q.shape[0] / seconds),
+            **summary,
+        }
+        _write_outputs(claim.path, cfg, prep, est, result_arrays(prep, est, reproj), summary, series)
+        claim.finish(out)
+    except BaseException:
+        claim.release()
+        raise
     return out
 
 
-def remove_partial(folder: Path) -> None:
-    """Remove what runs that were killed while writing left under `folder`: the hidden siblings their
-    folders were being assembled in (a run stopped any other way removes its own)."""
-    for tmp in sorted(folder.rglob(f".*{PARTIAL}")):
+def remove_partial(folder: Path, recursive: bool = True) -> None:
+    """Remove what runs that were killed while writing left in `folder` (recursive: and below it): the hidden
+    siblings their folders were being assembled in (a run stopped any other way removes its own). A live
+    run's, locked by its process, stays."""
+    found = folder.rglob if recursive else folder.glob
+    for tmp in sorted([*found(f".*{PARTIAL}"), *found(f".*{CLAIMING}")]):
         if tmp.is_dir():
-            shutil.rmtree(tmp, ignore_errors=True)
+            _remove_if_stale(tmp)
 
 
 #: off a terminal, progress is a log line (logger `ptrack.run.progress`, INFO) at most every PROGRESS_SECONDS, the
@@ -572,7 +724,7 @@ def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[s
 
 
 def _write_outputs(
-    out: Path,
+    tmp: Path,
     cfg: RunConfig,
     prep: Prepared,
     est: Estimate,
@@ -580,51 +732,40 @@ def _write_outputs(
     summary: dict,
     series: dict[str, np.ndarray],
 ) -> None:
+    """Write the run's files into `tmp` (the run's claim, `claim_out_dir`)."""
     from ptrack.viz import RunLog, write_recording
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=PARTIAL, dir=out.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    tmp.chmod(0o777 & ~umask)  # mkdtemp makes 0700; the run folder gets a new folder's usual mode
-    try:
-        (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
-        (tmp / "metrics.json").write_text(
-            json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n", encoding="utf-8"
-        )
-        np.savez_compressed(tmp / "result.npz", **res)  # type: ignore[arg-type]  # numpy's stub: a key could be allow_pickle
-        times = res["times"].astype(np.float64)
-        fps = float(1.0 / np.median(np.diff(times))) if len(times) > 1 else 30.0
-        write_bvh(tmp / "result.bvh", prep.problem.skeleton, est.q, fps)
-        prob = prep.problem
-        obs = prob.observations
-        rlog = RunLog(
-            joint_names=prob.skeleton.joint_names,
-            parents=prob.skeleton.parents,
-            frames=prep.frames,
-            times=res["times"],
-            estimate=res["joints"],
-            ground_truth=res.get("gt_joints"),
-            camera=obs.camera.to(device="cpu"),
-            observed=res["keypoints_observed"],
-            confidence=res["confidence"],
-            reprojected=res["keypoints_reprojected"],
-            keypoint_names=prob.keypoints.names,
-            keypoint_joints=prob.keypoints.joints,
-            hypotheses=res.get("hypotheses"),
-            hypothesis_weights=res.get("hypothesis_weights"),
-            hypothesis_costs=res.get("hypothesis_costs"),
-            hypothesis_directions=res.get("hypothesis_directions"),
-            jumps=dict(zip(res["jump_chains"].tolist(), res["jump_counts"].T)) if "jump_chains" in res else {},
-            scalars=series,
-            masks=obs.masks.cpu().numpy() if obs.masks is not None else None,
-            joint_std=res.get("joint_std"),
-            solver_cost=res.get("solver_cost"),
-        )
-        write_recording(tmp / "run.rrd", rlog)
-        if out.exists():
-            out.rmdir()  # empty (checked before the run)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
+    (tmp / "metrics.json").write_text(
+        json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n", encoding="utf-8"
+    )
+    np.savez_compressed(tmp / "result.npz", **res)  # type: ignore[arg-type]  # numpy's stub: a key could be allow_pickle
+    times = res["times"].astype(np.float64)
+    fps = float(1.0 / np.median(np.diff(times))) if len(times) > 1 else 30.0
+    write_bvh(tmp / "result.bvh", prep.problem.skeleton, est.q, fps)
+    prob = prep.problem
+    obs = prob.observations
+    rlog = RunLog(
+        joint_names=prob.skeleton.joint_names,
+        parents=prob.skeleton.parents,
+        frames=prep.frames,
+        times=res["times"],
+        estimate=res["joints"],
+        ground_truth=res.get("gt_joints"),
+        camera=obs.camera.to(device="cpu"),
+        observed=res["keypoints_observed"],
+        confidence=res["confidence"],
+        reprojected=res["keypoints_reprojected"],
+        keypoint_names=prob.keypoints.names,
+        keypoint_joints=prob.keypoints.joints,
+        hypotheses=res.get("hypotheses"),
+        hypothesis_weights=res.get("hypothesis_weights"),
+        hypothesis_costs=res.get("hypothesis_costs"),
+        hypothesis_directions=res.get("hypothesis_directions"),
+        jumps=dict(zip(res["jump_chains"].tolist(), res["jump_counts"].T)) if "jump_chains" in res else {},
+        scalars=series,
+        masks=obs.masks.cpu().numpy() if obs.masks is not None else None,
+        joint_std=res.get("joint_std"),
+        solver_cost=res.get("solver_cost"),
+    )
+    write_recording(tmp / "run.rrd", rlog)

@@ -70,11 +70,14 @@ numbers, 120 per second) stays available in the timeline menu.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -313,19 +316,76 @@ def open_viewer(path: str | Path, wait: bool = True) -> int | None:
     """Launch the rerun viewer (`python -m rerun PATH`) on the saved recording `path`; its listener binds to
     127.0.0.1. Without a display (a server, a container) raise InputError saying how to view the run instead.
 
-    wait: block until the viewer closes and return its exit status; False: return at once (None).
+    wait: block until the viewer closes and return its exit status (`run_child`: a Ctrl-C or SIGTERM meanwhile
+    closes it too); False: return at once (None).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"rerun recording {path} does not exist")
+    path = check_recording(path)
     if not has_display():
         raise InputError(
             f"no display here (DISPLAY and WAYLAND_DISPLAY are unset) to open {path} in: serve it with "
             f"`ptrack replay {path} --web` (rerun's web viewer on 127.0.0.1), or copy it to a machine "
             f"with a display and run `rerun {path.name}` there"
         )
-    proc = subprocess.Popen([sys.executable, "-m", "rerun", str(path), "--bind", "127.0.0.1", "--port", "auto"])
-    return proc.wait() if wait else None
+    argv = [sys.executable, "-m", "rerun", str(path), "--bind", "127.0.0.1", "--port", "auto"]
+    if wait:
+        return run_child(argv)
+    subprocess.Popen(argv)
+    return None
+
+
+#: the first bytes of a rerun recording (.rrd): b"RRF" and the format's digit (b"RRF2" since rerun 0.23)
+RRD_MAGIC = b"RRF"
+
+
+def check_recording(path: str | Path) -> Path:
+    """`path` if it is a rerun recording (a file starting with rerun's header `RRD_MAGIC`), else
+    FileNotFoundError (no such file) or InputError (another kind of file), before any viewer starts."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"rerun recording {path} does not exist")
+    with path.open("rb") as f:
+        head = f.read(4)
+    if head[:3] != RRD_MAGIC or not head[3:].isdigit():
+        raise InputError(f"{path} is not a rerun recording (.rrd): give a run folder (it holds run.rrd) or its run.rrd")
+    return path
+
+
+def run_child(argv: Sequence[str], env: Mapping[str, str] | None = None, grace_s: float = 5.0) -> int:
+    """Run `argv` (the rerun viewer or its web server) and return its exit status. It runs in its own process
+    group (`python -m rerun` starts rerun's binary as a child of its own), so that when this process is
+    interrupted or terminated while waiting (Ctrl-C, or SIGTERM turned into an exception by the command
+    line), the whole group is sent SIGTERM, then SIGKILL after `grace_s`, before the exception goes on: no
+    server is left holding its ports."""
+    posix = os.name == "posix"
+    proc = subprocess.Popen(list(argv), env=None if env is None else dict(env), start_new_session=posix)
+    try:
+        return proc.wait()
+    except BaseException:
+        _end_group(proc, grace_s)
+        raise
+
+
+def _end_group(proc: subprocess.Popen, grace_s: float) -> None:
+    """Stop `proc` and, on POSIX, every process of its group (it leads one): SIGTERM, SIGKILL after grace_s."""
+    if os.name != "posix":
+        proc.kill()
+        proc.wait()
+        return
+    try:
+        os.killpg(proc.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        proc.wait(timeout=grace_s)
+    for _ in range(int(grace_s / 0.05)):  # what the leader started (rerun's binary) ends after it
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
 
 
 def _free_port(host: str) -> int:
@@ -337,9 +397,7 @@ def _free_port(host: str) -> int:
 def web_viewer_command(path: str | Path, bind: str = "127.0.0.1") -> tuple[list[str], str]:
     """The command serving recording `path` to rerun's web viewer, bound to `bind`, and the address to open:
     (argv, url). Both servers (the viewer's HTTP and rerun's gRPC) take free ports."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"rerun recording {path} does not exist")
+    path = check_recording(path)
     web, grpc = _free_port(bind), _free_port(bind)
     host = f"[{bind}]" if ":" in bind else bind
     shown = "127.0.0.1" if bind in ("0.0.0.0", "::") else host

@@ -239,7 +239,7 @@ def test_replay_missing_folder(tmp_path, capsys, monkeypatch):
 def test_replay_opens_the_recording(tmp_path, capsys, monkeypatch):
     run_dir = tmp_path / "a_run"
     run_dir.mkdir()
-    (run_dir / "run.rrd").write_bytes(b"")  # replay only hands the path to the viewer
+    (run_dir / "run.rrd").write_bytes(b"RRF2")  # replay checks rerun's header, then hands the path to the viewer
     calls = []
     monkeypatch.setattr(ptrack.viz, "open_viewer", calls.append)
     assert main(["replay", str(run_dir)]) == 0
@@ -560,7 +560,7 @@ def test_every_argument_has_help():
 def test_replay_without_a_display_says_how_to_view_the_run(tmp_path):
     run_dir = tmp_path / "a_run"
     run_dir.mkdir()
-    (run_dir / "run.rrd").write_bytes(b"")
+    (run_dir / "run.rrd").write_bytes(b"RRF2")
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     proc = subprocess.run(
         [sys.executable, "-m", "ptrack.cli", "replay", str(run_dir)],
@@ -579,14 +579,14 @@ def test_replay_without_a_display_says_how_to_view_the_run(tmp_path):
 def test_replay_web_serves_on_localhost_and_prints_the_address(tmp_path, capsys, monkeypatch):
     run_dir = tmp_path / "a_run"
     run_dir.mkdir()
-    (run_dir / "run.rrd").write_bytes(b"")
+    (run_dir / "run.rrd").write_bytes(b"RRF2")
     calls = []
 
     def fake_run(cmd, env=None):
         calls.append((cmd, env))
-        return subprocess.CompletedProcess(cmd, 0)
+        return 0
 
-    monkeypatch.setattr(subprocess, "run", fake_run)
+    monkeypatch.setattr(ptrack.viz, "run_child", fake_run)
     assert main(["replay", str(run_dir), "--web"]) == 0
     ((cmd, env),) = calls
     assert cmd[cmd.index("--bind") + 1] == "127.0.0.1" and "--serve-web" in cmd and str(run_dir / "run.rrd") in cmd
@@ -598,11 +598,11 @@ def test_replay_web_serves_on_localhost_and_prints_the_address(tmp_path, capsys,
 
 def test_native_viewer_listens_on_localhost(tmp_path, monkeypatch):
     rrd = tmp_path / "run.rrd"
-    rrd.write_bytes(b"")
+    rrd.write_bytes(b"RRF2")
     argvs = []
 
     class FakePopen:
-        def __init__(self, argv):
+        def __init__(self, argv, **kw):
             argvs.append(argv)
 
         def wait(self):
@@ -612,3 +612,52 @@ def test_native_viewer_listens_on_localhost(tmp_path, monkeypatch):
     monkeypatch.setattr(ptrack.viz.subprocess, "Popen", FakePopen)
     assert ptrack.viz.open_viewer(rrd) == 0
     assert argvs[0][argvs[0].index("--bind") + 1] == "127.0.0.1"
+
+
+# ---------------------------------------------------------------- one line, not a traceback (issue 38)
+
+
+@pytest.mark.parametrize("device", ["gpu", "mps", "cuda:99", "cpu:x"])
+def test_a_device_torch_cannot_use_here_is_one_line(tmp_path, capsys, device):
+    """At config load, before any work: the key, this machine's choices and the value given."""
+    out = tmp_path / "o"
+    line = fail(capsys, out, _run_argv(out, f"device={device}"), "config key 'device'", "cpu", f"{device!r}")
+    assert "cuda:N" in line and "mps" in line
+
+
+@pytest.mark.parametrize("web", [True, False])
+def test_replay_of_a_file_that_is_not_a_recording_is_one_line(tmp_path, capsys, web):
+    """metrics.json (or a .rrd that is no recording) is refused before an address is printed or a viewer starts."""
+    run_dir = tmp_path / "a_run"
+    run_dir.mkdir()
+    (run_dir / "metrics.json").write_text('{"frames": 12}\n')
+    (run_dir / "run.rrd").write_text('{"frames": 12}\n')
+    for path in (run_dir / "metrics.json", run_dir / "run.rrd", run_dir):
+        capsys.readouterr()
+        assert main(["replay", str(path), *(["--web"] if web else [])]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == ""  # no address
+        lines = captured.err.strip().splitlines()
+        assert lines == [
+            f"ptrack: error: {path if path.is_file() else path / 'run.rrd'} is not a rerun recording (.rrd): "
+            "give a run folder (it holds run.rrd) or its run.rrd"
+        ]
+
+
+def test_an_out_dir_that_cannot_be_put_in_place_is_one_line(tmp_path, capsys, monkeypatch):
+    """When the finished folder cannot be renamed to out_dir (a parent made read-only during the run, ...):
+    one line, status 2, and neither out_dir nor the hidden folder it was assembled in is left."""
+    import ptrack.run
+
+    replace = os.replace
+
+    def refused(src, dst):
+        if Path(dst).name == "o":
+            raise PermissionError(13, "Permission denied", str(dst))
+        replace(src, dst)
+
+    monkeypatch.setattr(ptrack.run.os, "replace", refused)
+    out = tmp_path / "runs" / "o"
+    line = fail(capsys, out, _run_argv(out), f"out_dir {out}", "Permission denied", "nothing was written")
+    assert line.startswith("ptrack: error: cannot put the finished run at out_dir")
+    assert not out.parent.exists()  # the parent it made, empty, goes too
