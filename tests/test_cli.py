@@ -289,9 +289,14 @@ def test_estimator_failure_is_one_line_and_exit_1(tmp_path, capsys, monkeypatch)
 # ---------------------------------------------------------------- argument order (through the command line)
 
 
-def _cli(*argv: str, cwd: Path) -> subprocess.CompletedProcess:
+def _cli(*argv: str, cwd: Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "ptrack.cli", *argv], capture_output=True, text=True, timeout=300, cwd=cwd
+        [sys.executable, "-m", "ptrack.cli", *argv],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=cwd,
+        env=None if env is None else {**os.environ, **env},
     )
 
 
@@ -479,10 +484,11 @@ def test_camera_that_sees_little_warns_and_too_little_is_refused(tmp_path):
 def test_stdout_is_the_run_folder_or_the_json_and_progress_only_on_a_terminal(tmp_path):
     quick = [a for a in FAST if a != "progress=false"] + ["frame.iterations=3", "frame.first_iterations=5"]
     out = tmp_path / "o"
-    proc = _cli("run", str(DEMO), *quick, f"out_dir={out}", cwd=tmp_path)  # progress on, stderr not a terminal
+    slow = {"PTRACK_PROGRESS_SECONDS": "3600"}  # off a terminal a long run logs progress lines; not this one
+    proc = _cli("run", str(DEMO), *quick, f"out_dir={out}", cwd=tmp_path, env=slow)  # progress on, not a terminal
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout == f"{out}\n" and proc.stderr == ""
-    proc = _cli("run", str(DEMO), *quick, f"out_dir={tmp_path / 'j'}", "--json", cwd=tmp_path)
+    proc = _cli("run", str(DEMO), *quick, f"out_dir={tmp_path / 'j'}", "--json", cwd=tmp_path, env=slow)
     assert proc.returncode == 0 and proc.stderr == ""
     assert json.loads(proc.stdout) == json.loads((tmp_path / "j" / "metrics.json").read_text())
     proc = _cli(
