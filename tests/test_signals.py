@@ -243,20 +243,24 @@ def test_a_later_run_removes_what_a_killed_run_left_but_not_a_live_runs_claim(tm
     next run into the same folder removes it, and leaves alone the claim of a run still alive."""
     logs = tmp_path / "logs"
     logs.mkdir()
-    killed = _start(["run", str(DEMO), *LONG, f"out_dir={tmp_path / 'killed'}"], logs / "killed.txt")
+    # the live run claims first: a run removes stale claims when it takes its own, so one started after the
+    # kill would already clean up what the later run is to clean up
     live = _start(["run", str(DEMO), *LONG, f"out_dir={tmp_path / 'live'}"], logs / "live.txt")
+    killed = None
     try:
+        _wait_for("claim", lambda: (tmp_path / ".live.partial").is_dir(), live, logs / "live.txt")
+        os.kill(live.pid, signal.SIGSTOP)  # alive, though not computing while the others run
+        killed = _start(["run", str(DEMO), *LONG, f"out_dir={tmp_path / 'killed'}"], logs / "killed.txt")
         _wait_for("claim", lambda: (tmp_path / ".killed.partial").is_dir(), killed, logs / "killed.txt")
         killed.kill()
         killed.wait(timeout=WAIT_S)
-        _wait_for("claim", lambda: (tmp_path / ".live.partial").is_dir(), live, logs / "live.txt")
-        os.kill(live.pid, signal.SIGSTOP)  # alive, though not computing while the later run does
         assert (tmp_path / ".killed.partial").is_dir()  # what SIGKILL left
         assert main(["run", str(DEMO), *QUICK, f"out_dir={tmp_path / 'later'}", "--quiet"]) == 0
         assert sorted(p.name for p in tmp_path.iterdir()) == [".live.partial", "later", "logs"]
         assert live.poll() is None
     finally:
-        killed.kill()
+        if killed is not None:
+            killed.kill()
         os.kill(live.pid, signal.SIGCONT)
         live.kill()
         live.wait(timeout=WAIT_S)
