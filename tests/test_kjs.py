@@ -475,20 +475,26 @@ def test_backward_pass_carries_a_limb_across_the_image_plane(cmu_file):
 
 def test_backward_pass_keeps_a_light_depth_order(cmu_file):
     """CMU 07_05 (slow walk) at 1 px, nothing missing, after a keyframe start, as `ptrack evaluate --seeds
-    5` runs it. The left knee passes behind the hip at frame 22 and the forward pass holds the mirrored
-    reading from there to frame 34 (frames 24-34: truth 8 to 23 cm behind, modes 6 to 26 cm in front). The backward
-    pass has the true reading on frames 35 and 34, but in one light mode beside heavier copies of the
-    mirrored one; keeping the K heaviest dropped it at frame 33 (true side among the modes on 0 of frames
-    24-34, best-of-K 26.4 mm). Keeping the heaviest of each depth order first (`_orders_first`) carries it
-    back to frame 24 (measured: 11 of 11 frames, best-of-K 20.2 mm; with the smoother, 2026-11-25: 11 of 11,
-    19.1 mm)."""
-    cfg = _clip_1px(cmu_file, "07_05.amc", "seed=5")
-    prep = prepare(cfg)
-    est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(6))  # as `ptrack run`
-    found = _left_knee_true_side(prep, est.hypotheses, slice(24, 35))
-    assert found >= 9, f"true side on {found} of frames 24-34"
-    _, best = _errors(prep, est)
-    assert best < 22.0, f"best-of-K {best:.1f} mm"
+    0-2` runs it. The left knee passes behind the hip at frame 22 (frames 24-34: truth 8 to 23 cm behind)
+    and the 2D cannot tell that from the mirrored reading; the forward pass may hold the mirrored one
+    there, and the backward pass, keeping the heaviest mode of each depth order first (`_orders_first`,
+    tested alone below), carries the true one back. Whether a given seed needs it is a matter of the last
+    bits (seed 5: 11 of 11 frames on the author's machine, 2 of 11 on another Xeon), so this judges three
+    seeds together. Measured (frames 24-34 with the true side among the K modes, seeds 0/1/2; best-of-K
+    mm): this Xeon 11/11/11, 17.4/16.6/14.1; under ATEN_CPU_CAPABILITY=default 8/11/11, 18.5/16.2/14.3;
+    without `_orders_first` 6/11/11, 18.7/17.2/13.5; the forward pass alone (`kjs.backward_pass` never)
+    4/11/11, 21.3/18.0/14.6. Asserted: 27 of the 33 frames, mean best-of-K under 20 mm. Only seed 0 needs
+    the backward pass here, so this fails on the forward pass alone but by one frame; that `_orders_first`
+    keeps the light order is asserted exactly by the two tests of it below."""
+    found, best = [], []
+    for seed in (0, 1, 2):
+        cfg = _clip_1px(cmu_file, "07_05.amc", f"seed={seed}")
+        prep = prepare(cfg)
+        est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(seed + 1))  # as `ptrack run`
+        found.append(_left_knee_true_side(prep, est.hypotheses, slice(24, 35)))
+        best.append(_errors(prep, est)[1])
+    assert sum(found) >= 27, f"true side on {found} of frames 24-34 (seeds 0-2)"
+    assert sum(best) / 3 < 20.0, f"best-of-K {[round(b, 1) for b in best]} mm"
 
 
 def test_backward_pass_restarts_on_the_last_frame(cmu_file):
