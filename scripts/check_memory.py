@@ -24,6 +24,7 @@ SETTINGS = [
     ("kjs", "configs/kjs.yaml", ["data.stop=60"]),
     ("kjs samples=2048", "configs/kjs.yaml", ["data.stop=20", "kjs.samples=2048"]),
     ("kjs modes=64", "configs/kjs.yaml", ["data.stop=20", "kjs.modes=64", "kjs.samples=512"]),
+    ("kjs init=tree", "configs/kjs.yaml", ["data.stop=20", "kjs.init=tree"]),
     ("css samples=2048", "configs/kjs.yaml", ["method=css", "data.stop=20", "kjs.samples=2048"]),
     ("batch", "configs/batch.yaml", ["data.stop=60"]),
     ("batch 300 frames", "configs/batch.yaml", ["data.stride=1", "data.stop=300", "batch.iterations=5"]),
