@@ -47,6 +47,7 @@ from ptrack.estimators import ESTIMATORS
 from ptrack.export import write_bvh
 from ptrack.keyframes import ground_truth_keyframes, read_keyframes
 from ptrack.keypoints import make_keypoints
+from ptrack.memory import check_memory
 from ptrack.observations import ChannelConfig, Observations, simulate_observations
 from ptrack.problem import Estimate, Problem
 from ptrack.silhouette import capsule_radii, render_silhouettes
@@ -566,6 +567,7 @@ def estimate(cfg: RunConfig, progress: bool = False) -> tuple[Prepared, Estimate
     `execute` computes them (same seed, same result), without writing anything. progress: a progress
     bar on stderr (on a terminal only)."""
     prep = prepare(cfg)
+    check_memory(cfg, prep.problem)  # refuse settings that would not fit before the estimator allocates
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)  # the samplers' draws (cfg.seed: the observations')
     return prep, ESTIMATORS[cfg.method](prep.problem, cfg, gen, _progress(progress, cfg.method))
 
