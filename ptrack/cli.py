@@ -1,5 +1,6 @@
 """Command line: `ptrack run CONFIG [key=value ...]`, `ptrack evaluate CONFIG --clips LIST`,
-`ptrack compare EVAL_A EVAL_B`, `ptrack fit-motion CONFIG [--out FILE]`, `ptrack replay RUN_DIR`.
+`ptrack compare EVAL_A EVAL_B`, `ptrack fit-motion CONFIG [--out FILE]`, `ptrack replay RUN_DIR`,
+`ptrack config --list [SECTION]`.
 
 stdout carries only what a script reads: the run folder's path (the table's for `evaluate`), or with
 `--json` the metrics (`results.json` for `evaluate`); messages and progress go to stderr, progress bars
@@ -89,6 +90,15 @@ def _parser() -> argparse.ArgumentParser:
         help="serve rerun's web viewer instead (no display needed) and print the address to open",
     )
     v.add_argument("--bind", default="127.0.0.1", help="with --web: the address to listen on (default 127.0.0.1)")
+    k = sub.add_parser("config", help="list the config keys: default, type and one line of help each")
+    k.add_argument(
+        "--list",
+        nargs="?",
+        const="",
+        default="",
+        metavar="SECTION",
+        help="one line per key, `key = default  (type)  help`; a section (e.g. kjs) lists its keys only",
+    )
     return p
 
 
@@ -220,6 +230,11 @@ def _main(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             print(out, flush=True)
+        elif args.command == "config":
+            from ptrack.config import config_reference
+
+            for key in config_reference(args.list or None):
+                print(f"{key.key} = {key.default}  ({key.type})  {key.help}")
         elif args.command == "replay":
             from ptrack.viz import open_viewer
 

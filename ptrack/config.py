@@ -3,6 +3,9 @@ overrides replace them. Unknown keys and wrong types are `InputError`s naming th
 
 Paths in a YAML file are relative to that file's folder; paths given as command-line overrides are
 relative to the working directory. Both are stored resolved (absolute) in the run's config.yaml.
+
+Every key carries one line of help (`setting`): `config_reference` lists them for `ptrack config --list` and
+docs/config.md. Why a default is what it is: docs/notes/config-history.md.
 """
 
 from __future__ import annotations
@@ -70,203 +73,148 @@ def load_yaml(text: str) -> Any:
     return yaml.load(text, Loader=YamlLoader)  # a SafeLoader subclass
 
 
+_T = typing.TypeVar("_T")
+
+
+def setting(default: _T, help: str) -> _T:
+    """A config key's field: its default and one line of help, which `config_reference` (`ptrack config --list`,
+    docs/config.md) reads from the field's metadata. The measurements behind the defaults are in
+    docs/notes/config-history.md."""
+    return field(default=default, metadata={"help": help})
+
+
 @dataclass(frozen=True)
 class DataConfig:
-    asf: str = ""  # ASF skeleton file
-    amc: str = ""  # AMC motion file (120 fps)
-    start: int = 0  # first AMC frame index (0-based) to reconstruct
-    stop: int | None = None  # one past the last frame index; null = to the end
-    stride: int = 4  # keep every stride-th frame (4: 120 -> 30 fps)
+    """The motion capture clip: skeleton, motion and the frames used."""
+
+    asf: str = setting("", "ASF skeleton file")
+    amc: str = setting("", "AMC motion file (120 fps); an override of data.amc alone takes the skeleton beside it")
+    start: int = setting(0, "first AMC frame index (0-based) to reconstruct")
+    stop: int | None = setting(None, "one past the last frame index; null = to the end")
+    stride: int = setting(4, "keep every stride-th frame (4: 120 -> 30 fps)")
 
 
 @dataclass(frozen=True)
 class CameraConfig:
-    distance_m: float = 5.0  # from the centre of the motion's bounding box
-    azimuth_deg: float = 30.0  # about world up, from +Z towards +X
-    elevation_deg: float = 10.0  # above the horizontal; positive looks down
-    focal_px: float = 1000.0
-    width: int = 640
-    height: int = 480
+    """The virtual camera, looking at the centre of the motion's bounding box."""
+
+    distance_m: float = setting(5.0, "distance from the centre of the motion's bounding box, metres")
+    azimuth_deg: float = setting(30.0, "about world up (+Y), from +Z towards +X, degrees")
+    elevation_deg: float = setting(10.0, "above the horizontal, degrees; positive looks down")
+    focal_px: float = setting(1000.0, "focal length, pixels")
+    width: int = setting(640, "image width, pixels")
+    height: int = setting(480, "image height, pixels")
 
 
 @dataclass(frozen=True)
 class ObservationsConfig:
-    file: str | None = None  # npz of real 2D keypoints (Observations.save_npz layout); null = simulate
-    noise_px: float = 2.0  # Gaussian pixel noise std
-    missing: float = 0.0  # fraction of keypoints deleted at random
-    outliers: float = 0.0  # fraction of kept keypoints (confidence 1) that are gross outliers
-    outlier_px: float = 50.0
-    swap_fraction: float = 0.5  # share of outliers that are left/right swaps
-    occlusion_bursts: float = 0.0  # expected bursts per keypoint per second
-    dropped_frames: float = 0.0  # fraction of whole frames dropped
-    silhouettes: bool = False  # render capsule-model silhouettes
-    # point correspondences between consecutive frames (ptrack/correspondences.py), used by method pca: an npz of
-    # real ones, or this many simulated per frame on the capsule model (0: none) with the noise std of their
-    # second point and a share of wrong matches (displaced like keypoint outliers, by outlier_px)
-    correspondence_file: str | None = None
-    correspondences: int = 0
-    correspondence_noise_px: float = 1.0
-    correspondence_outliers: float = 0.0
+    """The 2D observations: a file, or the seeded lossy channel that simulates them (DiFranco et al. §2)."""
+
+    file: str | None = setting(None, "npz of real 2D keypoints (Observations.save_npz layout); null = simulate")
+    noise_px: float = setting(2.0, "Gaussian pixel noise std")
+    missing: float = setting(0.0, "fraction of keypoints deleted at random")
+    outliers: float = setting(0.0, "fraction of kept keypoints (confidence 1) that are gross outliers")
+    outlier_px: float = setting(50.0, "displacement of a gross outlier, pixels")
+    swap_fraction: float = setting(0.5, "share of outliers that are left/right swaps")
+    occlusion_bursts: float = setting(0.0, "expected occlusion bursts per keypoint per second")
+    dropped_frames: float = setting(0.0, "fraction of whole frames dropped")
+    silhouettes: bool = setting(False, "render capsule-model silhouettes")
+    correspondence_file: str | None = setting(
+        None, "npz of real point correspondences between consecutive frames (method pca; ptrack/correspondences.py)"
+    )
+    correspondences: int = setting(0, "point correspondences simulated per frame on the capsule model (0: none)")
+    correspondence_noise_px: float = setting(1.0, "Gaussian noise std of a simulated pair's second point, pixels")
+    correspondence_outliers: float = setting(0.0, "share of wrong simulated pairs (displaced by outlier_px)")
 
 
 @dataclass(frozen=True)
 class ModelConfig:
-    # dofs held at zero (shell patterns on joint or dof names); the rest are estimated
-    freeze: tuple[str, ...] = ("*fingers", "*thumb", "*hand", "*toes")
-    # keypoint name -> skeleton joint; null = the H36M-17 set on CMU joints
-    keypoints: dict[str, str] | None = None
-    # joint limits: "data" (measured on real CMU motion, ptrack/data/cmu_limits.json), "asf" (the
-    # skeleton file's own), "none". The CMU ASF limits are broken by the ground truth itself.
-    limits: str = "data"
+    """The body model: which dofs are estimated, the keypoint set, the joint limits."""
+
+    freeze: tuple[str, ...] = setting(
+        ("*fingers", "*thumb", "*hand", "*toes"), "dofs held at zero (shell patterns on joint or dof names)"
+    )
+    keypoints: dict[str, str] | None = field(
+        default=None, metadata={"help": "keypoint name -> skeleton joint; null = the H36M-17 set on CMU joints"}
+    )
+    limits: str = setting("data", "joint limits: data (measured on real CMU motion), asf (the file's own), none")
 
 
 @dataclass(frozen=True)
 class CostsConfig:
-    sigma_px: float = 2.0  # reprojection noise scale
-    loss: str = "cauchy"  # robust kernel: l2, huber, cauchy, geman_mcclure
-    robust_scale: float = 3.0  # kernel scale, in sigmas
-    limits_weight: float = 1.0
-    limits_sigma: float = 0.02  # radians
-    smooth_weight: float = 1.0
-    smooth_sigma: float = 0.15  # radians (or metres) per frame: velocity scale of the temporal prior
-    # radians (or metres) per frame^2: acceleration scale of the temporal prior; null = velocity only.
-    # On the dev clips 0.3 lowers acceleration error ~6% at equal MPJPE, 0.1 ~40% at +19% MPJPE.
-    accel_sigma: float | None = None
+    """Cost terms shared by the estimators: reprojection, joint limits, temporal prior."""
+
+    sigma_px: float = setting(2.0, "reprojection noise scale, pixels")
+    loss: str = setting("cauchy", "robust kernel of the reprojection: l2, huber, cauchy, geman_mcclure")
+    robust_scale: float = setting(3.0, "the robust kernel's scale, in sigmas")
+    limits_weight: float = setting(1.0, "weight of the joint-limit barrier")
+    limits_sigma: float = setting(0.02, "scale of the joint-limit barrier, radians")
+    smooth_weight: float = setting(1.0, "weight of the temporal prior")
+    smooth_sigma: float = setting(0.15, "velocity scale of the temporal prior, radians (or metres) per frame")
+    accel_sigma: float | None = setting(
+        None, "acceleration scale of the temporal prior, radians (or metres) per frame^2; null = velocity only"
+    )
 
 
 @dataclass(frozen=True)
 class FrameMethodConfig:
-    init: str = "keyframe"  # "keyframe": first frame's 3D pose given (as a user keyframe); "rest": rest pose
-    iterations: int = 40  # L-BFGS iterations per frame
-    first_iterations: int = 200  # L-BFGS iterations on the first frame
+    """`method: frame`, the per-frame baseline: L-BFGS on each frame from the previous one."""
+
+    init: str = setting("keyframe", "keyframe: first frame's 3D pose given (as a user keyframe); rest: rest pose")
+    iterations: int = setting(40, "L-BFGS iterations per frame")
+    first_iterations: int = setting(200, "L-BFGS iterations on the first frame")
 
 
 @dataclass(frozen=True)
 class KjsMethodConfig:
     """Settings of the sampling trackers `kjs` (kinematic jumps + CSS diffusion), `css` and `ss`."""
 
-    modes: int = 8  # K: mixture modes kept per frame
-    # hypothesis budget per frame, the same for all three methods: the K predicted modes, diffusion samples
-    # and (kjs) their jump leaves. kjs's trees prune leaves (outside the limits, no sphere-ray intersection,
-    # duplicates) without replacing them: on 10_02 (148 frames) it polishes 72-172 of 256 (mean 117). Filling the budget
-    # with more samples measured worse on the dev clips (1 px: 25.3 / 21.4 mm against 23.7 / 20.1)
-    samples: int = 256
-    scale: float = 4.0  # covariance scale s of the diffusion (s times the inverse Gauss-Newton Hessian)
-    tail: str = "student"  # diffusion tail: gaussian, student, cauchy
-    tail_dof: float = 3.0  # Student-t degrees of freedom (tail: student)
-    # kinematic sub-chains that may be flipped, by name (`ptrack.jumps.default_chains`: larm, rarm, lleg,
-    # rleg, head); other chains through the Python API
-    chains: tuple[str, ...] = ("larm", "rarm", "lleg", "rleg", "head")
-    jumps_per_sample: int = 1  # chains flipped per diffusion sample, chosen by covariance voting
-    limits_mode: str = "prune"  # jump leaves outside the joint limits: prune or project
-    polisher: str = "lm"  # local optimiser of every hypothesis: lm (Levenberg-Marquardt) or lbfgs
-    polish_iterations: int = 4  # Levenberg-Marquardt iterations of every hypothesis
-    refine_iterations: int = 10  # further iterations of the 4K most promising distinct minima
-    momentum: float = 0.0  # share of a mode's last velocity in its prediction (0: constant position)
-    # minima whose joints are all closer than this (mm, per coordinate) are one; 0 (default): compare the
-    # dofs instead (distinct_deg). Measured on the dev clips: 50 mm gave the tree start the same mean
-    # best-of-K (44.1 against 44.6 mm), and after a keyframe start Viterbi picked flipped modes more often
-    # (05_02: 28.4 against 20.7 mm best trajectory)
-    distinct_mm: float = 0.0
-    distinct_deg: float = 3.0  # with distinct_mm 0: minima closer than this in every dof are one
-    # share of the diffusion samples split equally over the modes (the rest by weight), so that light modes,
-    # which often hold a limb's other branch, keep exploring. 1 px dev clips, keyframe start, seeds 0-2 (best
-    # trajectory / best-of-K mm / flip rate): 0 gave 26.8 / 20.7 / 0.069, 29.1 / 22.5 / 0.092, 26.8 / 19.5 /
-    # 0.068; 0.5 gave 25.6 / 20.1 / 0.067, 28.4 / 20.3 / 0.081, 23.9 / 19.6 / 0.062 (1.0, seed 0: 27.3 / 20.6)
-    even_share: float = 0.5
-    temperature: float = 1.0  # weights ∝ prior * exp(-cost / temperature)
-    # a new mode's weight ∝ (its parent mode's weight) ** weight_memory * exp(-cost / temperature). The paper
-    # gives a new component the weight of its optimised likelihood (0) re-weighted by the closest prior mode
-    # (1: every past frame's evidence multiplies in); with 1 a mode that lost out earlier stays near weight 0
-    # and is pruned even when it is now the cheapest. Keyframe start, dev clips, five seeds (best trajectory /
-    # best-of-K mm / flip rate), 1 -> 0.8 -> 0.5 -> 0.3: 1 px 21.6 / 17.5 / 0.052 -> 21.3 / 17.7 / 0.053 ->
-    # 20.9 / 17.2 / 0.047 -> 21.6 / 18.4 / 0.051; 2 px, 1 -> 0.5: 28.2 / 24.7 / 0.053 -> 27.8 / 24.8 / 0.051;
-    # held-out clips (never used to choose), seeds 0-2, 2 px 36.2 / 32.0 / 0.069 -> 34.7 / 31.7 / 0.058
-    weight_memory: float = 0.5
-    # radians (or metres) per frame: the dynamics' velocity prior. Each hypothesis is polished to
-    # convergence, so this alone holds the weakly observed dofs: 0.05 measured better than 0.08 and 0.15
-    # on 2 s of CMU 16_01 (42.4, 42.9, 63.6 mm)
-    prior_sigma: float = 0.05
-    # the dynamics' velocity std per dof instead of prior_sigma for all: a table of each CMU dof's RMS
-    # velocity in real motion (`ptrack.pose_prior.SMOOTHING_TABLES`), times the frame interval and
-    # dynamics_scale, at least dynamics_floor per frame; prior_sigma for the dofs it does not name (the root's
-    # position). "cmu-train" (the default): fitted to configs/clips/train.txt, subjects with no dev clip;
-    # "cmu": fitted to the dev clips themselves (batch.prior's table); null: prior_sigma for every dof.
-    # Keyframe start, best trajectory / best-of-K mm / flip rate, null -> cmu-train at dynamics_scale 1 -> 1.5
-    # -> 2: dev clips 1 px seed 0 23.7 / 20.1 / 0.066 -> 22.4 / 18.5 / 0.052 -> 19.5 / 17.2 / 0.035 -> 21.6 /
-    # 17.8 / 0.047, seed 1 22.6 / 20.3 / 0.066 -> 21.7 / 18.2 / 0.060 -> 19.5 / 17.1 / 0.047; 2 px seed 0 32.7
-    # / 29.6 / 0.057 -> 32.2 / 27.8 / 0.063 -> 27.5 / 25.0 / 0.050 -> 29.1 / 25.6 / 0.054, seed 1 35.3 / 31.5
-    # / 0.072 -> 30.8 / 26.5 / 0.061 -> 28.9 / 24.5 / 0.056; held-out clips (configs/clips/heldout_batch.txt,
-    # never used to choose) 2 px 42.8 / 39.6 / 0.090 -> 42.9 / 36.4 / 0.087 -> 37.0 / 32.9 / 0.073
-    # (docs/notes/kjs-history.md). Fitted to the dev clips ("cmu", scale 1) it helped the dev clips but not the held-out
-    # ones (2 px 45.5 / 38.3 / 0.098)
-    dynamics: str | None = "cmu-train"
-    dynamics_scale: float = 1.5
-    dynamics_floor: float = 0.02
-    # tails of that prior in tracking steps: gaussian, or a robust loss (cauchy, huber, geman_mcclure)
-    # beyond prior_tail_scale standard deviations, so that a limb flipped far from the prediction
-    # stays a competing mode (the paper's long-tailed mixture components). Dev clips, keyframe start
-    # (best trajectory / best-of-K mm / flip rate): gaussian 35.2 / 33.4 / 0.064, cauchy at 3 sigma
-    # 34.0 / 30.6 / 0.059, cauchy at 2 sigma 35.4 / 28.9 / 0.085 (more varied modes, worse choice)
-    prior_tail: str = "cauchy"
-    prior_tail_scale: float = 3.0
-    # per mode and dof, the prior's std is sqrt(prior_sigma^2 + (motion_scale * last displacement)^2): a fast
-    # limb may move as far again. Dev clips, keyframe start: 1.0 gave 36.5 mm mean best trajectory against
-    # 41.2 at 0 (the run 09_06: 62 against 87 mm)
-    motion_scale: float = 1.0
-    # weight of the CMU pose prior (`ptrack.pose_prior`) in every tracking step; on the dev clips (keyframe
-    # start) 0.1 measured 35.3 mm best trajectory against 36.5 at 0, and 0.3 lost the dance 05_02 (27.1 vs 20.8)
-    pose_prior_weight: float = 0.1
-    collision_weight: float = 1.0  # body non-self-intersection term
-    floor_deg: float = 0.5  # smallest sampling std per dof (unobservable directions)
-    ceiling_deg: float = 30.0  # largest sampling std per dof
-    # the best trajectory through the modes (Viterbi): its velocity prior on the joints' positions relative
-    # to the root (joints; std viterbi_sigma_m metres per frame and coordinate) or on the dofs (dofs; std
-    # viterbi_sigma radians per frame). On the same recorded modes of the dev clips (best trajectory mm):
-    # 1 px seed 0 dofs 25.6, joints 23.7; seed 1 28.4, 22.6; 2 px seed 0 34.1, 32.7 (joints 0.03 and 0.08 m
-    # between). Euler-angle steps are not the body's motion: a root or shoulder angle near gimbal lock moves a lot
-    viterbi_space: str = "joints"
-    viterbi_sigma_m: float = 0.05
-    viterbi_sigma: float = 0.05
-    init: str = "keyframe"  # keyframe: frame 0's 3D pose given; tree: rest pose fitted in view + every flip
-    # init tree: the CMU pose prior's spread is scaled by this (1.0-2.0 gave the same mean best-of-K on
-    # frame 0 of the dev clips, 1.5 is between); angles it does not name: std rest_sigma around 0
-    start_prior_scale: float = 1.5
-    rest_sigma: float = 1.0
-    init_yaws: int = 8  # init tree: headings of the rest pose tried (each also leaned forward and back)
-    init_fits: int = 4  # init tree: distinct fitted poses whose chains are flipped (every combination)
-    # after the forward pass, a second pass backwards in time from its last frame's modes (after a tree
-    # start, with the last frame's own tree start beside them; after a keyframe start, fed each frame by
-    # the forward pass's modes of the frame after); each frame's K hypotheses are then the forward
-    # trajectory's mode and both passes' modes in turn, each depth order of the limbs before any repeat,
-    # and the best trajectory stays the forward pass's (after a tree start the backward pass's when the two
-    # trajectories face more than 30 degrees apart and it costs less): "always" (after either start), "tree" (after a
-    # tree start only) or "never". It doubles the time. Dev clips, five seeds, best-of-K: keyframe start
-    # 1 px 17.2 -> 15.3 mm (02_01 22.5 -> 18.8), 2 px 24.8 -> 22.6; tree start 1 px 25.2 -> 21.5
-    # (02_01 28.4), 2 px 47.9 -> 32.2 (docs/notes/kjs-history.md)
-    backward_pass: str = "always"
-    # after the passes, sweeps of a smoother over every frame's hypotheses: each is polished again on its
-    # frame with the tracking prior around the mean of its nearest neighbours in the frames before and after
-    # (linked where their joints, relative to the root, are within smooth_link_m metres on average), std
-    # smooth_scale times the dynamics'; 0 sweeps: the passes' modes as they are. Dev clips, five seeds, best
-    # trajectory mm / best-of-K mm / flip rate / acceleration error mm per frame², 0 sweeps -> 1 sweep at
-    # 0.2: keyframe start 2 px 27.7 / 22.7 / 0.0505 / 25.7 -> 25.8 / 21.4 / 0.0485 / 15.9, 1 px 21.0 / 15.8 /
-    # 0.0477 / 19.0 -> 19.7 / 15.0 / 0.0473 / 12.6; tree start 2 px 44.9 / 31.9 / 0.141 / 25.5 -> 43.6 / 31.1
-    # / 0.141 / 16.2. Scale 0.3 measured alike; more sweeps lost best-of-K (keyframe start 2 px, 2 sweeps at
-    # 0.3: 25.5 / 21.7 / 0.0480 / 16.4; tree start 2 px, 3 sweeps: best-of-K 31.7)
-    smooth_sweeps: int = 1
-    smooth_scale: float = 0.2
-    smooth_link_m: float = 0.1
-    # after the passes, one more hypothesis per frame (in place of padding or the lightest mode other than the
-    # best trajectory's): the best trajectory's pose with each chain's reading chosen by its own Viterbi pass
-    # over the modes (velocity std recombine_sigma_m per frame on the chain's grafted joints). The modes hold
-    # the limbs' readings in combinations, and often no mode holds the right reading of every limb at once.
-    # css and ss have chains only after a tree start (`kjs.chains` serve the jumps and the trees), so only then.
-    # Dev clips, five seeds, best-of-K mm: 2 px tree start 31.1 -> 30.0, keyframe start 21.4 -> 20.8; 1 px
-    # keyframe start 15.0 -> 14.6; the best trajectory is the same. On saved lattices sigma 0.05 / 0.15 / 0.3 /
-    # 1.0 gave 31.4 / 30.9 / 30.9 / 31.0 (tree start, 2 px, before the smoother)
-    recombine: bool = True
-    recombine_sigma_m: float = 0.15
+    modes: int = setting(8, "K: mixture modes kept per frame")
+    samples: int = setting(256, "hypotheses per frame: the K predicted modes, diffusion samples and (kjs) jump leaves")
+    scale: float = setting(4.0, "covariance scale s of the diffusion (s times the inverse Gauss-Newton Hessian)")
+    tail: str = setting("student", "diffusion tail: gaussian, student, cauchy")
+    tail_dof: float = setting(3.0, "Student-t degrees of freedom (tail: student)")
+    chains: tuple[str, ...] = setting(
+        ("larm", "rarm", "lleg", "rleg", "head"), "kinematic sub-chains that may be flipped (ptrack.jumps)"
+    )
+    jumps_per_sample: int = setting(1, "chains flipped per diffusion sample, chosen by covariance voting")
+    limits_mode: str = setting("prune", "jump leaves outside the joint limits: prune or project")
+    polisher: str = setting("lm", "local optimiser of every hypothesis: lm (Levenberg-Marquardt) or lbfgs")
+    polish_iterations: int = setting(4, "Levenberg-Marquardt iterations of every hypothesis")
+    refine_iterations: int = setting(10, "further iterations of the 4K most promising distinct minima")
+    momentum: float = setting(0.0, "share of a mode's last velocity in its prediction (0: constant position)")
+    distinct_mm: float = setting(0.0, "minima whose joints are all closer (mm) are one; 0: compare dofs (distinct_deg)")
+    distinct_deg: float = setting(3.0, "with distinct_mm 0: minima closer than this in every dof are one")
+    even_share: float = setting(0.5, "share of the diffusion samples split equally over the modes (the rest by weight)")
+    temperature: float = setting(1.0, "weights ∝ prior * exp(-cost / temperature)")
+    weight_memory: float = setting(0.5, "a new mode's weight ∝ parent's weight ** weight_memory * exp(-cost / T)")
+    prior_sigma: float = setting(0.05, "the dynamics' velocity std, radians (or metres) per frame, where no table")
+    dynamics: str | None = setting(
+        "cmu-train", "per-dof velocity std table: cmu-train, cmu (dev clips) or null (prior_sigma for all)"
+    )
+    dynamics_scale: float = setting(1.5, "the table's stds are multiplied by this")
+    dynamics_floor: float = setting(0.02, "least velocity std per frame from the table")
+    prior_tail: str = setting("cauchy", "tails of the dynamics prior: gaussian, or a robust loss (cauchy, ...)")
+    prior_tail_scale: float = setting(3.0, "where the robust tail begins, in standard deviations")
+    motion_scale: float = setting(1.0, "the prior's std widened by this times each mode's last displacement")
+    pose_prior_weight: float = setting(0.1, "weight of the CMU pose prior (ptrack.pose_prior) in every tracking step")
+    collision_weight: float = setting(1.0, "weight of the body non-self-intersection term")
+    floor_deg: float = setting(0.5, "smallest sampling std per dof (unobservable directions), degrees")
+    ceiling_deg: float = setting(30.0, "largest sampling std per dof, degrees")
+    viterbi_space: str = setting("joints", "best trajectory's velocity prior: on joints relative to the root, or dofs")
+    viterbi_sigma_m: float = setting(0.05, "viterbi_space joints: velocity std, metres per frame and coordinate")
+    viterbi_sigma: float = setting(0.05, "viterbi_space dofs: velocity std, radians per frame")
+    init: str = setting("keyframe", "keyframe: frame 0's 3D pose given; tree: rest pose fitted in view + every flip")
+    start_prior_scale: float = setting(1.5, "init tree: the CMU pose prior's spread is scaled by this")
+    rest_sigma: float = setting(1.0, "init tree: std around 0 of the angles the pose prior does not name, radians")
+    init_yaws: int = setting(8, "init tree: headings of the rest pose tried (each also leaned forward and back)")
+    init_fits: int = setting(4, "init tree: distinct fitted poses whose chains are flipped (every combination)")
+    backward_pass: str = setting("always", "a second pass backwards in time: always, tree (after a tree start), never")
+    smooth_sweeps: int = setting(1, "sweeps of the smoother over every frame's hypotheses after the passes (0: none)")
+    smooth_scale: float = setting(0.2, "the smoother's prior std, times the dynamics'")
+    smooth_link_m: float = setting(0.1, "smoother: neighbours within this mean joint distance (metres) are linked")
+    recombine: bool = setting(True, "one more hypothesis per frame: each chain's reading by its own Viterbi pass")
+    recombine_sigma_m: float = setting(0.15, "recombine: velocity std on the chain's joints, metres per frame")
 
 
 @dataclass(frozen=True)
@@ -275,12 +223,12 @@ class KeyframesConfig:
     synthetic evaluation, from the ground truth (frame 0 always; the methods other than batch read
     frame 0's only)."""
 
-    file: str | None = None  # YAML/JSON keyframe file; replaces the ground-truth keyframes
-    every_s: float | None = None  # ground truth every this many seconds (null: frame 0 only)
-    last: bool = False  # ground truth at the last frame too
-    noise_deg: float = 0.0  # Gaussian noise (std, degrees) added to the ground-truth keyframes' angles
-    sigma_deg: float = 2.0  # prior std of a ground-truth keyframe's angles (and a file's default)
-    sigma_m: float = 0.02  # prior std of a ground-truth keyframe's root position (and a file's default)
+    file: str | None = setting(None, "YAML/JSON keyframe file; replaces the ground-truth keyframes")
+    every_s: float | None = setting(None, "ground truth every this many seconds (null: frame 0 only)")
+    last: bool = setting(False, "ground truth at the last frame too")
+    noise_deg: float = setting(0.0, "Gaussian noise (std, degrees) added to the ground-truth keyframes' angles")
+    sigma_deg: float = setting(2.0, "prior std of a ground-truth keyframe's angles (and a file's default), degrees")
+    sigma_m: float = setting(0.02, "prior std of a ground-truth keyframe's root position (and a file's default), m")
 
 
 @dataclass(frozen=True)
@@ -290,81 +238,53 @@ class PcaMethodConfig:
     Levenberg-Marquardt to the tracked joints and the silhouettes (eq. 7). The model is `motion.model_file`
     (fitted from `motion.clips` on first use and cached there)."""
 
-    window: int = 3  # f: frames per window
-    step: int = 1  # frames the window slides by (at most the window; 1: every frame is fitted f times)
-    # Levenberg-Marquardt iterations per window; 0 = the initialisation alone (the mean motion). Leave-one-out over
-    # the 7 golf swings: 2 gave the same mean MPJPE as 3 (27.4 mm over the swings), and 3 the same as 10 on 64_01
-    iterations: int = 2
-    # tracked keypoints (names of the keypoint set, `model.keypoints`): the paper's knees, ankles, wrists, head
-    joints: tuple[str, ...] = ("l_knee", "r_knee", "l_ankle", "r_ankle", "l_wrist", "r_wrist", "head")
-    joint_weight: float = 1.0  # w of the joint projections (pixels / costs.sigma_px, robust by costs.loss)
-    silhouette_weight: float = 1.0  # w of the foreground term (section 4.1); 0 = joints only
-    # w of each correspondence (section 4.3; pixels / costs.sigma_px, robust by costs.loss) where the observations
-    # have them (observations.correspondences or .correspondence_file); 0 = unused. Leave-one-out over the 7 golf
-    # swings, 40 pairs per frame: 1 let the tracker drift away on 64_05 (docs/results.md)
-    correspondence_weight: float = 0.3
-    # a pair counts only where p1's line of sight passes at least this far (metres) from every capsule's surface
-    # in the estimate of frame t-1 (near an outline, an estimate a little off puts p1 on another part, whose
-    # motion then misleads; 0 kept the most pairs but let 64_05 drift away at 2 px noise)
-    correspondence_margin_m: float = 0.03
-    silhouette_sigma_m: float = 0.02  # a ray this far (metres) from the model counts as one sigma
-    silhouette_samples: int = 96  # foreground samples per frame (a regular grid, evenly thinned)
-    silhouette_step_px: int = 4  # grid step of the samples, pixels
-    # prediction terms (eq. 7, E_D): stds around the previous window's trajectory continued at its speed
-    root_sigma_m: float = 0.02  # root position, metres per frame
-    root_sigma_deg: float = 3.0  # root orientation, degrees per frame
-    time_sigma: float = 0.01  # normalised time per frame
-    # std of a prior holding each frame's normalised time near its start value (the key postures found in the
-    # 2D wrist track, interpolated); null = none (the paper's eq. 7 has only the prediction)
-    timing_sigma: float | None = 0.03
-    alpha_sigma: float = 0.1  # PCA weights, in units of the model's per-component std (motion model sigma)
-    alpha_prior_weight: float = 1.0  # weight of the prior alpha ~ N(0, sigma^2) of the training swings
-    alpha_bound: float = 3.0  # |alpha_i| at most this many training stds (a box in the solver)
-    init_yaws: int = 8  # headings of the first frame's root placement tried (section 5.1)
-    # Gaussian smoothing (std, seconds) of the 2D wrist track before the key-posture rules (motion.key_postures):
-    # 2D detections are noisier than motion capture (the golf swings at 2 px noise: 0.02 s misses the start,
-    # 0.05 s finds the 3D ground truth's frames within one)
-    key_smooth_s: float = 0.05
+    window: int = setting(3, "f: frames per window")
+    step: int = setting(1, "frames the window slides by (at most the window; 1: every frame is fitted f times)")
+    iterations: int = setting(2, "Levenberg-Marquardt iterations per window; 0 = the start alone (the mean motion)")
+    joints: tuple[str, ...] = setting(
+        ("l_knee", "r_knee", "l_ankle", "r_ankle", "l_wrist", "r_wrist", "head"),
+        "tracked keypoints (names of the keypoint set): the paper's knees, ankles, wrists, head",
+    )
+    joint_weight: float = setting(1.0, "w of the joint projections (pixels / costs.sigma_px, robust by costs.loss)")
+    silhouette_weight: float = setting(1.0, "w of the foreground term (section 4.1); 0 = joints only")
+    correspondence_weight: float = setting(0.3, "w of each point correspondence (section 4.3); 0 = unused")
+    correspondence_margin_m: float = setting(
+        0.03, "a pair counts only where p1's line of sight passes this far (m) from the model's outline"
+    )
+    silhouette_sigma_m: float = setting(0.02, "a ray this far (metres) from the model counts as one sigma")
+    silhouette_samples: int = setting(96, "foreground samples per frame (a regular grid, evenly thinned)")
+    silhouette_step_px: int = setting(4, "grid step of the samples, pixels")
+    root_sigma_m: float = setting(0.02, "prediction std of the root position, metres per frame")
+    root_sigma_deg: float = setting(3.0, "prediction std of the root orientation, degrees per frame")
+    time_sigma: float = setting(0.01, "prediction std of the normalised time per frame")
+    timing_sigma: float | None = setting(0.03, "std of a prior holding each frame's time near the start's; null: none")
+    alpha_sigma: float = setting(0.1, "prediction std of the PCA weights, in the model's per-component std")
+    alpha_prior_weight: float = setting(1.0, "weight of the prior alpha ~ N(0, sigma^2) of the training swings")
+    alpha_bound: float = setting(3.0, "|alpha_i| at most this many training stds (a box in the solver)")
+    init_yaws: int = setting(8, "headings of the first frame's root placement tried (section 5.1)")
+    key_smooth_s: float = setting(0.05, "Gaussian smoothing (std, s) of the 2D wrist track before the key postures")
 
 
 @dataclass(frozen=True)
 class BatchMethodConfig:
     """`method: batch`, the MAP trajectory of the whole sequence (DiFranco, Cham & Rehg 2001)."""
 
-    iterations: int = 30  # Levenberg-Marquardt iterations on the whole trajectory
-    tol: float = 1e-9  # relative energy decrease (or step) at which it stops
-    # initial lambda relative to the Hessian's largest diagonal entry, which is the smoothing prior's (linear
-    # terms, no damping needed): 1e-8 converges in about half the iterations of 1e-4 to the same solutions
-    # (dev and held-out clips, docs/notes/batch-history.md)
-    damping: float = 1e-8
-    # dynamic smoothing, per second (units: rad/s, rad/s^2 for angles; m/s, m/s^2 for the root
-    # position); null drops the term
-    # (chosen on the dev clips, docs/notes/batch-history.md: velocity 3 rad/s + acceleration 8 rad/s^2 gave a
-    # mean MPJPE of 33.2 mm against 41.8 for acceleration 20 alone)
-    velocity_sigma: float | None = 3.0
-    accel_sigma: float | None = 8.0
-    velocity_sigma_m: float | None = 1.0
-    accel_sigma_m: float | None = 2.0
-    # per-dof scales by dof name, replacing the sigmas above for the dofs it names: "cmu" (fitted to the
-    # dev clips' motion, ptrack/data/cmu_smoothing.json, scripts/make_smoothing_prior.py), null = none
-    prior: str | None = "cmu"
-    # the smoothing residuals' loss (l2, huber, cauchy, geman_mcclure) and its scale in prior std units:
-    # a heavier tail lets a motion faster than the prior's scale through (a run's legs). Dev clips,
-    # keyframes every 1 s, MPJPE: l2 23.1 mm, huber 2 22.5, cauchy 3 21.6, 2 20.3, 1.5 19.8, 1 19.9 (one
-    # walk 20 -> 32 mm: below 2 the loss is non-convex enough to stop in worse minima), docs/results.md
-    smooth_loss: str = "cauchy"
-    smooth_scale: float = 2.0
-    upsample: int = 1  # reconstruct N frames per observed frame (data.stride must be divisible by N)
-    init: str = "frame"  # start: "frame" (per-frame fits, `frame.*` settings) or "keyframes" (interpolated)
-    # joint_std (T, J) in result.npz: "branches" (the Laplace covariance plus every limb's depth-flip
-    # branches, ptrack/branches.py; true means this), "laplace" (the marginal covariances at the solution
-    # alone: faster, overconfident between keyframes), false = none
-    uncertainty: bool | str = "branches"
-    # rounds of restarts from the limbs' depth-flip branches (ptrack/branches.py): after the solve, each
-    # limb's flipped trajectory re-solved; the one of lowest whole energy, if lower than the solution's,
-    # is solved again from and replaces it (0: none; a round that finds none ends them). Dev clips, keyframes
-    # every 1 s, MPJPE / flip rate: 0 rounds 26.9 mm / 0.057, 1 round 25.1 / 0.045, 3 rounds 23.1 / 0.037
-    flip_restarts: int = 3
+    iterations: int = setting(30, "Levenberg-Marquardt iterations on the whole trajectory")
+    tol: float = setting(1e-9, "relative energy decrease (or step) at which it stops")
+    damping: float = setting(1e-8, "initial lambda, relative to the Hessian's largest diagonal entry")
+    velocity_sigma: float | None = setting(3.0, "velocity smoothing std of the angles, rad/s; null drops the term")
+    accel_sigma: float | None = setting(8.0, "acceleration smoothing std of the angles, rad/s^2; null drops the term")
+    velocity_sigma_m: float | None = setting(1.0, "velocity smoothing std of the root position, m/s; null: none")
+    accel_sigma_m: float | None = setting(2.0, "acceleration smoothing std of the root position, m/s^2; null: none")
+    prior: str | None = setting("cmu", "per-dof smoothing scales replacing the sigmas: cmu (real motion) or null")
+    smooth_loss: str = setting("cauchy", "the smoothing residuals' loss: l2, huber, cauchy, geman_mcclure")
+    smooth_scale: float = setting(2.0, "the smoothing loss's scale, in prior standard deviations")
+    upsample: int = setting(1, "reconstruct N frames per observed frame (data.stride must be divisible by N)")
+    init: str = setting("frame", "start: frame (per-frame fits, frame.* settings) or keyframes (interpolated)")
+    uncertainty: bool | str = setting(
+        "branches", "joint_std in result.npz: branches (true), laplace (faster, overconfident), false = none"
+    )
+    flip_restarts: int = setting(3, "rounds of restarts from the limbs' depth-flip branches (0: none)")
 
 
 #: the golf swing's key postures (Urtasun, Fleet & Fua 2004, fig. 2), rules of `ptrack.key_postures`
@@ -380,34 +300,35 @@ GOLF_KEY_POSTURES = {
 class MotionConfig:
     """`ptrack fit-motion`: a time-warped PCA motion model of one motion type (`ptrack.motion_model`)."""
 
-    # training clips: AMC files, or one text file listing them (one per line, relative to that file);
-    # each clip's skeleton is the .asf beside it (<subject>.asf)
-    clips: tuple[str, ...] = ()
-    joints: tuple[str, ...] = ("lradius", "rradius")  # tracked point of the key postures: their mean (wrists)
-    # dofs left out of the model besides the root's (shell patterns on joint or dof names, as model.freeze):
-    # the CMU thumbs jump by whole turns and the tracker holds these at zero anyway
-    exclude: tuple[str, ...] = ("*fingers", "*thumb", "*hand", "*toes")
-    # name -> rule, in temporal order (grammar in ptrack/key_postures.py); the default is the golf swing's.
-    # An override of one posture (motion.key_postures.end=...) replaces the whole mapping: give them all
-    key_postures: dict[str, str] = field(default_factory=lambda: dict(GOLF_KEY_POSTURES))
-    smooth_s: float = 0.05  # Gaussian smoothing (std, seconds) of the tracked point before the rules
-    prominence: float = 0.02  # first/last extrema: least prominence, as a fraction of the signal's range
-    rest_fraction: float = 0.05  # rest: slower than this fraction of the clip's top speed
-    samples: int = 200  # N: normalised times per swing
-    components: int = 4  # m: eigen-motions kept (at most the number of clips - 1)
-    # where fit-motion writes the model and the pca tracker reads it; null = ~/.cache/ptrack/motion/<name>.npz
-    # ($XDG_CACHE_HOME/ptrack/... when set)
-    model_file: str | None = None
+    clips: tuple[str, ...] = setting((), "training clips: AMC files, or one text file listing them; .asf beside each")
+    joints: tuple[str, ...] = setting(("lradius", "rradius"), "tracked point of the key postures: their mean (wrists)")
+    exclude: tuple[str, ...] = setting(
+        ("*fingers", "*thumb", "*hand", "*toes"), "dofs left out of the model besides the root's (as model.freeze)"
+    )
+    key_postures: dict[str, str] = field(
+        default_factory=lambda: dict(GOLF_KEY_POSTURES),
+        metadata={"help": "name -> rule, in temporal order (ptrack/key_postures.py); an override replaces them all"},
+    )
+    smooth_s: float = setting(0.05, "Gaussian smoothing (std, seconds) of the tracked point before the rules")
+    prominence: float = setting(0.02, "first/last extrema: least prominence, as a fraction of the signal's range")
+    rest_fraction: float = setting(0.05, "rest: slower than this fraction of the clip's top speed")
+    samples: int = setting(200, "N: normalised times per swing")
+    components: int = setting(4, "m: eigen-motions kept (at most the number of clips - 1)")
+    model_file: str | None = setting(
+        None, "where fit-motion writes the model and pca reads it; null = ~/.cache/ptrack/motion/<name>.npz"
+    )
 
 
 @dataclass(frozen=True)
 class RunConfig:
-    method: str = "frame"
-    seed: int = 0
-    out_dir: str | None = None  # null = logs/<config-name>-<time>/
-    device: str = "cpu"
-    dtype: str = "float32"
-    progress: bool = True
+    """A run: the method, where it writes, and one section per part."""
+
+    method: str = setting("frame", "estimator: frame, kjs, css, ss, batch, pca")
+    seed: int = setting(0, "seeds the observation channel and any sampling")
+    out_dir: str | None = setting(None, "run folder; null = logs/<config-name>-<time>/")
+    device: str = setting("cpu", "where the estimators compute: cpu, cuda, cuda:N, mps")
+    dtype: str = setting("float32", "precision of the estimators: float32 or float64")
+    progress: bool = setting(True, "progress bar on a terminal, a progress line every 20 s elsewhere")
     data: DataConfig = field(default_factory=DataConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     observations: ObservationsConfig = field(default_factory=ObservationsConfig)
@@ -419,8 +340,8 @@ class RunConfig:
     batch: BatchMethodConfig = field(default_factory=BatchMethodConfig)
     pca: PcaMethodConfig = field(default_factory=PcaMethodConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
-    init_from: str | None = None  # batch: start from this earlier run folder's trajectory (same model, frames)
-    name: str = "run"  # config name, used for the default out_dir
+    init_from: str | None = setting(None, "batch: start from this earlier run folder's trajectory (same model, frames)")
+    name: str = setting("run", "config name (default: the YAML file's), used in the default out_dir")
 
 
 METHODS = ("frame", "kjs", "css", "ss", "batch", "pca")
@@ -892,6 +813,50 @@ def to_dict(cfg) -> dict:
         return v
 
     return conv(cfg)
+
+
+class ConfigKey(typing.NamedTuple):
+    """One config key of `config_reference`: its dotted name, type annotation, default (as YAML) and help."""
+
+    key: str
+    type: str
+    default: str
+    help: str
+
+
+def sections() -> tuple[str, ...]:
+    """The config's sections (`data`, `camera`, ...), in `RunConfig`'s order."""
+    default = RunConfig()
+    return tuple(f.name for f in dataclasses.fields(RunConfig) if dataclasses.is_dataclass(getattr(default, f.name)))
+
+
+def _as_yaml(value: Any) -> str:
+    """A default as one line of YAML that `load_yaml` reads back: `null`, `true`, `1e-09`, `[larm, rarm]`."""
+    if isinstance(value, float):
+        return repr(value)
+    text = yaml.dump(to_dict(value), Dumper=YamlDumper, default_flow_style=True, width=10**9, sort_keys=False)
+    return text.removesuffix("\n...\n").strip()
+
+
+def config_reference(section: str | None = None) -> list[ConfigKey]:
+    """Every config key (the top-level ones, then each section's), or one section's, with its type, default and
+    one line of help (the fields' metadata, `setting`). An unknown section is an `InputError` listing them."""
+    known = sections()
+    if section is not None and section not in known:
+        raise InputError(f"unknown config section {section!r} (sections: {', '.join(known)})")
+    default = RunConfig()
+    groups: list[tuple[str, Any, list[dataclasses.Field]]] = []
+    if section is None:
+        groups.append(("", default, [f for f in dataclasses.fields(RunConfig) if f.name not in known]))
+    for name in known:
+        if section in (None, name):
+            groups.append((f"{name}.", getattr(default, name), list(dataclasses.fields(getattr(default, name)))))
+    out = []
+    for prefix, instance, fields in groups:
+        for f in fields:
+            value = getattr(instance, f.name)
+            out.append(ConfigKey(prefix + f.name, str(f.type), _as_yaml(value), f.metadata.get("help", "")))
+    return out
 
 
 def dump_yaml(cfg: RunConfig) -> str:
