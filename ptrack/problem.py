@@ -15,14 +15,14 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ptrack.camera import Camera
-from ptrack.correspondences import Correspondences
+from ptrack.body.keypoints import KeypointSet
+from ptrack.body.limits import outside_limits, wrap_to_limits
+from ptrack.body.skeleton import Skeleton
 from ptrack.costs import PoseEval
 from ptrack.errors import InputError
-from ptrack.keypoints import KeypointSet
-from ptrack.limits import outside_limits, wrap_to_limits
-from ptrack.observations import Observations
-from ptrack.skeleton import Skeleton
+from ptrack.observe.camera import Camera
+from ptrack.observe.correspondences import Correspondences
+from ptrack.observe.observations import Observations
 
 log = logging.getLogger(__name__)
 

@@ -12,17 +12,17 @@ from pathlib import Path
 import pytest
 import torch
 
-from ptrack import metrics as M
 from ptrack.cli import main
-from ptrack.config import load_config
 from ptrack.estimators import ESTIMATORS
 from ptrack.estimators.kjs import KJS, track
 from ptrack.estimators.kjs.lattice import _recombine, _smooth
 from ptrack.estimators.kjs.model import _setup
 from ptrack.estimators.kjs.step import _allocate, _chain_votes
-from ptrack.evaluate import asf_for
+from ptrack.pipeline import metrics as M
+from ptrack.pipeline.config import load_config
+from ptrack.pipeline.evaluate import asf_for
+from ptrack.pipeline.run import compute_metrics, prepare, reprojected_keypoints
 from ptrack.problem import Problem
-from ptrack.run import compute_metrics, prepare, reprojected_keypoints
 
 REPO = Path(__file__).resolve().parents[1]
 KJS_YAML = REPO / "configs" / "kjs.yaml"
@@ -184,7 +184,7 @@ def test_merge_takes_the_two_passes_in_turn(kjs_run):
     passes' modes in turn, heaviest first; a mode within distinct_deg of one ranked before it is dropped;
     at most K; weights the mean of the two passes' weights, renormalised."""
     from ptrack.estimators.kjs.step import _merge
-    from ptrack.mixture import Modes
+    from ptrack.hypotheses.mixture import Modes
 
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, [*EXACT, "kjs.modes=4"])
@@ -211,7 +211,7 @@ def test_merge_serves_each_depth_order_first(kjs_run):
     in a light mode: the first mode of each depth order of the limbs is taken before any repeat, so K
     slots keep the light one (02_01's left thigh after it crosses the image plane)."""
     from ptrack.estimators.kjs.step import _depth_orders, _merge
-    from ptrack.mixture import Modes
+    from ptrack.hypotheses.mixture import Modes
 
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, [*EXACT, "kjs.modes=4"])
@@ -281,7 +281,7 @@ def test_bad_settings_are_one_line_errors(tmp_path, capsys, override, key):
 def test_per_dof_dynamics(table_name):
     """`kjs.dynamics`: each dof's velocity std per frame is its CMU RMS velocity times the frame interval
     (30 fps here) and `kjs.dynamics_scale`, at least the floor; the root's position keeps `kjs.prior_sigma`."""
-    from ptrack.pose_prior import smoothing_prior
+    from ptrack.body.pose_prior import smoothing_prior
 
     table = smoothing_prior(table_name)["velocity"]
     for floor in (0.0, 0.02):
@@ -298,7 +298,7 @@ def test_per_dof_dynamics(table_name):
 
 def test_dynamics_default_and_null():
     """The default dynamics are the table fitted to the training clips; null: one std for every dof."""
-    from ptrack.pose_prior import smoothing_prior
+    from ptrack.body.pose_prior import smoothing_prior
 
     cfg = load_config(KJS_YAML, ["data.stop=12"])
     assert cfg.kjs.dynamics == "cmu-train"

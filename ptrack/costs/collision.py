@@ -2,7 +2,7 @@
 body non-self-intersection constraints"): a penetration cost between non-adjacent body capsules.
 
 Each bone is a capsule: all points within a radius of the segment from its parent joint to its own
-joint (the `ptrack.silhouette` "flesh" model, shrunk: see below). Capsules a, b interpenetrate by
+joint (the `ptrack.observe.silhouette` "flesh" model, shrunk: see below). Capsules a, b interpenetrate by
 radius_a + radius_b - d_ab, d_ab the exact closest distance between their segments. The cost prunes
 kinematic flips that pass an arm or a leg through the body.
 
@@ -49,10 +49,10 @@ from torch import Tensor
 from ptrack.checks import as_float_tensor
 from ptrack.costs.base import PoseEval, PoseJacobian, _LeastSquares, _positive, _shape
 from ptrack.errors import InputError
-from ptrack.silhouette import capsule_radii
+from ptrack.observe.silhouette import capsule_radii
 
 if TYPE_CHECKING:
-    from ptrack.skeleton import Skeleton
+    from ptrack.body.skeleton import Skeleton
 
 #: bones left out by `SelfIntersection.for_skeleton` (fnmatch patterns, case-insensitive)
 DEFAULT_SKIP = ("*hand", "*fingers", "*thumb", "*wrist", "*toes")
@@ -318,7 +318,7 @@ class SelfIntersection(_LeastSquares):
         """The term for a skeleton (defaults measured on CMU motion: see the module docstring).
 
         One capsule per bone of non-zero length, named by its child joint, from `sk.bones()`.
-        radii: None = `ptrack.silhouette.capsule_radii`; a (B,) tensor in `sk.bones()` order; or a
+        radii: None = `ptrack.observe.silhouette.capsule_radii`; a (B,) tensor in `sk.bones()` order; or a
         {bone name: radius} mapping overriding some of those. Each is multiplied by radius_scale.
         Pairs checked: every two capsules more than `min_hops` apart in the bone graph (bones
         sharing a joint are 1 hop apart; a zero-length bone's two joints count as one), except the

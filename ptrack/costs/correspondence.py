@@ -2,12 +2,12 @@
 
 A pair (p1 in image t-1, p2 in image t) says: the body point seen at p1 in image t-1 is seen at p2 in
 image t. Its residual backprojects p1 onto the capsule ("flesh") model at frame t-1 (the nearest
-intersection of p1's line of sight with the capsules of `ptrack.silhouette`), attaches the hit to the
+intersection of p1's line of sight with the capsules of `ptrack.observe.silhouette`), attaches the hit to the
 hit capsule's segment, moves it with the pose of frame t and reprojects it: residual = reprojection -
 p2, pixels. The point is attached to the frame of the capsule's end joint y (a bone's segment, from
 its parent joint to y, is rigid in y's frame: origin p_y, axes y's world rotation G_y), as
 body-fixed coordinates `local = G_y^T (x - p_y)`; its position at any pose is `p_y + G_y local`, with
-the geometric Jacobian of `ptrack.jacobians.point_jacobian`.
+the geometric Jacobian of `ptrack.optim.jacobians.point_jacobian`.
 
     ray_capsule_hit(origin (3,), directions (..., 3), a, b (..., B, 3), radii (B,))
         -> CapsuleHit(point (..., 3), depth (...), bone (...), hit (...))
@@ -29,7 +29,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ptrack.camera import Camera
+from ptrack.observe.camera import Camera
 
 
 class CapsuleHit(NamedTuple):

@@ -112,7 +112,7 @@ class Objective:
         term's residual computed once: -> (..., M), (..., M, D), (..., M), (...,).
 
         With `fold`, least-squares terms whose Jacobian is mostly zeros are not stacked as rows but
-        folded into the Gauss-Newton normal equations (`ptrack.solvers.Linearization`): terms with a
+        folded into the Gauss-Newton normal equations (`ptrack.optim.solvers.Linearization`): terms with a
         `diagonal_jacobian` (joint limits, pose priors: one row per dof) and terms with a
         `gauss_newton(ev, jac) -> (energy, J^T J, J^T r)` (body collision: pairs apart give nothing).
         Their share comes back as two more outputs, fold_h (..., D, D) and fold_g (..., D); the

@@ -1,7 +1,7 @@
 """`method: kjs` (kinematic jumps + covariance scaled diffusion), `css` and `ss`: mixture density
 propagation trackers (Sminchisescu & Triggs 2003, figs. 4-5).
 
-The posterior of each frame is a mixture of K modes (`ptrack.mixture.Modes`). One step of the tracker,
+The posterior of each frame is a mixture of K modes (`ptrack.hypotheses.mixture.Modes`). One step of the tracker,
 from frame t-1's modes to frame t's:
 
 1. predict: each mode's centre is carried to frame t (constant position; its prior below is the
@@ -11,11 +11,11 @@ from frame t-1's modes to frame t's:
    Gaussian, Student-t or Cauchy tails, then projected onto the joint limits;
 3. jumps (kjs only): each sample picks a chain by the covariance vote of its mode (the chain holding
    most of the mode's uncertainty is flipped most often), the chain's interpretation tree is grown
-   through the observed 2D joints of frame t (`ptrack.jumps`), and every leaf is turned back into
-   angles by closed-form IK (`ptrack.ik`); leaves outside the limits are pruned or projected;
+   through the observed 2D joints of frame t (`ptrack.hypotheses.jumps`), and every leaf is turned back into
+   angles by closed-form IK (`ptrack.hypotheses.ik`); leaves outside the limits are pruned or projected;
 4. polishing: every hypothesis (the predicted modes, the samples, the leaves: `kjs.samples` in all,
    the same budget for kjs, css and ss) runs a batched Levenberg-Marquardt or L-BFGS
-   (`ptrack.solvers`) on robust reprojection + joint limits + body non-self-intersection + the
+   (`ptrack.optim.solvers`) on robust reprojection + joint limits + body non-self-intersection + the
    prior around its mode's prediction;
 5. distinct minima (two hypotheses are one when no joint coordinate differs by more than
    `kjs.distinct_mm`; with distinct_mm 0, when no dof differs by more than `kjs.distinct_deg`),
@@ -27,7 +27,7 @@ dynamics (a prior around each mode's prediction, std per dof `kjs.dynamics` (or 
 `kjs.motion_scale` times the mode's last motion, Gaussian within `kjs.prior_tail_scale` std and
 heavy-tailed beyond (`kjs.prior_tail`, cauchy: the paper's long-tailed components), so a limb
 flipped far from the prediction remains a minimum of comparable cost) and a weak CMU pose prior
-(`kjs.pose_prior_weight`, `ptrack.pose_prior`). Limits, priors and collision are folded into the
+(`kjs.pose_prior_weight`, `ptrack.body.pose_prior`). Limits, priors and collision are folded into the
 normal equations rather than stacked as residual rows (`ptrack.costs.Objective.linearize`).
 
 Frame 0 starts from a 3D keyframe (`kjs.init: keyframe`), or, with no 3D input (`init: tree`), from

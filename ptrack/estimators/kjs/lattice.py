@@ -11,9 +11,9 @@ import math
 import torch
 from torch import Tensor
 
+from ptrack.body.limits import wrapped_difference
 from ptrack.estimators.kjs.model import Setup, _cholesky, _distinct, _evidence, _polish_rows
-from ptrack.limits import wrapped_difference
-from ptrack.mixture import Modes, viterbi_with_cost
+from ptrack.hypotheses.mixture import Modes, viterbi_with_cost
 
 
 def _pad(modes: Modes, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:

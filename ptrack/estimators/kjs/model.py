@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from ptrack.body.pose_prior import pose_prior, smoothing_prior
 from ptrack.costs import (
     CostTerm,
     HeavyTailedPrior,
@@ -22,17 +23,16 @@ from ptrack.costs import (
     SelfIntersection,
 )
 from ptrack.errors import InputError
-from ptrack.ik import ChainIK, ClosedFormUnavailable, ik_plan
-from ptrack.jacobians import objective_linearization
-from ptrack.jumps import Chain, check_independent, default_chains
-from ptrack.mixture import Modes, distinct_minima, posterior_weights
-from ptrack.pose_prior import pose_prior, smoothing_prior
+from ptrack.hypotheses.ik import ChainIK, ClosedFormUnavailable, ik_plan
+from ptrack.hypotheses.jumps import Chain, check_independent, default_chains
+from ptrack.hypotheses.mixture import Modes, distinct_minima, posterior_weights
+from ptrack.hypotheses.samplers import scaled_covariance
+from ptrack.optim.jacobians import objective_linearization
+from ptrack.optim.solvers import lbfgs, levenberg_marquardt
 from ptrack.problem import Problem, pose_eval_from_joints
-from ptrack.samplers import scaled_covariance
-from ptrack.solvers import lbfgs, levenberg_marquardt
 
 if TYPE_CHECKING:
-    from ptrack.config import RunConfig
+    from ptrack.pipeline.config import RunConfig
 
 
 @dataclass(frozen=True)
@@ -119,7 +119,7 @@ def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
 def _dynamics_sigma(problem: Problem, k, dtype: torch.dtype, device: torch.device) -> float | Tensor:
     """The dynamics' velocity std per frame: with `kjs.dynamics` null the float `kjs.prior_sigma` for every
     dof; else a (D,) tensor: each CMU dof's RMS velocity in real motion from the table `kjs.dynamics`
-    (`ptrack.pose_prior.SMOOTHING_TABLES`; the default "cmu-train" was fitted to clips of subjects with no
+    (`ptrack.body.pose_prior.SMOOTHING_TABLES`; the default "cmu-train" was fitted to clips of subjects with no
     dev clip) times the frame interval and `kjs.dynamics_scale`, at least `kjs.dynamics_floor`;
     `kjs.prior_sigma` for the dofs the table does not name (the root's position)."""
     if k.dynamics is None:

@@ -15,13 +15,13 @@ from ptrack.errors import EstimationError
 from ptrack.estimators.frame import rest_pose_in_view
 from ptrack.estimators.kjs.model import Setup, Strategy, _evidence, _modes, _objective, _polish, _select
 from ptrack.estimators.kjs.step import _merge
-from ptrack.ik import chain_ik, product_ik
-from ptrack.jacobians import objective_linearization
-from ptrack.jumps import interpretation_trees, joint_observations, product
-from ptrack.mixture import Modes, distinct_minima
+from ptrack.hypotheses.ik import chain_ik, product_ik
+from ptrack.hypotheses.jumps import interpretation_trees, joint_observations, product
+from ptrack.hypotheses.mixture import Modes, distinct_minima
+from ptrack.hypotheses.samplers import project_to_limits
+from ptrack.optim.jacobians import objective_linearization
+from ptrack.optim.solvers import levenberg_marquardt
 from ptrack.problem import first_keyframe
-from ptrack.samplers import project_to_limits
-from ptrack.solvers import levenberg_marquardt
 
 
 def _init_keyframe(s: Setup) -> Tensor:
@@ -29,7 +29,7 @@ def _init_keyframe(s: Setup) -> Tensor:
 
 
 def _start_prior(s: Setup, q: Tensor) -> tuple[Tensor, Tensor]:
-    """The prior of a start without 3D input. Each angle the CMU pose prior names (`ptrack.pose_prior`)
+    """The prior of a start without 3D input. Each angle the CMU pose prior names (`ptrack.body.pose_prior`)
     is held near real people's mean angle with `kjs.start_prior_scale` times their spread; any other
     angle near 0 with std `kjs.rest_sigma`; the root's position near where the rigid fit of the body put
     it (std 0.1 m: monocular depth is otherwise traded for limbs tilted in depth); its rotation free.

@@ -11,10 +11,10 @@ import torch
 from torch import Tensor
 
 from ptrack.estimators.kjs.model import Setup, Strategy, _distinct, _modes, _polish, _select
-from ptrack.ik import chain_ik
-from ptrack.jumps import interpretation_tree, joint_observations
-from ptrack.mixture import Modes
-from ptrack.samplers import css_proposal, project_to_limits, spherical_proposal
+from ptrack.hypotheses.ik import chain_ik
+from ptrack.hypotheses.jumps import interpretation_tree, joint_observations
+from ptrack.hypotheses.mixture import Modes
+from ptrack.hypotheses.samplers import css_proposal, project_to_limits, spherical_proposal
 
 # ---------------------------------------------------------------- sampling
 

@@ -8,12 +8,12 @@ from collections.abc import Callable, Iterable
 import torch
 from torch import Tensor
 
-from ptrack.banded import one_thread
 from ptrack.estimators.kjs.lattice import _best_path, _lattice, _lead_pass, _recombine, _smooth, principal_directions
 from ptrack.estimators.kjs.model import CSS, KJS, SS, Strategy, _setup
 from ptrack.estimators.kjs.start import _backward_start, _feed, _first_modes
 from ptrack.estimators.kjs.step import _merge, _step
-from ptrack.mixture import Modes
+from ptrack.hypotheses.mixture import Modes
+from ptrack.optim.banded import one_thread
 from ptrack.problem import Estimate, Problem
 
 
@@ -25,7 +25,7 @@ def track(
     progress: Callable[[Iterable], Iterable] = lambda x: x,
 ) -> Estimate:
     """Run the tracker `strategy` over every frame of `problem` (`ptrack.estimators.kjs`' docstring), on one
-    intra-op thread (`ptrack.banded.one_thread`): its products are small batched ones, and
+    intra-op thread (`ptrack.optim.banded.one_thread`): its products are small batched ones, and
     `scripts/bench_kjs.py` measured 6.1 fps on one thread and on two on an idle 2-core machine, but
     0.7 fps on two threads when another job held a core.
 

@@ -35,8 +35,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ptrack.body.limits import wrap_to_limits
 from ptrack.errors import InputError
-from ptrack.limits import wrap_to_limits
 
 TAILS = ("gaussian", "student", "cauchy")
 PROJECTIONS = ("clamp", "reflect")
@@ -221,7 +221,7 @@ def project_to_limits(
     """Samples moved into the joint-limit box [lower, upper] (bounds may be -inf / inf).
 
     Angular dofs (`angular` True) are first written in their limits' 2 pi window
-    (`ptrack.limits.wrap_to_limits`: the same pose, the angle within pi of the arc's centre), so an
+    (`ptrack.body.limits.wrap_to_limits`: the same pose, the angle within pi of the arc's centre), so an
     angle just past +pi of an arc around pi is inside, and one outside its arc is brought to the
     bound nearest on the circle. Then each entry outside its bounds is
       "clamp":   set to the nearest bound (the paper's "projected back onto the feasible

@@ -28,9 +28,9 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import torch
 
+from ptrack.body.rotations import axis_angle_matrix, euler_matrix_np, matrix_to_euler_np
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.rotations import axis_angle_matrix, euler_matrix_np, matrix_to_euler_np
-from ptrack.skeleton import Skeleton
 
 _log = logging.getLogger(__name__)
 
@@ -399,7 +399,7 @@ def _merge_chain(chain: list[UrdfJoint], motion: dict[str, tuple[int, float, flo
 def _slot_frame(slots: list[tuple[np.ndarray, int, float, float]]) -> np.ndarray:
     """Axes (3, 3) for slots 0..2 holding `slots`' axes in order, the free slots filled so that the
     three are the (z, y, x) columns of a right-handed frame when the given axes allow it (the closed
-    form of `ptrack.kinematics`, as ASF skeletons have); of three, a held slot's axis is negated
+    form of `ptrack.body.kinematics`, as ASF skeletons have); of three, a held slot's axis is negated
     (its angle too, by the caller) where that makes the frame right-handed."""
     given = [a / np.linalg.norm(a) for a, *_ in slots]
     if len(given) == 0:

@@ -7,8 +7,8 @@
     config.yaml   resolved config
     metrics.json  every applicable metric, plus seconds and frames
     result.npz    frames, q, joints, joint_names, ... (see `result_arrays`)
-    result.bvh    the estimated motion for animation tools (ptrack.export)
-    run.rrd       rerun recording (ptrack.viz)
+    result.bvh    the estimated motion for animation tools (ptrack.io.export)
+    run.rrd       rerun recording (ptrack.io.viz)
 
 The folder is assembled in a hidden sibling `.NAME.partial` and renamed into place at the end, so a
 failed run leaves nothing half-written at `out_dir`. That sibling is also the run's claim on `out_dir`,
@@ -38,19 +38,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ptrack import metrics as M
-from ptrack.camera import camera_for_motion
-from ptrack.config import RunConfig, dump_yaml
-from ptrack.correspondences import Correspondences, simulate_correspondences
+from ptrack.body.keypoints import make_keypoints
+from ptrack.body.skeleton import Motion, Skeleton, load_amc
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators import ESTIMATORS
-from ptrack.export import write_bvh
-from ptrack.keyframes import ground_truth_keyframes, read_keyframes
-from ptrack.keypoints import make_keypoints
-from ptrack.observations import ChannelConfig, Observations, simulate_observations
+from ptrack.io.export import write_bvh
+from ptrack.observe.camera import camera_for_motion
+from ptrack.observe.correspondences import Correspondences, simulate_correspondences
+from ptrack.observe.observations import ChannelConfig, Observations, simulate_observations
+from ptrack.observe.silhouette import capsule_radii, render_silhouettes
+from ptrack.pipeline import metrics as M
+from ptrack.pipeline.config import RunConfig, dump_yaml
+from ptrack.pipeline.keyframes import ground_truth_keyframes, read_keyframes
 from ptrack.problem import Estimate, Problem
-from ptrack.silhouette import capsule_radii, render_silhouettes
-from ptrack.skeleton import Motion, Skeleton, load_amc
 
 try:
     import fcntl
@@ -609,9 +609,9 @@ def remove_partial(folder: Path, recursive: bool = True) -> None:
             _remove_if_stale(tmp)
 
 
-#: off a terminal, progress is a log line (logger `ptrack.run.progress`, INFO) at most every PROGRESS_SECONDS, the
-#: first after PROGRESS_FIRST_SECONDS (a short run says nothing); the environment variable PTRACK_PROGRESS_SECONDS
-#: replaces both (read at each run)
+#: off a terminal, progress is a log line (logger `ptrack.pipeline.run.progress`, INFO) at most every
+#: PROGRESS_SECONDS, the first after PROGRESS_FIRST_SECONDS (a short run says nothing); the environment variable
+#: PTRACK_PROGRESS_SECONDS replaces both (read at each run)
 PROGRESS_SECONDS, PROGRESS_FIRST_SECONDS = 20.0, 10.0
 progress_log = logging.getLogger(f"{__name__}.progress")
 
@@ -733,7 +733,7 @@ def _write_outputs(
     series: dict[str, np.ndarray],
 ) -> None:
     """Write the run's files into `tmp` (the run's claim, `claim_out_dir`)."""
-    from ptrack.viz import RunLog, write_recording
+    from ptrack.io.viz import RunLog, write_recording
 
     (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
     (tmp / "metrics.json").write_text(

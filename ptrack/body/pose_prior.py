@@ -28,12 +28,12 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from ptrack.body.limits import wrap_to_limits
 from ptrack.errors import InputError
-from ptrack.limits import wrap_to_limits
 from ptrack.package_data import data_file
 
 if TYPE_CHECKING:
-    from ptrack.skeleton import Skeleton
+    from ptrack.body.skeleton import Skeleton
 
 
 def pose_prior_path() -> Path:

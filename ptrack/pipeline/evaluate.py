@@ -27,10 +27,10 @@ from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
 
-from ptrack.compare import is_number
-from ptrack.config import load_config, parse_override, skeleton_beside
 from ptrack.errors import EstimationError, InputError, log_to_stderr
-from ptrack.run import execute, json_safe, remove_partial
+from ptrack.pipeline.compare import is_number
+from ptrack.pipeline.config import load_config, parse_override, skeleton_beside
+from ptrack.pipeline.run import execute, json_safe, remove_partial
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Acclaim ASF (skeleton) and AMC (motion) file parsing.
 
-Only text -> plain records here; `ptrack.skeleton` turns an `AsfFile` into a kinematic model.
+Only text -> plain records here; `ptrack.body.skeleton` turns an `AsfFile` into a kinematic model.
 Both parsers accept CRLF or LF line endings and `#` comments; the ASF parser skips unknown `:`
 sections (some CMU copies carry e.g. `:namespace`). Malformed input raises `InputError` naming the
 file and line.

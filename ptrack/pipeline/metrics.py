@@ -20,9 +20,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ptrack.body.limits import limited_dofs, outside_limits
 from ptrack.checks import as_float_tensor
 from ptrack.errors import InputError
-from ptrack.limits import limited_dofs, outside_limits
 
 M_TO_MM = 1000.0
 
@@ -254,7 +254,7 @@ def joint_limit_violations(q, lower, upper, tol: float = 1e-3, angular=None) -> 
 
     An entry violates when it lies outside [lower - tol, upper + tol]; infinite bounds (unlimited
     dofs such as root translation) never violate. With `angular` (D,) bool, those dofs are angles
-    measured on the circle: an entry is inside when some 2 pi shift of it is (`ptrack.limits`).
+    measured on the circle: an entry is inside when some 2 pi shift of it is (`ptrack.body.limits`).
     The fraction counts only limited dofs (a finite bound on at least one side). NaN entries are not
     counted, but make max_deg NaN.
 

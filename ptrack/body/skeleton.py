@@ -13,7 +13,7 @@ A slot's angle is th_ik = scale_ik * q[dof_ik] + frozen_ik (scale 1 and frozen 0
 joints and frozen slots). A URDF prismatic joint slides its frame along s_i by one entry of q.
 The root adds a translation from q to its rest position. This one form covers Acclaim ASF
 skeletons (a joint per bone, placed at the bone's end: "every bone's end point plus the root")
-and URDF trees (`ptrack.urdf`), so every estimator works on both.
+and URDF trees (`ptrack.body.urdf`), so every estimator works on both.
 
 Units: metres and radians. The CMU world frame is Y up.
 """
@@ -29,9 +29,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ptrack.acclaim import AsfFile, parse_amc, parse_asf
+from ptrack.body.acclaim import AsfFile, parse_amc, parse_asf
+from ptrack.body.rotations import euler_matrix_np
 from ptrack.errors import InputError
-from ptrack.rotations import euler_matrix_np
 
 #: capture rate of CMU AMC files
 CMU_FPS = 120.0
@@ -133,8 +133,8 @@ class Skeleton:
 
     def with_limits(self, source: str, path: str | Path | None = None) -> Skeleton:
         """This model with the joint limits of `source`: "data" (measured on real CMU motion, the
-        default of runs), "asf" (the model file's own) or "none". See `ptrack.limits`."""
-        from ptrack.limits import with_limits
+        default of runs), "asf" (the model file's own) or "none". See `ptrack.body.limits`."""
+        from ptrack.body.limits import with_limits
 
         return with_limits(self, source, path)
 
@@ -169,7 +169,7 @@ class Skeleton:
 
     @staticmethod
     def from_urdf(path: str | Path, floating_base: bool | None = None, collapse: bool | None = None) -> Skeleton:
-        """Any URDF articulated model (ptrack's own reader of the kinematic elements: `ptrack.urdf`),
+        """Any URDF articulated model (ptrack's own reader of the kinematic elements: `ptrack.body.urdf`),
         from a file path or from URDF text (a string starting with '<', e.g. `to_urdf()`'s).
 
         One joint per link, at the link's frame, in depth-first order from the root link. Revolute
@@ -193,13 +193,13 @@ class Skeleton:
         back one joint per link. True: every such link of any file. False: one joint per link
         always (for `to_urdf`'s files, a joint per axis, as other URDF readers see them).
         """
-        from ptrack.urdf import skeleton_from_urdf
+        from ptrack.body.urdf import skeleton_from_urdf
 
         return skeleton_from_urdf(path, floating_base=floating_base, collapse=collapse)
 
     def to_urdf(self) -> str:
-        """A URDF string of this model (root translation as prismatic joints, see `ptrack.urdf`)."""
-        from ptrack.urdf import skeleton_to_urdf
+        """A URDF string of this model (root translation as prismatic joints, see `ptrack.body.urdf`)."""
+        from ptrack.body.urdf import skeleton_to_urdf
 
         return skeleton_to_urdf(self)
 
@@ -278,9 +278,9 @@ class Skeleton:
         """Joint positions (..., J, 3) (and world rotations (..., J, 3, 3) if `rotations`).
 
         q: (..., D); lengths: optional (..., J) bone lengths in metres overriding the model's
-        (differentiable). See `ptrack.kinematics.forward_kinematics`.
+        (differentiable). See `ptrack.body.kinematics.forward_kinematics`.
         """
-        from ptrack.kinematics import forward_kinematics
+        from ptrack.body.kinematics import forward_kinematics
 
         return forward_kinematics(self, q, lengths=lengths, rotations=rotations)
 

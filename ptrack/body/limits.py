@@ -34,7 +34,7 @@ from ptrack.errors import InputError
 from ptrack.package_data import data_file
 
 if TYPE_CHECKING:
-    from ptrack.skeleton import Skeleton
+    from ptrack.body.skeleton import Skeleton
 
 log = logging.getLogger(__name__)
 

@@ -24,9 +24,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ptrack.body.rotations import skew
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.rotations import skew
-from ptrack.skeleton import Skeleton
 
 
 @dataclass(frozen=True)

@@ -34,10 +34,10 @@ import torch
 import yaml
 from torch import Tensor
 
-from ptrack.config import load_yaml
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
+from ptrack.pipeline.config import load_yaml
 from ptrack.problem import JointKeyframes, Keyframes
-from ptrack.skeleton import Skeleton
 
 
 def ground_truth_keyframes(

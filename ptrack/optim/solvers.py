@@ -22,7 +22,7 @@ keypoints + joint limits, CMU reduced model D=50, float64, 1 thread, shared 2-co
   L-BFGS reaches after 300 (12 s), 11.5x faster; L-BFGS (like scipy's and torch's on one pose)
   crawls on these ill-conditioned, underdetermined monocular fits. LM is the polisher to use.
 
-Only torch here: `ptrack.jacobians.objective_linearization` makes the LM `linearize` of a ptrack
+Only torch here: `ptrack.optim.jacobians.objective_linearization` makes the LM `linearize` of a ptrack
 objective, and any `q (N, D) -> energy (N,)` made of torch ops serves L-BFGS.
 """
 
@@ -38,7 +38,7 @@ from torch import Tensor
 from ptrack.errors import InputError
 
 if TYPE_CHECKING:
-    from ptrack.banded import BlockBanded
+    from ptrack.optim.banded import BlockBanded
 
 
 class Linearization(NamedTuple):
@@ -229,7 +229,7 @@ def levenberg_marquardt(
 
     Args:
         linearize: q (N, D) -> (residuals (N, M), jacobian (N, M, D)) or a `Linearization` that
-            also carries IRLS weights and the energy (what `ptrack.jacobians.objective_linearization`
+            also carries IRLS weights and the energy (what `ptrack.optim.jacobians.objective_linearization`
             returns: one FK gives all four). Called once per iteration, at the trial poses.
         q0: (N, D) start; clamped into the box.
         lower, upper: (D,) or (N, D) bounds, +-inf for none; None = unbounded.
@@ -488,7 +488,7 @@ def lbfgs(
 
 class BandedLinearization(NamedTuple):
     """What `banded_levenberg_marquardt` reads at B trajectories q (B, T, D): the Gauss-Newton
-    normal equations of each, H = J^T W J as a `ptrack.banded.BlockBanded` (diagonal (B, T, D, D),
+    normal equations of each, H = J^T W J as a `ptrack.optim.banded.BlockBanded` (diagonal (B, T, D, D),
     lower couplings (B|1, T, W, D[, D])), gradient g = J^T W r (B, T, D), and energy (B,) the
     objective lowered (with IRLS weights W, g is its gradient). The caller forms H and g blockwise
     (per-frame terms on the diagonal, temporal terms on the band), never the stacked J."""
@@ -519,7 +519,7 @@ class BandedLMInfo(NamedTuple):
 
 def _band_select(mask: Tensor, a, b):
     """Per-trajectory select of two BlockBanded (mask (B,)); couplings shared by all (leading 1) stay."""
-    from ptrack.banded import BlockBanded
+    from ptrack.optim.banded import BlockBanded
 
     if bool(mask.all()):  # one host sync per iteration saves two passes over (B, T, D, D)
         return a
@@ -531,7 +531,7 @@ def _band_select(mask: Tensor, a, b):
 
 def _band_damped(h, free: Tensor, lam: Tensor):
     """H + lambda I restricted to the free dofs (B, T, D) (other rows/columns: identity)."""
-    from ptrack.banded import BlockBanded
+    from ptrack.optim.banded import BlockBanded
 
     # no dof held at a bound: one copy of the blocks
     diag = h.diagonal.clone() if bool(free.all()) else h.diagonal * (free[..., :, None] & free[..., None, :])
@@ -575,14 +575,14 @@ def banded_levenberg_marquardt(
             relative to the largest diagonal entry of each trajectory's H; Nielsen's update; one
             accept/reject per trajectory). callback(iteration, q (B, T, D), cost (B,)).
 
-    Each step solves (H + lambda I) dq = -g by `ptrack.banded.factorize` / `solve`: O(T W^2 D^3)
+    Each step solves (H + lambda I) dq = -g by `ptrack.optim.banded.factorize` / `solve`: O(T W^2 D^3)
     work and O(T W D^2) memory, never the dense (T D) x (T D) matrix. A failed factorisation (not
     positive definite) counts as a rejected step.
 
     Returns:
         q (B, T, D) the best trajectory of each problem, and `BandedLMInfo`.
     """
-    from ptrack.banded import factorize, matvec, solve
+    from ptrack.optim.banded import factorize, matvec, solve
 
     if not isinstance(q0, Tensor) or not q0.is_floating_point() or q0.ndim != 3:
         raise InputError(

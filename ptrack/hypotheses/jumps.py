@@ -30,7 +30,7 @@ is the hypothesis itself when the observations are its own projections. Branches
 
 Only the chain's joints are placed. Joints past the chain's end (the hand beyond the wrist) and
 unobserved joints inside a multi-bone link (the lower neck in thorax -> upper neck) are left to
-inverse kinematics (`ptrack.ik`): its angles, through forward kinematics, carry them rigidly.
+inverse kinematics (`ptrack.hypotheses.ik`): its angles, through forward kinematics, carry them rigidly.
 
 Chains whose moving parts are disjoint combine as a product of trees (paper, section 3): `product`
 enumerates the combined leaves; chain c's links take bits [offset_c, offset_c + n_c) of the
@@ -51,10 +51,10 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from ptrack.camera import Camera
+from ptrack.body.keypoints import KeypointSet
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.keypoints import KeypointSet
-from ptrack.skeleton import Skeleton
+from ptrack.observe.camera import Camera
 
 #: default chains of CMU ASF skeletons (joint = bone end): each arm from the shoulder, each leg
 #: from the hip, the head from the thorax through the upper neck (all observed by the H36M-17 set)
@@ -188,7 +188,7 @@ def joint_observations(
 
 
 # ---------------------------------------------------------------- struct-of-arrays helpers
-# The hot paths (trees here, `ptrack.ik`) hold vectors as (3, *M) and matrices as (3, 3, *M) (row,
+# The hot paths (trees here, `ptrack.hypotheses.ik`) hold vectors as (3, *M) and matrices as (3, 3, *M) (row,
 # column), with hypotheses last: every elementwise op then runs over long contiguous rows. On CPU,
 # torch ops broadcasting over tiny trailing dims ((..., 3) * (..., 1, 3)) are ~10x slower.
 

@@ -1,6 +1,6 @@
 """Time-warped PCA motion model of one motion type (Urtasun, Fleet & Fua 2004, section 3).
 
-Fitting (`fit_motion_model`): in each training clip the key postures are found (`ptrack.key_postures`);
+Fitting (`fit_motion_model`): in each training clip the key postures are found (`ptrack.motion.key_postures`);
 the clip is time-warped piecewise-linearly so that every key posture falls at the same normalised
 time (`key_times`: the clips' mean relative positions of the postures between the first and the last,
 which sit at 0 and 1), and resampled at N normalised times mu_i = i / (N - 1). A swing is then an
@@ -39,10 +39,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ptrack.body.rotations import matrix_to_euler_np
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.key_postures import detect_key_postures
-from ptrack.rotations import matrix_to_euler_np
-from ptrack.skeleton import Skeleton
+from ptrack.motion.key_postures import detect_key_postures
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +160,7 @@ def resample(skeleton: Skeleton, q: Tensor, times: np.ndarray) -> np.ndarray:
     from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
     from kornia.geometry.quaternion import Quaternion
 
-    from ptrack.kinematics import euler_zyx
+    from ptrack.body.kinematics import euler_zyx
 
     q = q.detach().cpu().double()
     t = q.shape[0]
@@ -214,7 +214,7 @@ class Clip:
 
 def read_clips(paths: Sequence[str | Path]) -> list[Clip]:
     """Load AMC clips (each with the .asf beside it) through the acclaim loaders."""
-    from ptrack.config import skeleton_beside
+    from ptrack.pipeline.config import skeleton_beside
 
     clips: list[Clip] = []
     skeletons: dict[Path, Skeleton] = {}
@@ -233,7 +233,7 @@ def read_clips(paths: Sequence[str | Path]) -> list[Clip]:
 
 def clip_paths(spec: Sequence[str]) -> list[Path]:
     """`motion.clips` -> AMC paths: the listed files, a single non-.amc entry being a clip-list file."""
-    from ptrack.evaluate import parse_clips
+    from ptrack.pipeline.evaluate import parse_clips
 
     if len(spec) == 1 and not spec[0].lower().endswith(".amc"):
         if not Path(spec[0]).is_file():

@@ -34,9 +34,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ptrack.camera import Camera
 from ptrack.checks import as_float_tensor
 from ptrack.errors import InputError
+from ptrack.observe.camera import Camera
 
 
 @dataclass(frozen=True, eq=False)

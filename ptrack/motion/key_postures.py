@@ -1,6 +1,6 @@
 """Key postures of a motion type: the frames of a clip where its stereotyped postures happen.
 
-A motion model (`ptrack.motion_model`) aligns its training clips on key postures (for the golf swing,
+A motion model (`ptrack.motion.motion_model`) aligns its training clips on key postures (for the golf swing,
 Urtasun, Fleet & Fua 2004, fig. 2: start of upswing, top of upswing, ball hit, end of downswing), and
 the PCA tracker starts from the same postures found in the image (their section 5.1). Both are found
 from one tracked point, the mean of a few joints (the wrists for golf), by rules written in the config
@@ -18,7 +18,7 @@ from one tracked point, the mean of a few joints (the wrists for golf), by rules
   `rest after KEY`: the first such frame after the fastest motion following KEY (its end).
 
 Signals: height is world Y for 3D joints (Y up, metres) and minus the image row for 2D points (image
-y grows downward, see `ptrack.camera`), speed the norm of the point's velocity (m/s or px/s), both
+y grows downward, see `ptrack.observe.camera`), speed the norm of the point's velocity (m/s or px/s), both
 after Gaussian smoothing over `motion.smooth_s` seconds.
 """
 

@@ -1,13 +1,13 @@
 """The flip branches of a trajectory's posterior: which depth interpretation each limb takes per frame.
 
 A monocular frame fixes each limb's image, not its depth: every link of a kinematic chain can take
-either intersection of its camera ray with the sphere of its bone length (`ptrack.jumps`). A MAP
+either intersection of its camera ray with the sphere of its bone length (`ptrack.hypotheses.jumps`). A MAP
 trajectory sits on one branch per chain and frame, and a Laplace approximation at it only sees the
 curvature there, not the other branches' probability. This module puts them into the posterior:
 
 1. `branch_poses`: at the trajectory q (B, T, D), each chain's interpretation tree through q's own
    projections (every leaf reprojects the chain's joints where q does) and closed-form IK
-   (`ptrack.ik`, "project": angles clamped into the limits, the leaf then paying whatever image
+   (`ptrack.hypotheses.ik`, "project": angles clamped into the limits, the leaf then paying whatever image
    error that leaves) give L = 2^n poses per chain and frame, labelled by depth (leaf l: link k's
    end beyond its start along the camera ray iff bit k of l is set), so leaf l over time is one
    continuous branch; q is on one of them at each frame.
@@ -48,10 +48,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ptrack.camera import Camera
-from ptrack.ik import ChainIK, chain_ik
-from ptrack.jumps import Chain, interpretation_tree
-from ptrack.skeleton import Skeleton
+from ptrack.body.skeleton import Skeleton
+from ptrack.hypotheses.ik import ChainIK, chain_ik
+from ptrack.hypotheses.jumps import Chain, interpretation_tree
+from ptrack.observe.camera import Camera
 
 
 class Branches(NamedTuple):

@@ -91,7 +91,7 @@ import rerun.blueprint as rrb
 from ptrack.errors import InputError
 
 if TYPE_CHECKING:
-    from ptrack.camera import Camera
+    from ptrack.observe.camera import Camera
 
 __all__ = ["RunLog", "blueprint", "open_viewer", "plot_groups", "write_recording"]
 
@@ -130,7 +130,7 @@ class RunLog:
     joint_names: (J,); parents: (J,) parent index, -1 for the root; bones are (parent, child).
     frames: (T,) int AMC frame numbers; times: (T,) seconds.
     estimate: (T, J, 3) metres, world; ground_truth: (T, J, 3) or None.
-    camera: a `ptrack.camera.Camera` (anything with K (3, 3), R (3, 3), t (3,), width, height).
+    camera: a `ptrack.observe.camera.Camera` (anything with K (3, 3), R (3, 3), t (3,), width, height).
     observed: (T, K, 2) pixels; confidence: (T, K), 0 = missing (not drawn);
     reprojected: (T, K, 2) pixels; keypoint_names: (K,).
     keypoint_joints: (K,) skeleton joint index of each keypoint, or None (then no 2D bones).

@@ -15,8 +15,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ptrack.camera import Camera
 from ptrack.errors import InputError
+from ptrack.observe.camera import Camera
 
 #: default capsule radii (metres) per CMU bone name, without the l/r side prefix.
 CMU_RADII_M = {

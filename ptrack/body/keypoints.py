@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.skeleton import Skeleton
 
 H36M17: tuple[str, ...] = (
     "pelvis",

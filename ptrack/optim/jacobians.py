@@ -9,7 +9,7 @@ objective's stacked residuals (chain rule through the joints, FK still once).
     residual_jacobian(sk, residual_fn, q (..., D)) -> r (..., M), jac (..., M, D)
     objective_linearization(sk, objective, camera, keypoints) -> q (N, D) -> Linearization
 
-The geometric Jacobian. In the model of `ptrack.skeleton`,
+The geometric Jacobian. In the model of `ptrack.body.skeleton`,
 
     G_i = G_parent R(a_i1, th_i1) R(a_i2, th_i2) R(a_i3, th_i3) E_i
     p_i = o_i + length_i G_i w_i,   o_i = p_parent + length_i G_parent u_i,
@@ -49,13 +49,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ptrack.camera import Camera
+from ptrack.body.keypoints import KeypointSet
+from ptrack.body.skeleton import Skeleton
 from ptrack.costs import Objective, PoseEval
 from ptrack.costs.base import PoseJacobian
 from ptrack.errors import InputError
-from ptrack.keypoints import KeypointSet
-from ptrack.skeleton import Skeleton
-from ptrack.solvers import Linearization
+from ptrack.observe.camera import Camera
+from ptrack.optim.solvers import Linearization
 
 ResidualFn = Callable[[Tensor, Tensor], Tensor]
 

@@ -22,7 +22,7 @@ Closed forms (Sminchisescu & Triggs 2003, section 3.1), chosen by `ik_plan` from
 Each ball's rotation has two Euler solutions (y and pi - y) and a limb's hinge two candidates, all
 reproducing the same positions; the one inside the joint limits is chosen (least violation),
 ties going to the nearest to the current angles. Angles are returned in the limits' 2 pi window
-(as `ptrack.limits.wrap_to_limits`; unlimited angles in [-pi, pi)). Leaves whose angles still
+(as `ptrack.body.limits.wrap_to_limits`; unlimited angles in [-pi, pi)). Leaves whose angles still
 break the limits are flagged for `mode="prune"`, or clamped into them and re-run through the
 chain's forward kinematics for `mode="project"`. The chain's root must stay where q's forward
 kinematics puts it; bone lengths are the model's (`sk.lengths`). Joints past the chain's end
@@ -33,8 +33,8 @@ are 1-dof revolutes; ASF chains that are neither limb nor swing; `ik_plan(..., c
 forces it) it minimises |FK(q)[chain joints] - positions|^2 over the plan's dofs -- those of the
 path joints (and of the chain root when its bone end is on its pivot, as URDF links are) that
 move the chain's joints -- with the shared batched Levenberg-Marquardt
-(`ptrack.solvers.levenberg_marquardt`) over hypotheses x leaves at once, from q's own angles,
-with the geometric Jacobian (`ptrack.jacobians`) restricted to the chain. "prune" solves
+(`ptrack.optim.solvers.levenberg_marquardt`) over hypotheses x leaves at once, from q's own angles,
+with the geometric Jacobian (`ptrack.optim.jacobians`) restricted to the chain. "prune" solves
 unbounded and flags leaves whose angles (wrapped into the limits' windows) break the limits;
 "project" solves those leaves again within the limits (box constraints) from their clamped
 angles. `ik_plan` raises `ClosedFormUnavailable` only when no dof moves the chain. Closed-form
@@ -53,7 +53,7 @@ pose, 3 of 4096 float32 fits stall near the shoulder's gimbal lock at ~1.5e-4 m 
 in under 8 iterations and a few take ~30; `_fit` therefore runs the solver in rounds over the
 unconverged leaves only (400 vs 820 ms for one run over all of them, float64).
 
-Layout: the solvers work on struct-of-arrays tensors (`ptrack.jumps`), hypotheses last; inputs and
+Layout: the solvers work on struct-of-arrays tensors (`ptrack.hypotheses.jumps`), hypotheses last; inputs and
 outputs are ordinary batch-first tensors. Shapes: `N` hypotheses (any leading batch dims), `L`
 leaves, `D` dofs, `M` solved dofs, n links.
 """
@@ -68,8 +68,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ptrack.body.kinematics import euler_zyx
+from ptrack.body.limits import TAU
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.jumps import (
+from ptrack.hypotheses.jumps import (
     Chain,
     Product,
     _aos,
@@ -87,10 +90,7 @@ from ptrack.jumps import (
     _sunit,
     path_below,
 )
-from ptrack.kinematics import euler_zyx
-from ptrack.limits import TAU
-from ptrack.skeleton import Skeleton
-from ptrack.solvers import levenberg_marquardt
+from ptrack.optim.solvers import levenberg_marquardt
 
 MODES = ("prune", "project")
 
@@ -356,7 +356,7 @@ def _new_tensors(plan: ChainIK, dtype: torch.dtype, device: torch.device) -> dic
 
 
 # ---------------------------------------------------------------- forward kinematics along a path
-# Struct-of-arrays layout (see `ptrack.jumps`): angles (3, *M), rotations (3, 3, *M), positions
+# Struct-of-arrays layout (see `ptrack.hypotheses.jumps`): angles (3, *M), rotations (3, 3, *M), positions
 # (3, *M), with M = (L, B) or (B,): leaves, then hypotheses last.
 
 
@@ -442,14 +442,14 @@ def euler_zyx_solutions(r: Tensor, x_lock: Tensor) -> Tensor:
     """Both (z, y, x) angle triples with Rz(z) Ry(y) Rx(x) = r: (..., 3, 3) -> (..., 2, 3); the
     first has |y| <= pi/2, the second is (z + pi, pi - y, x + pi) (not wrapped). At the gimbal lock
     (cos y = 0) x is taken from x_lock (...,) (e.g. the current angle) and z carries the rest.
-    Day's extraction (as `ptrack.rotations.matrix_to_euler_np`): x from the last row, y and z given x."""
+    Day's extraction (as `ptrack.body.rotations.matrix_to_euler_np`): x from the last row, y and z given x."""
     out = _seuler_solutions(_soa(r, 2), x_lock.expand(r.shape[:-2]))  # (3, 2, ...)
     return _aos(out, 2).transpose(-1, -2)
 
 
 def _window_shift(lower: Tensor, upper: Tensor) -> Tensor:
     """pi - centre of each dof's 2 pi window (M,): the arc's centre for two finite bounds, else 0;
-    angle a is in its window as remainder(a + shift, 2 pi) - shift (`ptrack.limits.wrap_to_limits`)."""
+    angle a is in its window as remainder(a + shift, 2 pi) - shift (`ptrack.body.limits.wrap_to_limits`)."""
     limited = torch.isfinite(lower) & torch.isfinite(upper)
     return math.pi - torch.where(limited, 0.5 * (lower + upper), torch.zeros_like(lower))
 
@@ -528,7 +528,7 @@ def _lower_bone(lc: dict, t: Tensor) -> Tensor:
 def _limb_fk(tc: dict, a_frame: Tensor, p_r: Tensor, theta: Tensor) -> Tensor:
     """Forward kinematics of a limb: positions (3, 3, L, B) of root, ball and hinge joints from the
     ball's parent axis frame a_frame = G_r C (3, 3, 1, B), root position p_r (3, 1, B) and angles
-    theta (4, L, B). The ball joint's frame is G_r C Z C^T E (`ptrack.skeleton`), so its bone is
+    theta (4, L, B). The ball joint's frame is G_r C Z C^T E (`ptrack.body.skeleton`), so its bone is
     G_r C Z a and the next one G_r C Z v(t)."""
     lc = tc["limb"]
     az = _smm(a_frame, _seuler(theta[:3]))
@@ -657,7 +657,7 @@ def _walk_fk(
     plan: ChainIK, tc: dict, g_par: Tensor, pivot: Tensor, qs: Tensor, theta: Tensor, jacobian: bool
 ) -> tuple[Tensor, Tensor | None]:
     """Forward kinematics from the chain root down its path with the solved dofs set, and the
-    geometric Jacobian of the chain's joints w.r.t. them (`ptrack.jacobians`, restricted to the
+    geometric Jacobian of the chain's joints w.r.t. them (`ptrack.optim.jacobians`, restricted to the
     chain: slot s of joint i turns the joints below about its world axis a through its pivot o_i,
     d p_y / d theta = a x (p_y - o_i)).
 
@@ -712,7 +712,7 @@ def _fit(
     first_round: int = 8,
 ) -> Tensor:
     """Least-squares fit of the chain's joints 1..n to targets x (n+1, 3, P) over the solved dofs,
-    from theta0 (M, P), by `ptrack.solvers.levenberg_marquardt` (all P problems at once), within
+    from theta0 (M, P), by `ptrack.optim.solvers.levenberg_marquardt` (all P problems at once), within
     the joint limits if bounded -> theta (M, P). Problems with non-finite targets stay at theta0.
 
     The solver runs the whole batch until its slowest problem is done; most leaves converge in

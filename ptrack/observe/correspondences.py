@@ -27,10 +27,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ptrack.camera import Camera
 from ptrack.costs.correspondence import anchor_points, backproject, ray_capsule_hit
 from ptrack.errors import InputError
-from ptrack.observations import read_npz
+from ptrack.observe.camera import Camera
+from ptrack.observe.observations import read_npz
 
 #: a simulated point counts as visible in frame t when the model's first surface along its line of sight is
 #: this close to it (metres)

@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 from torch import Tensor
 
+from ptrack.body.kinematics import local_rotations, root_positions
+from ptrack.body.rotations import matrix_to_euler_np
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.kinematics import local_rotations, root_positions
-from ptrack.rotations import matrix_to_euler_np
-from ptrack.skeleton import Skeleton
 
 
 def bvh_text(skeleton: Skeleton, q: Tensor, fps: float) -> str:

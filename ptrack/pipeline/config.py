@@ -19,9 +19,9 @@ from typing import Any, Union
 
 import yaml
 
+from ptrack.body.pose_prior import check_smoothing_table
 from ptrack.costs.base import ROBUST_LOSSES
 from ptrack.errors import InputError
-from ptrack.pose_prior import check_smoothing_table
 
 log = logging.getLogger(__name__)
 
@@ -100,8 +100,8 @@ class ObservationsConfig:
     occlusion_bursts: float = 0.0  # expected bursts per keypoint per second
     dropped_frames: float = 0.0  # fraction of whole frames dropped
     silhouettes: bool = False  # render capsule-model silhouettes
-    # point correspondences between consecutive frames (ptrack/correspondences.py), used by method pca: an npz of
-    # real ones, or this many simulated per frame on the capsule model (0: none) with the noise std of their
+    # point correspondences between consecutive frames (ptrack/observe/correspondences.py), used by method pca:
+    # an npz of real ones, or this many simulated per frame on the capsule model (0: none) with the noise std of their
     # second point and a share of wrong matches (displaced like keypoint outliers, by outlier_px)
     correspondence_file: str | None = None
     correspondences: int = 0
@@ -154,7 +154,7 @@ class KjsMethodConfig:
     scale: float = 4.0  # covariance scale s of the diffusion (s times the inverse Gauss-Newton Hessian)
     tail: str = "student"  # diffusion tail: gaussian, student, cauchy
     tail_dof: float = 3.0  # Student-t degrees of freedom (tail: student)
-    # kinematic sub-chains that may be flipped, by name (`ptrack.jumps.default_chains`: larm, rarm, lleg,
+    # kinematic sub-chains that may be flipped, by name (`ptrack.hypotheses.jumps.default_chains`: larm, rarm, lleg,
     # rleg, head); other chains through the Python API
     chains: tuple[str, ...] = ("larm", "rarm", "lleg", "rleg", "head")
     jumps_per_sample: int = 1  # chains flipped per diffusion sample, chosen by covariance voting
@@ -188,7 +188,7 @@ class KjsMethodConfig:
     # on 2 s of CMU 16_01 (42.4, 42.9, 63.6 mm)
     prior_sigma: float = 0.05
     # the dynamics' velocity std per dof instead of prior_sigma for all: a table of each CMU dof's RMS
-    # velocity in real motion (`ptrack.pose_prior.SMOOTHING_TABLES`), times the frame interval and
+    # velocity in real motion (`ptrack.body.pose_prior.SMOOTHING_TABLES`), times the frame interval and
     # dynamics_scale, at least dynamics_floor per frame; prior_sigma for the dofs it does not name (the root's
     # position). "cmu-train" (the default): fitted to configs/clips/train.txt, subjects with no dev clip;
     # "cmu": fitted to the dev clips themselves (batch.prior's table); null: prior_sigma for every dof.
@@ -214,7 +214,7 @@ class KjsMethodConfig:
     # limb may move as far again. Dev clips, keyframe start: 1.0 gave 36.5 mm mean best trajectory against
     # 41.2 at 0 (the run 09_06: 62 against 87 mm)
     motion_scale: float = 1.0
-    # weight of the CMU pose prior (`ptrack.pose_prior`) in every tracking step; on the dev clips (keyframe
+    # weight of the CMU pose prior (`ptrack.body.pose_prior`) in every tracking step; on the dev clips (keyframe
     # start) 0.1 measured 35.3 mm best trajectory against 36.5 at 0, and 0.3 lost the dance 05_02 (27.1 vs 20.8)
     pose_prior_weight: float = 0.1
     collision_weight: float = 1.0  # body non-self-intersection term
@@ -271,7 +271,7 @@ class KjsMethodConfig:
 
 @dataclass(frozen=True)
 class KeyframesConfig:
-    """3D keyframes: from a file (`ptrack/keyframes.py` documents the YAML/JSON format) or, for
+    """3D keyframes: from a file (`ptrack/pipeline/keyframes.py` documents the YAML/JSON format) or, for
     synthetic evaluation, from the ground truth (frame 0 always; the methods other than batch read
     frame 0's only)."""
 
@@ -357,17 +357,17 @@ class BatchMethodConfig:
     upsample: int = 1  # reconstruct N frames per observed frame (data.stride must be divisible by N)
     init: str = "frame"  # start: "frame" (per-frame fits, `frame.*` settings) or "keyframes" (interpolated)
     # joint_std (T, J) in result.npz: "branches" (the Laplace covariance plus every limb's depth-flip
-    # branches, ptrack/branches.py; true means this), "laplace" (the marginal covariances at the solution
+    # branches, ptrack/hypotheses/branches.py; true means this), "laplace" (the marginal covariances at the solution
     # alone: faster, overconfident between keyframes), false = none
     uncertainty: bool | str = "branches"
-    # rounds of restarts from the limbs' depth-flip branches (ptrack/branches.py): after the solve, each
+    # rounds of restarts from the limbs' depth-flip branches (ptrack/hypotheses/branches.py): after the solve, each
     # limb's flipped trajectory re-solved; the one of lowest whole energy, if lower than the solution's,
     # is solved again from and replaces it (0: none; a round that finds none ends them). Dev clips, keyframes
     # every 1 s, MPJPE / flip rate: 0 rounds 26.9 mm / 0.057, 1 round 25.1 / 0.045, 3 rounds 23.1 / 0.037
     flip_restarts: int = 3
 
 
-#: the golf swing's key postures (Urtasun, Fleet & Fua 2004, fig. 2), rules of `ptrack.key_postures`
+#: the golf swing's key postures (Urtasun, Fleet & Fua 2004, fig. 2), rules of `ptrack.motion.key_postures`
 GOLF_KEY_POSTURES = {
     "start": "rest before top",  # start of upswing: the hands still, before the upswing's fastest motion
     "top": "first max height",  # top of upswing: the hands' first high point
@@ -378,7 +378,7 @@ GOLF_KEY_POSTURES = {
 
 @dataclass(frozen=True)
 class MotionConfig:
-    """`ptrack fit-motion`: a time-warped PCA motion model of one motion type (`ptrack.motion_model`)."""
+    """`ptrack fit-motion`: a time-warped PCA motion model of one motion type (`ptrack.motion.motion_model`)."""
 
     # training clips: AMC files, or one text file listing them (one per line, relative to that file);
     # each clip's skeleton is the .asf beside it (<subject>.asf)
@@ -387,7 +387,7 @@ class MotionConfig:
     # dofs left out of the model besides the root's (shell patterns on joint or dof names, as model.freeze):
     # the CMU thumbs jump by whole turns and the tracker holds these at zero anyway
     exclude: tuple[str, ...] = ("*fingers", "*thumb", "*hand", "*toes")
-    # name -> rule, in temporal order (grammar in ptrack/key_postures.py); the default is the golf swing's.
+    # name -> rule, in temporal order (grammar in ptrack/motion/key_postures.py); the default is the golf swing's.
     # An override of one posture (motion.key_postures.end=...) replaces the whole mapping: give them all
     key_postures: dict[str, str] = field(default_factory=lambda: dict(GOLF_KEY_POSTURES))
     smooth_s: float = 0.05  # Gaussian smoothing (std, seconds) of the tracked point before the rules
@@ -667,7 +667,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     for k in ("width", "height"):
         if getattr(c, k) <= 0:
             raise InputError(f"config key 'camera.{k}' must be positive, got {getattr(c, k)}")
-    from ptrack.observations import CHANNEL_RANGES, channel_range_error
+    from ptrack.observe.observations import CHANNEL_RANGES, channel_range_error
 
     for k in CHANNEL_RANGES:  # the channel's own intervals, named by the config key
         error = channel_range_error(k, getattr(cfg.observations, k))
@@ -689,7 +689,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
             "config keys 'observations.correspondence_file' and 'observations.correspondences' are both set: "
             "give a file of correspondences or simulate them, not both"
         )
-    from ptrack.limits import SOURCES as LIMIT_SOURCES
+    from ptrack.body.limits import SOURCES as LIMIT_SOURCES
 
     if cfg.model.limits not in LIMIT_SOURCES:
         raise InputError(
@@ -827,7 +827,7 @@ def check_device(device: str) -> None:
 def validate_pca(p: PcaMethodConfig, keypoints: dict[str, str] | None = None, names: bool = True) -> None:
     """Value checks of the `pca:` section; with `names` (method pca), the tracked joints must be names of the
     keypoint set `keypoints` (None: the default H36M-17 set)."""
-    from ptrack.keypoints import H36M17
+    from ptrack.body.keypoints import H36M17
 
     if p.window < 1:
         raise InputError(f"config key 'pca.window' must be >= 1, got {p.window}")
@@ -862,7 +862,7 @@ def validate_pca(p: PcaMethodConfig, keypoints: dict[str, str] | None = None, na
 
 def validate_motion(m: MotionConfig) -> None:
     """Value checks of the `motion:` section (the clip count is checked when fitting)."""
-    from ptrack.key_postures import parse_rules
+    from ptrack.motion.key_postures import parse_rules
 
     if m.samples < 2:
         raise InputError(f"config key 'motion.samples' must be >= 2, got {m.samples}")
