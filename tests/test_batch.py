@@ -17,8 +17,8 @@ from cli_errors import fail
 from ptrack.cli import main
 from ptrack.costs import robust_loss_derivative
 from ptrack.errors import InputError
-from ptrack.estimators import batch
-from ptrack.estimators.batch import _energy, estimate_batch, lower_branch, trajectory_objective, warp_to_keyframes
+from ptrack.estimators import batch, estimate_batch
+from ptrack.estimators.batch import _energy, lower_branch, trajectory_objective, warp_to_keyframes
 from ptrack.pipeline import metrics as M
 from ptrack.pipeline.config import load_config
 from ptrack.pipeline.keyframes import read_keyframes

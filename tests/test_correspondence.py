@@ -1,5 +1,6 @@
-"""Point correspondences (ptrack/observe/correspondences.py, ptrack/costs/correspondence.py): the ray-capsule hit
-against brute force, the front capsule hit, simulated pairs that reproject exactly with the true poses,
+"""Point correspondences (ptrack/observe/correspondences.py, ptrack/observe/backprojection.py,
+ptrack/costs/correspondence.py): the ray-capsule hit against brute force, the front capsule hit, simulated pairs
+that reproject exactly with the true poses,
 the npz layout's round trip, and bad files and settings as one `ptrack: error:` line, exit 2."""
 
 from __future__ import annotations
@@ -12,14 +13,9 @@ import torch
 from cli_errors import fail
 
 from ptrack.body.skeleton import Skeleton, load_amc
-from ptrack.costs.correspondence import (
-    anchor_points,
-    backproject,
-    backproject_rays,
-    ray_capsule_hit,
-    reprojection_rows,
-)
+from ptrack.costs.correspondence import reprojection_rows
 from ptrack.errors import InputError
+from ptrack.observe.backprojection import anchor_points, backproject, backproject_rays, ray_capsule_hit
 from ptrack.observe.camera import camera_for_motion
 from ptrack.observe.correspondences import Correspondences, simulate_correspondences
 from ptrack.observe.silhouette import capsule_radii

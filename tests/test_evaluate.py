@@ -13,9 +13,10 @@ from pathlib import Path
 
 import pytest
 
+from ptrack.body.acclaim import parse_clips
 from ptrack.cli import main
 from ptrack.errors import InputError
-from ptrack.pipeline.evaluate import COLUMNS, asf_for, evaluate, markdown_table, parse_clips, parse_seeds, seed_mean
+from ptrack.pipeline.evaluate import COLUMNS, asf_for, evaluate, markdown_table, parse_seeds, seed_mean
 from ptrack.pipeline.run import remove_partial
 
 REPO = Path(__file__).resolve().parents[1]

@@ -14,11 +14,10 @@ import torch
 
 from ptrack.errors import InputError
 from ptrack.estimators import ESTIMATORS, estimate_frames
-from ptrack.estimators.frame import rest_pose_in_view
 from ptrack.pipeline import metrics as M
 from ptrack.pipeline.config import load_config
 from ptrack.pipeline.run import Prepared, prepare
-from ptrack.problem import Estimate, Problem, evaluate_pose
+from ptrack.problem import Estimate, Problem, evaluate_pose, rest_pose_in_view
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "configs" / "demo.yaml"

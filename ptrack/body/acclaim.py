@@ -7,6 +7,9 @@ file and line.
 
 Units are left as in the file (ASF lengths in file units, angles in degrees); the `:units` section
 is returned so the caller can convert (CMU: `length 0.45` means 1 unit = 1/0.45 inch = 0.056444 m).
+
+Clip files: `skeleton_beside` (the .asf of an .amc) and `parse_clips` (a clip list), shared by the
+motion model (`ptrack.motion`) and the evaluation harness (`ptrack.pipeline.evaluate`).
 """
 
 from __future__ import annotations
@@ -369,3 +372,37 @@ def parse_amc(path: str | Path, dof_counts: dict[str, int]) -> AmcFile:
         frame_numbers=np.asarray(frames, dtype=np.int64),
         values={k: np.asarray(v, dtype=np.float64).reshape(len(frames), dof_counts[k]) for k, v in rows.items()},
     )
+
+
+# ---------------------------------------------------------------- clip files
+
+
+def skeleton_beside(amc: str | Path) -> Path | None:
+    """The skeleton of an AMC clip: `<subject>.asf` in its folder, else the only .asf there, else None."""
+    amc = Path(amc)
+    cand = amc.parent / f"{amc.stem.split('_')[0]}.asf"
+    if cand.is_file():
+        return cand
+    found = sorted(amc.parent.glob("*.asf"))
+    return found[0] if len(found) == 1 else None
+
+
+def parse_clips(spec: str, cwd: Path | None = None) -> list[Path]:
+    """AMC paths from a comma-separated list or a text file (one path per line, `#` comments,
+    relative to the file's folder)."""
+    cwd = Path(cwd or Path.cwd())
+    p = cwd / spec
+    if p.is_file() and p.suffix.lower() not in (".amc", ".asf"):
+        base = p.resolve().parent
+        items = [ln.split("#", 1)[0].strip() for ln in p.read_text(encoding="utf-8").splitlines()]
+        paths = [(base / it).resolve() for it in items if it]
+    else:
+        paths = [(cwd / it.strip()).resolve() for it in spec.split(",") if it.strip()]
+    if not paths:
+        raise InputError(f"--clips {spec!r} names no clip")
+    for path in paths:
+        if not path.exists():
+            raise FileNotFoundError(f"clip not found: {path}")
+        if path.suffix.lower() != ".amc":
+            raise InputError(f"clip {path} is not an .amc file")
+    return paths

@@ -47,7 +47,7 @@ import torch
 from torch import Tensor
 
 from ptrack.checks import as_float_tensor
-from ptrack.costs.base import PoseEval, PoseJacobian, _LeastSquares, _positive, _shape
+from ptrack.costs.base import LeastSquaresMixin, PoseEval, PoseJacobian, check_positive, shape_of
 from ptrack.errors import InputError
 from ptrack.observe.silhouette import capsule_radii
 
@@ -149,14 +149,14 @@ def _hop_distances(bones: Sequence[tuple[int, int]], n_joints: int) -> list[list
 def _index_tensor(name: str, value, cols: int) -> Tensor:
     t = torch.as_tensor(value)
     if t.ndim != 2 or t.shape[1] != cols or t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
-        raise InputError(f"SelfIntersection.{name} must be an integer tensor (n, {cols}), got {t.dtype} {_shape(t)}")
+        raise InputError(f"SelfIntersection.{name} must be an integer tensor (n, {cols}), got {t.dtype} {shape_of(t)}")
     if (t < 0).any():
         raise InputError(f"SelfIntersection.{name} must be >= 0")
     return t.long()
 
 
 @dataclass(frozen=True, eq=False)
-class SelfIntersection(_LeastSquares):
+class SelfIntersection(LeastSquaresMixin):
     """Penetration between non-adjacent body capsules, on ev.joints.
 
     segments (C, 2) int: (start, end) joint indices of each capsule; radii (C,) metres; pairs
@@ -183,14 +183,14 @@ class SelfIntersection(_LeastSquares):
         if radii.shape != seg.shape[:1] or not (torch.isfinite(radii).all() and (radii >= 0).all()):
             raise InputError(
                 f"SelfIntersection.radii must be finite, >= 0 and of shape "
-                f"({seg.shape[0]},) like segments, got {_shape(radii)}"
+                f"({seg.shape[0]},) like segments, got {shape_of(radii)}"
             )
         if (pairs >= seg.shape[0]).any():
             raise InputError(f"SelfIntersection.pairs must index the {seg.shape[0]} segments, got {int(pairs.max())}")
         if self.names and len(self.names) != seg.shape[0]:
             raise InputError(f"SelfIntersection.names has {len(self.names)} entries for {seg.shape[0]} segments")
-        _positive("SelfIntersection.sigma", self.sigma)
-        _positive("SelfIntersection.eps", self.eps)
+        check_positive("SelfIntersection.sigma", self.sigma)
+        check_positive("SelfIntersection.eps", self.eps)
         try:
             margin = float(self.margin)
         except (TypeError, ValueError):
@@ -216,11 +216,11 @@ class SelfIntersection(_LeastSquares):
         """joints (..., J, 3) -> (4, 3, ..., P): capsule a's start, end, capsule b's start, end of every
         checked pair, coordinates second (the layout `_distance` reads); shape errors raised here."""
         if joints.ndim < 2 or joints.shape[-1] != 3:
-            raise InputError(f"SelfIntersection: joints must be (..., J, 3), got {_shape(joints)}")
+            raise InputError(f"SelfIntersection: joints must be (..., J, 3), got {shape_of(joints)}")
         if joints.shape[-2] < self._joints_needed:
             raise InputError(
                 f"SelfIntersection: segments use joint {self._joints_needed - 1} but "
-                f"joints {_shape(joints)} has J={joints.shape[-2]}"
+                f"joints {shape_of(joints)} has J={joints.shape[-2]}"
             )
         ends = joints.index_select(-2, self._ends.to(joints.device)).unflatten(-2, (4, -1))
         return ends.movedim((-3, -1), (0, 1))
@@ -326,7 +326,7 @@ class SelfIntersection(_LeastSquares):
         """
         if isinstance(min_hops, bool) or int(min_hops) != min_hops or min_hops < 1:
             raise InputError(f"SelfIntersection.for_skeleton: min_hops must be an integer >= 1, got {min_hops!r}")
-        _positive("SelfIntersection.radius_scale", radius_scale)
+        check_positive("SelfIntersection.radius_scale", radius_scale)
         if isinstance(skip, str):
             raise InputError(
                 f"SelfIntersection.for_skeleton: skip must be a sequence of patterns, got the string {skip!r}"
@@ -345,7 +345,7 @@ class SelfIntersection(_LeastSquares):
             if base.shape != (len(bones),):
                 raise InputError(
                     f"SelfIntersection.for_skeleton: radii must have shape "
-                    f"({len(bones)},), one per bone of sk.bones(), got {_shape(base)}"
+                    f"({len(bones)},), one per bone of sk.bones(), got {shape_of(base)}"
                 )
         excluded = set()
         for pair in exclude:

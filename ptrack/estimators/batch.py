@@ -76,6 +76,9 @@ from ptrack.optim.solvers import BandedLinearization, BandedLMInfo, banded_leven
 from ptrack.problem import Estimate, Problem
 
 log = logging.getLogger(__name__)
+
+#: (problem, cfg, generator, progress) -> Estimate: an estimator whose per-frame fits start the batch solve
+PerFrame = Callable[[Problem, Any, torch.Generator, Callable[[Iterable], Iterable]], Estimate]
 _MIN_PART = 32  # `evaluate` splits the frames in two halves for two threads from 2 * _MIN_PART frames
 
 
@@ -592,16 +595,21 @@ def estimate_batch(
     generator: torch.Generator,
     progress: Callable[[Iterable], Iterable] = lambda x: x,
     callback: Callable[[int, Tensor, Tensor], None] | None = None,
+    per_frame: PerFrame | None = None,
 ) -> Estimate:
     """The MAP trajectory (module docstring). Deterministic given its start (uses no randomness).
     Solved in float64 on the observations' device; the Estimate is in the observations' dtype.
+
+    per_frame(problem, cfg, generator, progress) -> Estimate: the per-frame fits the start comes from when
+    neither `init_from` nor the keyframes give it (`ptrack.estimators.estimate_batch` passes
+    `estimate_frames`; no estimator imports another). Needed then, and None, it raises ValueError.
 
     callback(iteration, q (1, T, D), cost (1,)) is called after every solver iteration. Runs on one
     intra-op thread (`ptrack.optim.banded.one_thread`: small per-frame products, shared cores); with torch
     allowed 2 or more threads, the linearisation's per-frame work runs on the sequence's two halves on
     two threads (`evaluate`)."""
     with one_thread():
-        return _estimate(problem, cfg, generator, progress, callback)
+        return _estimate(problem, cfg, generator, progress, callback, per_frame)
 
 
 def _estimate(
@@ -610,6 +618,7 @@ def _estimate(
     generator: torch.Generator,
     progress: Callable[[Iterable], Iterable],
     callback: Callable[[int, Tensor, Tensor], None] | None,
+    per_frame: PerFrame | None,
 ) -> Estimate:
     bc = cfg.batch
     obs = problem.observations
@@ -624,14 +633,14 @@ def _estimate(
     else:
         if bc.init == "keyframes":
             log.info("batch: no keyframe gives every dof, so the start is the per-frame fits (as batch.init=frame)")
-        from ptrack.estimators.frame import estimate_frames
-
+        if per_frame is None:
+            raise ValueError("estimate_batch: the start is the per-frame fit here; pass per_frame (estimate_frames)")
         kf = problem.keyframes
         full0 = kf is not None and any(
             bool(kf.mask is None or kf.mask[i].all()) for i in torch.nonzero(kf.frames == 0).flatten().tolist()
         )
         frame_cfg = cfg if full0 else dataclasses.replace(cfg, frame=dataclasses.replace(cfg.frame, init="rest"))
-        q0 = estimate_frames(problem, frame_cfg, generator, progress).q
+        q0 = per_frame(problem, frame_cfg, generator, progress).q
     q0 = wrap_to_limits(q0.detach().to(dtype), lower, upper, obj.angular)
     done = 0  # iterations so far: a restart's costs follow the first solve's on the logged timeline
 

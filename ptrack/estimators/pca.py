@@ -62,7 +62,7 @@ import logging
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -70,7 +70,6 @@ from torch import Tensor
 from ptrack.body.rotations import matrix_to_euler_np, skew
 from ptrack.body.skeleton import Skeleton
 from ptrack.costs import robust_loss, robust_loss_derivative
-from ptrack.costs.correspondence import Anchors, anchor_points, backproject_rays
 from ptrack.costs.ray_silhouette import RaySilhouette, mask_samples
 from ptrack.errors import InputError
 from ptrack.motion.key_postures import detect_key_postures_2d, initial_times
@@ -85,13 +84,11 @@ from ptrack.motion.motion_model import (
     read_clips,
     save_motion_model,
 )
+from ptrack.observe.backprojection import Anchors, anchor_points, backproject_rays
 from ptrack.observe.silhouette import capsule_radii
 from ptrack.optim.jacobians import joint_and_point_jacobian, joint_jacobian
 from ptrack.optim.solvers import Linearization, levenberg_marquardt
 from ptrack.problem import Estimate, Problem
-
-if TYPE_CHECKING:
-    from ptrack.pipeline.config import RunConfig
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +122,7 @@ class Setup:
     foreground samples."""
 
     problem: Problem
-    cfg: RunConfig
+    cfg: Any  # the run's config (ptrack.pipeline.config.RunConfig, not imported: estimators sit below it)
     model: MotionModel
     model_dofs: Tensor  # (Dm,) positions of the model's dofs in q
     root_dofs: Tensor  # (6,) positions of root tx, ty, tz and the root's three angles in q

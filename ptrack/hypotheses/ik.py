@@ -75,20 +75,20 @@ from ptrack.errors import InputError
 from ptrack.hypotheses.jumps import (
     Chain,
     Product,
-    _aos,
-    _flatten_bits,
-    _sconst,
-    _scross,
-    _sdot,
-    _seye,
-    _smin_rotation,
-    _smm,
-    _smv,
-    _snorm,
-    _soa,
-    _st,
-    _sunit,
+    flatten_bits,
     path_below,
+    sconst,
+    scross,
+    sdot,
+    seye,
+    smin_rotation,
+    smm,
+    smv,
+    snorm,
+    stranspose,
+    sunit,
+    to_aos,
+    to_soa,
 )
 from ptrack.optim.solvers import levenberg_marquardt
 
@@ -375,25 +375,25 @@ def _local(pj: dict, theta: Tensor) -> Tensor:
     """A joint's rotation relative to its parent for slot angles theta (3, *M) -> (3, 3, *M)."""
     nd = theta.ndim - 1
     if pj["c"] is not None:
-        c = _sconst(pj["c"], nd)
-        r = _smm(_smm(c, _seuler(theta)), _st(c))
+        c = sconst(pj["c"], nd)
+        r = smm(smm(c, _seuler(theta)), stranspose(c))
     else:
-        eye = _seye(theta, nd)
+        eye = seye(theta, nd)
         rots = [
-            eye + torch.sin(theta[s]) * _sconst(pj["k1"][s], nd) + (1 - torch.cos(theta[s])) * _sconst(pj["k2"][s], nd)
+            eye + torch.sin(theta[s]) * sconst(pj["k1"][s], nd) + (1 - torch.cos(theta[s])) * sconst(pj["k2"][s], nd)
             for s in range(3)
         ]
-        r = _smm(_smm(rots[0], rots[1]), rots[2])
-    return r if pj["rest"] is None else _smm(r, _sconst(pj["rest"], nd))
+        r = smm(smm(rots[0], rots[1]), rots[2])
+    return r if pj["rest"] is None else smm(r, sconst(pj["rest"], nd))
 
 
 def _step(pj: dict, g_par: Tensor, p_par: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
     """One joint of forward kinematics: parent frame (3, 3, *M) and position (3, *M) -> this joint's."""
-    g = _smm(g_par, _local(pj, theta))
+    g = smm(g_par, _local(pj, theta))
     nd = g.ndim - 2
-    p = p_par + _smv(g, _sconst(pj["w"], nd))
+    p = p_par + smv(g, sconst(pj["w"], nd))
     if pj["u"] is not None:
-        p = p + _smv(g_par, _sconst(pj["u"], nd))
+        p = p + smv(g_par, sconst(pj["u"], nd))
     return g, p
 
 
@@ -405,7 +405,7 @@ def _ancestors(plan: ChainIK, tc: dict, qs: Tensor) -> tuple[Tensor, Tensor]:
     p = (
         qs.index_select(0, tc["trans_index"]) * tc["trans_mask"]
         + tc["root_position"]
-        + _smv(g, _sconst(per[root]["w"], 1))
+        + smv(g, sconst(per[root]["w"], 1))
     )
     for j in plan.ancestors[1:]:
         g, p = _step(per[j], g, p, _slot_angles(per[j], qs))
@@ -443,8 +443,8 @@ def euler_zyx_solutions(r: Tensor, x_lock: Tensor) -> Tensor:
     first has |y| <= pi/2, the second is (z + pi, pi - y, x + pi) (not wrapped). At the gimbal lock
     (cos y = 0) x is taken from x_lock (...,) (e.g. the current angle) and z carries the rest.
     Day's extraction (as `ptrack.body.rotations.matrix_to_euler_np`): x from the last row, y and z given x."""
-    out = _seuler_solutions(_soa(r, 2), x_lock.expand(r.shape[:-2]))  # (3, 2, ...)
-    return _aos(out, 2).transpose(-1, -2)
+    out = _seuler_solutions(to_soa(r, 2), x_lock.expand(r.shape[:-2]))  # (3, 2, ...)
+    return to_aos(out, 2).transpose(-1, -2)
 
 
 def _window_shift(lower: Tensor, upper: Tensor) -> Tensor:
@@ -458,9 +458,9 @@ def _violation(theta: Tensor, tc: dict, sl: slice = slice(None)) -> tuple[Tensor
     """Angles in their windows and their summed limit violation: theta (A, *M) (dofs tc[...][sl])
     -> (A, *M), (*M) radians."""
     nd = theta.ndim - 1
-    shift = _sconst(tc["shift"][sl], nd)
+    shift = sconst(tc["shift"][sl], nd)
     w = torch.remainder(theta + shift, TAU) - shift
-    viol = (_sconst(tc["lower"][sl], nd) - w).clamp_min(0.0) + (w - _sconst(tc["upper"][sl], nd)).clamp_min(0.0)
+    viol = (sconst(tc["lower"][sl], nd) - w).clamp_min(0.0) + (w - sconst(tc["upper"][sl], nd)).clamp_min(0.0)
     return w, viol.sum(0)
 
 
@@ -521,8 +521,8 @@ def _lower_bone(lc: dict, t: Tensor) -> Tensor:
     """The limb's lower bone v(t) = D Rot(n, t) c in the ball's axis frame: t (*M) -> (3, *M)."""
     nd = t.ndim
     ct, st = torch.cos(t), torch.sin(t)
-    rot_c = _sconst(lc["c"], nd) * ct + _sconst(lc["ncross"], nd) * st + _sconst(lc["n"] * lc["nc"], nd) * (1 - ct)
-    return _smv(_sconst(lc["d"], nd), rot_c)
+    rot_c = sconst(lc["c"], nd) * ct + sconst(lc["ncross"], nd) * st + sconst(lc["n"] * lc["nc"], nd) * (1 - ct)
+    return smv(sconst(lc["d"], nd), rot_c)
 
 
 def _limb_fk(tc: dict, a_frame: Tensor, p_r: Tensor, theta: Tensor) -> Tensor:
@@ -531,9 +531,9 @@ def _limb_fk(tc: dict, a_frame: Tensor, p_r: Tensor, theta: Tensor) -> Tensor:
     theta (4, L, B). The ball joint's frame is G_r C Z C^T E (`ptrack.body.skeleton`), so its bone is
     G_r C Z a and the next one G_r C Z v(t)."""
     lc = tc["limb"]
-    az = _smm(a_frame, _seuler(theta[:3]))
-    p_m = p_r + lc["length_m"] * _smv(az, _sconst(lc["a"], 2))
-    p_e = p_m + lc["length_e"] * _smv(az, _lower_bone(lc, theta[3]))
+    az = smm(a_frame, _seuler(theta[:3]))
+    p_m = p_r + lc["length_m"] * smv(az, sconst(lc["a"], 2))
+    p_e = p_m + lc["length_e"] * smv(az, _lower_bone(lc, theta[3]))
     return torch.stack(torch.broadcast_tensors(p_r, p_m, p_e))
 
 
@@ -542,33 +542,33 @@ def _limb(plan: ChainIK, tc: dict, a_frame: Tensor, qs: Tensor, x: Tensor, ctol:
     lc = tc["limb"]
     cur_ball = _slot_angles(tc["per"][plan.balls[0]], qs)  # (3, B)
     cur = torch.cat([cur_ball, qs[tc["hinge_row"]][None]])  # (4, B)
-    at = _st(a_frame)
-    b1 = _sunit(_smv(at, x[1] - x[0]))  # (3, L, B) bone directions in the ball's parent axis frame
-    b2 = _sunit(_smv(at, x[2] - x[1]))
-    cos_k = _sdot(b1, b2)
+    at = stranspose(a_frame)
+    b1 = sunit(smv(at, x[1] - x[0]))  # (3, L, B) bone directions in the ball's parent axis frame
+    b2 = sunit(smv(at, x[2] - x[1]))
+    cos_k = sdot(b1, b2)
     # a . v(t) = rho cos(t - phi) + gamma must equal |a||c| cos_k. Not with acos (which loses half
     # the digits at a straight limb): with h-, h+ = |b1 -+ b2|^2 / 2 (exact near 0 and pi) and
     # delta = rho - (|a||c| - gamma) <= 0, rho cos(t - phi) = rho - delta - |a||c| h-, and
     # rho^2 sin^2(t - phi) = (delta + |a||c| h-) (delta - 2 gamma + |a||c| h+).
     dm, dp = b1 - b2, b1 + b2
-    hm, hp = 0.5 * _sdot(dm, dm), 0.5 * _sdot(dp, dp)
+    hm, hp = 0.5 * sdot(dm, dm), 0.5 * sdot(dp, dp)
     ac, delta, gamma = lc["ac"], lc["delta"], lc["gamma"]
     sin_part = torch.sqrt(((delta + ac * hm) * (delta - 2.0 * gamma + ac * hp)).clamp_min(0.0))
     half = torch.atan2(sin_part, lc["rho"] - delta - ac * hm)
     t = lc["phi"] + torch.stack([half, -half])  # (2, L, B) hinge candidates
     v = _lower_bone(lc, t)  # (3, 2, L, B)
     # Z takes the frame (a, v(t)) onto the frame (b1, b2): Z = sum_i g_i f_i^T
-    f1 = _sconst(lc["a_unit"], 3)
-    f2 = _sunit(v - _sdot(v, f1) * f1)
-    f3 = _scross(f1, f2)
-    g2 = _sunit(b2 - cos_k * b1)
-    g3 = _scross(b1, g2)
+    f1 = sconst(lc["a_unit"], 3)
+    f2 = sunit(v - sdot(v, f1) * f1)
+    f3 = scross(f1, f2)
+    g2 = sunit(b2 - cos_k * b1)
+    g3 = scross(b1, g2)
     z = b1[:, None, None] * f1[None] + g2[:, None, None] * f2[None] + g3[:, None, None] * f3[None]
     # straight limb: keep the current twist (smallest turn of the current upper bone onto b1)
-    straight = _snorm(_scross(b1, b2)) < ctol  # (L, B)
+    straight = snorm(scross(b1, b2)) < ctol  # (L, B)
     if bool(straight.any()):  # one host sync; skips ~60 ops when no leaf is straight
         z_cur = _seuler(cur_ball)[:, :, None]  # (3, 3, 1, B)
-        z_swing = _smm(_smin_rotation(_smv(z_cur, _sconst(lc["a"], 2)).expand_as(b1), b1), z_cur)
+        z_swing = smm(smin_rotation(smv(z_cur, sconst(lc["a"], 2)).expand_as(b1), b1), z_cur)
         z = torch.where(straight, z_swing[:, :, None], z)  # (3, 3, 2, L, B)
     eul = _seuler_solutions(z, cur_ball[2])  # (3, 2 Euler, 2 hinge, L, B)
     cands = torch.cat([eul, t[None, None].expand(1, *eul.shape[1:])]).flatten(1, 2)  # (4, 4, L, B)
@@ -589,15 +589,15 @@ def _swing(plan: ChainIK, tc: dict, g_r: Tensor, p_r: Tensor, qs: Tensor, x: Ten
         g_p = frames[pa][0][:, :, None]  # (3, 3, 1, B)
         link = (frames[ch][1] - frames[pa][1])[:, None]  # (3, 1, B)
         if turn is not None:
-            g_p, link = _smm(turn, g_p), _smv(turn, link)
+            g_p, link = smm(turn, g_p), smv(turn, link)
         target = x[k + 1] - x[k]
-        delta = _smin_rotation(link.expand_as(target), target)
-        turn = delta if turn is None else _smm(delta, turn)
-        local = _smm(_st(g_p), _smm(turn, frames[ball][0][:, :, None]))
+        delta = smin_rotation(link.expand_as(target), target)
+        turn = delta if turn is None else smm(delta, turn)
+        local = smm(stranspose(g_p), smm(turn, frames[ball][0][:, :, None]))
         if per[ball]["rest"] is not None:
-            local = _smm(local, _sconst(per[ball]["rest"].T, 2))
-        cb = _sconst(per[ball]["c"], 2)
-        zmat = _smm(_smm(_st(cb), local), cb)
+            local = smm(local, sconst(per[ball]["rest"].T, 2))
+        cb = sconst(per[ball]["c"], 2)
+        zmat = smm(smm(stranspose(cb), local), cb)
         cur = _slot_angles(per[ball], qs)[:, None]  # (3, 1, B)
         sl = slice(3 * k, 3 * k + 3)
         out.append(_pick(_seuler_solutions(zmat, cur[2]), cur, tc, sl))
@@ -620,19 +620,19 @@ def _root_parent(plan: ChainIK, tc: dict, qs: Tensor) -> tuple[Tensor, Tensor]:
     per, anc = tc["per"], plan.ancestors
     pivot = qs.index_select(0, tc["trans_index"]) * tc["trans_mask"] + tc["root_position"]
     if len(anc) == 1:
-        return _seye(pivot, 1).expand(3, 3, *pivot.shape[1:]), pivot
+        return seye(pivot, 1).expand(3, 3, *pivot.shape[1:]), pivot
     g = _local(per[anc[0]], _slot_angles(per[anc[0]], qs))
-    p = pivot + _smv(g, _sconst(per[anc[0]]["w"], 1))
+    p = pivot + smv(g, sconst(per[anc[0]]["w"], 1))
     for j in anc[1:-1]:
         g, p = _step(per[j], g, p, _slot_angles(per[j], qs))
     u = per[anc[-1]]["u"]
-    return g, (p if u is None else p + _smv(g, _sconst(u, 1)))
+    return g, (p if u is None else p + smv(g, sconst(u, 1)))
 
 
 def _turn_vector(pj: dict, s: int, angle: Tensor, v: Tensor) -> Tensor:
     """Rot(axes[s], angle) v (Rodrigues) for angle (P,), v (3, P) -> (3, P)."""
-    kv = _smv(_sconst(pj["k1"][s], 1), v)
-    return v + torch.sin(angle) * kv + (1 - torch.cos(angle)) * _smv(_sconst(pj["k1"][s], 1), kv)
+    kv = smv(sconst(pj["k1"][s], 1), v)
+    return v + torch.sin(angle) * kv + (1 - torch.cos(angle)) * smv(sconst(pj["k1"][s], 1), kv)
 
 
 def _walk_local(pj: dict, theta: Tensor) -> Tensor:
@@ -643,14 +643,14 @@ def _walk_local(pj: dict, theta: Tensor) -> Tensor:
     r = None
     for s in pj["active"]:
         rs = (
-            _seye(theta, 1)
-            + torch.sin(theta[s]) * _sconst(pj["k1"][s], 1)
-            + (1 - torch.cos(theta[s])) * _sconst(pj["k2"][s], 1)
+            seye(theta, 1)
+            + torch.sin(theta[s]) * sconst(pj["k1"][s], 1)
+            + (1 - torch.cos(theta[s])) * sconst(pj["k2"][s], 1)
         )
-        r = rs if r is None else _smm(r, rs)
+        r = rs if r is None else smm(r, rs)
     if r is None:
-        return _seye(theta, 1) if pj["rest"] is None else _sconst(pj["rest"], 1)
-    return r if pj["rest"] is None else _smm(r, _sconst(pj["rest"], 1))
+        return seye(theta, 1) if pj["rest"] is None else sconst(pj["rest"], 1)
+    return r if pj["rest"] is None else smm(r, sconst(pj["rest"], 1))
 
 
 def _walk_fk(
@@ -677,15 +677,15 @@ def _walk_fk(
             for s, m in slots[j]:
                 rows[s] = theta[m]
             th = torch.stack(rows)
-        o = pivot if i == 0 else (p_p if pj["u"] is None else p_p + _smv(g_p, _sconst(pj["u"], 1)))
+        o = pivot if i == 0 else (p_p if pj["u"] is None else p_p + smv(g_p, sconst(pj["u"], 1)))
         if jacobian:
             for s, m in slots.get(j, ()):
-                v = _sconst(pj["axes"][s], 1)
+                v = sconst(pj["axes"][s], 1)
                 for r in reversed([r for r in pj["active"] if r < s]):  # a = G_parent Rot(a_0, th_0) ... a_s
                     v = _turn_vector(pj, r, th[r], v)
-                columns.append((m, i, _smv(g_p, v), o))
-        g_p = _smm(g_p, _walk_local(pj, th))
-        p_p = o + _smv(g_p, _sconst(pj["w"], 1))
+                columns.append((m, i, smv(g_p, v), o))
+        g_p = smm(g_p, _walk_local(pj, th))
+        p_p = o + smv(g_p, sconst(pj["w"], 1))
         pos[j] = p_p
     out = torch.stack(torch.broadcast_tensors(*(pos[j] for j in chain.joints)))
     if not jacobian:
@@ -695,7 +695,7 @@ def _walk_fk(
     for m, i, a, o in columns:
         for k, y in enumerate(chain.joints[1:]):
             if at[y] >= i:
-                jac[k, :, m] += _scross(a, pos[y] - o)
+                jac[k, :, m] += scross(a, pos[y] - o)
     return out, jac
 
 
@@ -787,7 +787,7 @@ def _iterative(
         projected = ~in_limits
         if bool(projected.any()):
             i = projected.nonzero()[:, 0]
-            lo, hi = _sconst(tc["lower"], 1), _sconst(tc["upper"], 1)
+            lo, hi = sconst(tc["lower"], 1), sconst(tc["upper"], 1)
             sub = _fit(
                 plan, tc, gp[..., i], pv[:, i], qp[:, i], xp[..., i], torch.clamp(theta[:, i], lo, hi), True, max_iter
             )
@@ -897,7 +897,7 @@ def chain_ik(
     g_r, p_r = _ancestors(plan, tc, qs)
     p_l = p_r[:, None]
     if plan.kind == "limb":
-        a_frame = _smm(g_r, _sconst(tc["per"][plan.balls[0]]["c"], 1))[:, :, None]
+        a_frame = smm(g_r, sconst(tc["per"][plan.balls[0]]["c"], 1))[:, :, None]
         theta = _limb(plan, tc, a_frame, qs, x, ctol)
 
         def fk(th: Tensor) -> Tensor:
@@ -922,7 +922,7 @@ def chain_ik(
     projected = torch.zeros_like(in_limits)
     if mode == "project":
         projected = ~in_limits
-        clamped = torch.clamp(theta, _sconst(tc["lower"], 2), _sconst(tc["upper"], 2))
+        clamped = torch.clamp(theta, sconst(tc["lower"], 2), sconst(tc["upper"], 2))
         theta = torch.where(projected, clamped, theta)
         pos = torch.where(projected, fk(theta), pos)
         keep = exact
@@ -994,7 +994,7 @@ def product_ik(q: Tensor, results: list[IKResult], prod: Product) -> IKResult:
         x = prod.bits_view(0, getattr(first, name), -1)
         for c, r in enumerate(results[1:], start=1):
             x = combine(x, prod.bits_view(c, getattr(r, name), -1))
-        flags[name] = _flatten_bits(x, start, nb)
+        flags[name] = flatten_bits(x, start, nb)
     return IKResult(
         angles=angles.flatten(start, start + nb - 1),
         dofs=tuple(d for r in results for d in r.dofs),

@@ -193,62 +193,62 @@ def joint_observations(
 # torch ops broadcasting over tiny trailing dims ((..., 3) * (..., 1, 3)) are ~10x slower.
 
 
-def _sdot(a: Tensor, b: Tensor) -> Tensor:
+def sdot(a: Tensor, b: Tensor) -> Tensor:
     """(3, *M), (3, *M) -> (*M)."""
     return (a * b).sum(0)
 
 
-def _smv(r: Tensor, v: Tensor) -> Tensor:
+def smv(r: Tensor, v: Tensor) -> Tensor:
     """(3, 3, *M) @ (3, *M) -> (3, *M)."""
     return (r * v[None]).sum(1)
 
 
-def _smm(a: Tensor, b: Tensor) -> Tensor:
+def smm(a: Tensor, b: Tensor) -> Tensor:
     """(3, 3, *M) @ (3, 3, *M) -> (3, 3, *M)."""
     return a[:, 0, None] * b[0] + a[:, 1, None] * b[1] + a[:, 2, None] * b[2]
 
 
-def _st(r: Tensor) -> Tensor:
+def stranspose(r: Tensor) -> Tensor:
     """Transpose: (3, 3, *M) -> (3, 3, *M)."""
     return r.transpose(0, 1)
 
 
-def _scross(a: Tensor, b: Tensor) -> Tensor:
+def scross(a: Tensor, b: Tensor) -> Tensor:
     """(3, *M) x (3, *M) -> (3, *M)."""
     a0, a1, a2 = a
     b0, b1, b2 = b
     return torch.stack(torch.broadcast_tensors(a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
 
 
-def _snorm(a: Tensor) -> Tensor:
-    return torch.sqrt(_sdot(a, a))
+def snorm(a: Tensor) -> Tensor:
+    return torch.sqrt(sdot(a, a))
 
 
-def _sunit(a: Tensor) -> Tensor:
-    return a / _snorm(a).clamp_min(torch.finfo(a.dtype).tiny)
+def sunit(a: Tensor) -> Tensor:
+    return a / snorm(a).clamp_min(torch.finfo(a.dtype).tiny)
 
 
-def _sconst(x: Tensor, ndim: int) -> Tensor:
+def sconst(x: Tensor, ndim: int) -> Tensor:
     """A constant (3,) or (3, 3) shaped to broadcast against (3, *M) / (3, 3, *M) with len(M) = ndim."""
     return x.reshape(*x.shape, *([1] * ndim))
 
 
-def _seye(like: Tensor, ndim: int) -> Tensor:
-    return _sconst(torch.eye(3, dtype=like.dtype, device=like.device), ndim)
+def seye(like: Tensor, ndim: int) -> Tensor:
+    return sconst(torch.eye(3, dtype=like.dtype, device=like.device), ndim)
 
 
-def _smin_rotation(x: Tensor, y: Tensor) -> Tensor:
+def smin_rotation(x: Tensor, y: Tensor) -> Tensor:
     """`min_rotation` on (3, *M) vectors -> (3, 3, *M)."""
-    xu, yu = _sunit(x), _sunit(y)
-    c = _sdot(xu, yu)
+    xu, yu = sunit(x), sunit(y)
+    c = sdot(xu, yu)
     # within ~sqrt(eps) of opposite, the smallest rotation's axis is lost in rounding
     opposite = 1.0 + c < math.sqrt(torch.finfo(x.dtype).eps)
     x1 = torch.where(opposite, -xu, xu)
-    k = _scross(x1, yu)
-    eye = _seye(k, k.ndim - 1)
+    k = scross(x1, yu)
+    eye = seye(k, k.ndim - 1)
     zero = torch.zeros_like(k[0])
     kx = torch.stack([zero, -k[2], k[1], k[2], zero, -k[0], -k[1], k[0], zero]).unflatten(0, (3, 3))
-    kk = k[:, None] * k[None] - _sdot(k, k) * eye  # kx @ kx
+    kk = k[:, None] * k[None] - sdot(k, k) * eye  # kx @ kx
     r = eye + kx + kk / (1.0 + torch.where(opposite, -c, c))  # x1 -> y
     if not bool(opposite.any()):  # one host sync; the rare case below costs as much as the rest
         return r
@@ -257,18 +257,18 @@ def _smin_rotation(x: Tensor, y: Tensor) -> Tensor:
     first = (a0 <= a1) & (a0 <= a2)
     second = ~first & (a1 <= a2)
     pick = torch.stack([first, second, ~first & ~second]).to(x)
-    u = _sunit(_scross(xu, pick))
+    u = sunit(scross(xu, pick))
     half_turn = 2.0 * u[:, None] * u[None] - eye
-    return torch.where(opposite, _smm(r, half_turn), r)
+    return torch.where(opposite, smm(r, half_turn), r)
 
 
-def _soa(x: Tensor, lead: int) -> Tensor:
+def to_soa(x: Tensor, lead: int) -> Tensor:
     """(*M, *C) -> (*C, *M) contiguous, with len(C) = lead trailing component dims moved first."""
     return x.movedim(tuple(range(x.ndim - lead, x.ndim)), tuple(range(lead))).contiguous()
 
 
-def _aos(x: Tensor, lead: int) -> Tensor:
-    """Inverse of `_soa`: (*C, *M) -> (*M, *C) contiguous."""
+def to_aos(x: Tensor, lead: int) -> Tensor:
+    """Inverse of `to_soa`: (*C, *M) -> (*M, *C) contiguous."""
     return x.movedim(tuple(range(lead)), tuple(range(x.ndim - lead, x.ndim))).contiguous()
 
 
@@ -279,7 +279,7 @@ def min_rotation(x: Tensor, y: Tensor) -> Tensor:
     axis is undefined) turn by pi about an axis normal to x, then by the small rotation from -x to y.
     """
     x, y = torch.broadcast_tensors(x, y)
-    return _aos(_smin_rotation(_soa(x, 1), _soa(y, 1)), 2)
+    return to_aos(smin_rotation(to_soa(x, 1), to_soa(y, 1)), 2)
 
 
 # ---------------------------------------------------------------- trees
@@ -361,7 +361,7 @@ def interpretation_tree(
     conf = conf.expand(*batch, n).reshape(b, n)
     observed = (conf > 0) & torch.isfinite(px).all(-1)  # (B, n)
     _, direction = camera.rays(torch.where(observed[..., None], px, torch.zeros_like(px)))
-    origin = _sconst(camera.center.to(dtype=dt, device=dev), 2)  # (3, 1, 1)
+    origin = sconst(camera.center.to(dtype=dt, device=dev), 2)  # (3, 1, 1)
     xs = x.permute(1, 2, 0).contiguous()  # (n+1, 3, B)
     ds = direction.permute(1, 2, 0).contiguous()  # (n, 3, B)
     obs_s = observed.T.contiguous()  # (n, B)
@@ -376,24 +376,24 @@ def interpretation_tree(
     misses: list[Tensor] = []
     for k in range(n):
         bone = (xs[k + 1] - xs[k])[:, None]  # (3, 1, B)
-        length = _snorm(bone)  # (1, B)
-        moved = bone if carry is None else _smv(carry, bone)
+        length = snorm(bone)  # (1, B)
+        moved = bone if carry is None else smv(carry, bone)
         ref = parent + moved  # the hypothesis's child carried with the links above
         d = ds[k][:, None]  # (3, 1, B)
         w = parent - origin
-        e = w - _sdot(w, d) * d  # from the ray's closest point to the centre
-        h2 = _sdot(e, e)
+        e = w - sdot(w, d) * d  # from the ray's closest point to the centre
+        h2 = sdot(e, e)
         disc = length * length - h2  # (S, B)
         tol = tangent_tol * length * length
         two = disc > tol
         s = torch.sqrt(disc.clamp_min(0.0))
         centre = parent - e
         # no intersection: the sphere point nearest the ray
-        nearest = parent - length * _sunit(e)
+        nearest = parent - length * sunit(e)
         hit = disc >= 0
         sol1 = torch.where(hit, centre + s * d, nearest)
         sol2 = torch.where(hit, centre - s * d, nearest)
-        swap = _sdot(sol2 - ref, sol2 - ref) < _sdot(sol1 - ref, sol1 - ref)
+        swap = sdot(sol2 - ref, sol2 - ref) < sdot(sol1 - ref, sol1 - ref)
         obs = obs_s[k]  # (B,)
         keep = torch.where(obs, torch.where(swap, sol2, sol1), ref)
         flip = torch.where(obs, torch.where(swap, sol1, sol2), ref)
@@ -404,8 +404,8 @@ def interpretation_tree(
         single = ~obs | ~two
         child = torch.cat([keep, flip], dim=1)  # (3, 2S, B): the new bit k is the high bit
         if k + 1 < n:
-            turn = _smin_rotation(torch.cat([moved, moved], 1).expand_as(child), child - torch.cat([parent, parent], 1))
-            carry = turn if carry is None else _smm(turn, torch.cat([carry, carry], 2))
+            turn = smin_rotation(torch.cat([moved, moved], 1).expand_as(child), child - torch.cat([parent, parent], 1))
+            carry = turn if carry is None else smm(turn, torch.cat([carry, carry], 2))
         dup = torch.cat([dup, dup | single], dim=0)
         pen = torch.cat([pen + gap, pen + gap], dim=0)
         parent = child
@@ -476,7 +476,7 @@ class Product(NamedTuple):
         return x.reshape(*x.shape[:d], *bits, *x.shape[d + 1 :])
 
 
-def _flatten_bits(x: Tensor, start: int, bits: int) -> Tensor:
+def flatten_bits(x: Tensor, start: int, bits: int) -> Tensor:
     """Broadcast bit dims -> combined leaves: x (..., b_{T-1}, ..., b_0, ...) with each bit dim
     of size 1 or 2, starting at `start` -> (..., 2^T, ...)."""
     shape = list(x.shape)
@@ -522,9 +522,9 @@ def product(trees: Sequence[Tree]) -> Product:
         penalty = penalty + prod.bits_view(c, t.penalty, -1)
     nb, start = prod.num_bits, len(batch)
     return prod._replace(
-        unique=_flatten_bits(unique, start, nb),
-        infeasible=_flatten_bits(infeasible, start, nb),
-        penalty=_flatten_bits(penalty, start, nb),
+        unique=flatten_bits(unique, start, nb),
+        infeasible=flatten_bits(infeasible, start, nb),
+        penalty=flatten_bits(penalty, start, nb),
     )
 
 
@@ -537,7 +537,7 @@ def product_joints(joints: Tensor, trees: Sequence[Tree], prod: Product) -> Tens
     start = joints.ndim - 2
     for c, t in enumerate(trees):
         idx = torch.as_tensor(t.chain.joints, device=joints.device)
-        out.index_copy_(-2, idx, _flatten_bits(prod.bits_view(c, t.positions, -3), start, prod.num_bits))
+        out.index_copy_(-2, idx, flatten_bits(prod.bits_view(c, t.positions, -3), start, prod.num_bits))
     return out
 
 

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ptrack.body.acclaim import parse_clips, skeleton_beside
 from ptrack.body.rotations import matrix_to_euler_np
 from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
@@ -214,8 +215,6 @@ class Clip:
 
 def read_clips(paths: Sequence[str | Path]) -> list[Clip]:
     """Load AMC clips (each with the .asf beside it) through the acclaim loaders."""
-    from ptrack.pipeline.config import skeleton_beside
-
     clips: list[Clip] = []
     skeletons: dict[Path, Skeleton] = {}
     for p in paths:
@@ -233,8 +232,6 @@ def read_clips(paths: Sequence[str | Path]) -> list[Clip]:
 
 def clip_paths(spec: Sequence[str]) -> list[Path]:
     """`motion.clips` -> AMC paths: the listed files, a single non-.amc entry being a clip-list file."""
-    from ptrack.pipeline.evaluate import parse_clips
-
     if len(spec) == 1 and not spec[0].lower().endswith(".amc"):
         if not Path(spec[0]).is_file():
             raise FileNotFoundError(f"config key 'motion.clips': clip list not found: {spec[0]}")

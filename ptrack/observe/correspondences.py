@@ -27,8 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ptrack.costs.correspondence import anchor_points, backproject, ray_capsule_hit
 from ptrack.errors import InputError
+from ptrack.observe.backprojection import anchor_points, backproject, ray_capsule_hit
 from ptrack.observe.camera import Camera
 from ptrack.observe.observations import read_npz
 
@@ -191,7 +191,7 @@ def simulate_correspondences(
     joints (T, J, 3) and world rotations (T, J, 3, 3) of the true poses; bones (B, 2) long (parent, child);
     radii (B,) metres; per_frame: pairs wanted per frame pair (t-1, t). For each t, `candidates * per_frame`
     pixels are drawn uniformly in the box of the model's projection in image t-1 and backprojected to the
-    visible capsule surface (`ptrack.costs.correspondence.backproject`: the nearest hit, so front-facing and
+    visible capsule surface (`ptrack.observe.backprojection.backproject`: the nearest hit, so front-facing and
     not hidden by another capsule); each hit, fixed in its capsule's frame, is carried to frame t by the true
     motion and kept when it is still visible there (the first surface along its line of sight, within
     VISIBLE_TOL_M) and inside the image; the first `per_frame` kept, in draw order, are the pairs (fewer

@@ -19,6 +19,7 @@ from typing import Any, Union
 
 import yaml
 
+from ptrack.body.acclaim import skeleton_beside
 from ptrack.body.pose_prior import check_smoothing_table
 from ptrack.costs.base import ROBUST_LOSSES
 from ptrack.errors import InputError
@@ -556,16 +557,6 @@ def _one_line(e: Exception) -> str:
     if problem and mark is not None:
         return f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
     return " ".join(str(e).split())
-
-
-def skeleton_beside(amc: str | Path) -> Path | None:
-    """The skeleton of an AMC clip: `<subject>.asf` in its folder, else the only .asf there, else None."""
-    amc = Path(amc)
-    cand = amc.parent / f"{amc.stem.split('_')[0]}.asf"
-    if cand.is_file():
-        return cand
-    found = sorted(amc.parent.glob("*.asf"))
-    return found[0] if len(found) == 1 else None
 
 
 def _resolve_paths(value: str | list, base: Path) -> str | list:

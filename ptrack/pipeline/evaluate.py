@@ -27,9 +27,10 @@ from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
 
+from ptrack.body.acclaim import parse_clips, skeleton_beside
 from ptrack.errors import EstimationError, InputError, log_to_stderr
 from ptrack.pipeline.compare import is_number
-from ptrack.pipeline.config import load_config, parse_override, skeleton_beside
+from ptrack.pipeline.config import load_config, parse_override
 from ptrack.pipeline.run import execute, json_safe, remove_partial
 
 log = logging.getLogger(__name__)
@@ -51,27 +52,6 @@ COLUMNS = (
     ("seconds", "seconds", "{:.1f}"),
     ("seeds", "seeds", "{:d}"),  # with several seeds: how many ran (the row is their mean)
 )
-
-
-def parse_clips(spec: str, cwd: Path | None = None) -> list[Path]:
-    """AMC paths from a comma-separated list or a text file (one path per line, `#` comments,
-    relative to the file's folder)."""
-    cwd = Path(cwd or Path.cwd())
-    p = cwd / spec
-    if p.is_file() and p.suffix.lower() not in (".amc", ".asf"):
-        base = p.resolve().parent
-        items = [ln.split("#", 1)[0].strip() for ln in p.read_text(encoding="utf-8").splitlines()]
-        paths = [(base / it).resolve() for it in items if it]
-    else:
-        paths = [(cwd / it.strip()).resolve() for it in spec.split(",") if it.strip()]
-    if not paths:
-        raise InputError(f"--clips {spec!r} names no clip")
-    for path in paths:
-        if not path.exists():
-            raise FileNotFoundError(f"clip not found: {path}")
-        if path.suffix.lower() != ".amc":
-            raise InputError(f"clip {path} is not an .amc file")
-    return paths
 
 
 def parse_seeds(spec: str) -> list[int]:

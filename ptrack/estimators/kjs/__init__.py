@@ -37,33 +37,33 @@ fits that differ in 3D are expanded by every flip combination of the chains (the
 trees), the 4K of lowest frame-0 cost without the start prior refined, and the K best distinct minima
 kept. A frame with no observed keypoint is carried by the dynamics. The output's `hypotheses` are the
 K modes of each frame; `q`/`joints` are the best trajectory through them by Viterbi: each mode's own
-frame cost (data, limits, collision, pose prior; `_evidence`) plus a velocity prior between
+frame cost (data, limits, collision, pose prior; `frame_evidence`) plus a velocity prior between
 consecutive choices, on the joints' positions relative to the root (`kjs.viterbi_space: joints`, std
 `kjs.viterbi_sigma_m` per frame) or on the dofs (`dofs`, `kjs.viterbi_sigma`).
 
 A second pass runs backwards in time from the forward pass's last modes (`kjs.backward_pass: always`;
 `tree`: after a tree start only). After a tree start it also starts from a tree start on the last frame
-(`_backward_start`): without 3D input the forward pass can hold a limb's wrong branch, or the whole
+(`backward_start`): without 3D input the forward pass can hold a limb's wrong branch, or the whole
 body's, from frame 0 on, and the backward pass brings the later reading back. After a keyframe start each
-backward step also starts from the forward pass's modes of the frame after (`_feed`): where a limb crosses
+backward step also starts from the forward pass's modes of the frame after (`feed_backward`): where a limb crosses
 the image plane both passes lag on the side they came from, and the forward pass's true reading, found a
 few frames after the crossing in a light mode, is carried back to the crossing; the backward pass keeps
 the heaviest mode of each depth order of the limbs before any order's second (`_orders_first`), so that
 such a light mode is not crowded out by many heavier copies of the other reading. Each frame's K
-hypotheses are taken from both passes in turn (`_merge`): the forward trajectory's mode first, then each
+hypotheses are taken from both passes in turn (`merge_mixtures`): the forward trajectory's mode first, then each
 pass's heaviest, each depth order of the limbs before any order twice. The best trajectory stays the
 forward pass's: over the merged modes Viterbi took flipped backward modes where the forward pass had
 been right (held-out 35_01, 02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 mm; docs/notes/kjs-history.md).
 After a tree start the backward pass's own best trajectory replaces it when the two face directions more
-than `HEADING_SPLIT_DEG` apart (two readings of the whole body) and it costs less (`_lead_pass`).
+than `HEADING_SPLIT_DEG` apart (two readings of the whole body) and it costs less (`lead_pass`).
 
-Then `kjs.smooth_sweeps` sweeps of a smoother (`_smooth`) re-polish every frame's hypotheses with the prior
+Then `kjs.smooth_sweeps` sweeps of a smoother (`smooth_lattice`) re-polish every frame's hypotheses with the prior
 around the mean of their nearest neighbours in the frames before and after. The passes are filters: each
 mode holds its own frame's evidence and the past's (or the future's), so its depth jitters from frame to
 frame where the 2D leaves it loose; the smoother brings in both sides. It keeps the weights and the best
 trajectory's choice of mode per frame.
 
-Last (`kjs.recombine`, `_recombine`) each frame gets one more hypothesis: the best trajectory's pose with
+Last (`kjs.recombine`, `recombine`) each frame gets one more hypothesis: the best trajectory's pose with
 each chain's reading (which way each limb points in depth) chosen on its own, by a Viterbi pass per chain
 over the modes' readings of it. The modes hold the readings in combinations, and often none holds the right
 reading of every limb at once. It replaces a light mode and leaves the best trajectory as it was.
