@@ -16,21 +16,21 @@ __version__ = "0.1.0"
 
 #: public name -> the module that defines it
 _EXPORTS = {
-    "Camera": "ptrack.camera",
-    "camera_for_motion": "ptrack.camera",
-    "look_at": "ptrack.camera",
-    "load_config": "ptrack.config",
+    "Camera": "ptrack.observe.camera",
+    "camera_for_motion": "ptrack.observe.camera",
+    "look_at": "ptrack.observe.camera",
+    "load_config": "ptrack.pipeline.config",
     "InputError": "ptrack.errors",
-    "KeypointSet": "ptrack.keypoints",
-    "make_keypoints": "ptrack.keypoints",
-    "forward_kinematics": "ptrack.kinematics",
-    "ChannelConfig": "ptrack.observations",
-    "Observations": "ptrack.observations",
-    "simulate_observations": "ptrack.observations",
-    "estimate": "ptrack.run",
-    "Motion": "ptrack.skeleton",
-    "Skeleton": "ptrack.skeleton",
-    "load_amc": "ptrack.skeleton",
+    "KeypointSet": "ptrack.body.keypoints",
+    "make_keypoints": "ptrack.body.keypoints",
+    "forward_kinematics": "ptrack.body.kinematics",
+    "ChannelConfig": "ptrack.observe.observations",
+    "Observations": "ptrack.observe.observations",
+    "simulate_observations": "ptrack.observe.observations",
+    "estimate": "ptrack.pipeline.run",
+    "Motion": "ptrack.body.skeleton",
+    "Skeleton": "ptrack.body.skeleton",
+    "load_amc": "ptrack.body.skeleton",
 }
 
 __all__ = sorted(_EXPORTS)
@@ -49,11 +49,11 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:
-    from ptrack.camera import Camera, camera_for_motion, look_at
-    from ptrack.config import load_config
+    from ptrack.body.keypoints import KeypointSet, make_keypoints
+    from ptrack.body.kinematics import forward_kinematics
+    from ptrack.body.skeleton import Motion, Skeleton, load_amc
     from ptrack.errors import InputError
-    from ptrack.keypoints import KeypointSet, make_keypoints
-    from ptrack.kinematics import forward_kinematics
-    from ptrack.observations import ChannelConfig, Observations, simulate_observations
-    from ptrack.run import estimate
-    from ptrack.skeleton import Motion, Skeleton, load_amc
+    from ptrack.observe.camera import Camera, camera_for_motion, look_at
+    from ptrack.observe.observations import ChannelConfig, Observations, simulate_observations
+    from ptrack.pipeline.config import load_config
+    from ptrack.pipeline.run import estimate

@@ -177,18 +177,18 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(args: argparse.Namespace) -> int:
     log_to_stderr()
-    logging.getLogger("ptrack.evaluate").setLevel(logging.INFO)  # its one line per clip off a terminal
+    logging.getLogger("ptrack.pipeline.evaluate").setLevel(logging.INFO)  # its one line per clip off a terminal
     try:
         if args.command == "run":
-            from ptrack.config import load_config
-            from ptrack.run import execute
+            from ptrack.pipeline.config import load_config
+            from ptrack.pipeline.run import execute
 
             cfg = load_config(args.config, args.overrides)
-            logging.getLogger("ptrack.run.progress").setLevel(logging.INFO)  # its lines off a terminal
+            logging.getLogger("ptrack.pipeline.run.progress").setLevel(logging.INFO)  # its lines off a terminal
             out = execute(cfg, progress=False if args.quiet else None)
             print((out / "metrics.json").read_text() if args.json else out, end="" if args.json else "\n", flush=True)
         elif args.command == "evaluate":
-            from ptrack.evaluate import evaluate, parse_seeds
+            from ptrack.pipeline.evaluate import evaluate, parse_seeds
 
             seeds = None if args.seeds is None else parse_seeds(args.seeds)
             table = evaluate(
@@ -203,7 +203,7 @@ def _main(args: argparse.Namespace) -> int:
             json_path = table.with_name("results.json")
             print(json_path.read_text() if args.json else table, end="" if args.json else "\n", flush=True)
         elif args.command == "compare":
-            from ptrack.compare import as_json, compare, load_runs, markdown
+            from ptrack.pipeline.compare import as_json, compare, load_runs, markdown
 
             names = args.names or [_eval_name(args.a), _eval_name(args.b)]
             if names[0] == names[1]:  # two folders of one name (runs/x/eval, runs/y/eval)
@@ -213,8 +213,8 @@ def _main(args: argparse.Namespace) -> int:
         elif args.command == "fit-motion":
             import time
 
-            from ptrack.config import load_config
-            from ptrack.motion_model import check_writable, fit_from_config, model_path, save_motion_model
+            from ptrack.motion.motion_model import check_writable, fit_from_config, model_path, save_motion_model
+            from ptrack.pipeline.config import load_config
 
             cfg = load_config(args.config, args.overrides, run=False)
             out = check_writable(Path(args.out) if args.out else model_path(cfg))
@@ -231,19 +231,19 @@ def _main(args: argparse.Namespace) -> int:
             )
             print(out, flush=True)
         elif args.command == "config":
-            from ptrack.config import config_reference
+            from ptrack.pipeline.config import config_reference
 
             for key in config_reference(args.list or None):
                 print(f"{key.key} = {key.default}  ({key.type})  {key.help}")
         elif args.command == "replay":
-            from ptrack.viz import open_viewer
+            from ptrack.io.viz import open_viewer
 
             path = Path(args.run_dir)
             rrd = path / "run.rrd" if path.is_dir() else path
             if not rrd.exists():
                 raise FileNotFoundError(f"no recording at {rrd} (give a run folder holding run.rrd)")
             if args.web:
-                from ptrack.viz import run_child, web_viewer_command
+                from ptrack.io.viz import run_child, web_viewer_command
 
                 cmd, url = web_viewer_command(rrd, args.bind)  # checks that rrd is a recording
                 print(url, flush=True)

@@ -15,14 +15,14 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ptrack.camera import Camera
-from ptrack.correspondences import Correspondences
+from ptrack.body.keypoints import KeypointSet
+from ptrack.body.limits import outside_limits, wrap_to_limits
+from ptrack.body.skeleton import Skeleton
 from ptrack.costs import PoseEval
 from ptrack.errors import InputError
-from ptrack.keypoints import KeypointSet
-from ptrack.limits import outside_limits, wrap_to_limits
-from ptrack.observations import Observations
-from ptrack.skeleton import Skeleton
+from ptrack.observe.camera import Camera
+from ptrack.observe.correspondences import Correspondences
+from ptrack.observe.observations import Observations
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +111,33 @@ def first_keyframe(problem: Problem, key: str, lower: Tensor, upper: Tensor) -> 
     q0 = kf.q[(kf.frames == 0).nonzero()[0, 0]].to(lower)
     angular = torch.as_tensor(problem.skeleton.angular_dofs(), device=lower.device)
     return wrap_to_limits(q0, lower, upper, angular)
+
+
+def rest_pose_in_view(problem: Problem, dtype: torch.dtype, frame: int | None = None) -> Tensor:
+    """A rest pose (all angles 0) whose root sits on the camera ray through the centre of the observed
+    keypoints of `frame` (None, or a frame with none observed: the first frame with any), at the depth
+    that makes the observed 2D body size match the model's. -> (D,)"""
+    sk, obs, kps = problem.skeleton, problem.observations, problem.keypoints
+    device = obs.keypoints.device
+    q = torch.zeros(sk.num_dofs, dtype=dtype, device=device)
+    conf = obs.confidence
+    if frame is None or not bool((conf[frame] > 0).any()):
+        frame = int(torch.nonzero(conf.sum(-1) > 0)[0, 0])
+    valid = conf[frame] > 0
+    pix = obs.keypoints[frame][valid].to(dtype)
+    rest = sk.forward_kinematics(q)
+    kp3 = rest.index_select(0, kps.index(device))[valid]
+    size3 = (kp3 - kp3.mean(0)).norm(dim=-1).mean()
+    size2 = (pix - pix.mean(0)).norm(dim=-1).mean().clamp(min=1.0)
+    cam = obs.camera.to(device=device, dtype=dtype)
+    depth = cam.K[0, 0] * size3 / size2
+    origin, direction = cam.rays(pix.mean(0))
+    target = origin + direction * (depth / (direction @ cam.R[2]))
+    centre = kp3.mean(0)
+    for k, d in enumerate(sk.translation_dof.tolist()):
+        if d >= 0:
+            q[d] = target[k] - centre[k]
+    return q
 
 
 def warn_keyframes_outside_limits(skeleton: Skeleton, keyframes: Keyframes, tol: float = 1e-3) -> int:

@@ -16,7 +16,7 @@ Ours: `banded_levenberg_marquardt`, 30 iterations (no early stop). scipy:
 the sparse Jacobian), run until its cost is within 1% of ours or `--scipy-nfev` evaluations; the
 script prints both times, both costs and the ratio, and the wall time of one iteration's parts
 (linearisation, factorisation, solve). Threads (`--threads`, default 1): the solve inside
-`ptrack.banded.one_thread`, so every op runs on one intra-op thread, as `method: batch` runs it;
+`ptrack.optim.banded.one_thread`, so every op runs on one intra-op thread, as `method: batch` runs it;
 with `--threads 2` (a budget of 2, what `method: batch` gets from torch's default on a 2-core
 machine) the linearisation's two halves of the sequence also run on two Python threads. One thread
 is the default because it was as fast or faster on the shared 2-core machine these numbers come
@@ -43,17 +43,17 @@ sys.path.insert(0, str(REPO))
 
 from _bench import machine_line  # noqa: E402
 
-from ptrack.banded import one_thread  # noqa: E402
-from ptrack.config import load_config  # noqa: E402
 from ptrack.estimators.batch import (  # noqa: E402
     interpolate_keyframes,
     linearization,
     trajectory_objective,
     warp_to_keyframes,
 )
+from ptrack.optim.banded import one_thread  # noqa: E402
+from ptrack.optim.solvers import banded_levenberg_marquardt  # noqa: E402
+from ptrack.pipeline.config import load_config  # noqa: E402
+from ptrack.pipeline.run import prepare  # noqa: E402
 from ptrack.problem import evaluate_pose  # noqa: E402
-from ptrack.run import prepare  # noqa: E402
-from ptrack.solvers import banded_levenberg_marquardt  # noqa: E402
 
 CONFIG = REPO / "configs" / "batch.yaml"
 
@@ -99,7 +99,7 @@ def jacobian(obj, q: torch.Tensor):
     the smoothing differences as constant bands. q (T, D)."""
     from scipy.sparse import coo_matrix
 
-    from ptrack.jacobians import pose_eval_and_jacobian
+    from ptrack.optim.jacobians import pose_eval_and_jacobian
 
     p = obj.problem
     t_len, d = q.shape
@@ -148,8 +148,8 @@ def sparsity(obj, t_len: int, d: int):
 def parts(lin, q: torch.Tensor, obj, damping: float, repeats: int = 10) -> str:
     """Median wall time of one iteration's parts at q: the linearisation, the factorisation of the
     damped normal equations and their solve (as `banded_levenberg_marquardt` calls them)."""
-    from ptrack.banded import factorize, solve
-    from ptrack.solvers import _band_damped, _free
+    from ptrack.optim.banded import factorize, solve
+    from ptrack.optim.solvers import _band_damped, _free
 
     out = lin(q)
     lo, hi = obj.lower.expand_as(q), obj.upper.expand_as(q)
@@ -370,7 +370,7 @@ def _warm_start(args) -> None:
 
 def ping_pong(motion, frames: int):
     """The clip played forwards, backwards, forwards... to `frames` poses (continuous at the turns)."""
-    from ptrack.skeleton import Motion
+    from ptrack.body.skeleton import Motion
 
     q = motion.q
     cycle = torch.cat([q, q.flip(0)[1:-1]]) if q.shape[0] > 2 else q
@@ -387,7 +387,7 @@ def ping_pong(motion, frames: int):
 def memory_one(frames: int) -> None:
     """Child process: 3 iterations + joint_std on `frames` frames at 120 fps (the bundled clip's 590
     frames played back and forth), peak resident memory of the process (ru_maxrss)."""
-    import ptrack.run as run
+    import ptrack.pipeline.run as run
     from ptrack.estimators.batch import joint_std
 
     torch.set_num_threads(1)

@@ -3,7 +3,7 @@
     python scripts/bench_evaluate.py [--jobs 2] [--seeds 0-3] [--stop 240] [--config configs/eval_kjs.yaml]
 
 Both evaluations run the config on the bundled CMU clip 10_02 (the first `--stop` AMC frames, 30 fps) once
-per seed, each from a fresh `ptrack.evaluate.evaluate` call in this process, into temporary folders. Printed:
+per seed, each from a fresh `ptrack.pipeline.evaluate.evaluate` call in this process, into temporary folders. Printed:
 the wall time of each (Python start-up of the workers included), the ratio written like `1.8x` (sequential
 time / parallel time), and whether every run's metrics agree (timings apart), which they must: the runs are
 seeded by their configs. The machine's load average is printed too: other jobs slow both.
@@ -20,7 +20,7 @@ from pathlib import Path
 
 from _bench import machine_line
 
-from ptrack.evaluate import evaluate, parse_seeds
+from ptrack.pipeline.evaluate import evaluate, parse_seeds
 
 REPO = Path(__file__).resolve().parents[1]
 CLIP = REPO / "ptrack" / "data" / "10_02.amc"

@@ -38,7 +38,7 @@ import pytorch_kinematics as pk
 import torch
 from _bench import machine_line
 
-from ptrack.skeleton import Skeleton
+from ptrack.body.skeleton import Skeleton
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_ASF = REPO_ROOT / ".." / "shared" / "data" / "cmu" / "subjects" / "64" / "64.asf"

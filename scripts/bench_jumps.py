@@ -32,10 +32,10 @@ from pathlib import Path
 import torch
 from _bench import machine_line
 
-from ptrack.camera import camera_for_motion
-from ptrack.ik import chain_ik, ik_plan, product_ik
-from ptrack.jumps import interpretation_tree, make_chain, product
-from ptrack.skeleton import Skeleton
+from ptrack.body.skeleton import Skeleton
+from ptrack.hypotheses.ik import chain_ik, ik_plan, product_ik
+from ptrack.hypotheses.jumps import interpretation_tree, make_chain, product
+from ptrack.observe.camera import camera_for_motion
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 LOOP_SUBSET = 64

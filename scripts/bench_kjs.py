@@ -2,7 +2,7 @@
 
     python scripts/bench_kjs.py [--stop 592] [--methods kjs css ss] [--samples 256] [--modes 8]
 
-Each run is `ptrack.run.execute` on configs/kjs.yaml (the bundled CMU 10_02 soccer kick at 30 fps, 2 px
+Each run is `ptrack.pipeline.run.execute` on configs/kjs.yaml (the bundled CMU 10_02 soccer kick at 30 fps, 2 px
 noise, 10% missing keypoints), data loading, observation simulation, metrics and every output file
 included, so frames per second are what a user sees. The baseline, measured in the same process and
 on the same clip, is `method: frame` (per-frame L-BFGS, one hypothesis). Printed per method: frames,
@@ -22,8 +22,8 @@ from pathlib import Path
 
 from _bench import machine_line
 
-from ptrack.config import load_config
-from ptrack.run import execute
+from ptrack.pipeline.config import load_config
+from ptrack.pipeline.run import execute
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "kjs.yaml"
 

@@ -31,10 +31,10 @@ import torch
 from _bench import machine_line
 from torch import Tensor
 
-from ptrack.camera import camera_for_motion
+from ptrack.body.skeleton import Skeleton
 from ptrack.costs import distance_transform
-from ptrack.silhouette import capsule_radii, render_silhouettes
-from ptrack.skeleton import Skeleton
+from ptrack.observe.camera import camera_for_motion
+from ptrack.observe.silhouette import capsule_radii, render_silhouettes
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 

@@ -40,14 +40,14 @@ from pathlib import Path
 import torch
 from _bench import machine_line
 
-from ptrack.camera import camera_for_motion
+from ptrack.body.keypoints import make_keypoints
+from ptrack.body.limits import wrap_to_limits
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.costs import JointLimits, Objective, Reprojection
-from ptrack.jacobians import joint_jacobian, objective_linearization
-from ptrack.keypoints import make_keypoints
-from ptrack.limits import wrap_to_limits
+from ptrack.observe.camera import camera_for_motion
+from ptrack.optim.jacobians import joint_jacobian, objective_linearization
+from ptrack.optim.solvers import lbfgs, levenberg_marquardt
 from ptrack.problem import evaluate_pose
-from ptrack.skeleton import Skeleton, load_amc
-from ptrack.solvers import lbfgs, levenberg_marquardt
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 F64 = torch.float64

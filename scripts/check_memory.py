@@ -1,6 +1,6 @@
-"""Check `ptrack.memory.estimate_bytes` against the peak resident memory of real runs.
+"""Check `ptrack.pipeline.memory.estimate_bytes` against the peak resident memory of real runs.
 
-Each setting runs `ptrack.run.execute` in a fresh subprocess (into a temporary folder); its peak RSS
+Each setting runs `ptrack.pipeline.run.execute` in a fresh subprocess (into a temporary folder); its peak RSS
 (its own getrusage ru_maxrss at the end) is compared with the estimate for the same config and clip. The
 estimate should stay above the measurement (ratio >= 1) and within a few times it.
 
@@ -34,14 +34,14 @@ SETTINGS = [
 
 CHILD = """
 import dataclasses, resource, sys
-import ptrack.run
-from ptrack.config import load_config
-from ptrack.memory import needed
+import ptrack.pipeline.run
+from ptrack.pipeline.config import load_config
+from ptrack.pipeline.memory import needed
 
 need = []
-ptrack.run.check_memory = lambda cfg, problem: need.append(needed(cfg, problem).bytes)
+ptrack.pipeline.run.check_memory = lambda cfg, problem: need.append(needed(cfg, problem).bytes)
 cfg = load_config(sys.argv[1], sys.argv[3:])
-ptrack.run.execute(dataclasses.replace(cfg, out_dir=sys.argv[2], progress=False))
+ptrack.pipeline.run.execute(dataclasses.replace(cfg, out_dir=sys.argv[2], progress=False))
 print(need[0] / 2**20, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)  # MiB (ru_maxrss: KiB on Linux)
 """
 

@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ptrack.config import ModelConfig
-from ptrack.limits import arc_bounds, outside_limits
-from ptrack.skeleton import Skeleton, load_amc
+from ptrack.body.limits import arc_bounds, outside_limits
+from ptrack.body.skeleton import Skeleton, load_amc
+from ptrack.pipeline.config import ModelConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""Make `ptrack/data/cmu_pose_prior.json`: the per-dof Gaussian pose prior of `ptrack.pose_prior`.
+"""Make `ptrack/data/cmu_pose_prior.json`: the per-dof Gaussian pose prior of `ptrack.body.pose_prior`.
 
     python scripts/make_pose_prior.py [--cmu ../shared/data/cmu] [--exclude configs/clips/dev.txt]
                                       [--stride 4] [--out ptrack/data/cmu_pose_prior.json]
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from make_limits import load_clips
 
-from ptrack.evaluate import parse_clips
+from ptrack.body.acclaim import parse_clips
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -16,7 +16,7 @@ differences wrapped into [-pi, pi)) the RMS is taken; the scale written is the m
 translation gets an acceleration scale only: its velocity is not zero-mean (walking moves on), so
 the config's `batch.velocity_sigma_m` stays in force for it.
 
-Two tables ship (`ptrack.pose_prior.SMOOTHING_TABLES`): "cmu" (`cmu_smoothing.json`, `batch.prior`'s
+Two tables ship (`ptrack.body.pose_prior.SMOOTHING_TABLES`): "cmu" (`cmu_smoothing.json`, `batch.prior`'s
 default) from the dev clips (`configs/clips/dev.txt`), never the held-out ones
 (`configs/clips/heldout_batch.txt`) on which it is checked; "cmu-train" (`cmu_smoothing_train.json`,
 `kjs.dynamics`'s default) from `configs/clips/train.txt`, clips of subjects with no dev clip and none
@@ -39,7 +39,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ptrack.skeleton import Skeleton, load_amc  # noqa: E402
+from ptrack.body.skeleton import Skeleton, load_amc  # noqa: E402
 
 FLOOR_VELOCITY = 0.1  # rad/s
 FLOOR_ACCEL = 1.0  # rad/s^2

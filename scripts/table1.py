@@ -26,16 +26,16 @@ from types import SimpleNamespace
 
 import torch
 
-from ptrack.camera import camera_for_motion
+from ptrack.body.keypoints import make_keypoints
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.costs import JointLimits, Objective, Reprojection
-from ptrack.ik import chain_ik, ik_plan
-from ptrack.jacobians import objective_linearization
-from ptrack.jumps import default_chains, interpretation_tree, joint_observations
-from ptrack.keypoints import make_keypoints
-from ptrack.mixture import distinct_minima
+from ptrack.hypotheses.ik import chain_ik, ik_plan
+from ptrack.hypotheses.jumps import default_chains, interpretation_tree, joint_observations
+from ptrack.hypotheses.mixture import distinct_minima
+from ptrack.hypotheses.samplers import css_proposal, project_to_limits, scaled_covariance, spherical_proposal
+from ptrack.observe.camera import camera_for_motion
+from ptrack.optim.jacobians import objective_linearization
 from ptrack.problem import evaluate_pose
-from ptrack.samplers import css_proposal, project_to_limits, scaled_covariance, spherical_proposal
-from ptrack.skeleton import Skeleton, load_amc
 
 ROOT = Path(__file__).resolve().parents[1]
 #: poses linearised or polished at once (2000 at once added about 350 MB of Jacobians and their products);
@@ -100,7 +100,7 @@ class Study:
     def polish(self, q, iterations):
         """LM of every pose of q (N, D), CHUNK at a time (independent problems: the same result as one call)
         -> q (N, D), info with cost (N,) and hessian (N, D, D)."""
-        from ptrack.solvers import levenberg_marquardt
+        from ptrack.optim.solvers import levenberg_marquardt
 
         parts = [
             levenberg_marquardt(self.linearize, x, self.lower, self.upper, max_iter=iterations, tol=1e-8)
@@ -279,7 +279,8 @@ def write(args, s, rows, seconds):
         f"(eigenvalues clamped as below). Every sample is optimised by {args.iterations} LM iterations. "
         f"Seed {args.seed}.",
         "",
-        f"Distinct minima (q): greedy suppression (`ptrack.mixture.distinct_minima`) at {args.distinct_deg} deg, "
+        "Distinct minima (q): greedy suppression (`ptrack.hypotheses.mixture.distinct_minima`) at "
+        f"{args.distinct_deg} deg, "
         f"max over the {int(s.seen.sum())} dofs that move some keypoint (root translation in the same number "
         "of metres' units; the other dofs - feet, wrists, ... - are free at every minimum), excluding the "
         "start's own minimum. Distinct minima (3D): the same on the 17 keypoints' 3D positions, no coordinate "

@@ -1,4 +1,4 @@
-"""Tests for ptrack.acclaim: ASF/AMC text parsing on the real CMU files and on malformed input."""
+"""Tests for ptrack.body.acclaim: ASF/AMC text parsing on the real CMU files and on malformed input."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ptrack.acclaim import INCH_M, AmcFile, AsfFile, parse_amc, parse_asf
+from ptrack.body.acclaim import INCH_M, AmcFile, AsfFile, parse_amc, parse_asf
 from ptrack.errors import InputError
 
 # Every file of ../shared/data/cmu, with the frame counts its README lists.

@@ -1,14 +1,14 @@
-"""Tests for ptrack.banded (block-banded LDL^T, solves, marginal covariances) and the banded
-Levenberg-Marquardt of ptrack.solvers, each against dense linear algebra on small problems."""
+"""Tests for ptrack.optim.banded (block-banded LDL^T, solves, marginal covariances) and the banded
+Levenberg-Marquardt of ptrack.optim.solvers, each against dense linear algebra on small problems."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from ptrack import banded as bd
 from ptrack.errors import InputError
-from ptrack.solvers import BandedLinearization, banded_levenberg_marquardt
+from ptrack.optim import banded as bd
+from ptrack.optim.solvers import BandedLinearization, banded_levenberg_marquardt
 
 F64 = torch.float64
 

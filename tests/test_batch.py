@@ -1,4 +1,4 @@
-"""Tests for `method: batch` (ptrack.estimators.batch, ptrack.keyframes): recovery of a noise-free clip
+"""Tests for `method: batch` (ptrack.estimators.batch, ptrack.pipeline.keyframes): recovery of a noise-free clip
 from keyframes, missing data and dropped frames, partial angle and joint-position keyframes, joint
 limits at the solution, the calibration of joint_std, warm starts, upsampling, accuracy on a CMU clip
 the method was not tuned on, and bad keyframe files / init_from folders through the CLI."""
@@ -14,15 +14,15 @@ import pytest
 import torch
 from cli_errors import fail
 
-from ptrack import metrics as M
 from ptrack.cli import main
-from ptrack.config import load_config
 from ptrack.costs import robust_loss_derivative
 from ptrack.errors import InputError
-from ptrack.estimators import batch
-from ptrack.estimators.batch import _energy, estimate_batch, lower_branch, trajectory_objective, warp_to_keyframes
-from ptrack.keyframes import read_keyframes
-from ptrack.run import prepare
+from ptrack.estimators import batch, estimate_batch
+from ptrack.estimators.batch import _energy, lower_branch, trajectory_objective, warp_to_keyframes
+from ptrack.pipeline import metrics as M
+from ptrack.pipeline.config import load_config
+from ptrack.pipeline.keyframes import read_keyframes
+from ptrack.pipeline.run import prepare
 
 REPO = Path(__file__).resolve().parents[1]
 BATCH = REPO / "configs" / "batch.yaml"
@@ -33,7 +33,7 @@ SHORT = ["data.stop=160", "progress=false", "batch.uncertainty=false", "batch.fl
 def _one_thread():
     """The runs around the solver (per-frame starts, metrics, recordings) on one thread too: on the
     shared 2-core machine multithreaded small ops made this file 3x slower."""
-    from ptrack.banded import one_thread
+    from ptrack.optim.banded import one_thread
 
     with one_thread():
         yield

@@ -1,4 +1,4 @@
-"""Tests for ptrack.branches: the exact second-order forward-backward, the depth-labelled leaves
+"""Tests for ptrack.hypotheses.branches: the exact second-order forward-backward, the depth-labelled leaves
 of every limb at a pose, and the branch posterior on synthetic cases (equal-cost flips share the
 probability and the std grows to cover them; a costly frame pins its branch)."""
 
@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from ptrack.branches import (
+from ptrack.errors import InputError
+from ptrack.hypotheses.branches import (
     Branches,
     branch_marginals,
     branch_poses,
@@ -18,11 +19,10 @@ from ptrack.branches import (
     forward_backward,
     mixture_variance,
 )
-from ptrack.config import load_config
-from ptrack.errors import InputError
-from ptrack.ik import ik_plan
-from ptrack.jumps import default_chains
-from ptrack.run import prepare
+from ptrack.hypotheses.ik import ik_plan
+from ptrack.hypotheses.jumps import default_chains
+from ptrack.pipeline.config import load_config
+from ptrack.pipeline.run import prepare
 
 REPO = Path(__file__).resolve().parents[1]
 BATCH = REPO / "configs" / "batch.yaml"

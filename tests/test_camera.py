@@ -5,8 +5,8 @@ import pytest
 import torch
 from kornia.geometry.camera.perspective import project_points
 
-from ptrack.camera import Camera, Projection, camera_for_motion, look_at
 from ptrack.errors import InputError
+from ptrack.observe.camera import Camera, Projection, camera_for_motion, look_at
 
 
 def _f64(x) -> torch.Tensor:

@@ -17,10 +17,10 @@ import pytest
 import torch
 from cli_errors import fail
 
-import ptrack.viz
+import ptrack.io.viz
 from ptrack.cli import main, parse_args
-from ptrack.config import load_config
-from ptrack.run import prepare
+from ptrack.pipeline.config import load_config
+from ptrack.pipeline.run import prepare
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "configs" / "demo.yaml"
@@ -226,7 +226,7 @@ def test_no_command_is_a_usage_error(capsys):
 
 def test_replay_missing_folder(tmp_path, capsys, monkeypatch):
     calls = []
-    monkeypatch.setattr(ptrack.viz, "open_viewer", calls.append)
+    monkeypatch.setattr(ptrack.io.viz, "open_viewer", calls.append)
     assert main(["replay", str(tmp_path / "nothing")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("ptrack: error:") and "nothing" in err and "Traceback" not in err
@@ -241,7 +241,7 @@ def test_replay_opens_the_recording(tmp_path, capsys, monkeypatch):
     run_dir.mkdir()
     (run_dir / "run.rrd").write_bytes(b"RRF2")  # replay checks rerun's header, then hands the path to the viewer
     calls = []
-    monkeypatch.setattr(ptrack.viz, "open_viewer", calls.append)
+    monkeypatch.setattr(ptrack.io.viz, "open_viewer", calls.append)
     assert main(["replay", str(run_dir)]) == 0
     assert main(["replay", str(run_dir / "run.rrd")]) == 0
     assert [Path(c) for c in calls] == [run_dir / "run.rrd"] * 2
@@ -546,7 +546,7 @@ def test_help_and_version_do_not_load_torch(tmp_path):
         timeout=120,
         cwd=tmp_path,
     )
-    assert proc.stdout.split()[0] == "ptrack.skeleton", proc.stderr
+    assert proc.stdout.split()[0] == "ptrack.body.skeleton", proc.stderr
 
 
 def test_every_argument_has_help():
@@ -592,7 +592,7 @@ def test_replay_web_serves_on_localhost_and_prints_the_address(tmp_path, capsys,
         calls.append((cmd, env))
         return 0
 
-    monkeypatch.setattr(ptrack.viz, "run_child", fake_run)
+    monkeypatch.setattr(ptrack.io.viz, "run_child", fake_run)
     assert main(["replay", str(run_dir), "--web"]) == 0
     ((cmd, env),) = calls
     assert cmd[cmd.index("--bind") + 1] == "127.0.0.1" and "--serve-web" in cmd and str(run_dir / "run.rrd") in cmd
@@ -614,9 +614,9 @@ def test_native_viewer_listens_on_localhost(tmp_path, monkeypatch):
         def wait(self):
             return 0
 
-    monkeypatch.setattr(ptrack.viz, "has_display", lambda: True)
-    monkeypatch.setattr(ptrack.viz.subprocess, "Popen", FakePopen)
-    assert ptrack.viz.open_viewer(rrd) == 0
+    monkeypatch.setattr(ptrack.io.viz, "has_display", lambda: True)
+    monkeypatch.setattr(ptrack.io.viz.subprocess, "Popen", FakePopen)
+    assert ptrack.io.viz.open_viewer(rrd) == 0
     assert argvs[0][argvs[0].index("--bind") + 1] == "127.0.0.1"
 
 
@@ -653,7 +653,7 @@ def test_replay_of_a_file_that_is_not_a_recording_is_one_line(tmp_path, capsys, 
 def test_an_out_dir_that_cannot_be_put_in_place_is_one_line(tmp_path, capsys, monkeypatch):
     """When the finished folder cannot be renamed to out_dir (a parent made read-only during the run, ...):
     one line, status 2, and neither out_dir nor the hidden folder it was assembled in is left."""
-    import ptrack.run
+    import ptrack.pipeline.run
 
     replace = os.replace
 
@@ -662,7 +662,7 @@ def test_an_out_dir_that_cannot_be_put_in_place_is_one_line(tmp_path, capsys, mo
             raise PermissionError(13, "Permission denied", str(dst))
         replace(src, dst)
 
-    monkeypatch.setattr(ptrack.run.os, "replace", refused)
+    monkeypatch.setattr(ptrack.pipeline.run.os, "replace", refused)
     out = tmp_path / "runs" / "o"
     line = fail(capsys, out, _run_argv(out), f"out_dir {out}", "Permission denied", "nothing was written")
     assert line.startswith("ptrack: error: cannot put the finished run at out_dir")

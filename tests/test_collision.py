@@ -5,10 +5,10 @@ import pytest
 import torch
 from torch.autograd import gradcheck
 
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.costs import Objective, PoseEval, SelfIntersection
 from ptrack.costs.collision import DEFAULT_SKIP, segment_distance
 from ptrack.errors import InputError
-from ptrack.skeleton import Skeleton, load_amc
 
 D64 = torch.float64
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"

@@ -1,4 +1,4 @@
-"""Tests for `ptrack compare`: two evaluations side by side, seed by seed (ptrack.compare)."""
+"""Tests for `ptrack compare`: two evaluations side by side, seed by seed (ptrack.pipeline.compare)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from ptrack.cli import main
-from ptrack.compare import compare, load_runs, markdown
 from ptrack.errors import InputError
+from ptrack.pipeline.compare import compare, load_runs, markdown
 
 REPO = Path(__file__).resolve().parents[1]
 EVAL = REPO / "configs" / "eval_frame.yaml"

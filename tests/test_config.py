@@ -1,4 +1,4 @@
-"""Tests for ptrack.config: defaults, YAML + dotted overrides, typed errors naming the dotted key,
+"""Tests for ptrack.pipeline.config: defaults, YAML + dotted overrides, typed errors naming the dotted key,
 path resolution, value checks, and the dump/load round trip."""
 
 from __future__ import annotations
@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from ptrack.config import (
+from ptrack.errors import InputError
+from ptrack.pipeline.config import (
     CameraConfig,
     DataConfig,
     ObservationsConfig,
@@ -19,7 +20,6 @@ from ptrack.config import (
     parse_override,
     to_dict,
 )
-from ptrack.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "configs" / "demo.yaml"

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from ptrack.cli import main
-from ptrack.config import KjsMethodConfig, RunConfig, config_reference, load_config, sections, to_dict
+from ptrack.pipeline.config import KjsMethodConfig, RunConfig, config_reference, load_config, sections, to_dict
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -1,5 +1,6 @@
-"""Point correspondences (ptrack/correspondences.py, ptrack/costs/correspondence.py): the ray-capsule hit
-against brute force, the front capsule hit, simulated pairs that reproject exactly with the true poses,
+"""Point correspondences (ptrack/observe/correspondences.py, ptrack/observe/backprojection.py,
+ptrack/costs/correspondence.py): the ray-capsule hit against brute force, the front capsule hit, simulated pairs
+that reproject exactly with the true poses,
 the npz layout's round trip, and bad files and settings as one `ptrack: error:` line, exit 2."""
 
 from __future__ import annotations
@@ -11,18 +12,13 @@ import pytest
 import torch
 from cli_errors import fail
 
-from ptrack.camera import camera_for_motion
-from ptrack.correspondences import Correspondences, simulate_correspondences
-from ptrack.costs.correspondence import (
-    anchor_points,
-    backproject,
-    backproject_rays,
-    ray_capsule_hit,
-    reprojection_rows,
-)
+from ptrack.body.skeleton import Skeleton, load_amc
+from ptrack.costs.correspondence import reprojection_rows
 from ptrack.errors import InputError
-from ptrack.silhouette import capsule_radii
-from ptrack.skeleton import Skeleton, load_amc
+from ptrack.observe.backprojection import anchor_points, backproject, backproject_rays, ray_capsule_hit
+from ptrack.observe.camera import camera_for_motion
+from ptrack.observe.correspondences import Correspondences, simulate_correspondences
+from ptrack.observe.silhouette import capsule_radii
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO / "ptrack" / "data"
@@ -213,8 +209,8 @@ def test_bad_correspondence_files_and_settings(tmp_path, capsys):
 
 def test_simulated_correspondences_leave_the_keypoints_as_they_were():
     """Off by default; turned on, they are drawn after the keypoint channel, whose observations stay the same."""
-    from ptrack.config import load_config
-    from ptrack.run import prepare
+    from ptrack.pipeline.config import load_config
+    from ptrack.pipeline.run import prepare
 
     off = prepare(load_config(DEMO, FAST))
     corr = ["observations.correspondences=5", "observations.correspondence_outliers=0.2"]

@@ -8,14 +8,14 @@ from pathlib import Path
 import pytest
 import torch
 
-from ptrack.camera import camera_for_motion
+from ptrack.body.keypoints import make_keypoints
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.costs import HeavyTailedPrior, JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
 from ptrack.errors import InputError
-from ptrack.jacobians import objective_linearization
-from ptrack.keypoints import make_keypoints
+from ptrack.observe.camera import camera_for_motion
+from ptrack.optim.jacobians import objective_linearization
+from ptrack.optim.solvers import _normal_equations
 from ptrack.problem import evaluate_pose
-from ptrack.skeleton import Skeleton, load_amc
-from ptrack.solvers import _normal_equations
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 

@@ -1,4 +1,4 @@
-"""Tests for ptrack.evaluate: one config over several clips -> per-clip run folders, results.md (a
+"""Tests for ptrack.pipeline.evaluate: one config over several clips -> per-clip run folders, results.md (a
 markdown table with a mean row) and results.json; clip lists; failures reported per clip."""
 
 from __future__ import annotations
@@ -13,10 +13,11 @@ from pathlib import Path
 
 import pytest
 
+from ptrack.body.acclaim import parse_clips
 from ptrack.cli import main
 from ptrack.errors import InputError
-from ptrack.evaluate import COLUMNS, asf_for, evaluate, markdown_table, parse_clips, parse_seeds, seed_mean
-from ptrack.run import remove_partial
+from ptrack.pipeline.evaluate import COLUMNS, asf_for, evaluate, markdown_table, parse_seeds, seed_mean
+from ptrack.pipeline.run import remove_partial
 
 REPO = Path(__file__).resolve().parents[1]
 EVAL = REPO / "configs" / "eval_frame.yaml"

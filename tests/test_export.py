@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from ptrack.body.rotations import euler_matrix_np
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.errors import InputError
-from ptrack.export import bvh_text, write_bvh
-from ptrack.rotations import euler_matrix_np
-from ptrack.skeleton import Skeleton, load_amc
+from ptrack.io.export import bvh_text, write_bvh
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 

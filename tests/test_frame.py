@@ -1,6 +1,6 @@
 """Tests for ptrack.estimators.frame (`method: frame`) on short real CMU clips with seeded 2 px noise.
 
-Problems are built through `ptrack.run.prepare` (clip slice, virtual camera, simulated observations, the
+Problems are built through `ptrack.pipeline.run.prepare` (clip slice, virtual camera, simulated observations, the
 clip's first pose as the frame-0 keyframe), so these are end-to-end checks of the estimator's accuracy.
 """
 
@@ -12,13 +12,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from ptrack import metrics as M
-from ptrack.config import load_config
 from ptrack.errors import InputError
 from ptrack.estimators import ESTIMATORS, estimate_frames
-from ptrack.estimators.frame import rest_pose_in_view
-from ptrack.problem import Estimate, Problem, evaluate_pose
-from ptrack.run import Prepared, prepare
+from ptrack.pipeline import metrics as M
+from ptrack.pipeline.config import load_config
+from ptrack.pipeline.run import Prepared, prepare
+from ptrack.problem import Estimate, Problem, evaluate_pose, rest_pose_in_view
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "configs" / "demo.yaml"
@@ -228,12 +227,12 @@ def test_urdf_model_is_trackable(tmp_path):
     """A model read from URDF (here the bundled skeleton written out as URDF) goes through the same
     estimator: same keypoints by joint name, same accuracy as the ASF model (measured 19.8 mm on frames
     0-44 of 10_02)."""
-    from ptrack.camera import camera_for_motion
-    from ptrack.config import FrameMethodConfig, RunConfig
-    from ptrack.keypoints import make_keypoints
-    from ptrack.observations import ChannelConfig, simulate_observations
+    from ptrack.body.keypoints import make_keypoints
+    from ptrack.body.skeleton import Skeleton, load_amc
+    from ptrack.observe.camera import camera_for_motion
+    from ptrack.observe.observations import ChannelConfig, simulate_observations
+    from ptrack.pipeline.config import FrameMethodConfig, RunConfig
     from ptrack.problem import Keyframes
-    from ptrack.skeleton import Skeleton, load_amc
 
     asf = Skeleton.from_asf(REPO / "ptrack" / "data" / "10.asf")
     q_asf = load_amc(REPO / "ptrack" / "data" / "10_02.amc", asf).q[:48:4]

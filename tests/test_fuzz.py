@@ -15,10 +15,10 @@ hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-from ptrack.acclaim import parse_amc, parse_asf  # noqa: E402
-from ptrack.config import load_config  # noqa: E402
+from ptrack.body.acclaim import parse_amc, parse_asf  # noqa: E402
 from ptrack.errors import InputError  # noqa: E402
-from ptrack.observations import Observations  # noqa: E402
+from ptrack.observe.observations import Observations  # noqa: E402
+from ptrack.pipeline.config import load_config  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 ASF = (REPO / "ptrack" / "data" / "10.asf").read_bytes()

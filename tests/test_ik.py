@@ -1,4 +1,4 @@
-"""Tests for ptrack.ik: closed-form inverse kinematics of interpretation-tree leaves.
+"""Tests for ptrack.hypotheses.ik: closed-form inverse kinematics of interpretation-tree leaves.
 
 The reference is ptrack's forward kinematics (itself checked against an independent Acclaim
 implementation): FK of the solved pose must land the chain's joints on the targets, on real CMU
@@ -15,12 +15,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from ptrack.camera import camera_for_motion
+from ptrack.body.kinematics import euler_zyx
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.ik import ClosedFormUnavailable, chain_ik, euler_zyx_solutions, ik_plan, product_ik
-from ptrack.jumps import default_chains, interpretation_trees, make_chain, product, product_joints
-from ptrack.kinematics import euler_zyx
-from ptrack.skeleton import Skeleton
+from ptrack.hypotheses.ik import ClosedFormUnavailable, chain_ik, euler_zyx_solutions, ik_plan, product_ik
+from ptrack.hypotheses.jumps import default_chains, interpretation_trees, make_chain, product, product_joints
+from ptrack.observe.camera import camera_for_motion
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 CLIPS = [("02", "02_01"), ("05", "05_02"), ("64", "64_01"), ("131", "131_03")]
@@ -355,7 +355,7 @@ def test_product_ik(sk, poses):
 
 def test_generic_axes_path_matches_frames(sk, poses):
     """Joints whose axes are not a frame go through Rodrigues products: same rotations as C Z C^T."""
-    from ptrack.ik import _local, _slot_angles, _tensors  # the two paths of one joint's rotation
+    from ptrack.hypotheses.ik import _local, _slot_angles, _tensors  # the two paths of one joint's rotation
 
     plan = ik_plan(sk, default_chains(sk, ["larm"])[0])
     tc = _tensors(plan, torch.float64, torch.device("cpu"))

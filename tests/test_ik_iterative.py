@@ -1,4 +1,4 @@
-"""Tests for ptrack.ik's iterative fallback: chains with no closed form (a URDF arm of 1-dof
+"""Tests for ptrack.hypotheses.ik's iterative fallback: chains with no closed form (a URDF arm of 1-dof
 revolutes, written below) and closed-form leaves that miss their targets.
 
 The reference is ptrack's forward kinematics: FK of the solved pose must land the chain's joints on
@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from ptrack.camera import camera_for_motion
-from ptrack.ik import chain_ik, ik_plan, product_ik
-from ptrack.jumps import default_chains, interpretation_trees, make_chain, product
-from ptrack.skeleton import Skeleton
+from ptrack.body.skeleton import Skeleton
+from ptrack.hypotheses.ik import chain_ik, ik_plan, product_ik
+from ptrack.hypotheses.jumps import default_chains, interpretation_trees, make_chain, product
+from ptrack.observe.camera import camera_for_motion
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 
@@ -114,9 +114,9 @@ def test_closed_form_can_be_declined(cmu):
 @pytest.mark.parametrize("model", ["arm", "cmu"])
 def test_chain_jacobian_matches_joint_jacobian(model, arm, cmu):
     """The fit's forward kinematics and Jacobian along the chain equal the skeleton's
-    (`forward_kinematics`, `ptrack.jacobians.joint_jacobian`) restricted to the chain's dofs."""
-    from ptrack.ik import _root_parent, _tensors, _walk_fk
-    from ptrack.jacobians import joint_jacobian
+    (`forward_kinematics`, `ptrack.optim.jacobians.joint_jacobian`) restricted to the chain's dofs."""
+    from ptrack.hypotheses.ik import _root_parent, _tensors, _walk_fk
+    from ptrack.optim.jacobians import joint_jacobian
 
     sk, names = (arm, ARM_CHAIN) if model == "arm" else (cmu, ("lclavicle", "lhumerus", "lradius"))
     chain = make_chain(sk, names)

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from ptrack.config import dump_yaml, load_config, load_yaml
 from ptrack.errors import InputError
+from ptrack.pipeline.config import dump_yaml, load_config, load_yaml
 
 REPO = Path(__file__).resolve().parents[1]
 ASF = REPO / "ptrack" / "data" / "10.asf"
@@ -94,8 +94,8 @@ def test_strings_that_look_like_numbers_round_trip(tmp_path):
 
 
 def test_keyframe_file_numbers_as_written(tmp_path):
-    from ptrack.keyframes import read_keyframes
-    from ptrack.skeleton import Skeleton
+    from ptrack.body.skeleton import Skeleton
+    from ptrack.pipeline.keyframes import read_keyframes
 
     sk = Skeleton.from_asf(ASF)
     p = tmp_path / "k.yaml"
@@ -137,8 +137,8 @@ sys.meta_path.insert(at + 1, Finder())
 import ptrack
 
 assert getattr(ptrack, "__file__", None) is None, ptrack.__file__  # the namespace package of ./ptrack
-from ptrack.pose_prior import read_pose_prior, smoothing_prior
-from ptrack.skeleton import Skeleton
+from ptrack.body.pose_prior import read_pose_prior, smoothing_prior
+from ptrack.body.skeleton import Skeleton
 
 sk = Skeleton.from_asf(PKG / "data" / "10.asf").with_limits("data")
 print(json.dumps({"lower": sk.lower.tolist(), "prior": read_pose_prior(), "smooth": smoothing_prior("cmu-train")}))
@@ -146,8 +146,8 @@ print(json.dumps({"lower": sk.lower.tolist(), "prior": read_pose_prior(), "smoot
 
 
 def test_package_data_found_from_a_shadowing_folder(tmp_path):
-    from ptrack.pose_prior import read_pose_prior, smoothing_prior
-    from ptrack.skeleton import Skeleton
+    from ptrack.body.pose_prior import read_pose_prior, smoothing_prior
+    from ptrack.body.skeleton import Skeleton
 
     (tmp_path / "ptrack" / "data").mkdir(parents=True)
     (tmp_path / "ptrack" / "data" / "cmu_limits.json").write_text('{"limits_deg": {}}', encoding="utf-8")
@@ -167,11 +167,11 @@ def test_package_data_found_from_a_shadowing_folder(tmp_path):
 
 
 def test_progress_lines_throttled_by_the_clock(caplog):
-    from ptrack.run import progress_lines
+    from ptrack.pipeline.run import progress_lines
 
     ticks = iter([0.0, 1.0, 9.0, 10.5, 12.0, 20.0, 30.0, 31.0, 50.0, 51.0, 52.0])  # start, then one per item
     items = list(range(10))
-    with caplog.at_level("INFO", logger="ptrack.run.progress"):
+    with caplog.at_level("INFO", logger="ptrack.pipeline.run.progress"):
         got = list(progress_lines(items, "kjs", every=15.0, first=10.0, clock=lambda: next(ticks)))
     assert got == items
     # item 2 is taken at 10.5 s (2 done: 2 / 10.5 s), then none before 10.5 + 15 = 25.5 s: item 5 at 30 s
@@ -185,10 +185,10 @@ def test_progress_lines_throttled_by_the_clock(caplog):
 
 
 def test_progress_lines_without_a_total(caplog):
-    from ptrack.run import progress_lines
+    from ptrack.pipeline.run import progress_lines
 
     ticks = iter([0.0, 0.0, 20.0, 21.0])
-    with caplog.at_level("INFO", logger="ptrack.run.progress"):
+    with caplog.at_level("INFO", logger="ptrack.pipeline.run.progress"):
         assert list(progress_lines(iter("abc"), "pca", every=15.0, first=10.0, clock=lambda: next(ticks))) == [
             "a",
             "b",
@@ -198,13 +198,13 @@ def test_progress_lines_without_a_total(caplog):
 
 
 def test_progress_lines_leave_the_result_unchanged(monkeypatch, caplog):
-    from ptrack.run import estimate
+    from ptrack.pipeline.run import estimate
 
     cfg = load_config(REPO / "configs" / "demo.yaml", ["data.stop=24"])
     _, quiet = estimate(cfg, progress=False)
     monkeypatch.setenv("PTRACK_PROGRESS_SECONDS", "0")
     monkeypatch.setattr(sys.stderr, "isatty", lambda: False)
-    with caplog.at_level("INFO", logger="ptrack.run.progress"):
+    with caplog.at_level("INFO", logger="ptrack.pipeline.run.progress"):
         _, shown = estimate(cfg, progress=True)
     assert [r.getMessage().split(",")[0] for r in caplog.records] == [
         f"frame: frame {i}/6 ({i / 6:.0%})" for i in range(1, 6)
@@ -230,7 +230,7 @@ def _warnings(caplog) -> list[str]:
 
 
 def test_observations_no_pose_explains_warn(tmp_path, caplog):
-    from ptrack.run import execute
+    from ptrack.pipeline.run import execute
 
     cfg = load_config(
         REPO / "configs" / "demo.yaml", ["data.stop=24", "observations.noise_px=1.0e+9", f"out_dir={tmp_path / 'r'}"]
@@ -246,7 +246,7 @@ def test_observations_no_pose_explains_warn(tmp_path, caplog):
 
 
 def test_few_observed_keypoints_warn_before_estimating(caplog):
-    from ptrack.run import prepare
+    from ptrack.pipeline.run import prepare
 
     cfg = load_config(REPO / "configs" / "demo.yaml", ["data.stop=24", "observations.missing=0.99"])
     with caplog.at_level("WARNING"):
@@ -259,7 +259,7 @@ def test_few_observed_keypoints_warn_before_estimating(caplog):
 
 
 def test_observed_fraction_is_what_the_estimator_got(caplog):
-    from ptrack.run import check_observed, check_reprojection, compute_metrics, estimate, reprojected_keypoints
+    from ptrack.pipeline.run import check_observed, check_reprojection, compute_metrics, estimate, reprojected_keypoints
 
     cfg = load_config(REPO / "configs" / "demo.yaml", ["data.stop=24", "observations.missing=0.3"])
     with caplog.at_level("WARNING"):

@@ -1,4 +1,4 @@
-"""Tests for ptrack.jacobians: the geometric joint Jacobian and residual Jacobians, against autograd
+"""Tests for ptrack.optim.jacobians: the geometric joint Jacobian and residual Jacobians, against autograd
 (float64) on the bundled CMU skeleton with real poses, reduced models and random trees."""
 
 from __future__ import annotations
@@ -10,10 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from ptrack.camera import camera_for_motion
+from ptrack.body.keypoints import make_keypoints
+from ptrack.body.limits import wrap_to_limits
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.costs import JointLimits, Objective, PoseEval, Reprojection
 from ptrack.errors import InputError
-from ptrack.jacobians import (
+from ptrack.observe.camera import camera_for_motion
+from ptrack.optim.jacobians import (
     joint_and_point_jacobian,
     joint_jacobian,
     joint_jacobian_product,
@@ -21,10 +24,7 @@ from ptrack.jacobians import (
     point_jacobian,
     residual_jacobian,
 )
-from ptrack.keypoints import make_keypoints
-from ptrack.limits import wrap_to_limits
 from ptrack.problem import evaluate_pose
-from ptrack.skeleton import Skeleton, load_amc
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 F64 = torch.float64

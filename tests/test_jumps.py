@@ -1,4 +1,4 @@
-"""Tests for ptrack.jumps: interpretation trees of kinematic sub-chains.
+"""Tests for ptrack.hypotheses.jumps: interpretation trees of kinematic sub-chains.
 
 Real CMU poses (the bundled 10_02 clip) seen by a virtual camera; observations are the exact
 projections of the pose, so every leaf must reproject onto them and keep the bone lengths, and
@@ -13,9 +13,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from ptrack.camera import camera_for_motion
+from ptrack.body.keypoints import make_keypoints
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.jumps import (
+from ptrack.hypotheses.jumps import (
     CMU_CHAINS,
     check_independent,
     default_chains,
@@ -28,8 +29,7 @@ from ptrack.jumps import (
     product,
     product_joints,
 )
-from ptrack.keypoints import make_keypoints
-from ptrack.skeleton import Skeleton
+from ptrack.observe.camera import camera_for_motion
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 

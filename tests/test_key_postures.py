@@ -1,4 +1,4 @@
-"""Tests for ptrack.key_postures: the rules, the golf swing's key postures on the 7 CMU dev swings of
+"""Tests for ptrack.motion.key_postures: the rules, the golf swing's key postures on the 7 CMU dev swings of
 subject 64 (3D, checked against postures located independently of the detector), and the 2D detector
 on projected wrist tracks (image y down)."""
 
@@ -9,10 +9,9 @@ import pytest
 import torch
 from torch import Tensor
 
-from ptrack.camera import camera_for_motion
-from ptrack.config import MotionConfig
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.key_postures import (
+from ptrack.motion.key_postures import (
     Rule,
     detect_key_postures,
     detect_key_postures_2d,
@@ -20,7 +19,8 @@ from ptrack.key_postures import (
     parse_rule,
     parse_rules,
 )
-from ptrack.skeleton import Skeleton
+from ptrack.observe.camera import camera_for_motion
+from ptrack.pipeline.config import MotionConfig
 
 SWINGS = ("64_01", "64_02", "64_04", "64_05", "64_06", "64_08", "64_09")
 

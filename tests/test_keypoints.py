@@ -1,4 +1,4 @@
-"""Tests for ptrack.keypoints: the default H36M-17 set on CMU skeletons, custom mappings, errors."""
+"""Tests for ptrack.body.keypoints: the default H36M-17 set on CMU skeletons, custom mappings, errors."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from ptrack.body.keypoints import CMU_H36M17, H36M17, H36M17_LIMBS, KeypointSet, make_keypoints
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.keypoints import CMU_H36M17, H36M17, H36M17_LIMBS, KeypointSet, make_keypoints
-from ptrack.skeleton import Skeleton
 
 ASF = Path(__file__).resolve().parents[1] / "ptrack" / "data" / "10.asf"
 FREEZE = ["*fingers", "*thumb", "*hand", "*toes"]

@@ -1,4 +1,4 @@
-"""Tests for ptrack.kinematics: batched forward kinematics of `Skeleton` models.
+"""Tests for ptrack.body.kinematics: batched forward kinematics of `Skeleton` models.
 
 FK is checked three independent ways on real CMU data: against a plain numpy/scipy Acclaim
 implementation written here from the ASF/AMC records, against pytorch-kinematics through the
@@ -12,10 +12,10 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from ptrack.acclaim import AsfFile, parse_amc, parse_asf
+from ptrack.body.acclaim import AsfFile, parse_amc, parse_asf
+from ptrack.body.kinematics import forward_kinematics, local_rotations
+from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
-from ptrack.kinematics import forward_kinematics, local_rotations
-from ptrack.skeleton import Skeleton
 
 # (skeleton, clip) pairs from different subjects and line-ending styles (05 and 131 are LF files)
 SUBJECT_CLIPS = [("64", "64_01"), ("02", "02_01"), ("05", "05_02"), ("131", "131_03")]

@@ -5,7 +5,7 @@ longer than the next one, children of the first few joints of a level, deep chai
 `Skeleton`s are built directly with random parents, axes, driven slots, rest rotations and offsets,
 and every FK path (closed form without grad, the analytical backward, autograd through the closed
 form and through the Rodrigues path) is compared with a recursive implementation written below
-from the model equations in `ptrack.skeleton`'s docstring, values and gradients w.r.t. q.
+from the model equations in `ptrack.body.skeleton`'s docstring, values and gradients w.r.t. q.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 import torch
 
-from ptrack.acclaim import INCH_M
-from ptrack.kinematics import _plan, forward_kinematics
-from ptrack.skeleton import Skeleton
+from ptrack.body.acclaim import INCH_M
+from ptrack.body.kinematics import _plan, forward_kinematics
+from ptrack.body.skeleton import Skeleton
 
 # -- the reference: per joint, recursive from the root, torch float64 scalars (so autograd works) --
 

@@ -12,17 +12,17 @@ from pathlib import Path
 import pytest
 import torch
 
-from ptrack import metrics as M
 from ptrack.cli import main
-from ptrack.config import load_config
 from ptrack.estimators import ESTIMATORS
 from ptrack.estimators.kjs import KJS, track
-from ptrack.estimators.kjs.lattice import _recombine, _smooth
-from ptrack.estimators.kjs.model import _setup
+from ptrack.estimators.kjs.lattice import recombine, smooth_lattice
+from ptrack.estimators.kjs.model import make_setup
 from ptrack.estimators.kjs.step import _allocate, _chain_votes
-from ptrack.evaluate import asf_for
+from ptrack.pipeline import metrics as M
+from ptrack.pipeline.config import load_config
+from ptrack.pipeline.evaluate import asf_for
+from ptrack.pipeline.run import compute_metrics, prepare, reprojected_keypoints
 from ptrack.problem import Problem
-from ptrack.run import compute_metrics, prepare, reprojected_keypoints
 
 REPO = Path(__file__).resolve().parents[1]
 KJS_YAML = REPO / "configs" / "kjs.yaml"
@@ -169,7 +169,7 @@ def test_tree_start_with_a_blind_last_frame():
 def test_chain_votes_follow_the_covariance(kjs_run):
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, EXACT)
-    s = _setup(prep.problem, cfg, KJS)
+    s = make_setup(prep.problem, cfg, KJS)
     D = prep.problem.skeleton.num_dofs
     chol = torch.eye(D).expand(2, D, D).clone() * 1e-3
     larm = s.chain_dofs[0]
@@ -183,12 +183,12 @@ def test_merge_takes_the_two_passes_in_turn(kjs_run):
     """A frame's modes after the backward pass: the best trajectory's forward mode first, then the two
     passes' modes in turn, heaviest first; a mode within distinct_deg of one ranked before it is dropped;
     at most K; weights the mean of the two passes' weights, renormalised."""
-    from ptrack.estimators.kjs.step import _merge
-    from ptrack.mixture import Modes
+    from ptrack.estimators.kjs.step import merge_mixtures
+    from ptrack.hypotheses.mixture import Modes
 
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, [*EXACT, "kjs.modes=4"])
-    s = _setup(prep.problem, cfg, KJS)
+    s = make_setup(prep.problem, cfg, KJS)
     D = prep.problem.skeleton.num_dofs
 
     def modes(offsets_deg, weights):
@@ -199,7 +199,7 @@ def test_merge_takes_the_two_passes_in_turn(kjs_run):
 
     forward = modes([0.0, 10.0, 20.0], [0.6, 0.3, 0.1])
     backward = modes([30.0, 10.5, 40.0], [0.5, 0.4, 0.1])  # its second lies within 3 deg of the forward's
-    got = _merge(s, forward, backward, lead=2)
+    got = merge_mixtures(s, forward, backward, lead=2)
     # in turn: f2 (the lead), b0, f0, b1, f1 (a repeat of b1: dropped), b2 -> the first four distinct
     torch.testing.assert_close(torch.rad2deg(got.q[:, 5]), torch.tensor([20.0, 30.0, 0.0, 10.5]))
     torch.testing.assert_close(got.weight, torch.tensor([0.05, 0.25, 0.3, 0.2]) / 0.8)
@@ -210,12 +210,12 @@ def test_merge_serves_each_depth_order_first(kjs_run):
     """Both passes often hold one reading of the body many times over and the other reading of a limb only
     in a light mode: the first mode of each depth order of the limbs is taken before any repeat, so K
     slots keep the light one (02_01's left thigh after it crosses the image plane)."""
-    from ptrack.estimators.kjs.step import _depth_orders, _merge
-    from ptrack.mixture import Modes
+    from ptrack.estimators.kjs.step import _depth_orders, merge_mixtures
+    from ptrack.hypotheses.mixture import Modes
 
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, [*EXACT, "kjs.modes=4"])
-    s = _setup(prep.problem, cfg, KJS)
+    s = make_setup(prep.problem, cfg, KJS)
     names = prep.problem.skeleton.dof_names
     neck, thigh = names.index("lowerneck.ry"), names.index("lfemur.rx")
     q0 = prep.gt_q[0].to(prep.problem.observations.keypoints.dtype)
@@ -232,7 +232,7 @@ def test_merge_serves_each_depth_order_first(kjs_run):
     backward = modes([(neck, 15.0), (neck, 20.0), (thigh, -40.0)], [0.6, 0.3, 0.1])  # the last: knee behind
     orders = _depth_orders(s, torch.cat([forward.q, backward.q]))
     assert (orders[:5] == orders[0]).all() and not (orders[5] == orders[0]).all()  # one order, then another
-    got = _merge(s, forward, backward, lead=0)
+    got = merge_mixtures(s, forward, backward, lead=0)
     # in turn: f0, b0, f1, b1 would fill K = 4; b2 is the only mode of its order, so it comes second
     torch.testing.assert_close(got.q, torch.stack([forward.q[0], backward.q[2], backward.q[0], forward.q[1]]))
 
@@ -281,12 +281,12 @@ def test_bad_settings_are_one_line_errors(tmp_path, capsys, override, key):
 def test_per_dof_dynamics(table_name):
     """`kjs.dynamics`: each dof's velocity std per frame is its CMU RMS velocity times the frame interval
     (30 fps here) and `kjs.dynamics_scale`, at least the floor; the root's position keeps `kjs.prior_sigma`."""
-    from ptrack.pose_prior import smoothing_prior
+    from ptrack.body.pose_prior import smoothing_prior
 
     table = smoothing_prior(table_name)["velocity"]
     for floor in (0.0, 0.02):
         cfg = load_config(KJS_YAML, ["data.stop=12", f"kjs.dynamics={table_name}", f"kjs.dynamics_floor={floor}"])
-        setup = _setup(prepare(cfg).problem, cfg, KJS)
+        setup = make_setup(prepare(cfg).problem, cfg, KJS)
         names = setup.problem.skeleton.dof_names
         sigma = dict(zip(names, setup.dynamics_sigma.tolist()))
         scale = cfg.kjs.dynamics_scale
@@ -298,19 +298,19 @@ def test_per_dof_dynamics(table_name):
 
 def test_dynamics_default_and_null():
     """The default dynamics are the table fitted to the training clips; null: one std for every dof."""
-    from ptrack.pose_prior import smoothing_prior
+    from ptrack.body.pose_prior import smoothing_prior
 
     cfg = load_config(KJS_YAML, ["data.stop=12"])
     assert cfg.kjs.dynamics == "cmu-train"
     problem = prepare(cfg).problem
-    sigma = dict(zip(problem.skeleton.dof_names, _setup(problem, cfg, KJS).dynamics_sigma.tolist()))
+    sigma = dict(zip(problem.skeleton.dof_names, make_setup(problem, cfg, KJS).dynamics_sigma.tolist()))
     table = smoothing_prior("cmu-train")["velocity"]
     assert cfg.kjs.dynamics_scale == 1.5
     expected = max(table["lfemur.rx"] / 30 * 1.5, cfg.kjs.dynamics_floor)
     assert sigma["lfemur.rx"] == pytest.approx(expected, rel=1e-6)
     flat_cfg = load_config(KJS_YAML, ["data.stop=12", "kjs.dynamics=null"])
     assert flat_cfg.kjs.dynamics is None
-    flat = _setup(prepare(flat_cfg).problem, flat_cfg, KJS).dynamics_sigma
+    flat = make_setup(prepare(flat_cfg).problem, flat_cfg, KJS).dynamics_sigma
     assert flat == flat_cfg.kjs.prior_sigma  # every dof: the float itself
 
 
@@ -409,7 +409,7 @@ def test_orders_first_ranks_each_depth_order_before_repeats(kjs_run):
     from ptrack.estimators.kjs.step import _depth_orders, _orders_first
 
     prep, _ = kjs_run
-    s = _setup(prep.problem, load_config(KJS_YAML, EXACT), KJS)
+    s = make_setup(prep.problem, load_config(KJS_YAML, EXACT), KJS)
     names = prep.problem.skeleton.dof_names
     neck, thigh = names.index("lowerneck.ry"), names.index("lfemur.rx")
     q = prep.gt_q[0].to(prep.problem.observations.keypoints.dtype).repeat(5, 1)
@@ -455,7 +455,7 @@ def test_backward_pass_carries_a_limb_across_the_image_plane(cmu_file):
     runs it. The left knee passes from in front of the hip to behind it over frames 7-8, and the forward
     pass, lagging behind, has every mode on the mirrored side over frames 12-18 (the 2D cannot tell the
     two apart near the image plane). The backward pass, fed each frame by the forward pass's modes
-    (`_feed`), carries the true side found on frame 19 back to frame 13 (measured: the true side among the
+    (`feed_backward`), carries the true side found on frame 19 back to frame 13 (measured: the true side among the
     K modes on 0 of frames 13-18 with the forward pass alone, 6 of 6 with both; best-of-K 22.3 -> 18.7 mm).
     Which seed shows it is a matter of float rounding: the polishing's summation order changed on
     2026-11-24 and seed 0, the earlier example, lost the true side in both passes (five seeds, frames
@@ -504,7 +504,7 @@ def test_backward_pass_restarts_on_the_last_frame(cmu_file):
     from the truth's). The backward pass also starts from the last frame's own tree start, which gets it
     right (measured best-of-K: 22.2 mm; 98.3 when the backward pass started from the forward pass's last
     modes alone). The two passes' trajectories face 52° apart, and the backward one, the cheaper, is the
-    best trajectory (`_lead_pass`; measured 26.7 mm; with the smoother, 2026-11-25: best-of-K 21.4 mm,
+    best trajectory (`lead_pass`; measured 26.7 mm; with the smoother, 2026-11-25: best-of-K 21.4 mm,
     best trajectory 24.8 mm)."""
     cfg = _clip(cmu_file, "49_18.amc", "kjs.init=tree")
     prep = prepare(cfg)
@@ -537,7 +537,7 @@ def test_tree_start_headings(kjs_run):
 
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, [*EXACT, "kjs.init=tree"])
-    s = _setup(prep.problem, cfg, KJS)
+    s = make_setup(prep.problem, cfg, KJS)
     sk = prep.problem.skeleton
     q0 = torch.zeros(sk.num_dofs)
     starts = _root_starts(s, q0, 8, (0.0, 0.5, -0.5))
@@ -577,11 +577,11 @@ def test_principal_directions_follow_the_largest_variance(kjs_run):
 
 
 def test_smoothing_moves_only_linked_hypotheses(kjs_run):
-    """`_smooth` re-polishes a hypothesis towards its neighbours in the frames before and after; one with no
+    """`smooth_lattice` re-polishes a hypothesis towards its neighbours in the frames before and after; one with no
     neighbour within `kjs.smooth_link_m` (here the body turned a quarter turn), and padding, stay as they are."""
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, EXACT)
-    s = _setup(prep.problem, cfg, KJS)
+    s = make_setup(prep.problem, cfg, KJS)
     sk = prep.problem.skeleton
     q = prep.gt_q[10:13].to(torch.float32)
     turned = q.clone()
@@ -591,7 +591,7 @@ def test_smoothing_moves_only_linked_hypotheses(kjs_run):
     hw = torch.tensor([[1.0, 0.0], [0.5, 0.5], [1.0, 0.0]])  # the turned body is padding on frames 10 and 12
     hc = torch.zeros(3, 2)
     hl = torch.zeros(3, 2, sk.num_dofs, sk.num_dofs)
-    sq, sc, sl, sj = _smooth(s, hq, hw, hc, hl, sk.forward_kinematics(hq))
+    sq, sc, sl, sj = smooth_lattice(s, hq, hw, hc, hl, sk.forward_kinematics(hq))
     assert torch.equal(sq[:, 1], hq[:, 1]) and torch.equal(sc[:, 1], hc[:, 1])  # unlinked, padding
     thigh = sk.dof_names.index("lfemur.rx")
     assert abs(float(sq[1, 0, thigh] - q[1, thigh])) < 0.5 * 0.3  # drawn back towards its neighbours
@@ -600,12 +600,12 @@ def test_smoothing_moves_only_linked_hypotheses(kjs_run):
 
 
 def test_recombination_joins_the_right_reading_of_each_chain(kjs_run):
-    """`_recombine`: the best trajectory's mode has the left arm wrong, another mode the right leg, a third
+    """`recombine`: the best trajectory's mode has the left arm wrong, another mode the right leg, a third
     both; no mode is right in both. The recombined pose takes each chain's reading on its own and is the
     truth; it fills the padding slot, and the best trajectory's mode is kept as it was."""
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, EXACT)
-    s = _setup(prep.problem, cfg, KJS)
+    s = make_setup(prep.problem, cfg, KJS)
     sk = prep.problem.skeleton
     q = prep.gt_q[:6].to(torch.float32)
     arm, leg = sk.dof_names.index("lhumerus.rx"), sk.dof_names.index("rfemur.rx")
@@ -618,7 +618,7 @@ def test_recombination_joins_the_right_reading_of_each_chain(kjs_run):
     hc = torch.zeros(6, 4)
     hl = torch.zeros(6, 4, sk.num_dofs, sk.num_dofs)
     path = torch.zeros(6, dtype=torch.long)
-    rq, rw, rc, rl, rj = _recombine(s, hq, hw, hc, hl, sk.forward_kinematics(hq), path)
+    rq, rw, rc, rl, rj = recombine(s, hq, hw, hc, hl, sk.forward_kinematics(hq), path)
     idx = prep.problem.keypoints.index()
     gt = prep.gt_joints[:6].to(rj).index_select(-2, idx)
     err = M.mpjpe(rj.index_select(-2, idx), gt[:, None].expand(-1, 4, -1, -1), root=0)  # (6, 4)

@@ -1,4 +1,4 @@
-"""Tests for ptrack.limits: data-derived joint limits, their file, periodic angles, and the real-data
+"""Tests for ptrack.body.limits: data-derived joint limits, their file, periodic angles, and the real-data
 claims they rest on (the CMU ASF limits are broken by the ground truth; the shipped ones are not)."""
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from ptrack import metrics as M
-from ptrack.config import ModelConfig, load_config
+from ptrack.body.limits import arc_bounds, data_limits_path, read_limits_file, wrap_to_limits
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.errors import InputError
-from ptrack.limits import arc_bounds, data_limits_path, read_limits_file, wrap_to_limits
-from ptrack.skeleton import Skeleton, load_amc
+from ptrack.pipeline import metrics as M
+from ptrack.pipeline.config import ModelConfig, load_config
 
 REPO = Path(__file__).resolve().parents[1]
 ASF = REPO / "ptrack" / "data" / "10.asf"

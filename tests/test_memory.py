@@ -1,4 +1,4 @@
-"""ptrack.memory: the estimate of a run's peak memory, and the refusal of runs that would not fit."""
+"""ptrack.pipeline.memory: the estimate of a run's peak memory, and the refusal of runs that would not fit."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from pathlib import Path
 
 from cli_errors import fail
 
-import ptrack.memory as memory
-from ptrack.config import load_config
-from ptrack.memory import available_bytes, estimate_bytes
+import ptrack.pipeline.memory as memory
+from ptrack.pipeline.config import load_config
+from ptrack.pipeline.memory import available_bytes, estimate_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
 KJS, BATCH, GOLF = (str(ROOT / "configs" / n) for n in ("kjs.yaml", "batch.yaml", "golf.yaml"))
@@ -88,7 +88,7 @@ def test_refusal_forced_by_little_memory(capsys, tmp_path, monkeypatch):
     fail(capsys, out, ["run", KJS, "data.stop=60", f"out_dir={out}"], "method kjs", "kjs.samples=256")
     fail(capsys, out, ["run", BATCH, "data.stop=60", f"out_dir={out}"], "method batch", "data.stop")
 
-    from ptrack.run import prepare
+    from ptrack.pipeline.run import prepare
 
     monkeypatch.setattr(memory, "available_bytes", lambda: 4 << 30)
     for path in (KJS, BATCH):
@@ -97,7 +97,7 @@ def test_refusal_forced_by_little_memory(capsys, tmp_path, monkeypatch):
 
 
 def test_no_check_where_memory_is_unknown(monkeypatch):
-    from ptrack.run import prepare
+    from ptrack.pipeline.run import prepare
 
     monkeypatch.setattr(memory, "available_bytes", lambda: None)
     cfg = load_config(KJS, ["data.stop=20", "kjs.samples=100000000", "kjs.modes=100000000"])

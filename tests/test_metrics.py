@@ -7,7 +7,7 @@ from scipy.linalg import orthogonal_procrustes
 from scipy.spatial.transform import Rotation
 
 from ptrack.errors import InputError
-from ptrack.metrics import (
+from ptrack.pipeline.metrics import (
     JointLimitReport,
     accel_error,
     best_of_k_mpjpe,

@@ -1,4 +1,4 @@
-"""Tests for ptrack.mixture: distinct minima, weights, nearest modes, Viterbi over a hypothesis lattice."""
+"""Tests for ptrack.hypotheses.mixture: distinct minima, weights, nearest modes, Viterbi over a hypothesis lattice."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from ptrack.errors import InputError
-from ptrack.mixture import distinct_minima, nearest, posterior_weights, viterbi, viterbi_with_cost
+from ptrack.hypotheses.mixture import distinct_minima, nearest, posterior_weights, viterbi, viterbi_with_cost
 
 
 def test_distinct_minima_suppresses_duplicates_and_orders_by_cost():

@@ -1,4 +1,4 @@
-"""Tests for ptrack.motion_model on the 7 CMU golf swings of subject 64: the time-warped resampling, PCA
+"""Tests for ptrack.motion.motion_model on the 7 CMU golf swings of subject 64: the time-warped resampling, PCA
 (encode/decode with every component gives a swing back), the decoder's gradients (float64 gradcheck in
 alpha and mu), the model file, and the bad inputs of `ptrack fit-motion` through the command line."""
 
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import torch
 
+from ptrack.body.skeleton import Skeleton
 from ptrack.cli import main
-from ptrack.config import MotionConfig, load_config
 from ptrack.errors import InputError
-from ptrack.motion_model import (
+from ptrack.motion.motion_model import (
     clip_paths,
     decode,
     dof_index,
@@ -31,7 +31,7 @@ from ptrack.motion_model import (
     save_motion_model,
     warp_times,
 )
-from ptrack.skeleton import Skeleton
+from ptrack.pipeline.config import MotionConfig, load_config
 
 REPO = Path(__file__).resolve().parents[1]
 GOLF = REPO / "configs" / "golf_motion.yaml"

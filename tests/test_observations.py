@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from ptrack.camera import Camera, camera_for_motion, look_at
+from ptrack.body.keypoints import make_keypoints
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.errors import InputError
-from ptrack.keypoints import make_keypoints
-from ptrack.observations import ChannelConfig, Observations, SimulationInfo, simulate_observations
-from ptrack.skeleton import Skeleton, load_amc
+from ptrack.observe.camera import Camera, camera_for_motion, look_at
+from ptrack.observe.observations import ChannelConfig, Observations, SimulationInfo, simulate_observations
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 

@@ -14,10 +14,10 @@ import torch
 from cli_errors import fail
 
 from ptrack.cli import main
-from ptrack.config import load_config
 from ptrack.estimators import pca as P
-from ptrack.motion_model import MotionModel, decode, fit_motion_model, read_clips, save_motion_model
-from ptrack.run import prepare
+from ptrack.motion.motion_model import MotionModel, decode, fit_motion_model, read_clips, save_motion_model
+from ptrack.pipeline.config import load_config
+from ptrack.pipeline.run import prepare
 
 REPO = Path(__file__).resolve().parents[1]
 GOLF = REPO / "configs" / "golf.yaml"
@@ -49,7 +49,7 @@ def _setup(cmu_file, model: Path, *extra: str):
 
 
 def test_decode_jacobian_matches_decode(heldout_model):
-    from ptrack.motion_model import load_motion_model
+    from ptrack.motion.motion_model import load_motion_model
 
     model = load_motion_model(heldout_model)
     g = torch.Generator().manual_seed(0)
@@ -155,7 +155,7 @@ def test_bad_pca_values(tmp_path, capsys, override, key):
 
 
 def test_model_file_of_another_skeleton_or_corrupt(cmu_file, heldout_model, tmp_path, capsys):
-    from ptrack.motion_model import load_motion_model
+    from ptrack.motion.motion_model import load_motion_model
 
     model = load_motion_model(heldout_model)
     other = MotionModel(

@@ -1,4 +1,4 @@
-"""The CMU pose prior (`ptrack.pose_prior`): the shipped file, its mapping onto a skeleton, bad files."""
+"""The CMU pose prior (`ptrack.body.pose_prior`): the shipped file, its mapping onto a skeleton, bad files."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 import torch
 
+from ptrack.body.acclaim import parse_clips
+from ptrack.body.pose_prior import SMOOTHING_TABLES, pose_prior, pose_prior_path, read_pose_prior, smoothing_prior
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.errors import InputError
-from ptrack.evaluate import parse_clips
-from ptrack.pose_prior import SMOOTHING_TABLES, pose_prior, pose_prior_path, read_pose_prior, smoothing_prior
-from ptrack.skeleton import Skeleton, load_amc
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO / "ptrack" / "data"
@@ -69,7 +69,7 @@ def test_mean_pose_is_nearer_real_motion_than_the_zero_pose(model):
     """On a clip of a held-out subject (the bundled 10_02, subject 10), the prior's mean pose (root taken
     from the truth) lies much nearer the true joints than the all-zero pose (arms straight out), around
     which the previous start prior was centred (measured: 176 vs 374 mm MPJPE)."""
-    from ptrack import metrics as M
+    from ptrack.pipeline import metrics as M
 
     full, sk = model
     lower, upper = sk.limits(dtype=torch.float64)

@@ -7,12 +7,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from ptrack.camera import camera_for_motion
+from ptrack.body.keypoints import make_keypoints
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.errors import InputError
-from ptrack.keypoints import make_keypoints
-from ptrack.observations import ChannelConfig, simulate_observations
+from ptrack.observe.camera import camera_for_motion
+from ptrack.observe.observations import ChannelConfig, simulate_observations
 from ptrack.problem import Keyframes, Problem, evaluate_pose
-from ptrack.skeleton import Skeleton, load_amc
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 

@@ -4,14 +4,14 @@ against finite differences, mask sampling, and the term on a rendered silhouette
 import pytest
 import torch
 
-from ptrack.camera import camera_for_motion
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.costs import PoseEval
 from ptrack.costs.base import PoseJacobian
 from ptrack.costs.ray_silhouette import RaySilhouette, mask_samples, ray_capsule_distance
 from ptrack.errors import InputError
-from ptrack.jacobians import joint_jacobian
-from ptrack.silhouette import capsule_radii, render_silhouettes
-from ptrack.skeleton import Skeleton, load_amc
+from ptrack.observe.camera import camera_for_motion
+from ptrack.observe.silhouette import capsule_radii, render_silhouettes
+from ptrack.optim.jacobians import joint_jacobian
 
 F64 = torch.float64
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import ptrack
-from ptrack.run import execute
+from ptrack.pipeline.run import execute
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""ptrack.rotations: skew, Rodrigues, Euler composition and its inverse."""
+"""ptrack.body.rotations: skew, Rodrigues, Euler composition and its inverse."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from ptrack.rotations import axis_angle_matrix, elementary_matrix_np, euler_matrix_np, matrix_to_euler_np, skew
+from ptrack.body.rotations import axis_angle_matrix, elementary_matrix_np, euler_matrix_np, matrix_to_euler_np, skew
 
 
 def test_skew_is_cross_product():

@@ -1,4 +1,4 @@
-"""Tests for ptrack.run: `execute(cfg)` on the bundled CMU clip writes exactly config.yaml, metrics.json,
+"""Tests for ptrack.pipeline.run: `execute(cfg)` on the bundled CMU clip writes exactly config.yaml, metrics.json,
 result.npz, result.bvh and run.rrd, atomically; `prepare` makes silhouettes or reads an observation file."""
 
 from __future__ import annotations
@@ -15,15 +15,15 @@ import pytest
 import rerun.chunk
 import torch
 
-import ptrack.run
-import ptrack.viz
-from ptrack import metrics as M
-from ptrack.config import load_config, to_dict
+import ptrack.io.viz
+import ptrack.pipeline.run
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators import ESTIMATORS, estimate_frames
+from ptrack.pipeline import metrics as M
+from ptrack.pipeline.config import load_config, to_dict
+from ptrack.pipeline.run import execute, json_safe, prepare
 from ptrack.problem import Estimate
-from ptrack.run import execute, json_safe, prepare
-from ptrack.skeleton import Skeleton, load_amc
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "configs" / "demo.yaml"
@@ -253,7 +253,7 @@ def test_failure_inside_writer_leaves_nothing(tmp_path, monkeypatch):
         Path(path).write_bytes(b"half a recording")
         raise RuntimeError("disk on fire")
 
-    monkeypatch.setattr(ptrack.viz, "write_recording", boom)
+    monkeypatch.setattr(ptrack.io.viz, "write_recording", boom)
     out = tmp_path / "runs" / "doomed"
     with pytest.raises(RuntimeError, match="disk on fire"):
         execute(_cfg(out, fast=QUICK))
@@ -286,7 +286,7 @@ def test_out_dir_under_a_file_fails_before_any_work(tmp_path, monkeypatch):
     def no_work(cfg):
         raise AssertionError("the run started before out_dir was checked")
 
-    monkeypatch.setattr(ptrack.run, "prepare", no_work)
+    monkeypatch.setattr(ptrack.pipeline.run, "prepare", no_work)
     with pytest.raises(InputError, match=f"out_dir .* cannot be made: {tmp_path / 'file'} is a file"):
         execute(_cfg(out, fast=QUICK))
     assert _leftovers(tmp_path) == ["file"]
@@ -294,7 +294,9 @@ def test_out_dir_under_a_file_fails_before_any_work(tmp_path, monkeypatch):
 
 @pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc (no folder can be made in it)")
 def test_unwritable_out_dir_fails_before_any_work(tmp_path, monkeypatch):
-    monkeypatch.setattr(ptrack.run, "prepare", lambda cfg: pytest.fail("the run started before out_dir was checked"))
+    monkeypatch.setattr(
+        ptrack.pipeline.run, "prepare", lambda cfg: pytest.fail("the run started before out_dir was checked")
+    )
     with pytest.raises(InputError, match="out_dir /proc/ptrack-run cannot be made: cannot write in /proc"):
         execute(_cfg(Path("/proc/ptrack-run"), fast=QUICK))
 
@@ -364,7 +366,7 @@ def test_accel_error_is_pelvis_centred_and_absolute_is_reported_too(run_dir, res
 
 
 def _keypoint_joints(result) -> list[str]:
-    from ptrack.keypoints import make_keypoints
+    from ptrack.body.keypoints import make_keypoints
 
     sk = Skeleton.from_asf(ASF).freeze(FREEZE)
     kps = make_keypoints(sk)
@@ -418,7 +420,7 @@ def test_metrics_record_the_visible_fraction(run_dir):
 
 
 def test_visibility_check_needs_three_frames_a_third_seen(caplog):
-    from ptrack.run import check_visibility
+    from ptrack.pipeline.run import check_visibility
 
     visible = torch.zeros(10, 6, dtype=torch.bool)
     visible[:2, :2] = True  # two frames with a third of the keypoints: refused

@@ -1,4 +1,4 @@
-"""Tests for ptrack.samplers: the CSS covariance, CSS / SS proposals with Gaussian, Student-t and
+"""Tests for ptrack.hypotheses.samplers: the CSS covariance, CSS / SS proposals with Gaussian, Student-t and
 Cauchy tails (statistical tests on fixed seeds), their log-densities, and projection onto limits."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import torch
 from scipy import stats
 
 from ptrack.errors import InputError
-from ptrack.samplers import (
+from ptrack.hypotheses.samplers import (
     Draws,
     css_proposal,
     project_to_limits,

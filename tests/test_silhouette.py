@@ -1,11 +1,11 @@
 import pytest
 import torch
 
-import ptrack.silhouette as silhouette
-from ptrack.camera import camera_for_motion, look_at
+import ptrack.observe.silhouette as silhouette
 from ptrack.costs import PoseEval, Silhouette
 from ptrack.errors import InputError
-from ptrack.silhouette import capsule_radii, render_silhouettes
+from ptrack.observe.camera import camera_for_motion, look_at
+from ptrack.observe.silhouette import capsule_radii, render_silhouettes
 
 METRES_PER_UNIT = 0.0254 / 0.45
 

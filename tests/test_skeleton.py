@@ -1,4 +1,4 @@
-"""Tests for ptrack.skeleton: ASF models, AMC loading, reduced (frozen) models and Motion clips."""
+"""Tests for ptrack.body.skeleton: ASF models, AMC loading, reduced (frozen) models and Motion clips."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from ptrack.acclaim import parse_asf
+from ptrack.body.acclaim import parse_asf
+from ptrack.body.skeleton import CMU_FPS, Motion, Skeleton, load_amc
 from ptrack.errors import InputError
-from ptrack.skeleton import CMU_FPS, Motion, Skeleton, load_amc
 
 M_PER_UNIT = 0.0254 / 0.45  # CMU: (1/0.45) * 2.54 / 100 = 0.056444 m per ASF unit
 DEG = math.pi / 180.0

@@ -1,4 +1,4 @@
-"""Tests for ptrack.solvers: batched Levenberg-Marquardt and L-BFGS against scipy on small problems,
+"""Tests for ptrack.optim.solvers: batched Levenberg-Marquardt and L-BFGS against scipy on small problems,
 per-problem independence, box constraints, IRLS, info records, and a real pose fit."""
 
 from __future__ import annotations
@@ -11,15 +11,15 @@ import pytest
 import scipy.optimize as so
 import torch
 
-from ptrack.camera import camera_for_motion
+from ptrack.body.keypoints import make_keypoints
+from ptrack.body.limits import wrap_to_limits
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.costs import JointLimits, Objective, Reprojection, cauchy, robust_loss_derivative
 from ptrack.errors import InputError
-from ptrack.jacobians import objective_linearization
-from ptrack.keypoints import make_keypoints
-from ptrack.limits import wrap_to_limits
+from ptrack.observe.camera import camera_for_motion
+from ptrack.optim.jacobians import objective_linearization
+from ptrack.optim.solvers import Linearization, lbfgs, levenberg_marquardt
 from ptrack.problem import evaluate_pose
-from ptrack.skeleton import Skeleton, load_amc
-from ptrack.solvers import Linearization, lbfgs, levenberg_marquardt
 
 DATA = Path(__file__).resolve().parents[1] / "ptrack" / "data"
 F64 = torch.float64

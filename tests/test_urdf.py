@@ -1,4 +1,4 @@
-"""Tests for ptrack.urdf: URDF import (ptrack's own reader) and export of `Skeleton` models, checked
+"""Tests for ptrack.body.urdf: URDF import (ptrack's own reader) and export of `Skeleton` models, checked
 by hand, against yourdfpy (an independent reader, a test-only dependency) on a corpus of URDF files
 that others wrote (tests/data/urdf, see its README), and through round trips."""
 
@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 import torch
 
-from ptrack.errors import InputError
-from ptrack.kinematics import forward_kinematics
-from ptrack.rotations import euler_matrix_np
-from ptrack.skeleton import Skeleton
-from ptrack.urdf import (
+from ptrack.body.kinematics import forward_kinematics
+from ptrack.body.rotations import euler_matrix_np
+from ptrack.body.skeleton import Skeleton
+from ptrack.body.urdf import (
     UNLIMITED_PRISMATIC,
     parse_urdf,
     skeleton_from_urdf,
     skeleton_to_urdf,
 )
+from ptrack.errors import InputError
 
 try:
     import yourdfpy
@@ -717,7 +717,7 @@ def test_mimic_of_a_missing_joint_is_held_at_its_offset(tmp_path, caplog):
         ),
         _joint("b_to_c", "fixed", "b", "c", xyz="1 0 0"),
     )
-    with caplog.at_level("WARNING", logger="ptrack.urdf"):
+    with caplog.at_level("WARNING", logger="ptrack.body.urdf"):
         m = Skeleton.from_urdf(_write(tmp_path, text), floating_base=False)
     assert m.num_dofs == 0 and "nope" in caplog.text
     j = m.forward_kinematics(torch.zeros(0, dtype=torch.float64))
@@ -854,11 +854,11 @@ def test_a_base_moved_by_three_prismatic_joints_is_not_floated(tmp_path):
 
 
 def test_geometric_jacobian_of_slides_and_mimics(tmp_path):
-    """ptrack.jacobians on prismatic joints below the root (a slider moves its subtree along its axis)
+    """ptrack.optim.jacobians on prismatic joints below the root (a slider moves its subtree along its axis)
     and mimic joints (a follower turns by multiplier per unit of its leader): equal to autograd
     through FK, on the small repro models and on corpus robots that have both (Panda's fingers,
     TIAGo's torso lift, xArm's gripper, Talos, r2d2), with and without a floating base."""
-    from ptrack.jacobians import joint_jacobian
+    from ptrack.optim.jacobians import joint_jacobian
 
     models = [Skeleton.from_urdf(_write(tmp_path, text), floating_base=False) for text in (_robot(LIFT), _robot(MIMIC))]
     for name in ("panda.urdf", "tiago.urdf", "r2d2.urdf", "talos_full_v2.urdf", "xarm6_with_gripper.urdf"):

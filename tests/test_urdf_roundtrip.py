@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from ptrack.skeleton import Skeleton
+from ptrack.body.skeleton import Skeleton
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED_ASF = REPO / "ptrack" / "data" / "10.asf"
@@ -99,8 +99,8 @@ def test_reduced_model_comes_back_with_its_frozen_slots(cmu_file, value):
 
 def test_axis_angle_of_a_fixed_rotation():
     """The angle and axis of a fixed joint's rotation, to rounding at any angle (0 to pi)."""
-    from ptrack.rotations import axis_angle_matrix
-    from ptrack.urdf import _axis_angle_np
+    from ptrack.body.rotations import axis_angle_matrix
+    from ptrack.body.urdf import _axis_angle_np
 
     rng = np.random.default_rng(0)
     for angle in (0.0, 1e-9, 0.3, 2.999, 3.0, 3.1, np.pi - 1e-7, np.pi):
@@ -116,7 +116,7 @@ def test_axis_angle_of_a_fixed_rotation():
 
 def test_the_fast_forward_kinematics_path_is_kept():
     """The merged joints keep a (z, y, x) frame of axes, so FK takes the closed form as before."""
-    from ptrack.kinematics import _plan
+    from ptrack.body.kinematics import _plan
 
     sk = Skeleton.from_asf(BUNDLED_ASF)
     back = Skeleton.from_urdf(sk.to_urdf())

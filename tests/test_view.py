@@ -1,4 +1,4 @@
-"""The view a user opens (ptrack.viz's blueprint and scene) and scripts/screenshot.py.
+"""The view a user opens (ptrack.io.viz's blueprint and scene) and scripts/screenshot.py.
 
 The recording is read back with rerun.chunk.RrdReader: the data store, and the blueprint store that
 `write_recording` puts in the same .rrd.
@@ -20,9 +20,9 @@ import pytest
 import rerun.chunk
 import torch
 
-from ptrack.camera import Camera
 from ptrack.errors import InputError
-from ptrack.viz import IMAGE_PLANE_FRACTION, RunLog, _keypoint_bones, plot_groups, write_recording
+from ptrack.io.viz import IMAGE_PLANE_FRACTION, RunLog, _keypoint_bones, plot_groups, write_recording
+from ptrack.observe.camera import Camera
 
 ROOT = Path(__file__).resolve().parents[1]
 T, J, N, W, H = 6, 5, 3, 80, 60

@@ -1,4 +1,4 @@
-"""Tests for ptrack.viz: write a synthetic run to .rrd, read it back with rerun.chunk.RrdReader."""
+"""Tests for ptrack.io.viz: write a synthetic run to .rrd, read it back with rerun.chunk.RrdReader."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import rerun as rr
 import rerun.chunk
 import torch
 
-from ptrack.camera import Camera
 from ptrack.errors import InputError
-from ptrack.viz import RunLog, open_viewer, write_recording
+from ptrack.io.viz import RunLog, open_viewer, write_recording
+from ptrack.observe.camera import Camera
 
 T, J, N = 5, 4, 3
 W, H = 64, 48

@@ -117,38 +117,38 @@ def robust_loss_derivative(name: str) -> Loss:
 # Validation helpers (construction time only: they may sync).
 
 
-def _positive(name: str, value) -> None:
+def check_positive(name: str, value) -> None:
     t = torch.as_tensor(value, dtype=torch.float64)
     if not (torch.isfinite(t).all() and (t > 0).all()):
         raise InputError(f"{name} must be finite and > 0, got {value!r}")
 
 
-def _shape(x: Tensor) -> tuple[int, ...]:
+def shape_of(x: Tensor) -> tuple[int, ...]:
     return tuple(x.shape)
 
 
-def _times(name: str, times) -> Tensor:
+def check_times(name: str, times) -> Tensor:
     t = torch.as_tensor(times)
     if t.ndim != 1 or t.is_floating_point() or t.dtype == torch.bool:
-        raise InputError(f"{name}.times must be a 1-D integer tensor (F,), got {t.dtype} {_shape(t)}")
+        raise InputError(f"{name}.times must be a 1-D integer tensor (F,), got {t.dtype} {shape_of(t)}")
     if (t < 0).any():
         raise InputError(f"{name}.times must be >= 0, got {t.tolist()}")
     return t.long()
 
 
-def _mask(name: str, mask, shape: tuple[int, ...]) -> Tensor:
+def check_mask(name: str, mask, shape: tuple[int, ...]) -> Tensor:
     if mask is None:
         return torch.ones(shape, dtype=torch.bool)
     m = torch.as_tensor(mask)
-    if m.dtype != torch.bool or _shape(m) != shape:
-        raise InputError(f"{name} must be a bool tensor of shape {shape}, got {m.dtype} {_shape(m)}")
+    if m.dtype != torch.bool or shape_of(m) != shape:
+        raise InputError(f"{name} must be a bool tensor of shape {shape}, got {m.dtype} {shape_of(m)}")
     return m
 
 
-def _frame_count(name: str, x: Tensor, times_max: int, time_dim: int) -> None:
+def check_frame_count(name: str, x: Tensor, times_max: int, time_dim: int) -> None:
     if x.ndim < -time_dim or x.shape[time_dim] <= times_max:
         raise InputError(
-            f"{name}: keyframe time {times_max} is outside a trajectory of shape {_shape(x)} (time axis {time_dim})"
+            f"{name}: keyframe time {times_max} is outside a trajectory of shape {shape_of(x)} (time axis {time_dim})"
         )
 
 
@@ -166,7 +166,7 @@ class CostTerm(Protocol):
     def robust_weights(self, ev: PoseEval) -> Tensor: ...
 
 
-class _LeastSquares:
+class LeastSquaresMixin:
     """Mixin: energy = 0.5 |r|^2 and IRLS weights all one."""
 
     if TYPE_CHECKING:  # provided by the term that mixes this in
@@ -182,7 +182,7 @@ class _LeastSquares:
         return torch.ones_like(self.residual(ev))
 
 
-class _Robust:
+class RobustMixin:
     """Mixin: residual entries come in consecutive groups of `_group`; rho sees |r_group|^2."""
 
     _group: ClassVar[int]

@@ -2,7 +2,7 @@
 body non-self-intersection constraints"): a penetration cost between non-adjacent body capsules.
 
 Each bone is a capsule: all points within a radius of the segment from its parent joint to its own
-joint (the `ptrack.silhouette` "flesh" model, shrunk: see below). Capsules a, b interpenetrate by
+joint (the `ptrack.observe.silhouette` "flesh" model, shrunk: see below). Capsules a, b interpenetrate by
 radius_a + radius_b - d_ab, d_ab the exact closest distance between their segments. The cost prunes
 kinematic flips that pass an arm or a leg through the body.
 
@@ -47,12 +47,12 @@ import torch
 from torch import Tensor
 
 from ptrack.checks import as_float_tensor
-from ptrack.costs.base import PoseEval, PoseJacobian, _LeastSquares, _positive, _shape
+from ptrack.costs.base import LeastSquaresMixin, PoseEval, PoseJacobian, check_positive, shape_of
 from ptrack.errors import InputError
-from ptrack.silhouette import capsule_radii
+from ptrack.observe.silhouette import capsule_radii
 
 if TYPE_CHECKING:
-    from ptrack.skeleton import Skeleton
+    from ptrack.body.skeleton import Skeleton
 
 #: bones left out by `SelfIntersection.for_skeleton` (fnmatch patterns, case-insensitive)
 DEFAULT_SKIP = ("*hand", "*fingers", "*thumb", "*wrist", "*toes")
@@ -149,14 +149,14 @@ def _hop_distances(bones: Sequence[tuple[int, int]], n_joints: int) -> list[list
 def _index_tensor(name: str, value, cols: int) -> Tensor:
     t = torch.as_tensor(value)
     if t.ndim != 2 or t.shape[1] != cols or t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
-        raise InputError(f"SelfIntersection.{name} must be an integer tensor (n, {cols}), got {t.dtype} {_shape(t)}")
+        raise InputError(f"SelfIntersection.{name} must be an integer tensor (n, {cols}), got {t.dtype} {shape_of(t)}")
     if (t < 0).any():
         raise InputError(f"SelfIntersection.{name} must be >= 0")
     return t.long()
 
 
 @dataclass(frozen=True, eq=False)
-class SelfIntersection(_LeastSquares):
+class SelfIntersection(LeastSquaresMixin):
     """Penetration between non-adjacent body capsules, on ev.joints.
 
     segments (C, 2) int: (start, end) joint indices of each capsule; radii (C,) metres; pairs
@@ -183,14 +183,14 @@ class SelfIntersection(_LeastSquares):
         if radii.shape != seg.shape[:1] or not (torch.isfinite(radii).all() and (radii >= 0).all()):
             raise InputError(
                 f"SelfIntersection.radii must be finite, >= 0 and of shape "
-                f"({seg.shape[0]},) like segments, got {_shape(radii)}"
+                f"({seg.shape[0]},) like segments, got {shape_of(radii)}"
             )
         if (pairs >= seg.shape[0]).any():
             raise InputError(f"SelfIntersection.pairs must index the {seg.shape[0]} segments, got {int(pairs.max())}")
         if self.names and len(self.names) != seg.shape[0]:
             raise InputError(f"SelfIntersection.names has {len(self.names)} entries for {seg.shape[0]} segments")
-        _positive("SelfIntersection.sigma", self.sigma)
-        _positive("SelfIntersection.eps", self.eps)
+        check_positive("SelfIntersection.sigma", self.sigma)
+        check_positive("SelfIntersection.eps", self.eps)
         try:
             margin = float(self.margin)
         except (TypeError, ValueError):
@@ -216,11 +216,11 @@ class SelfIntersection(_LeastSquares):
         """joints (..., J, 3) -> (4, 3, ..., P): capsule a's start, end, capsule b's start, end of every
         checked pair, coordinates second (the layout `_distance` reads); shape errors raised here."""
         if joints.ndim < 2 or joints.shape[-1] != 3:
-            raise InputError(f"SelfIntersection: joints must be (..., J, 3), got {_shape(joints)}")
+            raise InputError(f"SelfIntersection: joints must be (..., J, 3), got {shape_of(joints)}")
         if joints.shape[-2] < self._joints_needed:
             raise InputError(
                 f"SelfIntersection: segments use joint {self._joints_needed - 1} but "
-                f"joints {_shape(joints)} has J={joints.shape[-2]}"
+                f"joints {shape_of(joints)} has J={joints.shape[-2]}"
             )
         ends = joints.index_select(-2, self._ends.to(joints.device)).unflatten(-2, (4, -1))
         return ends.movedim((-3, -1), (0, 1))
@@ -318,7 +318,7 @@ class SelfIntersection(_LeastSquares):
         """The term for a skeleton (defaults measured on CMU motion: see the module docstring).
 
         One capsule per bone of non-zero length, named by its child joint, from `sk.bones()`.
-        radii: None = `ptrack.silhouette.capsule_radii`; a (B,) tensor in `sk.bones()` order; or a
+        radii: None = `ptrack.observe.silhouette.capsule_radii`; a (B,) tensor in `sk.bones()` order; or a
         {bone name: radius} mapping overriding some of those. Each is multiplied by radius_scale.
         Pairs checked: every two capsules more than `min_hops` apart in the bone graph (bones
         sharing a joint are 1 hop apart; a zero-length bone's two joints count as one), except the
@@ -326,7 +326,7 @@ class SelfIntersection(_LeastSquares):
         """
         if isinstance(min_hops, bool) or int(min_hops) != min_hops or min_hops < 1:
             raise InputError(f"SelfIntersection.for_skeleton: min_hops must be an integer >= 1, got {min_hops!r}")
-        _positive("SelfIntersection.radius_scale", radius_scale)
+        check_positive("SelfIntersection.radius_scale", radius_scale)
         if isinstance(skip, str):
             raise InputError(
                 f"SelfIntersection.for_skeleton: skip must be a sequence of patterns, got the string {skip!r}"
@@ -345,7 +345,7 @@ class SelfIntersection(_LeastSquares):
             if base.shape != (len(bones),):
                 raise InputError(
                     f"SelfIntersection.for_skeleton: radii must have shape "
-                    f"({len(bones)},), one per bone of sk.bones(), got {_shape(base)}"
+                    f"({len(bones)},), one per bone of sk.bones(), got {shape_of(base)}"
                 )
         excluded = set()
         for pair in exclude:

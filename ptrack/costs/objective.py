@@ -11,7 +11,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ptrack.costs.base import CostTerm, PoseEval, PoseJacobian, _LeastSquares
+from ptrack.costs.base import CostTerm, LeastSquaresMixin, PoseEval, PoseJacobian
 from ptrack.errors import InputError
 
 # ---------------------------------------------------------------------------------------------
@@ -112,7 +112,7 @@ class Objective:
         term's residual computed once: -> (..., M), (..., M, D), (..., M), (...,).
 
         With `fold`, least-squares terms whose Jacobian is mostly zeros are not stacked as rows but
-        folded into the Gauss-Newton normal equations (`ptrack.solvers.Linearization`): terms with a
+        folded into the Gauss-Newton normal equations (`ptrack.optim.solvers.Linearization`): terms with a
         `diagonal_jacobian` (joint limits, pose priors: one row per dof) and terms with a
         `gauss_newton(ev, jac) -> (energy, J^T J, J^T r)` (body collision: pairs apart give nothing).
         Their share comes back as two more outputs, fold_h (..., D, D) and fold_g (..., D); the
@@ -132,7 +132,7 @@ class Objective:
                     fold_gs.append(w * g)
                     continue
             stacked.append(name)
-            if isinstance(term, _LeastSquares):
+            if isinstance(term, LeastSquaresMixin):
                 r = term.residual(ev)
                 rs.append(math.sqrt(w) * r)
                 ws.append(torch.ones_like(r))
@@ -182,7 +182,7 @@ def _folded(term, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor, Tens
     """A term's share of the (IRLS) normal equations, if it can give it without stacking rows:
     -> (energy (...,), h, g (..., D), diagonal) with h (..., D) (the diagonal of J^T W J) when
     `diagonal`, else (..., D, D); None when the term must be stacked."""
-    least_squares = isinstance(term, _LeastSquares)
+    least_squares = isinstance(term, LeastSquaresMixin)
     diagonal = getattr(term, "diagonal_jacobian", None)
     if diagonal is not None:
         try:

@@ -28,7 +28,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ptrack.costs.base import PoseEval, PoseJacobian, _LeastSquares, _positive, _shape
+from ptrack.costs.base import LeastSquaresMixin, PoseEval, PoseJacobian, check_positive, shape_of
 from ptrack.errors import InputError
 
 
@@ -42,7 +42,7 @@ def mask_samples(masks: Tensor, step: int = 4, max_samples: int = 128) -> tuple[
     """
     masks = torch.as_tensor(masks)
     if masks.dtype != torch.bool or masks.ndim != 3:
-        raise InputError(f"mask_samples: masks must be bool (T, H, W), got {masks.dtype} {_shape(masks)}")
+        raise InputError(f"mask_samples: masks must be bool (T, H, W), got {masks.dtype} {shape_of(masks)}")
     if step < 1 or max_samples < 1:
         raise InputError(f"mask_samples: step and max_samples must be >= 1, got {step}, {max_samples}")
     grid = masks[:, ::step, ::step]
@@ -111,7 +111,7 @@ def ray_capsule_distance(origin: Tensor, directions: Tensor, a: Tensor, b: Tenso
 
 
 @dataclass(frozen=True, eq=False)
-class RaySilhouette(_LeastSquares):
+class RaySilhouette(LeastSquaresMixin):
     """Foreground samples whose lines of sight should meet the capsule model (section 4.1).
 
     directions (*O, S, 3) unit world rays of the samples (`Camera.rays` of `mask_samples` pixels);
@@ -132,9 +132,11 @@ class RaySilhouette(_LeastSquares):
     def __post_init__(self) -> None:
         dirs, valid = torch.as_tensor(self.directions), torch.as_tensor(self.valid)
         if not dirs.is_floating_point() or dirs.ndim < 2 or dirs.shape[-1] != 3:
-            raise InputError(f"RaySilhouette.directions must be floating (*O, S, 3), got {_shape(dirs)}")
+            raise InputError(f"RaySilhouette.directions must be floating (*O, S, 3), got {shape_of(dirs)}")
         if valid.dtype != torch.bool or valid.shape != dirs.shape[:-1]:
-            raise InputError(f"RaySilhouette.valid must be bool {_shape(dirs)[:-1]}, got {valid.dtype} {_shape(valid)}")
+            raise InputError(
+                f"RaySilhouette.valid must be bool {shape_of(dirs)[:-1]}, got {valid.dtype} {shape_of(valid)}"
+            )
         bones = torch.as_tensor(self.bones)
         if (
             bones.ndim != 2
@@ -148,8 +150,8 @@ class RaySilhouette(_LeastSquares):
             )
         radii = torch.as_tensor(self.radii, dtype=dirs.dtype)
         if radii.shape != (bones.shape[0],) or not bool((radii > 0).all()):
-            raise InputError(f"RaySilhouette.radii must be ({bones.shape[0]},) positive, got {_shape(radii)}")
-        _positive("RaySilhouette.sigma_m", self.sigma_m)
+            raise InputError(f"RaySilhouette.radii must be ({bones.shape[0]},) positive, got {shape_of(radii)}")
+        check_positive("RaySilhouette.sigma_m", self.sigma_m)
         object.__setattr__(self, "directions", dirs)
         object.__setattr__(self, "valid", valid)
         object.__setattr__(self, "origin", torch.as_tensor(self.origin, dtype=dirs.dtype))
@@ -164,7 +166,7 @@ class RaySilhouette(_LeastSquares):
             or joints.shape[-2] <= int(self._bones.max())
         ):
             raise InputError(
-                f"RaySilhouette: ev.joints {_shape(joints)} must be (..., "
+                f"RaySilhouette: ev.joints {shape_of(joints)} must be (..., "
                 f"{''.join(f'{x}, ' for x in self.directions.shape[:-2])}J, 3) with J > "
                 f"{int(self._bones.max())}"
             )

@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ptrack.costs.base import PoseEval, _positive, _Robust, _shape, log, robust_loss
+from ptrack.costs.base import PoseEval, RobustMixin, check_positive, log, robust_loss, shape_of
 from ptrack.errors import InputError
 
 
@@ -28,7 +28,7 @@ def distance_transform(mask: Tensor) -> Tensor:
 
     mask = torch.as_tensor(mask, dtype=torch.bool)
     if mask.ndim < 2:
-        raise InputError(f"distance_transform: mask must be (..., H, W), got {_shape(mask)}")
+        raise InputError(f"distance_transform: mask must be (..., H, W), got {shape_of(mask)}")
     h, w = mask.shape[-2:]
     images = mask.cpu().reshape(math.prod(mask.shape[:-2]), h, w).numpy()
     out = np.empty(images.shape, dtype=np.float64)
@@ -41,7 +41,7 @@ def distance_transform(mask: Tensor) -> Tensor:
 
 
 @dataclass(frozen=True, eq=False)
-class Silhouette(_Robust):
+class Silhouette(RobustMixin):
     """Keeps projected bones inside a foreground mask, on ev.joint_pixels (..., *O, J, 2).
 
     masks (*O, H, W) bool, *O = () or (T,); bones ((parent, child), ...) skeleton joint indices.
@@ -70,7 +70,7 @@ class Silhouette(_Robust):
         masks = torch.as_tensor(self.masks)
         if masks.dtype != torch.bool or masks.ndim < 2 or min(masks.shape[-2:]) < 2:
             raise InputError(
-                f"Silhouette.masks must be a bool tensor (*O, H, W) with H, W >= 2, got {masks.dtype} {_shape(masks)}"
+                f"Silhouette.masks must be a bool tensor (*O, H, W) with H, W >= 2, got {masks.dtype} {shape_of(masks)}"
             )
         bones = torch.as_tensor(self.bones)
         if (
@@ -85,8 +85,8 @@ class Silhouette(_Robust):
             )
         if int(self.samples_per_bone) != self.samples_per_bone or self.samples_per_bone < 2:
             raise InputError(f"Silhouette.samples_per_bone must be an integer >= 2, got {self.samples_per_bone!r}")
-        _positive("Silhouette.sigma_px", self.sigma_px)
-        _positive("Silhouette.scale", self.scale)
+        check_positive("Silhouette.sigma_px", self.sigma_px)
+        check_positive("Silhouette.scale", self.scale)
         robust_loss(self.loss)
         dt = distance_transform(masks)
         present = masks.flatten(-2).any(-1)
@@ -116,7 +116,7 @@ class Silhouette(_Robust):
             or jp.shape[-2] <= int(self._bones.max())
         ):
             raise InputError(
-                f"Silhouette: ev.joint_pixels {_shape(jp)} must be (..., "
+                f"Silhouette: ev.joint_pixels {shape_of(jp)} must be (..., "
                 f"{', '.join(map(str, frames)) + ', ' if n_o else ''}J, 2) with J > "
                 f"{int(self._bones.max())}"
             )

@@ -12,16 +12,16 @@ from torch import Tensor
 
 from ptrack.checks import as_float_tensor
 from ptrack.costs.base import (
+    LeastSquaresMixin,
     PoseEval,
     PoseJacobian,
-    _frame_count,
-    _LeastSquares,
-    _mask,
-    _positive,
-    _Robust,
-    _shape,
-    _times,
+    RobustMixin,
+    check_frame_count,
+    check_mask,
+    check_positive,
+    check_times,
     robust_loss,
+    shape_of,
 )
 from ptrack.errors import InputError
 
@@ -30,7 +30,7 @@ from ptrack.errors import InputError
 
 
 @dataclass(frozen=True, eq=False)
-class Reprojection(_Robust):
+class Reprojection(RobustMixin):
     """2D keypoint reprojection error, robust per keypoint.
 
     observed (*O, K, 2) pixels, confidence (*O, K) >= 0 (0 = missing; NaN observations allowed
@@ -55,14 +55,14 @@ class Reprojection(_Robust):
     def __post_init__(self) -> None:
         obs, conf = as_float_tensor(self.observed, "observed"), as_float_tensor(self.confidence, "confidence")
         if obs.ndim < 2 or obs.shape[-1] != 2 or obs.shape[-2] == 0:
-            raise InputError(f"Reprojection.observed must have shape (*O, K, 2) with K >= 1, got {_shape(obs)}")
+            raise InputError(f"Reprojection.observed must have shape (*O, K, 2) with K >= 1, got {shape_of(obs)}")
         if conf.shape != obs.shape[:-1]:
             raise InputError(
-                f"Reprojection.confidence must have shape {_shape(obs)[:-1]} to "
-                f"match observed {_shape(obs)}, got {_shape(conf)}"
+                f"Reprojection.confidence must have shape {shape_of(obs)[:-1]} to "
+                f"match observed {shape_of(obs)}, got {shape_of(conf)}"
             )
         if self.per_problem and obs.ndim != 3:
-            raise InputError(f"Reprojection.observed must have shape (N, K, 2) with per_problem, got {_shape(obs)}")
+            raise InputError(f"Reprojection.observed must have shape (N, K, 2) with per_problem, got {shape_of(obs)}")
         if not (torch.isfinite(conf).all() and (conf >= 0).all()):
             raise InputError("Reprojection.confidence must be finite and >= 0")
         valid = conf > 0
@@ -72,8 +72,8 @@ class Reprojection(_Robust):
                 f"Reprojection.observed has NaN/inf at keypoints with confidence > 0, "
                 f"indices {bad.nonzero().tolist()[:5]}"
             )
-        _positive("Reprojection.sigma_px", self.sigma_px)
-        _positive("Reprojection.scale", self.scale)
+        check_positive("Reprojection.sigma_px", self.sigma_px)
+        check_positive("Reprojection.scale", self.scale)
         robust_loss(self.loss)
         object.__setattr__(self, "observed", obs)
         object.__setattr__(self, "confidence", conf)
@@ -85,7 +85,7 @@ class Reprojection(_Robust):
         p, n = ev.pixels, self.observed.ndim
         if p.ndim < n or p.shape[-n:] != self.observed.shape:
             raise InputError(
-                f"Reprojection: ev.pixels {_shape(p)} must end in observed's shape {_shape(self.observed)}"
+                f"Reprojection: ev.pixels {shape_of(p)} must end in observed's shape {shape_of(self.observed)}"
             )
         r = (p - self._target.to(p)) * self._sqrt_conf.to(p)[..., None]
         return r.flatten(-(n - self.per_problem))
@@ -98,7 +98,7 @@ class Reprojection(_Robust):
 
 
 @dataclass(frozen=True, eq=False)
-class JointLimits(_LeastSquares):
+class JointLimits(LeastSquaresMixin):
     """Two-sided joint-limit barrier (DiFranco et al. eq. 2, both sides), on ev.q.
 
     lower, upper (D,) (+-inf = no bound); sigma: float or (D,), the violation (radians/metres)
@@ -116,14 +116,14 @@ class JointLimits(_LeastSquares):
         lo, hi = as_float_tensor(self.lower, "lower"), as_float_tensor(self.upper, "upper")
         if lo.ndim != 1 or lo.shape != hi.shape:
             raise InputError(
-                f"JointLimits.lower and .upper must both have shape (D,), got {_shape(lo)} and {_shape(hi)}"
+                f"JointLimits.lower and .upper must both have shape (D,), got {shape_of(lo)} and {shape_of(hi)}"
             )
         if lo.isnan().any() or hi.isnan().any() or (lo > hi).any() or (lo == math.inf).any() or (hi == -math.inf).any():
             raise InputError("JointLimits bounds must be non-NaN with lower <= upper, lower < inf and upper > -inf")
         sigma = as_float_tensor(self.sigma, "sigma")
         if sigma.ndim > 1 or (sigma.ndim == 1 and sigma.shape != lo.shape):
-            raise InputError(f"JointLimits.sigma must be a float or shape {_shape(lo)}, got {_shape(sigma)}")
-        _positive("JointLimits.sigma", sigma)
+            raise InputError(f"JointLimits.sigma must be a float or shape {shape_of(lo)}, got {shape_of(sigma)}")
+        check_positive("JointLimits.sigma", sigma)
         object.__setattr__(self, "lower", lo)
         object.__setattr__(self, "upper", hi)
         object.__setattr__(self, "sigma", sigma)
@@ -139,7 +139,7 @@ class JointLimits(_LeastSquares):
         q = ev.q
         if q.ndim < 1 + self.time_axis or q.shape[-1] != self.lower.shape[0]:
             raise InputError(
-                f"JointLimits: ev.q {_shape(q)} must be (..., {'T, ' * self.time_axis}{self.lower.shape[0]})"
+                f"JointLimits: ev.q {shape_of(q)} must be (..., {'T, ' * self.time_axis}{self.lower.shape[0]})"
             )
         below = torch.clamp(q - self.lower.to(q), max=0.0)
         above = torch.clamp(q - self.upper.to(q), min=0.0)
@@ -163,7 +163,7 @@ class JointLimits(_LeastSquares):
 
 
 @dataclass(frozen=True, eq=False)
-class Smoothness(_LeastSquares):
+class Smoothness(LeastSquaresMixin):
     """Finite-difference velocity and acceleration prior on a trajectory.
 
     on="q": x = ev.q (..., T, D), dof_scale (D,); on="joints": x = ev.joints (..., T, J, 3),
@@ -179,16 +179,16 @@ class Smoothness(_LeastSquares):
     dof_scale: Tensor | None = None
 
     def __post_init__(self) -> None:
-        _positive("Smoothness.dt", self.dt)
+        check_positive("Smoothness.dt", self.dt)
         for name in ("sigma_velocity", "sigma_acceleration"):
             if getattr(self, name) is not None:
-                _positive(f"Smoothness.{name}", getattr(self, name))
+                check_positive(f"Smoothness.{name}", getattr(self, name))
         if self.on not in ("q", "joints"):
             raise InputError(f"Smoothness.on must be 'q' or 'joints', got {self.on!r}")
         if self.dof_scale is not None:
             scale = as_float_tensor(self.dof_scale, "dof_scale")
             if scale.ndim != 1 or not (torch.isfinite(scale).all() and (scale >= 0).all()):
-                raise InputError(f"Smoothness.dof_scale must be a finite, >= 0 vector, got shape {_shape(scale)}")
+                raise InputError(f"Smoothness.dof_scale must be a finite, >= 0 vector, got shape {shape_of(scale)}")
             object.__setattr__(self, "dof_scale", scale)
 
     def residual(self, ev: PoseEval) -> Tensor:
@@ -196,12 +196,13 @@ class Smoothness(_LeastSquares):
         x, n = (ev.q, 2) if self.on == "q" else (ev.joints, 3)
         if x.ndim < n or (n == 3 and x.shape[-1] != 3):
             raise InputError(
-                f"Smoothness(on={self.on!r}) needs a trajectory (..., T, {'D' if n == 2 else 'J, 3'}), got {_shape(x)}"
+                f"Smoothness(on={self.on!r}) needs a trajectory (..., T, {'D' if n == 2 else 'J, 3'}), "
+                f"got {shape_of(x)}"
             )
         if self.dof_scale is not None:
             if self.dof_scale.shape[0] != x.shape[-n + 1]:
                 raise InputError(
-                    f"Smoothness.dof_scale {_shape(self.dof_scale)} does not match {self.on} of shape {_shape(x)}"
+                    f"Smoothness.dof_scale {shape_of(self.dof_scale)} does not match {self.on} of shape {shape_of(x)}"
                 )
             x = x * (self.dof_scale.to(x) if n == 2 else self.dof_scale.to(x)[:, None])
         parts = []
@@ -215,7 +216,7 @@ class Smoothness(_LeastSquares):
 
 
 @dataclass(frozen=True, eq=False)
-class Keyframe(_LeastSquares):
+class Keyframe(LeastSquaresMixin):
     """3D keyframe prior (DiFranco et al. eq. 4) on a trajectory ev.q (..., T, D).
 
     times (F,) frame indices; target (F, D); covariance (D, D) or (F, D, D) full, or (D,) / (F, D)
@@ -237,11 +238,11 @@ class Keyframe(_LeastSquares):
     _last: int = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        times, target = _times("Keyframe", self.times), as_float_tensor(self.target, "target")
+        times, target = check_times("Keyframe", self.times), as_float_tensor(self.target, "target")
         if target.ndim != 2 or target.shape[0] != times.shape[0]:
-            raise InputError(f"Keyframe.target must have shape (F={times.shape[0]}, D), got {_shape(target)}")
+            raise InputError(f"Keyframe.target must have shape (F={times.shape[0]}, D), got {shape_of(target)}")
         n_f, d = target.shape
-        mask = _mask("Keyframe.mask", self.mask, (n_f, d))
+        mask = check_mask("Keyframe.mask", self.mask, (n_f, d))
         if not torch.isfinite(target[mask]).all():
             raise InputError("Keyframe.target has NaN/inf at dofs the mask keeps")
         cov = as_float_tensor(self.covariance, "covariance").double()
@@ -249,23 +250,23 @@ class Keyframe(_LeastSquares):
         if diagonal is None:
             if cov.ndim == 2 and n_f == d:
                 raise InputError(
-                    f"Keyframe.covariance {_shape(cov)} is ambiguous with F == D == "
+                    f"Keyframe.covariance {shape_of(cov)} is ambiguous with F == D == "
                     f"{d}: pass diagonal=True (per-keyframe variances) or False"
                 )
             diagonal = cov.ndim == 1 or (cov.ndim == 2 and cov.shape == (n_f, d) and n_f != d)
         m = mask.double()
         if diagonal:
-            if _shape(cov) not in ((d,), (n_f, d)):
+            if shape_of(cov) not in ((d,), (n_f, d)):
                 raise InputError(
-                    f"Keyframe.covariance (diagonal) must be (D,) or (F, D) = ({n_f}, {d}), got {_shape(cov)}"
+                    f"Keyframe.covariance (diagonal) must be (D,) or (F, D) = ({n_f}, {d}), got {shape_of(cov)}"
                 )
             if cov.isnan().any() or (cov <= 0).any():
                 raise InputError("Keyframe.covariance variances must be > 0 (inf = unset)")
             whiten = torch.diag_embed(m * cov.expand(n_f, d).rsqrt())
         else:
-            if _shape(cov) not in ((d, d), (n_f, d, d)):
+            if shape_of(cov) not in ((d, d), (n_f, d, d)):
                 raise InputError(
-                    f"Keyframe.covariance must be (D, D) or (F, D, D) with D={d}, F={n_f}, got {_shape(cov)}"
+                    f"Keyframe.covariance must be (D, D) or (F, D, D) with D={d}, F={n_f}, got {shape_of(cov)}"
                 )
             cov = cov.expand(n_f, d, d)
             if not torch.isfinite(cov).all() or not torch.allclose(cov, cov.mT, atol=1e-9):
@@ -293,14 +294,14 @@ class Keyframe(_LeastSquares):
         """ev.q (..., T, D) -> (..., F*D) whitened keyframe residuals."""
         q = ev.q
         if q.ndim < 2 or q.shape[-1] != self.target.shape[1]:
-            raise InputError(f"Keyframe: ev.q {_shape(q)} must be (..., T, {self.target.shape[1]})")
-        _frame_count("Keyframe", q, self._last, -2)
+            raise InputError(f"Keyframe: ev.q {shape_of(q)} must be (..., T, {self.target.shape[1]})")
+        check_frame_count("Keyframe", q, self._last, -2)
         e = q.index_select(-2, self.times.to(q.device)) - self._target.to(q)
         return torch.einsum("fij,...fj->...fi", self._whiten.to(q), e).flatten(-2)
 
 
 @dataclass(frozen=True, eq=False)
-class JointKeyframe(_LeastSquares):
+class JointKeyframe(LeastSquaresMixin):
     """User-given 3D joint positions at some frames, on ev.joints (..., T, J, 3).
 
     times (F,), target_joints (F, J, 3) metres (NaN allowed where masked), mask (F, J) bool or
@@ -316,16 +317,16 @@ class JointKeyframe(_LeastSquares):
     _last: int = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        times = _times("JointKeyframe", self.times)
+        times = check_times("JointKeyframe", self.times)
         target = as_float_tensor(self.target_joints, "target_joints")
         if target.ndim != 3 or target.shape[0] != times.shape[0] or target.shape[2] != 3:
             raise InputError(
-                f"JointKeyframe.target_joints must have shape (F={times.shape[0]}, J, 3), got {_shape(target)}"
+                f"JointKeyframe.target_joints must have shape (F={times.shape[0]}, J, 3), got {shape_of(target)}"
             )
-        mask = _mask("JointKeyframe.mask", self.mask, _shape(target)[:2])
+        mask = check_mask("JointKeyframe.mask", self.mask, shape_of(target)[:2])
         if not torch.isfinite(target[mask]).all():
             raise InputError("JointKeyframe.target_joints has NaN/inf at joints the mask keeps")
-        _positive("JointKeyframe.sigma_m", self.sigma_m)
+        check_positive("JointKeyframe.sigma_m", self.sigma_m)
         object.__setattr__(self, "times", times)
         object.__setattr__(self, "target_joints", target)
         object.__setattr__(self, "mask", mask)
@@ -337,14 +338,16 @@ class JointKeyframe(_LeastSquares):
         """ev.joints (..., T, J, 3) -> (..., F*J*3)."""
         x = ev.joints
         if x.ndim < 3 or x.shape[-2:] != self.target_joints.shape[1:]:
-            raise InputError(f"JointKeyframe: ev.joints {_shape(x)} must be (..., T, {self.target_joints.shape[1]}, 3)")
-        _frame_count("JointKeyframe", x, self._last, -3)
+            raise InputError(
+                f"JointKeyframe: ev.joints {shape_of(x)} must be (..., T, {self.target_joints.shape[1]}, 3)"
+            )
+        check_frame_count("JointKeyframe", x, self._last, -3)
         e = x.index_select(-3, self.times.to(x.device)) - self._target.to(x)
         return (e * self._weight.to(x)).flatten(-3)
 
 
 @dataclass(frozen=True, eq=False)
-class PosePrior(_LeastSquares):
+class PosePrior(LeastSquaresMixin):
     """Gaussian prior around a predicted pose, one prediction per hypothesis (a tracker's dynamics).
 
     mean (..., D) predicted poses (broadcast against ev.q (..., D)); sigma float, (D,) or (..., D)
@@ -358,11 +361,11 @@ class PosePrior(_LeastSquares):
     def __post_init__(self) -> None:
         mean = as_float_tensor(self.mean, "mean")
         if mean.ndim < 1 or not torch.isfinite(mean).all():
-            raise InputError(f"PosePrior.mean must be finite with shape (..., D), got {_shape(mean)}")
+            raise InputError(f"PosePrior.mean must be finite with shape (..., D), got {shape_of(mean)}")
         sigma = as_float_tensor(self.sigma, "sigma")
         if sigma.ndim >= 1 and sigma.shape[-1] != mean.shape[-1]:
-            raise InputError(f"PosePrior.sigma must be a float or shape (..., {mean.shape[-1]}), got {_shape(sigma)}")
-        _positive("PosePrior.sigma", sigma)
+            raise InputError(f"PosePrior.sigma must be a float or shape (..., {mean.shape[-1]}), got {shape_of(sigma)}")
+        check_positive("PosePrior.sigma", sigma)
         object.__setattr__(self, "mean", mean)
         object.__setattr__(self, "sigma", sigma)
 
@@ -375,7 +378,7 @@ class PosePrior(_LeastSquares):
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.q (..., D) -> (..., D)."""
         if ev.q.shape[-1] != self.mean.shape[-1]:
-            raise InputError(f"PosePrior: ev.q {_shape(ev.q)} must end in D={self.mean.shape[-1]}")
+            raise InputError(f"PosePrior: ev.q {shape_of(ev.q)} must end in D={self.mean.shape[-1]}")
         return (ev.q - self.mean.to(ev.q)) / self._sigma.to(ev.q)
 
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
@@ -392,7 +395,7 @@ class PosePrior(_LeastSquares):
 
 
 @dataclass(frozen=True, eq=False)
-class HeavyTailedPrior(_Robust):
+class HeavyTailedPrior(RobustMixin):
     """A prior around predicted poses with heavy tails (the long-tailed mixture components of
     Sminchisescu & Triggs 2003): Gaussian within about `scale` standard deviations of the mean, then
     growing only like the robust `loss` (cauchy: logarithmically), per dof. A tracker's dynamics
@@ -414,7 +417,7 @@ class HeavyTailedPrior(_Robust):
     def __post_init__(self) -> None:
         gaussian = PosePrior(self.mean, self.sigma)
         robust_loss(self.loss)
-        _positive("HeavyTailedPrior.scale", self.scale)
+        check_positive("HeavyTailedPrior.scale", self.scale)
         object.__setattr__(self, "_gaussian", gaussian)
         object.__setattr__(self, "mean", gaussian.mean)
         object.__setattr__(self, "sigma", gaussian.sigma)

@@ -4,12 +4,34 @@
 `(problem, cfg, generator, progress) -> Estimate`, where `cfg` is the whole `RunConfig` (each
 method reads its own section), `generator` a seeded `torch.Generator` and `progress` wraps an
 iterable to show progress (identity when quiet).
+
+No estimator imports another (tests/test_layers.py): where one starts from another's output (batch from
+the per-frame fits), the two are put together here.
 """
 
-from ptrack.estimators.batch import estimate_batch
+from collections.abc import Callable, Iterable
+
+import torch
+from torch import Tensor
+
+from ptrack.estimators import batch
 from ptrack.estimators.frame import estimate_frames
 from ptrack.estimators.kjs import estimate_css, estimate_kjs, estimate_ss
 from ptrack.estimators.pca import estimate_pca
+from ptrack.problem import Estimate, Problem
+
+
+def estimate_batch(
+    problem: Problem,
+    cfg,
+    generator: torch.Generator,
+    progress: Callable[[Iterable], Iterable] = lambda x: x,
+    callback: Callable[[int, Tensor, Tensor], None] | None = None,
+) -> Estimate:
+    """`ptrack.estimators.batch.estimate_batch`, started (where neither `init_from` nor the keyframes give
+    the start) from the per-frame fits of `estimate_frames`."""
+    return batch.estimate_batch(problem, cfg, generator, progress, callback, per_frame=estimate_frames)
+
 
 ESTIMATORS = {
     "frame": estimate_frames,

@@ -21,16 +21,16 @@ diagonal blocks J_t^T W J_t of the Gauss-Newton Hessian (J_t from the geometric 
 FK pass batched over all frames); the smoothing prior is linear in Q and couples each dof only with
 itself, so it adds a band of diagonal couplings (block-pentadiagonal with an acceleration term;
 constant for l2, else D_n^T diag(w a_n^2) D_n with the IRLS weights w = rho' of the residuals at the
-current Q). `ptrack.solvers.banded_levenberg_marquardt` solves it with `ptrack.banded` (never a
+current Q). `ptrack.optim.solvers.banded_levenberg_marquardt` solves it with `ptrack.optim.banded` (never a
 dense (T*D)^2 matrix) inside the joint-limit box.
 
 Uncertainty: the diagonal blocks of the inverse Gauss-Newton Hessian at the solution (the banded
-recursion of `ptrack.banded.marginal_blocks`) are the per-frame marginal covariances of the pose;
+recursion of `ptrack.optim.banded.marginal_blocks`) are the per-frame marginal covariances of the pose;
 through the joint Jacobian G_t (J, 3, D) each joint's position covariance is G Sigma_t G^T, and
 `joint_std` (T, J) is the square root of its trace (metres: the RMS 3D error it predicts). That
 Laplace approximation only sees the curvature of the branch the solution took; with
 `batch.uncertainty: branches` (the default) each limb's depth flips are added as a mixture
-(`flip_posterior`, `ptrack.branches`): their second moment about the solution joins the trace.
+(`flip_posterior`, `ptrack.hypotheses.branches`): their second moment about the solution joins the trace.
 The same re-solved branches restart the solve (`batch.flip_restarts` rounds, `lower_branch`): one
 whose whole energy is lower than the solution's shows the solve stopped in a local minimum on the
 other branch, and the solve continues from it.
@@ -54,7 +54,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ptrack.banded import (
+from ptrack.body.limits import wrap_to_limits, wrapped_difference
+from ptrack.body.pose_prior import smoothing_prior
+from ptrack.costs import PoseEval, Reprojection, robust_loss, robust_loss_derivative
+from ptrack.costs.base import PoseJacobian
+from ptrack.errors import InputError
+from ptrack.hypotheses.branches import BranchPosterior, branch_posterior, relax_branches
+from ptrack.hypotheses.ik import ik_plan
+from ptrack.hypotheses.jumps import check_independent, default_chains
+from ptrack.optim.banded import (
     BlockBanded,
     factorize,
     marginal_blocks,
@@ -63,19 +71,14 @@ from ptrack.banded import (
     one_thread,
     parallel_halves,
 )
-from ptrack.branches import BranchPosterior, branch_posterior, relax_branches
-from ptrack.costs import PoseEval, Reprojection, robust_loss, robust_loss_derivative
-from ptrack.costs.base import PoseJacobian
-from ptrack.errors import InputError
-from ptrack.ik import ik_plan
-from ptrack.jacobians import joint_jacobian, joint_jacobian_product
-from ptrack.jumps import check_independent, default_chains
-from ptrack.limits import wrap_to_limits, wrapped_difference
-from ptrack.pose_prior import smoothing_prior
+from ptrack.optim.jacobians import joint_jacobian, joint_jacobian_product
+from ptrack.optim.solvers import BandedLinearization, BandedLMInfo, banded_levenberg_marquardt
 from ptrack.problem import Estimate, Problem
-from ptrack.solvers import BandedLinearization, BandedLMInfo, banded_levenberg_marquardt
 
 log = logging.getLogger(__name__)
+
+#: (problem, cfg, generator, progress) -> Estimate: an estimator whose per-frame fits start the batch solve
+PerFrame = Callable[[Problem, Any, torch.Generator, Callable[[Iterable], Iterable]], Estimate]
 _MIN_PART = 32  # `evaluate` splits the frames in two halves for two threads from 2 * _MIN_PART frames
 
 
@@ -313,7 +316,7 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
     b_len, t_len, _d = q.shape
     idx = kps.index(q.device)
     # the per-frame work (joint Jacobians, projections, J^T W J) runs on the two halves of the
-    # sequence at once when torch may use two threads (`ptrack.banded.parallel_halves`)
+    # sequence at once when torch may use two threads (`ptrack.optim.banded.parallel_halves`)
     parts = [slice(0, t_len)]
     if with_jacobian and t_len >= 2 * _MIN_PART and parallel_halves(q.device):
         parts = [slice(0, t_len // 2), slice(t_len // 2, t_len)]
@@ -451,7 +454,7 @@ def solve_trajectory(
 
 
 def flip_posterior(obj: Trajectory, q: Tensor, bc) -> BranchPosterior | None:
-    """The flip branches of the solution q (B, T, D) in the posterior (`ptrack.branches`): every limb's
+    """The flip branches of the solution q (B, T, D) in the posterior (`ptrack.hypotheses.branches`): every limb's
     depth-labelled leaves (the default chains: arms, legs, head) through q's projections, each leaf's
     whole trajectory re-solved from there by `solve_trajectory` with the `batch.*` settings bc (0
     iterations: the rigid leaves), and their marginal
@@ -592,16 +595,21 @@ def estimate_batch(
     generator: torch.Generator,
     progress: Callable[[Iterable], Iterable] = lambda x: x,
     callback: Callable[[int, Tensor, Tensor], None] | None = None,
+    per_frame: PerFrame | None = None,
 ) -> Estimate:
     """The MAP trajectory (module docstring). Deterministic given its start (uses no randomness).
     Solved in float64 on the observations' device; the Estimate is in the observations' dtype.
 
+    per_frame(problem, cfg, generator, progress) -> Estimate: the per-frame fits the start comes from when
+    neither `init_from` nor the keyframes give it (`ptrack.estimators.estimate_batch` passes
+    `estimate_frames`; no estimator imports another). Needed then, and None, it raises ValueError.
+
     callback(iteration, q (1, T, D), cost (1,)) is called after every solver iteration. Runs on one
-    intra-op thread (`ptrack.banded.one_thread`: small per-frame products, shared cores); with torch
+    intra-op thread (`ptrack.optim.banded.one_thread`: small per-frame products, shared cores); with torch
     allowed 2 or more threads, the linearisation's per-frame work runs on the sequence's two halves on
     two threads (`evaluate`)."""
     with one_thread():
-        return _estimate(problem, cfg, generator, progress, callback)
+        return _estimate(problem, cfg, generator, progress, callback, per_frame)
 
 
 def _estimate(
@@ -610,6 +618,7 @@ def _estimate(
     generator: torch.Generator,
     progress: Callable[[Iterable], Iterable],
     callback: Callable[[int, Tensor, Tensor], None] | None,
+    per_frame: PerFrame | None,
 ) -> Estimate:
     bc = cfg.batch
     obs = problem.observations
@@ -624,14 +633,14 @@ def _estimate(
     else:
         if bc.init == "keyframes":
             log.info("batch: no keyframe gives every dof, so the start is the per-frame fits (as batch.init=frame)")
-        from ptrack.estimators.frame import estimate_frames
-
+        if per_frame is None:
+            raise ValueError("estimate_batch: the start is the per-frame fit here; pass per_frame (estimate_frames)")
         kf = problem.keyframes
         full0 = kf is not None and any(
             bool(kf.mask is None or kf.mask[i].all()) for i in torch.nonzero(kf.frames == 0).flatten().tolist()
         )
         frame_cfg = cfg if full0 else dataclasses.replace(cfg, frame=dataclasses.replace(cfg.frame, init="rest"))
-        q0 = estimate_frames(problem, frame_cfg, generator, progress).q
+        q0 = per_frame(problem, frame_cfg, generator, progress).q
     q0 = wrap_to_limits(q0.detach().to(dtype), lower, upper, obj.angular)
     done = 0  # iterations so far: a restart's costs follow the first solve's on the logged timeline
 

@@ -18,39 +18,12 @@ import torch
 from torch import Tensor
 
 from ptrack.costs import JointLimits, PoseEval, Reprojection, Smoothness
-from ptrack.problem import Estimate, Problem, evaluate_pose, first_keyframe
+from ptrack.problem import Estimate, Problem, evaluate_pose, first_keyframe, rest_pose_in_view
 
 
 def _total(e: dict[str, Tensor]) -> Tensor:
     """The sum of the energy terms (never empty, so a tensor)."""
     return cast(Tensor, sum(e.values()))
-
-
-def rest_pose_in_view(problem: Problem, dtype: torch.dtype, frame: int | None = None) -> Tensor:
-    """A rest pose (all angles 0) whose root sits on the camera ray through the centre of the observed
-    keypoints of `frame` (None, or a frame with none observed: the first frame with any), at the depth
-    that makes the observed 2D body size match the model's. -> (D,)"""
-    sk, obs, kps = problem.skeleton, problem.observations, problem.keypoints
-    device = obs.keypoints.device
-    q = torch.zeros(sk.num_dofs, dtype=dtype, device=device)
-    conf = obs.confidence
-    if frame is None or not bool((conf[frame] > 0).any()):
-        frame = int(torch.nonzero(conf.sum(-1) > 0)[0, 0])
-    valid = conf[frame] > 0
-    pix = obs.keypoints[frame][valid].to(dtype)
-    rest = sk.forward_kinematics(q)
-    kp3 = rest.index_select(0, kps.index(device))[valid]
-    size3 = (kp3 - kp3.mean(0)).norm(dim=-1).mean()
-    size2 = (pix - pix.mean(0)).norm(dim=-1).mean().clamp(min=1.0)
-    cam = obs.camera.to(device=device, dtype=dtype)
-    depth = cam.K[0, 0] * size3 / size2
-    origin, direction = cam.rays(pix.mean(0))
-    target = origin + direction * (depth / (direction @ cam.R[2]))
-    centre = kp3.mean(0)
-    for k, d in enumerate(sk.translation_dof.tolist()):
-        if d >= 0:
-            q[d] = target[k] - centre[k]
-    return q
 
 
 def estimate_frames(

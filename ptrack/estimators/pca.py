@@ -1,6 +1,6 @@
 """`method: pca` — the golf-swing tracker of Urtasun, Fleet & Fua (2004), over a PCA motion model.
 
-The motion model (`ptrack.motion_model`) gives every joint angle but the root's as a function of the
+The motion model (`ptrack.motion.motion_model`) gives every joint angle but the root's as a function of the
 PCA weights alpha (m,) and a normalised time mu in [0, 1] (eq. 2). The tracker fits it over sliding
 windows of f frames (`pca.window`, slid by `pca.step`, default one frame); the state of a window is (eq. 5)
 
@@ -26,9 +26,9 @@ mu_0 the start's timing (below; `pca.timing_sigma`, null drops it). Beyond the p
 none of them, time never runs backwards (each window's times are bounded below by the time of the frame
 that last left a window), the weights are boxed in `pca.alpha_bound` training stds, and the timing prior
 is there: without it the tracker read a held-out downswing as the backswing reversed (docs/notes/golf-history.md).
-Each window is one Levenberg-Marquardt solve of `ptrack.solvers` with a closed-form Jacobian: the
+Each window is one Levenberg-Marquardt solve of `ptrack.optim.solvers` with a closed-form Jacobian: the
 decoder is linear in alpha and piecewise linear in mu, the joints' Jacobian is the geometric one
-(`ptrack.jacobians.joint_jacobian`), the projections' is the camera's, and the silhouette term's comes
+(`ptrack.optim.jacobians.joint_jacobian`), the projections' is the camera's, and the silhouette term's comes
 from the envelope theorem. A frame's result is its value in the last window that holds it.
 
 Correspondences (p1 in frame t-1, p2 in frame t; `Problem.correspondences`), where given: before each
@@ -37,14 +37,14 @@ the current estimate of frame t-1 (the window's starting state, or the final est
 before the window; a line of sight that misses the model, or passes within `pca.correspondence_margin_m` of
 any capsule's surface, drops the pair for this window) and attached to
 the hit capsule's frame; x_i is that body-fixed point moved with frame t's pose in the window, whose
-Jacobian is the geometric one of a point on the segment (`ptrack.jacobians.point_jacobian`). The pair's
+Jacobian is the geometric one of a point on the segment (`ptrack.optim.jacobians.point_jacobian`). The pair's
 weight (1 for simulated ones) scales its squared residual. Cost: p1's rays are made once; per window one FK
 pass of the frame before it and the window's starting state serves the backprojection and the solve's first
 linearisation (`StartBody`); each linearisation has one FK pass for joints and points
-(`ptrack.jacobians.joint_and_point_jacobian`) and projects them together.
+(`ptrack.optim.jacobians.joint_and_point_jacobian`) and projects them together.
 
 Start (section 5.1), with no 3D input: the four key postures are found in the 2D wrist track
-(`ptrack.key_postures.detect_key_postures_2d`, rules `motion.key_postures`), every frame's normalised
+(`ptrack.motion.key_postures.detect_key_postures_2d`, rules `motion.key_postures`), every frame's normalised
 time is interpolated through them (`initial_times`), the PCA weights are zero, and the root is placed
 from the first frame: the mean motion's pose at that time under `pca.init_yaws` headings, at the depth
 its 2D size gives, each fitted rigidly (root only) to the first frame's tracked joints and silhouette;
@@ -62,18 +62,18 @@ import logging
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 from torch import Tensor
 
+from ptrack.body.rotations import matrix_to_euler_np, skew
+from ptrack.body.skeleton import Skeleton
 from ptrack.costs import robust_loss, robust_loss_derivative
-from ptrack.costs.correspondence import Anchors, anchor_points, backproject_rays
 from ptrack.costs.ray_silhouette import RaySilhouette, mask_samples
 from ptrack.errors import InputError
-from ptrack.jacobians import joint_and_point_jacobian, joint_jacobian
-from ptrack.key_postures import detect_key_postures_2d, initial_times
-from ptrack.motion_model import (
+from ptrack.motion.key_postures import detect_key_postures_2d, initial_times
+from ptrack.motion.motion_model import (
     MotionModel,
     clip_paths,
     decode,
@@ -84,14 +84,11 @@ from ptrack.motion_model import (
     read_clips,
     save_motion_model,
 )
+from ptrack.observe.backprojection import Anchors, anchor_points, backproject_rays
+from ptrack.observe.silhouette import capsule_radii
+from ptrack.optim.jacobians import joint_and_point_jacobian, joint_jacobian
+from ptrack.optim.solvers import Linearization, levenberg_marquardt
 from ptrack.problem import Estimate, Problem
-from ptrack.rotations import matrix_to_euler_np, skew
-from ptrack.silhouette import capsule_radii
-from ptrack.skeleton import Skeleton
-from ptrack.solvers import Linearization, levenberg_marquardt
-
-if TYPE_CHECKING:
-    from ptrack.config import RunConfig
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +122,7 @@ class Setup:
     foreground samples."""
 
     problem: Problem
-    cfg: RunConfig
+    cfg: Any  # the run's config (ptrack.pipeline.config.RunConfig, not imported: estimators sit below it)
     model: MotionModel
     model_dofs: Tensor  # (Dm,) positions of the model's dofs in q
     root_dofs: Tensor  # (6,) positions of root tx, ty, tz and the root's three angles in q

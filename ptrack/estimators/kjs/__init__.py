@@ -1,7 +1,7 @@
 """`method: kjs` (kinematic jumps + covariance scaled diffusion), `css` and `ss`: mixture density
 propagation trackers (Sminchisescu & Triggs 2003, figs. 4-5).
 
-The posterior of each frame is a mixture of K modes (`ptrack.mixture.Modes`). One step of the tracker,
+The posterior of each frame is a mixture of K modes (`ptrack.hypotheses.mixture.Modes`). One step of the tracker,
 from frame t-1's modes to frame t's:
 
 1. predict: each mode's centre is carried to frame t (constant position; its prior below is the
@@ -11,11 +11,11 @@ from frame t-1's modes to frame t's:
    Gaussian, Student-t or Cauchy tails, then projected onto the joint limits;
 3. jumps (kjs only): each sample picks a chain by the covariance vote of its mode (the chain holding
    most of the mode's uncertainty is flipped most often), the chain's interpretation tree is grown
-   through the observed 2D joints of frame t (`ptrack.jumps`), and every leaf is turned back into
-   angles by closed-form IK (`ptrack.ik`); leaves outside the limits are pruned or projected;
+   through the observed 2D joints of frame t (`ptrack.hypotheses.jumps`), and every leaf is turned back into
+   angles by closed-form IK (`ptrack.hypotheses.ik`); leaves outside the limits are pruned or projected;
 4. polishing: every hypothesis (the predicted modes, the samples, the leaves: `kjs.samples` in all,
    the same budget for kjs, css and ss) runs a batched Levenberg-Marquardt or L-BFGS
-   (`ptrack.solvers`) on robust reprojection + joint limits + body non-self-intersection + the
+   (`ptrack.optim.solvers`) on robust reprojection + joint limits + body non-self-intersection + the
    prior around its mode's prediction;
 5. distinct minima (two hypotheses are one when no joint coordinate differs by more than
    `kjs.distinct_mm`; with distinct_mm 0, when no dof differs by more than `kjs.distinct_deg`),
@@ -27,7 +27,7 @@ dynamics (a prior around each mode's prediction, std per dof `kjs.dynamics` (or 
 `kjs.motion_scale` times the mode's last motion, Gaussian within `kjs.prior_tail_scale` std and
 heavy-tailed beyond (`kjs.prior_tail`, cauchy: the paper's long-tailed components), so a limb
 flipped far from the prediction remains a minimum of comparable cost) and a weak CMU pose prior
-(`kjs.pose_prior_weight`, `ptrack.pose_prior`). Limits, priors and collision are folded into the
+(`kjs.pose_prior_weight`, `ptrack.body.pose_prior`). Limits, priors and collision are folded into the
 normal equations rather than stacked as residual rows (`ptrack.costs.Objective.linearize`).
 
 Frame 0 starts from a 3D keyframe (`kjs.init: keyframe`), or, with no 3D input (`init: tree`), from
@@ -37,33 +37,33 @@ fits that differ in 3D are expanded by every flip combination of the chains (the
 trees), the 4K of lowest frame-0 cost without the start prior refined, and the K best distinct minima
 kept. A frame with no observed keypoint is carried by the dynamics. The output's `hypotheses` are the
 K modes of each frame; `q`/`joints` are the best trajectory through them by Viterbi: each mode's own
-frame cost (data, limits, collision, pose prior; `_evidence`) plus a velocity prior between
+frame cost (data, limits, collision, pose prior; `frame_evidence`) plus a velocity prior between
 consecutive choices, on the joints' positions relative to the root (`kjs.viterbi_space: joints`, std
 `kjs.viterbi_sigma_m` per frame) or on the dofs (`dofs`, `kjs.viterbi_sigma`).
 
 A second pass runs backwards in time from the forward pass's last modes (`kjs.backward_pass: always`;
 `tree`: after a tree start only). After a tree start it also starts from a tree start on the last frame
-(`_backward_start`): without 3D input the forward pass can hold a limb's wrong branch, or the whole
+(`backward_start`): without 3D input the forward pass can hold a limb's wrong branch, or the whole
 body's, from frame 0 on, and the backward pass brings the later reading back. After a keyframe start each
-backward step also starts from the forward pass's modes of the frame after (`_feed`): where a limb crosses
+backward step also starts from the forward pass's modes of the frame after (`feed_backward`): where a limb crosses
 the image plane both passes lag on the side they came from, and the forward pass's true reading, found a
 few frames after the crossing in a light mode, is carried back to the crossing; the backward pass keeps
 the heaviest mode of each depth order of the limbs before any order's second (`_orders_first`), so that
 such a light mode is not crowded out by many heavier copies of the other reading. Each frame's K
-hypotheses are taken from both passes in turn (`_merge`): the forward trajectory's mode first, then each
+hypotheses are taken from both passes in turn (`merge_mixtures`): the forward trajectory's mode first, then each
 pass's heaviest, each depth order of the limbs before any order twice. The best trajectory stays the
 forward pass's: over the merged modes Viterbi took flipped backward modes where the forward pass had
 been right (held-out 35_01, 02_03 and 118_01 at 1 px, seed 0: 36.1 against 29.2 mm; docs/notes/kjs-history.md).
 After a tree start the backward pass's own best trajectory replaces it when the two face directions more
-than `HEADING_SPLIT_DEG` apart (two readings of the whole body) and it costs less (`_lead_pass`).
+than `HEADING_SPLIT_DEG` apart (two readings of the whole body) and it costs less (`lead_pass`).
 
-Then `kjs.smooth_sweeps` sweeps of a smoother (`_smooth`) re-polish every frame's hypotheses with the prior
+Then `kjs.smooth_sweeps` sweeps of a smoother (`smooth_lattice`) re-polish every frame's hypotheses with the prior
 around the mean of their nearest neighbours in the frames before and after. The passes are filters: each
 mode holds its own frame's evidence and the past's (or the future's), so its depth jitters from frame to
 frame where the 2D leaves it loose; the smoother brings in both sides. It keeps the weights and the best
 trajectory's choice of mode per frame.
 
-Last (`kjs.recombine`, `_recombine`) each frame gets one more hypothesis: the best trajectory's pose with
+Last (`kjs.recombine`, `recombine`) each frame gets one more hypothesis: the best trajectory's pose with
 each chain's reading (which way each limb points in depth) chosen on its own, by a Viterbi pass per chain
 over the modes' readings of it. The modes hold the readings in combinations, and often none holds the right
 reading of every limb at once. It replaces a light mode and leaves the best trajectory as it was.

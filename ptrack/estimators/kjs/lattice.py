@@ -11,9 +11,9 @@ import math
 import torch
 from torch import Tensor
 
-from ptrack.estimators.kjs.model import Setup, _cholesky, _distinct, _evidence, _polish_rows
-from ptrack.limits import wrapped_difference
-from ptrack.mixture import Modes, viterbi_with_cost
+from ptrack.body.limits import wrapped_difference
+from ptrack.estimators.kjs.model import Setup, distinct_poses, frame_evidence, mode_cholesky, polish_rows
+from ptrack.hypotheses.mixture import Modes, viterbi_with_cost
 
 
 def _pad(modes: Modes, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -44,7 +44,7 @@ def principal_directions(sk, q: Tensor, chol: Tensor, scale: float) -> Tensor:
     return sk.forward_kinematics(q + dq) - sk.forward_kinematics(q)
 
 
-def _lattice(s: Setup, per_frame: list[Modes]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def make_lattice(s: Setup, per_frame: list[Modes]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Each frame's modes padded to K -> q (T, K, D), weights (T, K), costs (T, K), covariance factors
     (T, K, D, D) and joint positions (T, K, J, 3)."""
     padded = [_pad(m, s.cfg.kjs.modes) for m in per_frame]
@@ -53,14 +53,14 @@ def _lattice(s: Setup, per_frame: list[Modes]) -> tuple[Tensor, Tensor, Tensor, 
         return hq, hw, hc, hl, s.problem.skeleton.forward_kinematics(hq)
 
 
-def _best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor, Tensor]:
+def best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor, Tensor]:
     """Viterbi through the lattice q (T, K, D), weights (T, K), joints (T, K, J, 3): each mode's own frame
-    cost (`_evidence`) plus a velocity prior between consecutive choices (`kjs.viterbi_space`); padding
+    cost (`frame_evidence`) plus a velocity prior between consecutive choices (`kjs.viterbi_space`); padding
     (weight 0) is never chosen. -> mode index per frame (T,), and the path's cost ()."""
     k = s.cfg.kjs
     T, K, D = hq.shape
     rows = torch.arange(T, device=hq.device).repeat_interleave(K)  # every mode with its own frame's 2D
-    unary = _evidence(s, rows, hq.reshape(-1, D), joints.flatten(0, 1)).reshape(T, K)
+    unary = frame_evidence(s, rows, hq.reshape(-1, D), joints.flatten(0, 1)).reshape(T, K)
     with torch.no_grad():
         if k.viterbi_space == "joints":  # the body's motion in metres: every joint relative to the root
             feats, sigma = (joints - joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
@@ -73,7 +73,7 @@ def _best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor
 
 
 #: after a tree start, the passes' best trajectories whose bodies face directions this far apart (mean over
-#: the frames, degrees) hold two readings of the whole body, and the cheaper one is taken (`_lead_pass`)
+#: the frames, degrees) hold two readings of the whole body, and the cheaper one is taken (`lead_pass`)
 HEADING_SPLIT_DEG = 30.0
 
 
@@ -92,7 +92,7 @@ def _heading(joints: Tensor, hips: tuple[int, int]) -> Tensor:
     return torch.atan2(line[:, 2], line[:, 0])
 
 
-def _lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: list[Modes]) -> tuple[bool, Tensor]:
+def lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: list[Modes]) -> tuple[bool, Tensor]:
     """After a tree start: does the backward pass's best trajectory replace the forward pass's? path (T,),
     cost () and joints (T, K, J, 3): the forward pass's best trajectory, its cost and its lattice's joints.
     -> (backward leads, the leading path).
@@ -108,8 +108,8 @@ def _lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: l
     hips = _hips(s)
     if hips is None:
         return False, path
-    bq, bw, _, _, bj = _lattice(s, backward)
-    back_path, back_cost = _best_path(s, bq, bw, bj)
+    bq, bw, _, _, bj = make_lattice(s, backward)
+    back_path, back_cost = best_path(s, bq, bw, bj)
     frames = torch.arange(path.shape[0], device=path.device)
     apart = _heading(joints[frames, path], hips) - _heading(bj[frames, back_path], hips)
     apart = torch.remainder(apart + math.pi, 2 * math.pi) - math.pi
@@ -121,12 +121,12 @@ def _lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: l
 # ---------------------------------------------------------------- each chain's reading on its own
 
 
-#: Levenberg-Marquardt iterations of each graft in `_recombine` (a mode's chain on the best trajectory's pose)
+#: Levenberg-Marquardt iterations of each graft in `recombine` (a mode's chain on the best trajectory's pose)
 #: and of the recombined pose: the chain moves little, the rest of the body settles around it
 GRAFT_ITERATIONS, RECOMBINED_ITERATIONS = 3, 5
 
 
-def _recombine(
+def recombine(
     s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor, joints: Tensor, path: Tensor
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """One more hypothesis per frame: the best trajectory's pose with each chain's reading chosen on its own.
@@ -135,13 +135,13 @@ def _recombine(
     may have the left arm right and the right leg wrong, another the reverse, and no mode both (49_18 at
     2 px after a tree start: the best trajectory's mode 99 mm off, each of two others right in one limb).
     The 2D cannot tell the combinations apart, but each chain's own reading can be followed in time. It runs
-    after the smoother (`_smooth`), which then does not link the best trajectory's modes to it. For
+    after the smoother (`smooth_lattice`), which then does not link the best trajectory's modes to it. For
     every frame t, chain c and mode m, the chain's dofs of mode m are grafted onto the best trajectory's
     pose and polished briefly around that graft; each chain then gets its own Viterbi pass over the modes:
-    the graft's frame cost (`_evidence`) plus a velocity prior on the graft's joints relative to the root
+    the graft's frame cost (`frame_evidence`) plus a velocity prior on the graft's joints relative to the root
     (std `kjs.recombine_sigma_m` per frame). The chosen readings of all chains on the best trajectory's pose,
     polished, replace frame t's padding or its lightest mode other than the best trajectory's, with that
-    slot's weight (the lightest weight for padding), unless they are a mode already (`_distinct`). The
+    slot's weight (the lightest weight for padding), unless they are a mode already (`distinct_poses`). The
     best trajectory keeps its modes. Without chains (css and ss after a keyframe start) or with K = 1 nothing
     changes. hq (T, K, D), hw (T, K) (0: padding), hc (T, K), hl (T, K, D, D), joints (T, K, J, 3), path (T,)
     -> hq, hw, hc, hl, joints."""
@@ -155,10 +155,10 @@ def _recombine(
     lead = hq[frames, path]  # (T, D)
     graft = torch.where(s.chain_dofs[None, :, None], hq[:, None], lead[:, None, None]).reshape(-1, D)  # (T C K, D)
     rows = frames.repeat_interleave(C * K)  # each graft with its own frame's 2D
-    graft, _, _ = _polish_rows(s, rows, graft, graft, GRAFT_ITERATIONS, s.dynamics_sigma)
+    graft, _, _ = polish_rows(s, rows, graft, graft, GRAFT_ITERATIONS, s.dynamics_sigma)
     with torch.no_grad():
         j = sk.forward_kinematics(graft)
-    cost_tck = torch.where(hw[:, None] > 0, _evidence(s, rows, graft, j).reshape(T, C, K), math.inf)
+    cost_tck = torch.where(hw[:, None] > 0, frame_evidence(s, rows, graft, j).reshape(T, C, K), math.inf)
     feats_tck = (j - j[:, :1]).reshape(T, C, K, -1)  # the grafts' joints relative to the root
     choice = torch.stack([viterbi_with_cost(cost_tck[:, c], feats_tck[:, c], k.recombine_sigma_m)[0] for c in range(C)])
     new = (choice != path[None]).any(0)  # (T,): some chain takes another mode's reading
@@ -169,8 +169,8 @@ def _recombine(
     for c in range(C):
         q = torch.where(s.chain_dofs[c], picked[:, c], q)
     todo = frames[new]
-    q, cost, hessian = _polish_rows(s, todo, q[new], q[new], RECOMBINED_ITERATIONS, s.dynamics_sigma)
-    chol = _cholesky(s, hessian)
+    q, cost, hessian = polish_rows(s, todo, q[new], q[new], RECOMBINED_ITERATIONS, s.dynamics_sigma)
+    chol = mode_cholesky(s, hessian)
     with torch.no_grad():
         q_joints = sk.forward_kinematics(q)
     hq, hw, hc, hl, joints = hq.clone(), hw.clone(), hc.clone(), hl.clone(), joints.clone()
@@ -178,7 +178,7 @@ def _recombine(
         real = hw[t] > 0
         pool = torch.cat([hq[t][real], q[i : i + 1]])
         rank = torch.arange(pool.shape[0], dtype=hq.dtype, device=hq.device)
-        if int(_distinct(s, pool, rank).max()) < pool.shape[0] - 1:
+        if int(distinct_poses(s, pool, rank).max()) < pool.shape[0] - 1:
             continue  # the recombined pose is one of the modes
         order = torch.where(real, hw[t], torch.full_like(hw[t], -1.0))
         order[path[t]] = math.inf
@@ -193,12 +193,12 @@ def _recombine(
 # ---------------------------------------------------------------- the smoother
 
 
-#: Levenberg-Marquardt iterations of each hypothesis in a smoothing sweep (`_smooth`): it starts at a
+#: Levenberg-Marquardt iterations of each hypothesis in a smoothing sweep (`smooth_lattice`): it starts at a
 #: minimum of its own frame's objective and moves only as far as its neighbours pull it
 SMOOTH_ITERATIONS = 5
 
 
-def _smooth(
+def smooth_lattice(
     s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor, joints: Tensor
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """`kjs.smooth_sweeps` sweeps of a smoother over the finished hypothesis lattice. Each tracked mode holds
@@ -233,11 +233,11 @@ def _smooth(
         if not bool(move.any()):
             break
         n = count[move]  # (M, 1): 1 or 2 linked neighbours
-        q, cost, hessian = _polish_rows(
+        q, cost, hessian = polish_rows(
             s, frames[move], hq[move], hq[move] + pull[move] / n, SMOOTH_ITERATIONS, base * torch.sqrt(2 / n), True
         )
         hq, hc, hl = hq.clone(), hc.clone(), hl.clone()
-        hq[move], hc[move], hl[move] = q, cost, _cholesky(s, hessian)
+        hq[move], hc[move], hl[move] = q, cost, mode_cholesky(s, hessian)
         with torch.no_grad():
             joints = sk.forward_kinematics(hq)
     return hq, hc, hl, joints

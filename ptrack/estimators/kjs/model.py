@@ -7,11 +7,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 from torch import Tensor
 
+from ptrack.body.pose_prior import pose_prior, smoothing_prior
 from ptrack.costs import (
     CostTerm,
     HeavyTailedPrior,
@@ -22,17 +23,13 @@ from ptrack.costs import (
     SelfIntersection,
 )
 from ptrack.errors import InputError
-from ptrack.ik import ChainIK, ClosedFormUnavailable, ik_plan
-from ptrack.jacobians import objective_linearization
-from ptrack.jumps import Chain, check_independent, default_chains
-from ptrack.mixture import Modes, distinct_minima, posterior_weights
-from ptrack.pose_prior import pose_prior, smoothing_prior
+from ptrack.hypotheses.ik import ChainIK, ClosedFormUnavailable, ik_plan
+from ptrack.hypotheses.jumps import Chain, check_independent, default_chains
+from ptrack.hypotheses.mixture import Modes, distinct_minima, posterior_weights
+from ptrack.hypotheses.samplers import scaled_covariance
+from ptrack.optim.jacobians import objective_linearization
+from ptrack.optim.solvers import lbfgs, levenberg_marquardt
 from ptrack.problem import Problem, pose_eval_from_joints
-from ptrack.samplers import scaled_covariance
-from ptrack.solvers import lbfgs, levenberg_marquardt
-
-if TYPE_CHECKING:
-    from ptrack.config import RunConfig
 
 
 @dataclass(frozen=True)
@@ -55,7 +52,7 @@ class Setup:
     chains with their IK plans."""
 
     problem: Problem
-    cfg: RunConfig
+    cfg: Any  # the run's config (ptrack.pipeline.config.RunConfig, not imported: estimators sit below it)
     lower: Tensor  # (D,)
     upper: Tensor  # (D,)
     angular: Tensor  # (D,) bool
@@ -69,7 +66,7 @@ class Setup:
     dynamics_sigma: float | Tensor  # the dynamics' velocity std per frame before widening (`kjs.dynamics`)
 
 
-def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
+def make_setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
     sk = problem.skeleton
     obs = problem.observations
     dtype, device = obs.keypoints.dtype, obs.keypoints.device
@@ -119,7 +116,7 @@ def _setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
 def _dynamics_sigma(problem: Problem, k, dtype: torch.dtype, device: torch.device) -> float | Tensor:
     """The dynamics' velocity std per frame: with `kjs.dynamics` null the float `kjs.prior_sigma` for every
     dof; else a (D,) tensor: each CMU dof's RMS velocity in real motion from the table `kjs.dynamics`
-    (`ptrack.pose_prior.SMOOTHING_TABLES`; the default "cmu-train" was fitted to clips of subjects with no
+    (`ptrack.body.pose_prior.SMOOTHING_TABLES`; the default "cmu-train" was fitted to clips of subjects with no
     dev clip) times the frame interval and `kjs.dynamics_scale`, at least `kjs.dynamics_floor`;
     `kjs.prior_sigma` for the dofs the table does not name (the root's position)."""
     if k.dynamics is None:
@@ -137,7 +134,7 @@ def _dynamics_sigma(problem: Problem, k, dtype: torch.dtype, device: torch.devic
 # ---------------------------------------------------------------- the frame's objective
 
 
-def _objective(
+def frame_objective(
     s: Setup, t: int | Tensor, mean: Tensor | None, sigma: float | Tensor | None = None, tracking: bool = False
 ) -> Objective:
     """Robust reprojection on frame t + limits + collision (+ the prior around `mean` (N, D), std `sigma`,
@@ -172,7 +169,7 @@ def _objective(
     return Objective(terms, weights)
 
 
-def _polish(
+def polish(
     s: Setup,
     t: int | Tensor,
     q: Tensor,
@@ -185,7 +182,7 @@ def _polish(
     -> q (N, D), cost (N,), hessian (N, D, D)."""
     prob = s.problem
     sk, cam, kps = prob.skeleton, prob.observations.camera, prob.keypoints
-    objective = _objective(s, t, mean, sigma, tracking)
+    objective = frame_objective(s, t, mean, sigma, tracking)
     linearize = objective_linearization(sk, objective, cam, kps, fold=True)
     if s.cfg.kjs.polisher == "lbfgs" and iterations > 0:
 
@@ -198,7 +195,7 @@ def _polish(
     return q, info.cost, info.hessian
 
 
-def _cholesky(s: Setup, hessian: Tensor) -> Tensor:
+def mode_cholesky(s: Setup, hessian: Tensor) -> Tensor:
     k = s.cfg.kjs
     return scaled_covariance(
         hessian,
@@ -211,17 +208,17 @@ def _cholesky(s: Setup, hessian: Tensor) -> Tensor:
 # ---------------------------------------------------------------- distinct minima, their weights, the modes
 
 
-def _select(s: Setup, q: Tensor, cost: Tensor, prior_weight: Tensor, count: int) -> tuple[Tensor, Tensor]:
+def select_modes(s: Setup, q: Tensor, cost: Tensor, prior_weight: Tensor, count: int) -> tuple[Tensor, Tensor]:
     """Distinct minima among polished hypotheses, the `count` heaviest first: -> indices (M,) and their
     normalised weights (M,). prior_weight (N,): what each inherits from the mode it came from (that mode's
     weight to the power `kjs.weight_memory`)."""
-    keep = _distinct(s, q, cost)
+    keep = distinct_poses(s, q, cost)
     w = posterior_weights(cost[keep] - cost[keep].min(), prior_weight[keep], s.cfg.kjs.temperature)
     order = torch.argsort(w, descending=True)[:count]
     return keep[order], w[order] / w[order].sum()
 
 
-def _distinct(s: Setup, q: Tensor, rank: Tensor) -> Tensor:
+def distinct_poses(s: Setup, q: Tensor, rank: Tensor) -> Tensor:
     """Indices of the distinct poses among q (N, D), the lowest `rank` (N,) of each group first: apart in 3D
     (a joint coordinate `kjs.distinct_mm` or more apart) or, with distinct_mm 0, in a dof (`kjs.distinct_deg`)."""
     k = s.cfg.kjs
@@ -230,15 +227,15 @@ def _distinct(s: Setup, q: Tensor, rank: Tensor) -> Tensor:
     return distinct_minima(q, rank, math.radians(k.distinct_deg))
 
 
-def _modes(s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, weight: Tensor, origin: Tensor) -> Modes:
+def make_modes(s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, weight: Tensor, origin: Tensor) -> Modes:
     """Modes from selected hypotheses; origin (M, D): the previous-frame pose each came from."""
-    return Modes(q=q, weight=weight, cost=cost, chol=_cholesky(s, hessian), velocity=q - origin)
+    return Modes(q=q, weight=weight, cost=cost, chol=mode_cholesky(s, hessian), velocity=q - origin)
 
 
 # ---------------------------------------------------------------- a frame's own cost; many frames at once
 
 
-def _evidence(s: Setup, t: int | Tensor, q: Tensor, joints: Tensor | None = None) -> Tensor:
+def frame_evidence(s: Setup, t: int | Tensor, q: Tensor, joints: Tensor | None = None) -> Tensor:
     """Frame t's own cost of poses q (K, D) (joints (K, J, 3): their forward kinematics, if already at
     hand) -> (K,): robust reprojection, limits, collision and the pose
     prior, without the dynamics term. It is the unary term of the best-trajectory Viterbi pass, whose
@@ -250,23 +247,23 @@ def _evidence(s: Setup, t: int | Tensor, q: Tensor, joints: Tensor | None = None
     with torch.no_grad():
         joints = sk.forward_kinematics(q) if joints is None else joints
         ev = pose_eval_from_joints(prob.observations.camera, prob.keypoints, q, joints)
-        return _objective(s, t, None, tracking=True)(ev).total
+        return frame_objective(s, t, None, tracking=True)(ev).total
 
 
-#: poses of many frames polished in one batched call (`_polish_rows`): one call per
+#: poses of many frames polished in one batched call (`polish_rows`): one call per
 #: frame costs a linearisation's overhead per frame; on the bundled clip 320 rows a call measured faster than
-#: 1280 or 5920 (`_recombine` 1.5 s against 1.8 and 2.8 s), and memory stays bounded on long clips
+#: 1280 or 5920 (`recombine` 1.5 s against 1.8 and 2.8 s), and memory stays bounded on long clips
 POLISH_CHUNK = 320
 
 
-def _polish_rows(
+def polish_rows(
     s: Setup, t: Tensor, q: Tensor, mean: Tensor, iterations: int, sigma: float | Tensor, tracking: bool = False
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """`_polish` of poses from many frames, in calls of `POLISH_CHUNK` rows: t (N,) each pose's frame, q and
+    """`polish` of poses from many frames, in calls of `POLISH_CHUNK` rows: t (N,) each pose's frame, q and
     mean (N, D), sigma a float, (D,) or (N, D) -> q (N, D), cost (N,), hessian (N, D, D)."""
     out = []
     for rows in torch.split(torch.arange(q.shape[0], device=q.device), POLISH_CHUNK):
         sig = sigma[rows] if isinstance(sigma, Tensor) and sigma.ndim == 2 else sigma
-        out.append(_polish(s, t[rows], q[rows], mean[rows], iterations, sig, tracking))
+        out.append(polish(s, t[rows], q[rows], mean[rows], iterations, sig, tracking))
     q_out, cost, hessian = (torch.cat(x) for x in zip(*out))
     return q_out, cost, hessian

@@ -12,16 +12,23 @@ import torch
 from torch import Tensor
 
 from ptrack.errors import EstimationError
-from ptrack.estimators.frame import rest_pose_in_view
-from ptrack.estimators.kjs.model import Setup, Strategy, _evidence, _modes, _objective, _polish, _select
-from ptrack.estimators.kjs.step import _merge
-from ptrack.ik import chain_ik, product_ik
-from ptrack.jacobians import objective_linearization
-from ptrack.jumps import interpretation_trees, joint_observations, product
-from ptrack.mixture import Modes, distinct_minima
-from ptrack.problem import first_keyframe
-from ptrack.samplers import project_to_limits
-from ptrack.solvers import levenberg_marquardt
+from ptrack.estimators.kjs.model import (
+    Setup,
+    Strategy,
+    frame_evidence,
+    frame_objective,
+    make_modes,
+    polish,
+    select_modes,
+)
+from ptrack.estimators.kjs.step import merge_mixtures
+from ptrack.hypotheses.ik import chain_ik, product_ik
+from ptrack.hypotheses.jumps import interpretation_trees, joint_observations, product
+from ptrack.hypotheses.mixture import Modes, distinct_minima
+from ptrack.hypotheses.samplers import project_to_limits
+from ptrack.optim.jacobians import objective_linearization
+from ptrack.optim.solvers import levenberg_marquardt
+from ptrack.problem import first_keyframe, rest_pose_in_view
 
 
 def _init_keyframe(s: Setup) -> Tensor:
@@ -29,7 +36,7 @@ def _init_keyframe(s: Setup) -> Tensor:
 
 
 def _start_prior(s: Setup, q: Tensor) -> tuple[Tensor, Tensor]:
-    """The prior of a start without 3D input. Each angle the CMU pose prior names (`ptrack.pose_prior`)
+    """The prior of a start without 3D input. Each angle the CMU pose prior names (`ptrack.body.pose_prior`)
     is held near real people's mean angle with `kjs.start_prior_scale` times their spread; any other
     angle near 0 with std `kjs.rest_sigma`; the root's position near where the rigid fit of the body put
     it (std 0.1 m: monocular depth is otherwise traded for limbs tilted in depth); its rotation free.
@@ -84,10 +91,14 @@ def _init_tree(s: Setup, t: int = 0) -> Tensor:
     lo = torch.where(s.root, s.lower, q[0])
     hi = torch.where(s.root, s.upper, q[0])
     q, _ = levenberg_marquardt(
-        objective_linearization(sk, _objective(s, t, None), obs.camera, prob.keypoints, True), q, lo, hi, max_iter=30
+        objective_linearization(sk, frame_objective(s, t, None), obs.camera, prob.keypoints, True),
+        q,
+        lo,
+        hi,
+        max_iter=30,
     )
     mean, sigma = _start_prior(s, q)
-    q, cost, _ = _polish(s, t, q, mean, 30, sigma)
+    q, cost, _ = polish(s, t, q, mean, 30, sigma)
     # distinct in 3D (no joint 5 cm apart): headings 2 pi apart, or the two Euler triples of one
     # rotation, are one fit
     joints = sk.forward_kinematics(q)
@@ -103,41 +114,41 @@ def _init_tree(s: Setup, t: int = 0) -> Tensor:
     return torch.cat([fits, ik.q[keep]])
 
 
-def _first_modes(s: Setup, strategy: Strategy, t: int = 0) -> Modes:
+def first_modes(s: Setup, strategy: Strategy, t: int = 0) -> Modes:
     """The modes of a start: frame 0's keyframe (`kjs.init: keyframe`), or a tree start on frame t."""
     k = s.cfg.kjs
     if k.init == "keyframe":  # the user's 3D pose, held by a tight prior (0.01 rad / m): it is their word
         q = _init_keyframe(s)
-        q, cost, hessian = _polish(s, 0, q, q, 20, 0.01)
+        q, cost, hessian = polish(s, 0, q, q, 20, 0.01)
     else:
         q = _init_tree(s, t)  # many candidates: polish all briefly, the 4K most promising to convergence
         mean, sigma = _start_prior(s, q)
-        q, cost, _ = _polish(s, t, q, mean, k.polish_iterations, sigma)
-        # "most promising" by the frame's own cost (`_evidence`), not with the start prior: flip combinations
+        q, cost, _ = polish(s, t, q, mean, k.polish_iterations, sigma)
+        # "most promising" by the frame's own cost (`frame_evidence`), not with the start prior: flip combinations
         # that reproject alike differ mostly in that prior, which is per dof around real people's mean pose
         # and so would drop a raised arm (49_18) before it is ever refined; the K kept below still weigh it
-        best, _ = _select(s, q, _evidence(s, t, q), torch.ones_like(cost), 4 * k.modes)
-        q, cost, hessian = _polish(s, t, q[best], mean[best], 20, sigma)
-    keep, w = _select(s, q, cost, torch.ones_like(cost), k.modes)
+        best, _ = select_modes(s, q, frame_evidence(s, t, q), torch.ones_like(cost), 4 * k.modes)
+        q, cost, hessian = polish(s, t, q[best], mean[best], 20, sigma)
+    keep, w = select_modes(s, q, cost, torch.ones_like(cost), k.modes)
     if keep.numel() == 0:
         raise EstimationError(f"method {strategy.name!r}: no start pose with a finite cost on frame {t}")
-    return _modes(s, q[keep], cost[keep], hessian[keep], w, q[keep])
+    return make_modes(s, q[keep], cost[keep], hessian[keep], w, q[keep])
 
 
-def _backward_start(s: Setup, last: Modes, strategy: Strategy) -> Modes:
+def backward_start(s: Setup, last: Modes, strategy: Strategy) -> Modes:
     """The backward pass's first modes: the forward pass's last ones, moving the other way, and after a
-    tree start also a tree start on the last frame, taken in turn (`_merge`, the forward pass's heaviest
+    tree start also a tree start on the last frame, taken in turn (`merge_mixtures`, the forward pass's heaviest
     first). The forward pass may have lost the true reading of the whole body from frame 0 on (49_18 at
     2 px); the last frame's own tree start gives the backward pass a second chance at it."""
     last = last._replace(velocity=-last.velocity)
     t = s.problem.observations.num_frames - 1
     if s.cfg.kjs.init != "tree" or not bool((s.problem.observations.confidence[t] > 0).any()):
         return last
-    return _merge(s, last, _first_modes(s, strategy, t), 0)
+    return merge_mixtures(s, last, first_modes(s, strategy, t), 0)
 
 
-def _feed(s: Setup, backward: Modes, forward: Modes) -> Modes:
-    """The backward pass's modes of frame t+1 joined by the forward pass's (`_merge`, its own heaviest
+def feed_backward(s: Setup, backward: Modes, forward: Modes) -> Modes:
+    """The backward pass's modes of frame t+1 joined by the forward pass's (`merge_mixtures`, its own heaviest
     first; the forward modes' velocity turned round), before the step to frame t. A limb crossing the
     image plane is read on the wrong side by both passes when each arrives from its own side of the
     crossing, lagging behind the motion (02_01, 1 px: the left thigh over frames 9-18). The forward pass finds
@@ -146,4 +157,4 @@ def _feed(s: Setup, backward: Modes, forward: Modes) -> Modes:
     the forward pass may hold a wrong reading of the whole body, and fed to the backward pass it crowded
     out the last frame's own tree start (dev clips at 2 px, five seeds: best-of-K 32.2 -> 35.9 mm, 49_18
     38.0 -> 67.1)."""
-    return _merge(s, backward, forward._replace(velocity=-forward.velocity), int(backward.weight.argmax()))
+    return merge_mixtures(s, backward, forward._replace(velocity=-forward.velocity), int(backward.weight.argmax()))

@@ -1,6 +1,6 @@
 """One step of the mixture trackers, frame t-1's modes to frame t's: prediction, covariance scaled (or
 spherical) diffusion, kinematic jumps, batched polishing and the K distinct modes kept (the package
-docstring, steps 1-5); and `_merge`, which joins two mixtures of one frame with each depth order of the
+docstring, steps 1-5); and `merge_mixtures`, which joins two mixtures of one frame with each depth order of the
 limbs served first.
 
 Shapes: S samples, L leaves, D dofs, C chains, K modes (`kjs.modes`)."""
@@ -10,11 +10,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ptrack.estimators.kjs.model import Setup, Strategy, _distinct, _modes, _polish, _select
-from ptrack.ik import chain_ik
-from ptrack.jumps import interpretation_tree, joint_observations
-from ptrack.mixture import Modes
-from ptrack.samplers import css_proposal, project_to_limits, spherical_proposal
+from ptrack.estimators.kjs.model import Setup, Strategy, distinct_poses, make_modes, polish, select_modes
+from ptrack.hypotheses.ik import chain_ik
+from ptrack.hypotheses.jumps import interpretation_tree, joint_observations
+from ptrack.hypotheses.mixture import Modes
+from ptrack.hypotheses.samplers import css_proposal, project_to_limits, spherical_proposal
 
 # ---------------------------------------------------------------- sampling
 
@@ -115,10 +115,10 @@ def _orders_first(s: Setup, q: Tensor, rank: Tensor) -> Tensor:
     return rank + rank.numel() * (rank != earliest[order])
 
 
-def _merge(s: Setup, forward: Modes, backward: Modes, lead: int) -> Modes:
+def merge_mixtures(s: Setup, forward: Modes, backward: Modes, lead: int) -> Modes:
     """One frame's modes from two mixtures (the forward and the backward pass; or, inside the backward
     pass, its own modes and the forward pass's): the first mixture's mode `lead` first (after both passes:
-    the best trajectory's), then taken from each in turn, heaviest first, distinct (`_distinct`), at most K, with
+    the best trajectory's), then taken from each in turn, heaviest first, distinct (`distinct_poses`), at most K, with
     each depth order of the limbs (`_depth_orders`) served before any order is served twice: the
     two mixtures often hold the same reading many times over and the other reading of a limb near the
     image plane only in a light mode, which K slots would otherwise leave out. Each keeps its cost,
@@ -134,7 +134,7 @@ def _merge(s: Setup, forward: Modes, backward: Modes, lead: int) -> Modes:
     rank[turns] = torch.arange(turns.numel(), device=turns.device)
     both = Modes(*(torch.cat([a, b]) for a, b in zip(forward, backward)))
     rank = _orders_first(s, both.q, rank)
-    keep = _distinct(s, both.q, rank.to(both.q.dtype))
+    keep = distinct_poses(s, both.q, rank.to(both.q.dtype))
     keep = keep[torch.argsort(rank[keep])][: s.cfg.kjs.modes]
     weight = both.weight[keep]
     return Modes(both.q[keep], weight / weight.sum(), both.cost[keep], both.chol[keep], both.velocity[keep])
@@ -143,7 +143,7 @@ def _merge(s: Setup, forward: Modes, backward: Modes, lead: int) -> Modes:
 # ---------------------------------------------------------------- one tracking step
 
 
-def _step(
+def track_step(
     s: Setup, t: int, modes: Modes, strategy: Strategy, gen: torch.Generator, orders: bool = False
 ) -> tuple[Modes, Tensor]:
     """Frame t-1's modes -> frame t's, and the flipped leaves kept per chain (C,) (`ptrack.estimators.kjs`' docstring).
@@ -173,15 +173,15 @@ def _step(
     # the dynamics' spread widens with each mode's own last motion: a fast limb may move as far again
     sigma = torch.sqrt(s.dynamics_sigma**2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
     # polish everything briefly, then the most promising distinct minima to convergence
-    q, cost, _ = _polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent], tracking=True)
+    q, cost, _ = polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent], tracking=True)
     prior = modes.weight**k.weight_memory  # (K,) how much of the past evidence each mode carries forward
-    best, _ = _select(s, q, cost, prior[parent], 4 * k.modes)
+    best, _ = select_modes(s, q, cost, prior[parent], 4 * k.modes)
     q, parent = q[best], parent[best]
-    q, cost, hessian = _polish(s, t, q, predicted[parent], k.refine_iterations, sigma[parent], tracking=True)
-    keep, w = _select(s, q, cost, prior[parent], 4 * k.modes if orders else k.modes)
+    q, cost, hessian = polish(s, t, q, predicted[parent], k.refine_iterations, sigma[parent], tracking=True)
+    keep, w = select_modes(s, q, cost, prior[parent], 4 * k.modes if orders else k.modes)
     if orders and keep.numel():
         pick = torch.argsort(_orders_first(s, q[keep], torch.arange(keep.numel(), device=keep.device)))[: k.modes]
         keep, w = keep[pick], w[pick] / w[pick].sum()
     if keep.numel() == 0:  # every hypothesis diverged (non-finite cost): the dynamics carry the modes
         return modes._replace(q=predicted), counts
-    return _modes(s, q[keep], cost[keep], hessian[keep], w, modes.q[parent[keep]]), counts
+    return make_modes(s, q[keep], cost[keep], hessian[keep], w, modes.q[parent[keep]]), counts

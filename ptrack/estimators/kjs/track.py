@@ -8,12 +8,19 @@ from collections.abc import Callable, Iterable
 import torch
 from torch import Tensor
 
-from ptrack.banded import one_thread
-from ptrack.estimators.kjs.lattice import _best_path, _lattice, _lead_pass, _recombine, _smooth, principal_directions
-from ptrack.estimators.kjs.model import CSS, KJS, SS, Strategy, _setup
-from ptrack.estimators.kjs.start import _backward_start, _feed, _first_modes
-from ptrack.estimators.kjs.step import _merge, _step
-from ptrack.mixture import Modes
+from ptrack.estimators.kjs.lattice import (
+    best_path,
+    lead_pass,
+    make_lattice,
+    principal_directions,
+    recombine,
+    smooth_lattice,
+)
+from ptrack.estimators.kjs.model import CSS, KJS, SS, Strategy, make_setup
+from ptrack.estimators.kjs.start import backward_start, feed_backward, first_modes
+from ptrack.estimators.kjs.step import merge_mixtures, track_step
+from ptrack.hypotheses.mixture import Modes
+from ptrack.optim.banded import one_thread
 from ptrack.problem import Estimate, Problem
 
 
@@ -25,7 +32,7 @@ def track(
     progress: Callable[[Iterable], Iterable] = lambda x: x,
 ) -> Estimate:
     """Run the tracker `strategy` over every frame of `problem` (`ptrack.estimators.kjs`' docstring), on one
-    intra-op thread (`ptrack.banded.one_thread`): its products are small batched ones, and
+    intra-op thread (`ptrack.optim.banded.one_thread`): its products are small batched ones, and
     `scripts/bench_kjs.py` measured 6.1 fps on one thread and on two on an idle 2-core machine, but
     0.7 fps on two threads when another job held a core.
 
@@ -56,7 +63,7 @@ def _ordinary(est: Estimate) -> Estimate:
 def _track(
     problem: Problem, cfg, generator: torch.Generator, strategy: Strategy, progress: Callable[[Iterable], Iterable]
 ) -> Estimate:
-    s = _setup(problem, cfg, strategy)
+    s = make_setup(problem, cfg, strategy)
     sk, obs = problem.skeleton, problem.observations
     k = cfg.kjs
     steps = range(obs.num_frames)
@@ -66,32 +73,34 @@ def _track(
     modes = None
     for t, back in progress(schedule):
         if modes is None:
-            modes, counts = _first_modes(s, strategy), torch.zeros(len(s.chains), dtype=torch.long)
-        elif back and not passes[1]:  # the forward pass's last modes (and a tree start there: _backward_start)
-            modes, counts = _backward_start(s, modes, strategy), torch.zeros_like(counts)
-        elif back and k.init == "keyframe":  # from its own modes of frame t+1 and the forward pass's (`_feed`)
-            modes, counts = _step(s, t, _feed(s, modes, passes[0][t + 1][0]), strategy, generator, orders=True)
+            modes, counts = first_modes(s, strategy), torch.zeros(len(s.chains), dtype=torch.long)
+        elif back and not passes[1]:  # the forward pass's last modes (and a tree start there: backward_start)
+            modes, counts = backward_start(s, modes, strategy), torch.zeros_like(counts)
+        elif back and k.init == "keyframe":  # from its own modes of frame t+1 and the forward pass's (`feed_backward`)
+            modes, counts = track_step(
+                s, t, feed_backward(s, modes, passes[0][t + 1][0]), strategy, generator, orders=True
+            )
         else:
-            modes, counts = _step(s, t, modes, strategy, generator)
+            modes, counts = track_step(s, t, modes, strategy, generator)
         passes[back].append((modes, counts.to(modes.q.device)))
     forward = [m for m, _ in passes[0]]
     jumps = [c for _, c in passes[0]]
-    hq, hw, hc, hl, hyp_joints = _lattice(s, forward)
-    path, cost = _best_path(s, hq, hw, hyp_joints)
-    if backward:  # the hypotheses of both passes, the best trajectory's mode first in each frame (`_merge`)
+    hq, hw, hc, hl, hyp_joints = make_lattice(s, forward)
+    path, cost = best_path(s, hq, hw, hyp_joints)
+    if backward:  # the hypotheses of both passes, the best trajectory's mode first in each frame (`merge_mixtures`)
         lead, other = forward, [m for m, _ in reversed(passes[1])]
         if k.init == "tree":
-            swap, path = _lead_pass(s, path, cost, hyp_joints, other)
+            swap, path = lead_pass(s, path, cost, hyp_joints, other)
             lead, other = (other, lead) if swap else (lead, other)
-        merged = [_merge(s, a, b, int(p)) for a, b, p in zip(lead, other, path)]
-        hq, hw, hc, hl, hyp_joints = _lattice(s, merged)
+        merged = [merge_mixtures(s, a, b, int(p)) for a, b, p in zip(lead, other, path)]
+        hq, hw, hc, hl, hyp_joints = make_lattice(s, merged)
         path = torch.zeros_like(path)
         jumps = [a + b for a, (_, b) in zip(jumps, reversed(passes[1]))]
-    if k.smooth_sweeps > 0:  # every frame's hypotheses smoothed in time (`_smooth`); the choice of mode kept
-        hq, hc, hl, hyp_joints = _smooth(s, hq, hw, hc, hl, hyp_joints)
-    if k.recombine:  # each chain's reading chosen on its own, on the best trajectory's pose (`_recombine`); after
+    if k.smooth_sweeps > 0:  # every frame's hypotheses smoothed in time (`smooth_lattice`); the choice of mode kept
+        hq, hc, hl, hyp_joints = smooth_lattice(s, hq, hw, hc, hl, hyp_joints)
+    if k.recombine:  # each chain's reading chosen on its own, on the best trajectory's pose (`recombine`); after
         # the smoother, so that the best trajectory is the same with it and without
-        hq, hw, hc, hl, hyp_joints = _recombine(s, hq, hw, hc, hl, hyp_joints, path)
+        hq, hw, hc, hl, hyp_joints = recombine(s, hq, hw, hc, hl, hyp_joints, path)
     with torch.no_grad():
         frames = torch.arange(hq.shape[0], device=hq.device)
         joints = hyp_joints[frames, path]

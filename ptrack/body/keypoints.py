@@ -1,0 +1,122 @@
+"""Observed keypoint sets: which skeleton joints a 2D detector (or annotator) reports.
+
+The standard set is Human3.6M-like, 17 keypoints. `CMU_H36M17` maps it to CMU ASF joints (a joint
+is a bone's end point, so e.g. the knee is the end of the femur). Any model can use another mapping
+(config `keypoints.mapping`), as long as every name is one of the model's joints.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ptrack.body.skeleton import Skeleton
+from ptrack.errors import InputError
+
+H36M17: tuple[str, ...] = (
+    "pelvis",
+    "r_hip",
+    "r_knee",
+    "r_ankle",
+    "l_hip",
+    "l_knee",
+    "l_ankle",
+    "spine",
+    "thorax",
+    "neck",
+    "head",
+    "l_shoulder",
+    "l_elbow",
+    "l_wrist",
+    "r_shoulder",
+    "r_elbow",
+    "r_wrist",
+)
+
+#: H36M-17 keypoint -> CMU ASF joint (bone end point).
+CMU_H36M17: dict[str, str] = {
+    "pelvis": "root",
+    "r_hip": "rhipjoint",
+    "r_knee": "rfemur",
+    "r_ankle": "rtibia",
+    "l_hip": "lhipjoint",
+    "l_knee": "lfemur",
+    "l_ankle": "ltibia",
+    "spine": "upperback",
+    "thorax": "thorax",
+    "neck": "upperneck",
+    "head": "head",
+    "l_shoulder": "lclavicle",
+    "l_elbow": "lhumerus",
+    "l_wrist": "lradius",
+    "r_shoulder": "rclavicle",
+    "r_elbow": "rhumerus",
+    "r_wrist": "rradius",
+}
+
+#: limbs whose depth order the flip-error metric checks (start keypoint, end keypoint)
+H36M17_LIMBS: tuple[tuple[str, str], ...] = (
+    ("r_hip", "r_knee"),
+    ("r_knee", "r_ankle"),
+    ("l_hip", "l_knee"),
+    ("l_knee", "l_ankle"),
+    ("r_shoulder", "r_elbow"),
+    ("r_elbow", "r_wrist"),
+    ("l_shoulder", "l_elbow"),
+    ("l_elbow", "l_wrist"),
+    ("thorax", "head"),
+    ("pelvis", "thorax"),
+)
+
+
+@dataclass(frozen=True)
+class KeypointSet:
+    """K named keypoints placed on skeleton joints.
+
+    names: (K,) keypoint names; joints: (K,) skeleton joint indices; swap_pairs: left/right partner
+    keypoint index pairs; limbs: (start, end) keypoint index pairs for the flip metric.
+    """
+
+    names: tuple[str, ...]
+    joints: tuple[int, ...]
+    swap_pairs: tuple[tuple[int, int], ...]
+    limbs: tuple[tuple[int, int], ...]
+
+    @property
+    def num_keypoints(self) -> int:
+        return len(self.names)
+
+    def index(self, device=None) -> Tensor:
+        """(K,) long tensor of skeleton joint indices."""
+        return torch.as_tensor(self.joints, dtype=torch.long, device=device)
+
+    def limb_joints(self) -> list[tuple[int, int]]:
+        """Limbs as skeleton joint index pairs."""
+        return [(self.joints[a], self.joints[b]) for a, b in self.limbs]
+
+
+def make_keypoints(skeleton: Skeleton, mapping: Mapping[str, str] | None = None) -> KeypointSet:
+    """Keypoint set for `skeleton` from a {keypoint name: joint name} mapping (default CMU_H36M17).
+
+    Left/right swap pairs are found by name ("l_x" <-> "r_x"); limbs are the H36M17 limbs present.
+    """
+    mapping = dict(CMU_H36M17 if mapping is None else mapping)
+    if not mapping:
+        raise InputError("keypoint mapping is empty")
+    names = tuple(mapping)
+    joints = []
+    for k in names:
+        j = mapping[k]
+        if j not in skeleton.joint_names:
+            raise InputError(
+                f"keypoint {k!r} maps to {j!r}, which is not a joint of skeleton "
+                f"{skeleton.name!r} (joints: {', '.join(skeleton.joint_names[:8])}, ...)"
+            )
+        joints.append(skeleton.joint_names.index(j))
+    pos = {n: i for i, n in enumerate(names)}
+    swaps = tuple((pos[n], pos["r_" + n[2:]]) for n in names if n.startswith("l_") and "r_" + n[2:] in pos)
+    limbs = tuple((pos[a], pos[b]) for a, b in H36M17_LIMBS if a in pos and b in pos)
+    return KeypointSet(names=names, joints=tuple(joints), swap_pairs=swaps, limbs=limbs)

@@ -1,0 +1,773 @@
+"""One config-driven run: data -> observations -> estimator -> metrics -> outputs.
+
+`prepare(cfg)` loads the skeleton, the clip and the camera and makes (or reads) the observations;
+`estimate(cfg)` runs the configured estimator on them and returns both, writing nothing (the Python API);
+`execute(cfg)` does that, computes metrics and writes the run folder:
+
+    config.yaml   resolved config
+    metrics.json  every applicable metric, plus seconds and frames
+    result.npz    frames, q, joints, joint_names, ... (see `result_arrays`)
+    result.bvh    the estimated motion for animation tools (ptrack.io.export)
+    run.rrd       rerun recording (ptrack.io.viz)
+
+The folder is assembled in a hidden sibling `.NAME.partial` and renamed into place at the end, so a
+failed run leaves nothing half-written at `out_dir`. That sibling is also the run's claim on `out_dir`,
+taken before any work: a second run into the same `out_dir` refuses at once. The run holds a lock on it
+(flock) while it lives, so what a killed run left (SIGKILL, a power cut) is told from a live run's and
+removed by the next run into the same parent folder (`remove_partial`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import json
+import logging
+import math
+import os
+import shutil
+import stat
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterable, Sized
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ptrack.body.keypoints import make_keypoints
+from ptrack.body.skeleton import Motion, Skeleton, load_amc
+from ptrack.errors import EstimationError, InputError
+from ptrack.estimators import ESTIMATORS
+from ptrack.io.export import write_bvh
+from ptrack.observe.camera import camera_for_motion
+from ptrack.observe.correspondences import Correspondences, simulate_correspondences
+from ptrack.observe.observations import ChannelConfig, Observations, simulate_observations
+from ptrack.observe.silhouette import capsule_radii, render_silhouettes
+from ptrack.pipeline import metrics as M
+from ptrack.pipeline.config import RunConfig, dump_yaml
+from ptrack.pipeline.keyframes import ground_truth_keyframes, read_keyframes
+from ptrack.pipeline.memory import check_memory
+from ptrack.problem import Estimate, Problem
+
+try:
+    import fcntl
+except ImportError:  # Windows: no flock; runs' claims still exclude each other, but none is ever judged stale
+    fcntl = None  # type: ignore[assignment]
+
+log = logging.getLogger(__name__)
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+PARTIAL = ".partial"  # the suffix of the hidden sibling a run folder is assembled in (`claim_out_dir`)
+CLAIMING = ".claim"  # the suffix of the folder a claim is prepared in before it is renamed to `.NAME.partial`
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """Everything a run needs before estimation. T frames; `full` is the ASF model, `problem.skeleton`
+    the (possibly reduced) model being estimated."""
+
+    full: Skeleton
+    motion: Motion | None  # the clip slice (None when observations come from a file without AMC)
+    gt_q: torch.Tensor | None  # (T, D) reduced-model ground truth
+    gt_joints: torch.Tensor | None  # (T, J, 3) ground truth from the full model
+    problem: Problem
+    frames: np.ndarray  # (T,) AMC frame numbers (or observation indices)
+    # (T, K) keypoints the camera sees (simulated: in front and in the image; a file: confidence > 0)
+    visible: torch.Tensor | None = None
+
+
+def _device(cfg: RunConfig) -> torch.device:
+    dev = torch.device(cfg.device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError(f"config key 'device' is {cfg.device!r} but CUDA is not available here")
+    return dev
+
+
+def prepare(cfg: RunConfig) -> Prepared:
+    """Load data and make the observations for `cfg` (see module docstring)."""
+    dtype, device = DTYPES[cfg.dtype], _device(cfg)
+    full = Skeleton.from_asf(cfg.data.asf).with_limits(cfg.model.limits)
+    model = full.freeze(list(cfg.model.freeze)) if cfg.model.freeze else full
+    if model.num_dofs == 0:
+        raise InputError(
+            f"config key 'model.freeze' {list(cfg.model.freeze)} freezes every dof of {cfg.data.asf}; "
+            f"nothing is left to estimate"
+        )
+    kps = make_keypoints(model, cfg.model.keypoints)
+    gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
+
+    motion = gt_q = gt_joints = None
+    correspondences: Correspondences | None = None
+    upsample = cfg.batch.upsample if cfg.method == "batch" else 1  # batch: frames between the observed ones
+    if upsample > 1 and cfg.observations.file:
+        raise InputError("batch.upsample > 1 needs simulated observations (data.amc), not observations.file")
+    if cfg.data.amc:
+        motion = load_amc(cfg.data.amc, full)
+        n = motion.q.shape[0]
+        if cfg.data.start >= n:
+            raise InputError(f"config key 'data.start' is {cfg.data.start} but {cfg.data.amc} has only {n} frames")
+        stop = None if cfg.data.stop is None else min(cfg.data.stop, n)
+        motion = motion.slice(cfg.data.start, stop, cfg.data.stride // upsample)
+        if motion.q.shape[0] < 3:
+            raise InputError(
+                f"the selected frames of {cfg.data.amc} (start {cfg.data.start}, stop {cfg.data.stop}, "
+                f"stride {cfg.data.stride}) give {motion.q.shape[0]} frames; at least 3 are needed"
+            )
+        q_full = motion.q.to(dtype)
+        gt_joints = full.forward_kinematics(q_full)
+        gt_q = model.reduce(q_full, full)
+
+    if cfg.observations.file:
+        obs = Observations.load_npz(cfg.observations.file)
+        if motion is not None and obs.num_frames != motion.q.shape[0]:
+            raise InputError(
+                f"{cfg.observations.file} has {obs.num_frames} frames but the selected AMC frames are "
+                f"{motion.q.shape[0]} (check data.start/stop/stride)"
+            )
+        frames = motion.frames if motion is not None else np.arange(obs.num_frames)
+        visible = obs.confidence > 0
+    else:
+        assert motion is not None and gt_joints is not None  # the config check: data.amc without observations.file
+        c = cfg.camera
+        camera = camera_for_motion(
+            gt_joints, c.distance_m, c.azimuth_deg, c.elevation_deg, c.focal_px, c.width, c.height
+        )
+        o = cfg.observations
+        channel = ChannelConfig(
+            noise_px=o.noise_px,
+            missing=o.missing,
+            occlusion_bursts=o.occlusion_bursts,
+            dropped_frames=o.dropped_frames,
+            outliers=o.outliers,
+            outlier_px=o.outlier_px,
+            swap_fraction=o.swap_fraction,
+        )
+        masks = None
+        bones = torch.as_tensor(full.bones(), dtype=torch.long)  # the capsule model of silhouettes and correspondences
+        names = [full.joint_names[b] for _, b in full.bones()]
+        radii = capsule_radii(names, torch.as_tensor(full.lengths[bones[:, 1]], dtype=dtype))
+        if o.silhouettes:
+            masks = render_silhouettes(gt_joints, bones, radii, camera)
+        times = torch.as_tensor(motion.times, dtype=dtype)
+        obs, info = simulate_observations(
+            gt_joints, kps.index(), camera, times, channel, gen, kps.names, swap_pairs=kps.swap_pairs, masks=masks
+        )
+        visible = info.visible
+        frames = motion.frames
+        if o.correspondences:  # drawn after the keypoints' channel: turning them on leaves its draws as they were
+            _, rotations = full.forward_kinematics(q_full, rotations=True)
+            correspondences, _ = simulate_correspondences(
+                gt_joints,
+                rotations,
+                bones,
+                radii,
+                camera,
+                o.correspondences,
+                gen,
+                noise_px=o.correspondence_noise_px,
+                outliers=o.correspondence_outliers,
+                outlier_px=o.outlier_px,
+            )
+        if upsample > 1:  # 2D on every upsample-th reconstructed frame only
+            seen = (torch.arange(obs.num_frames) % upsample == 0).to(obs.confidence)
+            obs = dataclasses.replace(obs, confidence=obs.confidence * seen[:, None])
+    if tuple(obs.keypoint_names) != kps.names:
+        raise InputError(
+            f"observation keypoints {list(obs.keypoint_names)} differ from the model's keypoint set "
+            f"{list(kps.names)} (config model.keypoints)"
+        )
+    if cfg.observations.file:  # the file is usable: say which settings it makes moot
+        ignored = [
+            f"observations.{f.name}"
+            for f in dataclasses.fields(cfg.observations)
+            if f.name not in ("file", "correspondence_file") and getattr(cfg.observations, f.name) != f.default
+        ]
+        if ignored:
+            log.warning(
+                "observations.file is given, so %s (for simulated observations) %s ignored",
+                ", ".join(ignored),
+                "is" if len(ignored) == 1 else "are",
+            )
+    if cfg.observations.correspondence_file:
+        correspondences = Correspondences.load_npz(cfg.observations.correspondence_file, obs.num_frames)
+    if correspondences is not None:
+        correspondences = correspondences.to(device=device, dtype=dtype)
+        if cfg.method != "pca":
+            log.warning("method %s does not use the point correspondences (only method pca does)", cfg.method)
+    check_visibility(visible)
+    check_observed(obs.confidence[::upsample] > 0, visible[::upsample])  # the frames meant to be observed
+    obs = obs.to(device=device, dtype=dtype)
+    keyframes = joint_keyframes = None
+    kc = cfg.keyframes
+    if kc.file:
+        keyframes, joint_keyframes = read_keyframes(kc.file, model, obs.num_frames, kc.sigma_deg, kc.sigma_m, dtype)
+    elif gt_q is not None:  # the clip's own poses play the user's 3D keyframes (frame 0 unless keyframes.* ask more)
+        keyframes = ground_truth_keyframes(
+            gt_q,
+            obs.times,
+            model,
+            kc.every_s,
+            kc.last,
+            kc.noise_deg,
+            kc.sigma_deg,
+            kc.sigma_m,
+            torch.Generator(device="cpu").manual_seed(cfg.seed + 2),
+        )
+    problem = Problem(
+        skeleton=model,
+        keypoints=kps,
+        observations=obs,
+        keyframes=keyframes,
+        joint_keyframes=joint_keyframes,
+        correspondences=correspondences,
+    )
+    return Prepared(
+        full=full,
+        motion=motion,
+        gt_q=gt_q,
+        gt_joints=gt_joints,
+        problem=problem,
+        frames=np.asarray(frames),
+        visible=visible.cpu(),
+    )
+
+
+#: a frame counts as seen when at least this share of its keypoints is visible; a run needs MIN_SEEN_FRAMES
+SEEN_FRAME_SHARE, MIN_SEEN_FRAMES = 1 / 3, 3
+
+
+def check_visibility(visible: torch.Tensor) -> None:
+    """Refuse (InputError) observations where fewer than MIN_SEEN_FRAMES frames have at least a third of their
+    keypoints visible; warn when under half of all keypoints are. visible: (T, K) bool."""
+    per_frame = visible.float().mean(-1)
+    seen, fraction = int((per_frame >= SEEN_FRAME_SHARE).sum()), float(per_frame.mean())
+    if seen < MIN_SEEN_FRAMES:
+        raise InputError(
+            f"the camera sees too little: {seen} of {visible.shape[0]} frames have at least a third of "
+            f"the keypoints visible ({MIN_SEEN_FRAMES} are needed; visible_fraction {fraction:.3f}); "
+            f"check camera.* or the observations"
+        )
+    if fraction < 0.5:
+        log.warning(
+            "the camera sees only %.0f%% of the keypoints (visible_fraction %.3f): the estimate rests on "
+            "few observations",
+            100 * fraction,
+            fraction,
+        )
+
+
+#: under this share of observed keypoints (confidence > 0) a run warns, as it does under this share of visible ones
+OBSERVED_WARN = 0.5
+
+
+def check_observed(observed: torch.Tensor, visible: torch.Tensor) -> None:
+    """Warn when under OBSERVED_WARN of the keypoints are observed though the camera sees more (where it sees
+    little, `check_visibility` has said so). observed, visible: (T, K) bool."""
+    fraction, seen = float(observed.float().mean()), float(visible.float().mean())
+    if fraction < OBSERVED_WARN <= seen:
+        log.warning(
+            "only %.0f%% of the keypoints are observed (observed_fraction %.3f; the camera sees %.0f%%): the "
+            "estimate rests on few observations (observations.missing, occlusion_bursts, dropped_frames)",
+            100 * fraction,
+            fraction,
+            100 * seen,
+        )
+
+
+#: the estimate explains the observations poorly when the median distance of its keypoints to the observed ones is
+#: over both REPROJECTION_SIGMAS times costs.sigma_px and REPROJECTION_DIAGONAL of the image's diagonal
+REPROJECTION_SIGMAS, REPROJECTION_DIAGONAL = 10.0, 0.05
+
+
+def check_reprojection(prep: Prepared, reproj: torch.Tensor, sigma_px: float) -> float:
+    """Warn when no pose explains the observations (see REPROJECTION_SIGMAS); -> the median distance, pixels
+    (NaN when nothing is observed). reproj: (T, K, 2) from `reprojected_keypoints`."""
+    obs = prep.problem.observations
+    seen = obs.confidence > 0
+    err = (reproj.to(obs.keypoints) - obs.keypoints).norm(dim=-1)[seen]
+    if err.numel() == 0:
+        return math.nan
+    median = float(err.double().median())
+    diagonal = math.hypot(obs.camera.width, obs.camera.height)
+    limit = max(REPROJECTION_SIGMAS * sigma_px, REPROJECTION_DIAGONAL * diagonal)
+    if not median <= limit:
+        log.warning(
+            "the estimate's keypoints lie a median %.3g px from the observed ones, over %.3g px (%g times "
+            "costs.sigma_px %g and %.0f%% of the image's diagonal): no pose explains these observations; "
+            "check the observations (observations.*), the camera (camera.*) and costs.sigma_px",
+            median,
+            limit,
+            REPROJECTION_SIGMAS,
+            sigma_px,
+            100 * REPROJECTION_DIAGONAL,
+        )
+    return median
+
+
+def reprojected_keypoints(prep: Prepared, est: Estimate) -> torch.Tensor:
+    """The estimate's keypoints in the image: (T, K, 2) pixels."""
+    prob = prep.problem
+    kp = est.joints.detach().index_select(-2, prob.keypoints.index(est.joints.device))
+    return prob.observations.camera.project(kp).pixels
+
+
+def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tuple[dict, dict[str, np.ndarray]]:
+    """Summary metrics (JSON-able) and per-frame series {name: (T,)} for logging.
+    reproj: (T, K, 2) from `reprojected_keypoints`."""
+    prob = prep.problem
+    obs, kps, sk = prob.observations, prob.keypoints, prob.skeleton
+    cam = obs.camera
+    idx = kps.index(est.joints.device)
+    est_kp = est.joints.detach().index_select(-2, idx)
+    series: dict[str, np.ndarray] = {}
+    summary: dict = {}
+
+    def put(name: str, per_frame: torch.Tensor) -> None:
+        v = per_frame.detach().double().cpu().numpy()
+        series[name] = v
+        summary[name] = float(np.nanmean(v)) if np.isfinite(v).any() else None
+
+    put("reprojection_error_px", M.reprojection_error_px(reproj, obs.keypoints, obs.confidence))
+    if prep.visible is not None:  # a small reprojection error means little when the camera sees little
+        summary["visible_fraction"] = float(prep.visible.float().mean())
+    summary["observed_fraction"] = float((obs.confidence > 0).float().mean())  # what the estimator was given
+    lower, upper = sk.limits(dtype=est.q.dtype, device=est.q.device)
+    angular = torch.as_tensor(sk.angular_dofs(), device=est.q.device)
+    report = M.joint_limit_violations(est.q.detach(), lower, upper, angular=angular)
+    summary["joint_limit_violation_fraction"] = float(report.fraction)
+    summary["joint_limit_max_violation_deg"] = float(report.max_deg)
+    if prep.gt_q is not None:  # how far the truth itself lies outside the limits in use
+        gt_report = M.joint_limit_violations(prep.gt_q.to(est.q), lower, upper, angular=angular)
+        summary["gt_joint_limit_violation_fraction"] = float(gt_report.fraction)
+        summary["gt_joint_limit_max_violation_deg"] = float(gt_report.max_deg)
+    if prep.gt_joints is not None:
+        gt = prep.gt_joints.to(est.joints)
+        gt_kp = gt.index_select(-2, idx)
+        root = kps.joints.index(0) if 0 in kps.joints else 0
+        put("mpjpe_mm", M.mpjpe(est_kp, gt_kp, root=root))
+        put("pa_mpjpe_mm", M.pa_mpjpe(est_kp, gt_kp))
+        put("mpjpe_abs_mm", M.mpjpe_absolute(est_kp, gt_kp, cam.R.to(gt), cam.t.to(gt)))
+        summary["mpjpe_all_joints_mm"] = float(M.mpjpe(est.joints.detach(), gt).mean())
+        for name, acc_root in (("accel_error_mm_per_frame2", root), ("accel_error_abs_mm_per_frame2", None)):
+            acc = M.accel_error(est_kp, gt_kp, root=acc_root)
+            summary[name] = float(acc.mean())
+            series[name] = np.concatenate([[np.nan], acc.double().cpu().numpy(), [np.nan]])
+        if kps.limbs:
+            flips = M.limb_flip_errors(est_kp, gt_kp, kps.limbs, cam.R.to(gt), cam.t.to(gt))
+            per_limb = M.flip_error_rate(flips)
+            summary["flip_error_rate"] = float(flips.nanmean())  # NaN -> null in metrics.json
+            summary["flip_error_rate_per_limb"] = {
+                f"{kps.names[a]}-{kps.names[b]}": float(r) for (a, b), r in zip(kps.limbs, per_limb)
+            }
+            series["flip_error_rate"] = flips.nanmean(-1).double().cpu().numpy()
+        if est.hypotheses is not None:
+            put("best_of_k_mpjpe_mm", M.best_of_k_mpjpe(est.hypotheses.index_select(-2, idx), gt_kp, root=root))
+    if est.joint_std is not None:
+        put("joint_std_mean_m", est.joint_std.mean(-1))
+        series["joint_std_max_m"] = est.joint_std.amax(-1).detach().double().cpu().numpy()
+    if est.solver_cost is not None:
+        summary["solver_iterations"] = int(est.solver_cost.shape[0] - 1)
+        summary["solver_cost_start"], summary["solver_cost_final"] = (
+            float(est.solver_cost[0]),
+            float(est.solver_cost[-1]),
+        )
+    series["cost"] = est.cost.detach().double().cpu().numpy()
+    for k, v in est.terms.items():
+        series[f"cost_{k}"] = v.detach().double().cpu().numpy()
+    return summary, series
+
+
+def json_safe(obj):
+    """`obj` with every non-finite float replaced by None (JSON null; JSON has no NaN)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj
+
+
+def check_finite(est: Estimate, method: str) -> None:
+    """Raise EstimationError when any frame of the estimate (q or joints) is not finite.
+
+    Such frames are not scored as missing: a mean over the remaining frames would rank an estimate
+    that lost half its frames beside a complete one."""
+    bad = ~(torch.isfinite(est.q).all(-1) & torch.isfinite(est.joints).flatten(-2).all(-1))
+    n = int(bad.sum())
+    if n:
+        first = torch.nonzero(bad)[:5, 0].tolist()
+        raise EstimationError(
+            f"method {method!r} returned non-finite poses in {n} of {bad.shape[0]} frames "
+            f"(nonfinite_frames={n}; first at frame indices {first}); no results were written"
+        )
+
+
+def default_out_dir(cfg: RunConfig, root: str | Path = "logs") -> Path:
+    return Path(root) / f"{cfg.name}-{datetime.now().strftime('%Y%m%d-%H%M%S-%f')}"
+
+
+def check_out_dir(out: Path) -> None:
+    """Raise InputError unless `out` is a new or empty folder that can be made and written, before any work:
+    creates and removes a hidden folder where the run's folder will be assembled."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"out_dir {out} is an existing file, not a folder; choose another out_dir")
+    if out.is_dir() and any(out.iterdir()):
+        raise InputError(f"out_dir {out} already exists and is not empty; choose another out_dir")
+    parent = out.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"out_dir {out} cannot be made: {parent} is a file, not a folder")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".probe", dir=parent))
+    except OSError as e:
+        raise InputError(f"out_dir {out} cannot be made: cannot write in {parent} ({e.strerror})") from None
+    if out.is_dir() and hasattr(os, "geteuid"):  # an empty folder: the finished run replaces it
+        there, folder = parent.stat(), out.stat()
+        if there.st_mode & stat.S_ISVTX and os.geteuid() not in (0, there.st_uid, folder.st_uid):
+            raise InputError(
+                f"out_dir {out} belongs to another user in the sticky folder {parent}, so the run could not "
+                f"put its folder there; choose another out_dir"
+            )
+
+
+@dataclass
+class Claim:
+    """A run's hold on its `out_dir`: the hidden sibling `.NAME.partial` (holding the file `pid`) that the run
+    folder is assembled in, locked through `fd` for as long as the run lives. `made`: the parent folders the
+    claim created (removed again when the run fails, if still empty)."""
+
+    path: Path
+    fd: int
+    made: list[Path]
+
+    def finish(self, out: Path) -> None:
+        """Put the assembled folder at `out` (absent or empty) in one rename; InputError when that fails."""
+        (self.path / "pid").unlink()
+        try:
+            if os.name == "nt" and out.exists():
+                out.rmdir()  # empty (checked before the run); POSIX renames over it in one step
+            os.replace(self.path, out)
+        except OSError as e:
+            self.release()
+            raise InputError(
+                f"cannot put the finished run at out_dir {out} ({e.strerror}); nothing was written there"
+            ) from None
+        self._unlock()
+
+    def release(self) -> None:
+        """Remove the claim and what it holds, and the parent folders it made that are still empty."""
+        shutil.rmtree(self.path, ignore_errors=True)
+        self._unlock()
+        for folder in reversed(self.made):
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+    def _unlock(self) -> None:
+        _close(self.fd)
+        self.fd = -1  # closed once: a later release does not close a descriptor opened since
+
+
+def claim_out_dir(out: Path) -> Claim:
+    """Take `out` for this run before any work: make its parent folders, remove the partial siblings that
+    killed runs left there (`remove_partial`), and create the locked `.NAME.partial` sibling in one rename.
+    InputError when another live run holds it ("being written by another run (pid N)")."""
+    parent = out.absolute().parent
+    made = []
+    for folder in reversed([parent, *parent.parents]):
+        if not folder.exists():
+            try:
+                folder.mkdir()
+            except FileExistsError:  # made at the same moment by another run
+                continue
+            made.append(folder)
+    remove_partial(parent, recursive=False)
+    target = parent / f".{out.name}{PARTIAL}"
+    umask = os.umask(0)
+    os.umask(umask)
+    for _ in range(5):  # a claim that vanished or went stale between two looks: look again
+        try:
+            tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=CLAIMING, dir=parent))
+        except FileNotFoundError:  # the parent, empty, was removed by a run that failed at that moment
+            parent.mkdir(parents=True, exist_ok=True)
+            continue
+        fd = -1
+        try:
+            if fcntl is not None:
+                fd = os.open(tmp, os.O_RDONLY)
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # a new folder: never held
+            tmp.chmod(0o777 & ~umask)  # mkdtemp makes 0700; the run folder gets a new folder's usual mode
+            (tmp / "pid").write_text(f"{os.getpid()}\n", encoding="utf-8")
+            os.rename(tmp, target)  # fails while another claim (never empty: it holds `pid`) stands there
+            return Claim(target, fd, made)
+        except OSError as e:
+            _close(fd)
+            shutil.rmtree(tmp, ignore_errors=True)
+            if e.errno not in (errno.EEXIST, errno.ENOTEMPTY, errno.ENOENT, errno.EAGAIN, errno.EWOULDBLOCK):
+                raise
+        except BaseException:
+            _close(fd)
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        if not _remove_if_stale(target):
+            try:
+                owner = f" (pid {int((target / 'pid').read_text(encoding='utf-8'))})"
+            except (OSError, ValueError):
+                owner = ""
+            for folder in reversed(made):
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break
+            raise InputError(f"out_dir {out} is being written by another run{owner}; choose another out_dir")
+    raise InputError(f"out_dir {out} cannot be claimed: {target} keeps reappearing; remove it and run again")
+
+
+def _close(fd: int) -> None:
+    if fd >= 0:
+        os.close(fd)
+
+
+def _remove_if_stale(path: Path) -> bool:
+    """Remove `path`, a run's claim, when no live process holds its lock (its run was killed); False when one
+    does (or, without flock, always: no claim is judged stale)."""
+    if fcntl is None:
+        return not path.exists()
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return True
+    except OSError:
+        return False
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        try:
+            if os.path.samestat(os.fstat(fd), os.stat(path)):  # still the folder locked, not a new claim
+                log.info("removing %s, left by a run that was killed", path)
+                shutil.rmtree(path, ignore_errors=True)
+        except FileNotFoundError:
+            pass
+        return True
+    finally:
+        os.close(fd)
+
+
+def estimate(cfg: RunConfig, progress: bool = False) -> tuple[Prepared, Estimate]:
+    """The data and observations of `cfg` (`prepare`) and the configured method's estimate of them, as
+    `execute` computes them (same seed, same result), without writing anything. progress: a progress
+    bar on stderr (on a terminal only)."""
+    prep = prepare(cfg)
+    check_memory(cfg, prep.problem)  # refuse settings that would not fit before the estimator allocates
+    gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)  # the samplers' draws (cfg.seed: the observations')
+    return prep, ESTIMATORS[cfg.method](prep.problem, cfg, gen, _progress(progress, cfg.method))
+
+
+def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
+    """Run `cfg` end to end and write its folder; returns the folder's path."""
+    out = Path(cfg.out_dir) if cfg.out_dir else default_out_dir(cfg)
+    check_out_dir(out)
+    claim = claim_out_dir(out)  # a second run into `out` refuses from here on
+    try:
+        cfg = dataclasses.replace(cfg, out_dir=str(out.resolve()))  # config.yaml records the folder used
+        t0 = time.perf_counter()
+        prep, est = estimate(cfg, cfg.progress if progress is None else progress)
+        seconds = time.perf_counter() - t0
+        check_finite(est, cfg.method)
+        reproj = reprojected_keypoints(prep, est)
+        summary, series = compute_metrics(prep, est, reproj)
+        check_reprojection(prep, reproj, cfg.costs.sigma_px)
+        summary = {
+            "method": cfg.method,
+            "frames": int(est.q.shape[0]),
+            "seconds": seconds,
+            "fps": float(est.q.shape[0] / seconds),
+            **summary,
+        }
+        _write_outputs(claim.path, cfg, prep, est, result_arrays(prep, est, reproj), summary, series)
+        claim.finish(out)
+    except BaseException:
+        claim.release()
+        raise
+    return out
+
+
+def remove_partial(folder: Path, recursive: bool = True) -> None:
+    """Remove what runs that were killed while writing left in `folder` (recursive: and below it): the hidden
+    siblings their folders were being assembled in (a run stopped any other way removes its own). A live
+    run's, locked by its process, stays."""
+    found = folder.rglob if recursive else folder.glob
+    for tmp in sorted([*found(f".*{PARTIAL}"), *found(f".*{CLAIMING}")]):
+        if tmp.is_dir():
+            _remove_if_stale(tmp)
+
+
+#: off a terminal, progress is a log line (logger `ptrack.pipeline.run.progress`, INFO) at most every
+#: PROGRESS_SECONDS, the first after PROGRESS_FIRST_SECONDS (a short run says nothing); the environment variable
+#: PTRACK_PROGRESS_SECONDS replaces both (read at each run)
+PROGRESS_SECONDS, PROGRESS_FIRST_SECONDS = 20.0, 10.0
+progress_log = logging.getLogger(f"{__name__}.progress")
+
+
+def _progress(show: bool, desc: str) -> Callable[[Iterable], Iterable]:
+    """A progress bar on stderr on a terminal; elsewhere (a file, a CI log: each update of a bar would be a line)
+    a log line now and then (`progress_lines`)."""
+    if not show:
+        return lambda it: it
+    if not sys.stderr.isatty():
+        env = os.environ.get("PTRACK_PROGRESS_SECONDS", "").strip()
+        try:
+            every = first = float(env) if env else math.nan
+        except ValueError:
+            raise InputError(f"environment variable PTRACK_PROGRESS_SECONDS must be seconds, got {env!r}") from None
+        if not env:
+            every, first = PROGRESS_SECONDS, PROGRESS_FIRST_SECONDS
+        return lambda it: progress_lines(it, desc, every=every, first=first)
+    from tqdm.auto import tqdm
+
+    return lambda it: tqdm(it, desc=desc, unit="frame", leave=False)
+
+
+def progress_lines(
+    items: Iterable, desc: str, every: float, first: float, clock: Callable[[], float] = time.monotonic
+) -> Iterable:
+    """`items` one by one, logging (`progress_log`, INFO) how far the loop is, its rate and the time left, when an
+    item is taken `first` seconds or more after the start and then at most every `every` seconds:
+    "kjs: frame 400/2751 (14%), 12.3 frames/s, about 3 min left" (without a total, the count and rate)."""
+    total = len(items) if isinstance(items, Sized) else None
+    start = clock()
+    due = start + first
+    for i, item in enumerate(items):
+        now = clock()
+        if i and now >= due:
+            rate = i / max(now - start, 1e-9)
+            if total:
+                progress_log.info(
+                    "%s: frame %d/%d (%.0f%%), %.3g frames/s, about %s left",
+                    desc,
+                    i,
+                    total,
+                    100 * i / total,
+                    rate,
+                    _duration((total - i) / rate),
+                )
+            else:
+                progress_log.info("%s: frame %d, %.3g frames/s", desc, i, rate)
+            due = now + every
+        yield item
+
+
+def _duration(seconds: float) -> str:
+    """A rough duration: "40 s", "3 min", "1.5 h"."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[str, np.ndarray]:
+    """The arrays of result.npz: frames (T,) AMC frame numbers; times (T,) s; q (T, D); dof_names (D,); joints (T, J, 3)
+    metres in the mocap world frame (Y up); joint_names (J,) (ASF bone names, "root" first); parents (J,);
+    gt_joints (T, J, 3) when there is ground truth; keypoints_observed (T, K, 2), confidence (T, K),
+    keypoint_names (K,), keypoints_reprojected (T, K, 2); camera_K/R/t, image_size; cost (T,);
+    hypotheses (T, N, J, 3), hypothesis_weights (T, N), hypothesis_costs (T, N) where the method has them;
+    hypothesis_directions (T, N, J, 3) (each hypothesis's principal covariance direction as joint displacements),
+    jump_chains (C,) and jump_counts (T, C) (kinematic-jump leaves kept per chain and frame) from the trackers;
+    joint_std (T, J) metres and solver_cost (I+1,) (objective per solver iteration) from `method: batch`."""
+    prob = prep.problem
+    obs, sk = prob.observations, prob.skeleton
+    cam = obs.camera
+    joints = est.joints.detach()
+    arrays = {
+        "frames": prep.frames.astype(np.int64),
+        "times": obs.times.detach().cpu().numpy(),
+        "q": est.q.detach().cpu().numpy(),
+        "dof_names": np.asarray(sk.dof_names),
+        "joints": joints.cpu().numpy(),
+        "joint_names": np.asarray(sk.joint_names),
+        "parents": np.asarray(sk.parents, dtype=np.int64),
+        "keypoints_observed": obs.keypoints.detach().cpu().numpy(),
+        "confidence": obs.confidence.detach().cpu().numpy(),
+        "keypoint_names": np.asarray(prob.keypoints.names),
+        "keypoints_reprojected": reproj.cpu().numpy(),
+        "camera_K": cam.K.detach().cpu().numpy(),
+        "camera_R": cam.R.detach().cpu().numpy(),
+        "camera_t": cam.t.detach().cpu().numpy(),
+        "image_size": np.asarray([cam.width, cam.height], dtype=np.int64),
+        "cost": est.cost.detach().cpu().numpy(),
+    }
+    if prep.gt_joints is not None:
+        arrays["gt_joints"] = prep.gt_joints.detach().cpu().numpy()
+    for name in (
+        "hypotheses",
+        "hypothesis_weights",
+        "hypothesis_costs",
+        "joint_std",
+        "solver_cost",
+        "hypothesis_directions",
+    ):
+        v = getattr(est, name)
+        if v is not None:
+            arrays[name] = v.detach().cpu().numpy()
+    if est.jumps:
+        arrays["jump_chains"] = np.asarray(list(est.jumps))
+        arrays["jump_counts"] = torch.stack(list(est.jumps.values()), dim=-1).cpu().numpy()
+    return arrays
+
+
+def _write_outputs(
+    tmp: Path,
+    cfg: RunConfig,
+    prep: Prepared,
+    est: Estimate,
+    res: dict[str, np.ndarray],
+    summary: dict,
+    series: dict[str, np.ndarray],
+) -> None:
+    """Write the run's files into `tmp` (the run's claim, `claim_out_dir`)."""
+    from ptrack.io.viz import RunLog, write_recording
+
+    (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
+    (tmp / "metrics.json").write_text(
+        json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n", encoding="utf-8"
+    )
+    np.savez_compressed(tmp / "result.npz", **res)  # type: ignore[arg-type]  # numpy's stub: a key could be allow_pickle
+    times = res["times"].astype(np.float64)
+    fps = float(1.0 / np.median(np.diff(times))) if len(times) > 1 else 30.0
+    write_bvh(tmp / "result.bvh", prep.problem.skeleton, est.q, fps)
+    prob = prep.problem
+    obs = prob.observations
+    rlog = RunLog(
+        joint_names=prob.skeleton.joint_names,
+        parents=prob.skeleton.parents,
+        frames=prep.frames,
+        times=res["times"],
+        estimate=res["joints"],
+        ground_truth=res.get("gt_joints"),
+        camera=obs.camera.to(device="cpu"),
+        observed=res["keypoints_observed"],
+        confidence=res["confidence"],
+        reprojected=res["keypoints_reprojected"],
+        keypoint_names=prob.keypoints.names,
+        keypoint_joints=prob.keypoints.joints,
+        hypotheses=res.get("hypotheses"),
+        hypothesis_weights=res.get("hypothesis_weights"),
+        hypothesis_costs=res.get("hypothesis_costs"),
+        hypothesis_directions=res.get("hypothesis_directions"),
+        jumps=dict(zip(res["jump_chains"].tolist(), res["jump_counts"].T)) if "jump_chains" in res else {},
+        scalars=series,
+        masks=obs.masks.cpu().numpy() if obs.masks is not None else None,
+        joint_std=res.get("joint_std"),
+        solver_cost=res.get("solver_cost"),
+    )
+    write_recording(tmp / "run.rrd", rlog)
