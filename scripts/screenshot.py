@@ -17,16 +17,16 @@ Exit status: 0 written, 2 bad arguments (missing recording), 1 the viewer failed
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from ptrack.io.viz import end_group
 
 
 def free_port() -> int:
@@ -42,27 +42,6 @@ def recording_path(run: Path) -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"no rerun recording at {path}")
     return path
-
-
-def stop(viewer: subprocess.Popen) -> None:
-    """Stop the viewer's process group (the launcher and the viewer it started): SIGTERM, then
-    SIGKILL after 10 s."""
-    try:
-        os.killpg(viewer.pid, signal.SIGTERM)
-    except ProcessLookupError:
-        return
-    with contextlib.suppress(subprocess.TimeoutExpired):
-        viewer.wait(timeout=10)
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        try:
-            os.killpg(viewer.pid, 0)  # anyone left in the group?
-        except ProcessLookupError:
-            return
-        time.sleep(0.1)
-    with contextlib.suppress(ProcessLookupError):
-        os.killpg(viewer.pid, signal.SIGKILL)
-    viewer.wait()
 
 
 def connect(port: int, viewer: subprocess.Popen, timeout: float):
@@ -148,7 +127,7 @@ def screenshot(
             sys.stderr.write(log.read().decode(errors="replace")[-4000:])
             raise
         finally:
-            stop(viewer)
+            end_group(viewer, 10.0)  # the launcher and the viewer it started
             shutil.rmtree(runtime, ignore_errors=True)
     return out
 

@@ -361,11 +361,11 @@ def run_child(argv: Sequence[str], env: Mapping[str, str] | None = None, grace_s
     try:
         return proc.wait()
     except BaseException:
-        _end_group(proc, grace_s)
+        end_group(proc, grace_s)
         raise
 
 
-def _end_group(proc: subprocess.Popen, grace_s: float) -> None:
+def end_group(proc: subprocess.Popen, grace_s: float) -> None:
     """Stop `proc` and, on POSIX, every process of its group (it leads one): SIGTERM, SIGKILL after grace_s."""
     if os.name != "posix":
         proc.kill()
