@@ -451,26 +451,41 @@ def test_backward_pass_keeps_a_branch_the_forward_pass_lost(cmu_file):
 
 
 def test_backward_pass_carries_a_limb_across_the_image_plane(cmu_file):
-    """CMU 02_01 (walk) at 1 px, nothing missing, after a keyframe start, as `ptrack evaluate --seeds 3`
-    runs it. The left knee passes from in front of the hip to behind it over frames 7-8, and the forward
-    pass, lagging behind, has every mode on the mirrored side over frames 12-18 (the 2D cannot tell the
-    two apart near the image plane). The backward pass, fed each frame by the forward pass's modes
-    (`feed_backward`), carries the true side found on frame 19 back to frame 13 (measured: the true side among the
-    K modes on 0 of frames 13-18 with the forward pass alone, 6 of 6 with both; best-of-K 22.3 -> 18.7 mm).
-    Which seed shows it is a matter of float rounding: the polishing's summation order changed on
-    2026-11-24 and seed 0, the earlier example, lost the true side in both passes (five seeds, frames
-    13-18: 12 of 30 forward only, 24 of 30 with both). Without the smoother, so that the best trajectories
-    can be compared."""
-    runs = {}
-    for backward in ("tree", "always"):  # after a keyframe start "tree" means the forward pass alone
-        cfg = _clip_1px(cmu_file, "02_01.amc", f"kjs.backward_pass={backward}", "seed=3", "kjs.smooth_sweeps=0")
-        prep = prepare(cfg)
-        runs[backward] = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(4))  # as `ptrack run`
-    found = {b: _left_knee_true_side(prep, est.hypotheses, slice(13, 19)) for b, est in runs.items()}
-    assert found["tree"] <= 1 and found["always"] >= 5, f"true side on frames 13-18: {found}"
-    best = {b: _errors(prep, est)[1] for b, est in runs.items()}
-    assert best["always"] < 20.0 and best["always"] < best["tree"] - 2.0, f"best-of-K {best}"
-    assert torch.equal(runs["always"].joints, runs["tree"].joints)  # the best trajectory is the forward pass's
+    """CMU 02_01 (walk) at 1 px, nothing missing, after a keyframe start, its first 21 frames (`data.stop` 84), as
+    `ptrack evaluate --seeds 0-4` runs them. The left knee passes from in front of the hip to behind it over frames
+    7-8, and the forward pass, lagging behind, may hold only the mirrored side on frames 13-18 (the 2D cannot tell
+    the two apart near the image plane). The backward pass, fed each frame by the forward
+    pass's modes (`feed_backward`),
+    carries the true side found later back. Which seed shows it is a matter of the last bits (seed 3 on the full 90
+    frames: 0 of 6 frames forward only, 6 with both; seed 0 lost the true side in both passes after the polishing's
+    summation order changed), so this judges five seeds together. Measured, frames 13-18 with the true side among
+    the K modes, forward pass alone (`kjs.backward_pass` tree, which after a keyframe start means forward only) ->
+    both passes, seeds 0-4 summed; mean best-of-K: this Xeon 27 -> 30 of 30, 22.5 -> 20.3 mm; under
+    ATEN_CPU_CAPABILITY=default 27 -> 30, 23.3 -> 19.1 mm; on 30 frames (`data.stop` 120; the camera aims at the
+    clip's bounding box, so another view) 25 -> 30, 21.8 -> 19.9 mm and 25 -> 30, 20.9 -> 18.1 mm. On 21 frames seed
+    3 alone loses the true side forward (3 of 6 frames, natively and under default); one seed's best-of-K may get
+    worse by a few tenths of a mm with both passes (seed 2: 26.8 -> 27.2 here, 27.0 -> 19.6 under default).
+    Asserted: 28 of the 30 frames with both passes, more than forward only, mean best-of-K lower by 1 mm. Without
+    the smoother, so that the best trajectories can be compared: the best trajectory is the forward pass's, bit for
+    bit (both runs' forward passes are the same computation in one process; measured bit-equal for every seed
+    natively and under default)."""
+    found: dict[str, list[int]] = {"tree": [], "always": []}
+    best: dict[str, list[float]] = {"tree": [], "always": []}
+    for seed in range(5):
+        runs = {}
+        for backward in ("tree", "always"):  # after a keyframe start "tree" means the forward pass alone
+            overrides = [f"kjs.backward_pass={backward}", f"seed={seed}", "kjs.smooth_sweeps=0", "data.stop=84"]
+            cfg = _clip_1px(cmu_file, "02_01.amc", *overrides)
+            prep = prepare(cfg)
+            est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(seed + 1))  # as `ptrack run`
+            runs[backward] = est
+            found[backward].append(_left_knee_true_side(prep, est.hypotheses, slice(13, 19)))
+            best[backward].append(_errors(prep, est)[1])
+        assert torch.equal(runs["always"].joints, runs["tree"].joints)  # the best trajectory is the forward pass's
+    both, forward = sum(found["always"]), sum(found["tree"])
+    assert both >= 28 and both > forward, f"true side on frames 13-18 (seeds 0-4): {found}"
+    mean = {b: sum(v) / len(v) for b, v in best.items()}
+    assert mean["always"] < mean["tree"] - 1.0, f"best-of-K {best} mm"
 
 
 def test_backward_pass_keeps_a_light_depth_order(cmu_file):
