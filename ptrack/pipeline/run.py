@@ -48,7 +48,7 @@ from ptrack.observe.correspondences import Correspondences, simulate_corresponde
 from ptrack.observe.observations import ChannelConfig, Observations, simulate_observations
 from ptrack.observe.silhouette import capsule_radii, render_silhouettes
 from ptrack.pipeline import metrics as M
-from ptrack.pipeline.config import RunConfig, dump_yaml
+from ptrack.pipeline.config import RunConfig, check_device, dump_yaml
 from ptrack.pipeline.keyframes import ground_truth_keyframes, read_keyframes
 from ptrack.pipeline.memory import check_memory
 from ptrack.problem import Estimate, Problem
@@ -81,10 +81,9 @@ class Prepared:
 
 
 def _device(cfg: RunConfig) -> torch.device:
-    dev = torch.device(cfg.device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError(f"config key 'device' is {cfg.device!r} but CUDA is not available here")
-    return dev
+    """cfg.device as a torch device, checked as `load_config` checks it (a RunConfig made in code is not)."""
+    check_device(cfg.device)
+    return torch.device(cfg.device)
 
 
 def prepare(cfg: RunConfig) -> Prepared:
