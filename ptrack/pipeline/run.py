@@ -463,11 +463,7 @@ class Claim:
         """Remove the claim and what it holds, and the parent folders it made that are still empty."""
         shutil.rmtree(self.path, ignore_errors=True)
         self._unlock()
-        for folder in reversed(self.made):
-            try:
-                folder.rmdir()
-            except OSError:
-                break
+        _remove_empty(self.made)
 
     def _unlock(self) -> None:
         _close(self.fd)
@@ -520,13 +516,18 @@ def claim_out_dir(out: Path) -> Claim:
                 owner = f" (pid {int((target / 'pid').read_text(encoding='utf-8'))})"
             except (OSError, ValueError):
                 owner = ""
-            for folder in reversed(made):
-                try:
-                    folder.rmdir()
-                except OSError:
-                    break
+            _remove_empty(made)
             raise InputError(f"out_dir {out} is being written by another run{owner}; choose another out_dir")
     raise InputError(f"out_dir {out} cannot be claimed: {target} keeps reappearing; remove it and run again")
+
+
+def _remove_empty(made: list[Path]) -> None:
+    """Remove the folders `made` (outermost first) from the innermost up, while they are empty."""
+    for folder in reversed(made):
+        try:
+            folder.rmdir()
+        except OSError:
+            break
 
 
 def _close(fd: int) -> None:
@@ -624,12 +625,12 @@ def _progress(show: bool, desc: str) -> Callable[[Iterable], Iterable]:
         return lambda it: it
     if not sys.stderr.isatty():
         env = os.environ.get("PTRACK_PROGRESS_SECONDS", "").strip()
-        try:
-            every = first = float(env) if env else math.nan
-        except ValueError:
-            raise InputError(f"environment variable PTRACK_PROGRESS_SECONDS must be seconds, got {env!r}") from None
-        if not env:
-            every, first = PROGRESS_SECONDS, PROGRESS_FIRST_SECONDS
+        every, first = PROGRESS_SECONDS, PROGRESS_FIRST_SECONDS
+        if env:
+            try:
+                every = first = float(env)
+            except ValueError:
+                raise InputError(f"environment variable PTRACK_PROGRESS_SECONDS must be seconds, got {env!r}") from None
         return lambda it: progress_lines(it, desc, every=every, first=first)
     from tqdm.auto import tqdm
 
