@@ -9,31 +9,20 @@ No estimator imports another (tests/test_layers.py): where one starts from anoth
 the per-frame fits), the two are put together here.
 """
 
-from collections.abc import Callable, Iterable
-
-import torch
-from torch import Tensor
+from collections.abc import Callable
+from functools import partial
 
 from ptrack.estimators import batch
 from ptrack.estimators.frame import estimate_frames
 from ptrack.estimators.kjs import estimate_css, estimate_kjs, estimate_ss
 from ptrack.estimators.pca import estimate_pca
-from ptrack.problem import Estimate, Problem
+from ptrack.problem import Estimate
 
+#: `batch.estimate_batch`, started (where neither `init_from` nor the keyframes give the start) from the
+#: per-frame fits of `estimate_frames`
+estimate_batch = partial(batch.estimate_batch, per_frame=estimate_frames)
 
-def estimate_batch(
-    problem: Problem,
-    cfg,
-    generator: torch.Generator,
-    progress: Callable[[Iterable], Iterable] = lambda x: x,
-    callback: Callable[[int, Tensor, Tensor], None] | None = None,
-) -> Estimate:
-    """`ptrack.estimators.batch.estimate_batch`, started (where neither `init_from` nor the keyframes give
-    the start) from the per-frame fits of `estimate_frames`."""
-    return batch.estimate_batch(problem, cfg, generator, progress, callback, per_frame=estimate_frames)
-
-
-ESTIMATORS = {
+ESTIMATORS: dict[str, Callable[..., Estimate]] = {
     "frame": estimate_frames,
     "kjs": estimate_kjs,
     "css": estimate_css,
