@@ -52,6 +52,22 @@ def euler_matrix_np(angles_rad: Sequence[float], order: str = "XYZ") -> np.ndarr
     return r
 
 
+def matrix_to_axis_angle_np(r: np.ndarray) -> tuple[np.ndarray, float]:
+    """(unit axis, angle in [0, pi]) of the rotation matrix r (3, 3), accurate near 0 and pi."""
+    v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])  # 2 sin(a) axis
+    angle = math.atan2(0.5 * float(np.linalg.norm(v)), 0.5 * (float(np.trace(r)) - 1.0))
+    if angle == 0.0:
+        return np.eye(3)[0], 0.0
+    if angle < 3.0:
+        return v / np.linalg.norm(v), angle
+    s = 0.5 * (r + r.T) - math.cos(angle) * np.eye(3)  # (1 - cos a) axis axis^T
+    k = int(np.argmax(np.diag(s)))
+    axis = s[k] / np.linalg.norm(s[k])
+    if np.dot(axis, v) < 0:
+        axis = -axis
+    return axis, angle
+
+
 def matrix_to_euler_np(r: np.ndarray, order: str = "XYZ") -> np.ndarray:
     """Inverse of `euler_matrix_np`: (..., 3, 3) -> (..., 3) float64 angles about x, y, z.
 

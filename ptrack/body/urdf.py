@@ -28,7 +28,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import torch
 
-from ptrack.body.rotations import axis_angle_matrix, euler_matrix_np, matrix_to_euler_np
+from ptrack.body.rotations import axis_angle_matrix, euler_matrix_np, matrix_to_axis_angle_np, matrix_to_euler_np
 from ptrack.body.skeleton import Skeleton
 from ptrack.errors import InputError
 
@@ -292,22 +292,6 @@ class _Piece:
     translation: dict[int, int]  # the root: world axis (0, 1, 2) -> dof of a translation along it
 
 
-def _axis_angle_np(r: np.ndarray) -> tuple[np.ndarray, float]:
-    """(unit axis, angle in [0, pi]) of the rotation matrix r (3, 3), accurate near 0 and pi."""
-    v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])  # 2 sin(a) axis
-    angle = math.atan2(0.5 * float(np.linalg.norm(v)), 0.5 * (float(np.trace(r)) - 1.0))
-    if angle == 0.0:
-        return np.eye(3)[0], 0.0
-    if angle < 3.0:
-        return v / np.linalg.norm(v), angle
-    s = 0.5 * (r + r.T) - math.cos(angle) * np.eye(3)  # (1 - cos a) axis axis^T
-    k = int(np.argmax(np.diag(s)))
-    axis = s[k] / np.linalg.norm(s[k])
-    if np.dot(axis, v) < 0:
-        axis = -axis
-    return axis, angle
-
-
 def _merge_chain(chain: list[UrdfJoint], motion: dict[str, tuple[int, float, float]], is_root: bool) -> _Piece | int:
     """The chain of URDF joints from one kept link down to the next (the links between merged) as
     one ptrack joint, or the index of the first joint that this form cannot hold (a rotation after
@@ -356,7 +340,7 @@ def _merge_chain(chain: list[UrdfJoint], motion: dict[str, tuple[int, float, flo
             if any(j.xyz):
                 w = w + np.asarray(j.xyz, dtype=np.float64)
             if r_o is not None:
-                held = _axis_angle_np(r_o) if j.type == "fixed" and not any(j.xyz) else None
+                held = matrix_to_axis_angle_np(r_o) if j.type == "fixed" and not any(j.xyz) else None
                 if held is not None and held[1] != 0.0 and may_rotate():
                     slots.append((rest @ held[0], -1, 1.0, held[1]))  # R Rot(b, a) = Rot(R b, a) R
                 else:
