@@ -675,3 +675,15 @@ def test_smoothing_steadies_the_trajectory(kjs_run):
     (traj, best), (traj0, best0) = _errors(prep, est), _errors(prep, raw)
     assert accel(est) < 0.85 * accel(raw), (accel(est), accel(raw))
     assert traj < traj0 + 0.5 and best < best0 + 0.5, ((traj, best), (traj0, best0))
+
+
+def test_keypoint_set_without_limbs_runs():
+    """A keypoint set none of whose pairs is a flip-metric limb (names a detector might use) gives the
+    depth-order ranking nothing to rank by: the passes merge as without it (this crashed in torch.unique)."""
+    names = {"Hd": "head", "Pv": "root", "LK": "lfemur", "RK": "rfemur", "LA": "ltibia", "RA": "rtibia"}
+    names |= {"LS": "lclavicle", "RS": "rclavicle", "LE": "lhumerus", "RE": "rhumerus"}
+    mapping = "{" + ", ".join(f"{k}: {v}" for k, v in names.items()) + "}"
+    prep, est = _run("data.stop=24", f"model.keypoints={mapping}", "kjs.samples=64", "kjs.modes=4")
+    assert not prep.problem.keypoints.limbs
+    assert est.hypotheses is not None and bool(torch.isfinite(est.joints).all())
+    assert torch.allclose(est.hypothesis_weights.sum(-1), torch.ones(()).to(est.hypothesis_weights), atol=1e-6)

@@ -110,7 +110,10 @@ def _orders_first(s: Setup, q: Tensor, rank: Tensor) -> Tensor:
     """Poses q (N, D) in the order `rank` (N,) (distinct integers, lowest first) -> a new rank (N,) that keeps
     the first pose of each depth order of the limbs (`_depth_orders`) where it was and puts every repeat of
     a depth order after all of them (in their old order)."""
-    _, order = torch.unique(_depth_orders(s, q), dim=0, return_inverse=True)
+    orders = _depth_orders(s, q)
+    if orders.shape[1] == 0:  # a keypoint set without limbs: every pose has the same (empty) depth order
+        return rank
+    _, order = torch.unique(orders, dim=0, return_inverse=True)
     earliest = torch.full_like(rank, rank.numel()).scatter_reduce(0, order, rank, "amin")
     return rank + rank.numel() * (rank != earliest[order])
 
