@@ -256,6 +256,18 @@ def _cv_json_matrix(a) -> dict:
     return {"type_id": "opencv-matrix", "rows": a.shape[0], "cols": a.shape[1], "dt": "d", "data": a.ravel().tolist()}
 
 
+def test_opencv_yaml_multichannel_and_plain_sequences(tmp_path):
+    # a Mat of one 3-channel element (dt "3d") and cv::FileStorage's plain sequence (a Vec3d)
+    r = [float(v) for v in _rvec(R_CV)]
+    text = _opencv_yaml().split("rvec:")[0] + (
+        f'rvec: !!opencv-matrix\n   rows: 1\n   cols: 1\n   dt: "3d"\n   data: [ {r[0]!r}, {r[1]!r}, {r[2]!r} ]\n'
+        "tvec: [ 0.1, -0.3, 2.5 ]\n"
+    )
+    cam = read_camera(_write(tmp_path / "cam.yml", text))
+    np.testing.assert_allclose(cam.R, R_CV, atol=1e-15)
+    np.testing.assert_allclose(cam.t, T_CV, atol=1e-15)
+
+
 def test_opencv_json_filestorage_and_plain_lists(tmp_path):
     # cv::FileStorage's JSON form (a matrix is {"type_id": "opencv-matrix", rows, cols, dt, data}); R/T keys
     doc = {
@@ -357,6 +369,15 @@ def test_easymocap_rotation_matrix_and_intrinsics_only(tmp_path):
     extri.unlink()
     cam = read_camera(intri, "01")
     assert cam.R is None and cam.t is None and not cam.has_extrinsics
+
+
+def test_easymocap_one_file_with_both(tmp_path):
+    intri, extri = _easymocap_files(tmp_path / "calib")
+    both = tmp_path / "cameras.yml"
+    both.write_text(intri.read_text() + extri.read_text().split("\n", 5)[5])  # extri without its header
+    cam = read_camera(both, "02")
+    np.testing.assert_allclose(cam.t, EASY_T["02"], atol=1e-12)
+    assert cam.source == str(both)
 
 
 def test_easymocap_unquoted_numeric_names(tmp_path):

@@ -362,7 +362,8 @@ _OpenCVLoader.add_constructor("tag:yaml.org,2002:opencv-nd-matrix", _construct_n
 
 
 def _matrix_from_fields(fields: Mapping[Any, Any], where: str) -> np.ndarray:
-    """An OpenCV matrix ``{rows, cols, data}`` (``dt`` ignored: values are read as float64)."""
+    """An OpenCV matrix ``{rows, cols, dt, data}`` -> (rows, cols * channels) float64; ``dt`` is the
+    element type with an optional channel count in front ("d", "3d": a matrix of 3-vectors)."""
     try:
         rows, cols = int(fields["rows"]), int(fields["cols"])
         data = np.asarray(fields["data"], dtype=np.float64).reshape(-1)
@@ -370,9 +371,12 @@ def _matrix_from_fields(fields: Mapping[Any, Any], where: str) -> np.ndarray:
         raise _MatrixError(f"{where}: an OpenCV matrix needs rows, cols and data, {e} is missing") from e
     except (TypeError, ValueError) as e:
         raise _MatrixError(f"{where}: an OpenCV matrix with non-numeric rows, cols or data ({e})") from e
-    if data.size != rows * cols:
-        raise _MatrixError(f"{where}: an OpenCV matrix of {rows} x {cols} with {data.size} values")
-    return data.reshape(rows, cols)
+    counted = re.match(r"\s*(\d+)", str(fields.get("dt", "")))
+    channels = int(counted.group(1)) if counted else 1
+    if data.size != rows * cols * channels:
+        shape = f"{rows} x {cols}" + (f" x {channels} channels" if channels > 1 else "")
+        raise _MatrixError(f"{where}: an OpenCV matrix of {shape} with {data.size} values")
+    return data.reshape(rows, cols * channels)
 
 
 def _load_opencv_yaml(path: Path, text: str) -> tuple[Any, list[str] | None]:
@@ -478,6 +482,8 @@ def _easymocap_pair(path: Path, data: Mapping[str, Any]) -> tuple[Path | None, P
     names = data.get("names") or []
     is_intri = any(f"K_{n}" in data for n in names) or "intri" in path.name
     if is_intri:
+        if any(f"T_{n}" in data for n in names):  # intrinsics and extrinsics in one file
+            return path, path
         other = path.with_name(path.name.replace("intri", "extri")) if "intri" in path.name else None
         return path, other if other is not None and other != path and other.is_file() else None
     other = path.with_name(path.name.replace("extri", "intri")) if "extri" in path.name else None
@@ -547,7 +553,7 @@ def _read_easymocap(intri_path: Path, extri_path: Path | None) -> dict[str, Came
             R=R,
             t=t,
             fisheye=False,
-            source=str(intri_path) if extri_path is None else f"{intri_path} + {extri_path.name}",
+            source=str(intri_path) if extri_path in (None, intri_path) else f"{intri_path} + {extri_path.name}",
             file_format="easymocap",
         )
     return cameras
