@@ -327,13 +327,11 @@ COCO_17 = KeypointDefinition(
 # HALPE-26 (AlphaPose full body, and RTMPose's body8 models): github.com/Fang-Haoshu/Halpe-FullBody
 # README.md ("26 body keypoints"); the same order in AlphaPose docs/MODEL_ZOO.md and Pose2Sim/skeletons.py.
 # "Head" is the top of the head, "Neck" the base of the neck, "Hip" the point between the hips. The
-# README spells index 14 "Rknee" (sic).
+# README's "Rknee" (index 14) is written RKnee, as AlphaPose and Pose2Sim do.
 HALPE_26 = KeypointDefinition(
     name="HALPE_26",
     names=(
-        *_COCO17_CAMEL[:14],
-        "Rknee",
-        *_COCO17_CAMEL[15:],
+        *_COCO17_CAMEL,
         "Head",
         "Neck",
         "Hip",
