@@ -283,7 +283,9 @@ def test_error_non_finite_with_positive_score(tmp_path):
     frames[2]["instances"][0]["keypoints"][5] = [float("nan"), 3.0]
     path = tmp_path / "mm.json"
     path.write_text(json.dumps(frames))  # json writes NaN as the bare literal NaN, which it reads back
-    _one_line_error(r"mm\.json: frame 2: person 0, keypoint 5 \(left_shoulder\).*not finite with score 0\.9", path)
+    _one_line_error(
+        r"mm\.json: frame 2: person 0, keypoint 5 \(left_shoulder\).*x, y, score = nan, 3\.0, 0\.9: not finite", path
+    )
 
 
 def test_error_no_person_in_any_frame(tmp_path):
@@ -314,3 +316,24 @@ def test_error_ambiguous_count_asks_for_the_set(tmp_path):
     _openpose_file(tmp_path, "c.0000.json", [p])
     _one_line_error("could be BODY_25B or BODY_25 .*give the keypoint set", tmp_path)
     assert read_keypoints(tmp_path, keypoint_set="BODY_25B").keypoint_set == "BODY_25B"
+
+
+def test_error_frame_number_twice(tmp_path):
+    _openpose_file(tmp_path, "a_0001.json", [person(BODY_25B, 0, 0, 300)])
+    _openpose_file(tmp_path, "b_1.json", [person(BODY_25B, 0, 0, 300)])
+    _one_line_error(r"b_1\.json \(frame 1\): frame 1 appears twice", tmp_path)
+
+
+def test_error_names_the_first_bad_frame_in_frame_order(tmp_path):
+    bad = person(COCO_17, 0, 0, 300)
+    bad[2, 0] = np.inf
+    entries = [_coco_entry(9, bad), _coco_entry(3, bad), _coco_entry(1, person(COCO_17, 0, 0, 300))]
+    _one_line_error(r"r\.json: frame 3: person 0, keypoint 2 \(right_eye\)", _write(tmp_path / "r.json", entries))
+
+
+def test_track_ids_that_are_not_ids_are_dropped(tmp_path, caplog):
+    a, b = person(COCO_17, 0, 0, 300), person(COCO_17, 600, 0, 300)
+    entries = [_coco_entry(0, a, idx=0), _coco_entry(0, b, idx=0), _coco_entry(1, a, idx=0)]
+    det = read_keypoints(_write(tmp_path / "r.json", entries))
+    assert (det.track_ids == -1).all()
+    assert "two people have the same track id" in caplog.text

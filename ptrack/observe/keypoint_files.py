@@ -363,46 +363,49 @@ def _finish(
     video: str | None = None,
 ) -> Detections:
     """Check and clean (T, P, M, 3) people (all-NaN slots: nobody), keep the set's K keypoints, sort frames."""
-    people = np.array(people[:, :, : kset.num_keypoints], dtype=float)
+    sort = np.argsort(frames, kind="stable")  # frame order first, so that an error names the first bad frame
+    frames = np.asarray(frames, dtype=np.int64)[sort]
+    wheres = [wheres[i] for i in sort]
+    dup = np.flatnonzero(np.diff(frames) == 0)
+    if len(dup):
+        raise InputError(f"{wheres[dup[0] + 1]}: frame {frames[dup[0]]} appears twice")
+    people = np.array(people[sort][:, :, : kset.num_keypoints], dtype=float)
+    tracks = np.asarray(tracks)[sort]
     slot = ~np.isnan(people).all((-1, -2))  # (T, P): a person's row (padding is all NaN)
     score = people[..., 2]
-    xy_ok = np.isfinite(people[..., :2]).all(-1)
-    bad = slot[..., None] & (np.nan_to_num(score, nan=0.0, neginf=0.0, posinf=1.0) > 0) & ~xy_ok
-    bad |= slot[..., None] & np.isposinf(score)
+    positive = np.nan_to_num(score, nan=0.0, neginf=0.0, posinf=1.0) > 0
+    bad = slot[..., None] & ((positive & ~np.isfinite(people[..., :2]).all(-1)) | np.isposinf(score))
     if bad.any():
         t, p, k = np.argwhere(bad)[0]
+        x, y, c = people[t, p, k]
         raise InputError(
-            f"{wheres[t]}: person {p}, keypoint {k} ({kset.names[k]}): x, y = {people[t, p, k, 0]}, "
-            f"{people[t, p, k, 1]} not finite with score {people[t, p, k, 2]}"
+            f"{wheres[t]}: person {p}, keypoint {k} ({kset.names[k]}): x, y, score = {x}, {y}, {c}: not finite"
         )
     missing = ~(np.isfinite(score) & (score > 0))  # 0, 0, 0 triplets included
     people[missing & slot[..., None]] = (np.nan, np.nan, 0.0)
     empty = slot & missing.all(-1)  # a person without any keypoint: dropped
     people[empty] = np.nan
-    tracks = np.where(slot & ~empty, tracks, -1)
     present = slot & ~empty
+    tracks = np.where(present, tracks, -1)
     if not present.any():
         raise InputError(f"{path}: no person in any frame")
-    for t in range(len(frames)):  # a file track id names one person a frame
+    for t in range(len(frames)):  # a file track id names one person a frame; ids that do not are dropped
         ids = tracks[t][tracks[t] >= 0]
         if len(np.unique(ids)) < len(ids):
-            raise InputError(f"{wheres[t]}: two people have the same track id")
+            log.warning("%s: two people have the same track id; the file's track ids are ignored", wheres[t])
+            tracks[:] = -1
+            break
     # put each frame's people first, then drop slots nobody uses
     order = np.argsort(~present, axis=1, kind="stable")
     people = np.take_along_axis(people, order[:, :, None, None], axis=1)
     tracks = np.take_along_axis(tracks, order, axis=1)
     P = int(present.sum(1).max())
     people, tracks = people[:, :P], tracks[:, :P]
-    sort = np.argsort(frames, kind="stable")
-    frames = np.asarray(frames, dtype=np.int64)[sort]
-    dup = np.flatnonzero(np.diff(frames) == 0)
-    if len(dup):
-        raise InputError(f"{wheres[sort[dup[0] + 1]]}: frame {frames[dup[0]]} appears twice")
     return Detections(
         keypoint_set=kset.name,
         frames=frames,
-        people=people[sort],
-        track_ids=tracks[sort].astype(np.int64),
+        people=people,
+        track_ids=tracks.astype(np.int64),
         fps=fps,
         source=str(path),
         image_size=image_size,
@@ -448,7 +451,9 @@ def _from_frames(
     return _finish(people, numbers, tracks, [f.where for f in frames], kset, fps, path)
 
 
-def _read_array_npz(arrays: dict[str, np.ndarray], path: Path, given: KeypointDefinition | None, fps: float | None):
+def _read_array_npz(
+    arrays: dict[str, np.ndarray], path: Path, given: KeypointDefinition | None, fps: float | None
+) -> Detections:
     if "keypoints" in arrays:
         key = "keypoints"
     elif len(arrays) == 1:
@@ -537,6 +542,8 @@ def write_mediapipe_landmarks(
     lm = np.asarray(landmarks, dtype=np.float32)
     world = np.asarray(world_landmarks, dtype=np.float32)
     T = len(frames)
+    if T == 0:
+        raise InputError("MediaPipe landmarks: no frames to write")
     if frames.shape != (T,) or frames.dtype.kind not in "iu" or (np.diff(frames) <= 0).any():
         raise InputError(f"MediaPipe landmarks: frames must be strictly increasing integers (T,), got {frames.shape}")
     if lm.shape != (T, 33, 3) or world.shape != (T, 33, 3):
