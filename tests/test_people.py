@@ -39,7 +39,10 @@ def test_balancing_default_is_the_participant_in_every_frame():
     det = read_keypoints(pose2sim("balancing/pose/cam01_json"))
     assert det.people.shape[1] >= 2  # the bystander is detected too
     track = select_person(det)
-    assert track.present.all() and track.n_tracks >= 2
+    assert track.present.all() and track.n_tracks == 2  # the participant and the bystander
+    # in frame 37 OpenPose split the participant into an upper and a lower body: one person again
+    split = det.present[37] & (link_tracks(det)[37] == track.track_id)
+    assert split.sum() == 2 and np.isfinite(track.points[37]).all()
     hips = np.isfinite(track.points[:, [L_HIP, R_HIP]]).all((1, 2))
     assert hips.sum() >= 95
     # the participant is the large person in the middle of the portrait frame (1088 wide), the bystander
@@ -129,6 +132,21 @@ def test_gap_of_a_few_frames_is_bridged_a_long_one_is_not():
     long = [[p] if not 10 <= t < 10 + gone else [] for t, p in enumerate(walk)]
     det = _detections(long)
     assert [i.first for i in track_summary(det, link_tracks(det))] == [0, 10 + gone]
+
+
+def test_a_person_split_in_two_detections_is_one():
+    p = person(COCO_17, 200, 0, 500)
+    upper, lower = p.copy(), p.copy()
+    upper[11:] = (np.nan, np.nan, 0)
+    lower[:11] = (np.nan, np.nan, 0)
+    other = person(COCO_17, 700, 0, 480)
+    frames = [[p, other]] * 3 + [[other, lower, upper]] + [[p, other]] * 3
+    det = _detections(frames)
+    ids = link_tracks(det)
+    assert ids[3, 1] == ids[3, 2] == ids[0, 0] and ids[3, 0] == ids[0, 1]
+    track = select_person(det)
+    assert track.n_tracks == 2
+    np.testing.assert_array_equal(track.points[3], p[:, :2])
 
 
 def test_linker_numbers_tracks_by_first_appearance_then_size():

@@ -8,7 +8,11 @@ detection is the median distance between predicted and detected keypoints (over 
 bounding-box centres when fewer than 3) divided by the track's size (median bounding-box diagonal of its
 last detections), and the assignment of least total cost is taken (Hungarian). A pair costing more than
 `GATE` (times 1 + (gap - 1) / 4 after a gap) is not linked; a track not seen for more than `MAX_GAP`
-frames ends; a detection left over starts a new track. The median makes a link robust to a detector's
+frames ends. A detection left over that fits a track linked in the same frame, and shares at most one
+keypoint with the detection linked to it, is a part of that person the detector split off (OpenPose splits
+the Pose2Sim participant into upper and lower body in some frames): it gets the same track id, and the
+person's keypoints in that frame are taken from both parts. Any other detection left over starts a new
+track. The median makes a link robust to a detector's
 left/right swap of a few keypoints, the motion prediction keeps two people apart when they cross.
 Linked tracks are numbered 0, 1, ... by first appearance, then by size (larger first).
 
@@ -139,7 +143,8 @@ def _cost(track: _Track, t: int, xy: np.ndarray) -> float:
 
 
 def link_tracks(det: Detections, max_gap: int = MAX_GAP, gate: float = GATE) -> np.ndarray:
-    """(T, P) int track id of every detected person, -1 for empty slots (rules in the module docstring).
+    """(T, P) int track id of every detected person, -1 for empty slots (rules in the module docstring);
+    two slots of a frame share an id when they are parts of one person.
 
     The file's track ids when it gives every person one, else the linker's, numbered by first appearance
     then size.
@@ -154,16 +159,27 @@ def link_tracks(det: Detections, max_gap: int = MAX_GAP, gate: float = GATE) -> 
     for t in range(T):
         slots = np.flatnonzero(present[t])
         live = [j for j, tr in enumerate(tracks) if t - tr.last_t <= max_gap + 1]
-        taken: set[int] = set()
+        taken: dict[int, int] = {}  # column (detection) -> row (live track) it continues
         if live and len(slots):
             cost = np.array([[_cost(tracks[j], t, xy[t, p]) for p in slots] for j in live])
             limit = np.array([gate * (1 + (t - tracks[j].last_t - 1) / 4) for j in live])[:, None]
             rows, cols = linear_sum_assignment(np.where(cost <= limit, cost, 1e6))
-            for r, c in zip(rows, cols, strict=True):
-                if cost[r, c] <= limit[r, 0]:
-                    tracks[live[r]].update(t, xy[t, slots[c]])
-                    raw[t, slots[c]] = live[r]
-                    taken.add(c)
+            taken = {c: r for r, c in zip(rows, cols, strict=True) if cost[r, c] <= limit[r, 0]}
+            seen = np.isfinite(xy[t, slots]).all(-1)  # (D, K)
+            for c in range(len(slots)):  # a part of a person the detector split off: joins that person
+                if c in taken:
+                    continue
+                for c2, r in list(taken.items()):
+                    if cost[r, c] <= limit[r, 0] and (seen[c] & seen[c2]).sum() <= 1:
+                        taken[c] = r
+                        break
+            for r in set(taken.values()):
+                parts = [c for c in taken if taken[c] == r]
+                merged = xy[t, slots[parts[0]]].copy()
+                for c in parts[1:]:
+                    merged = np.where(np.isfinite(merged), merged, xy[t, slots[c]])
+                tracks[live[r]].update(t, merged)
+                raw[t, slots[parts]] = live[r]
         for c, p in enumerate(slots):
             if c not in taken:
                 raw[t, p] = len(tracks)
@@ -243,8 +259,9 @@ def select_person(det: Detections, person: int | Sequence[float] | None = None) 
     scores = np.zeros((T, K))
     present = np.zeros(T, dtype=bool)
     for t, p in zip(*np.nonzero(det.present & (ids == chosen)), strict=True):
-        points[t] = det.people[t, p, :, :2]
-        scores[t] = det.people[t, p, :, 2]
+        better = det.people[t, p, :, 2] > scores[t]  # parts of one person: each keypoint from the surer one
+        points[t, better] = det.people[t, p, better, :2]
+        scores[t, better] = det.people[t, p, better, 2]
         present[t] = True
     return PersonTrack(
         frames=det.frames.copy(),
