@@ -73,7 +73,7 @@ log = logging.getLogger(__name__)
 
 #: the container names `read_keypoints` accepts for `format`
 FORMATS: tuple[str, ...] = ("openpose", "coco", "mmpose", "mediapipe", "npz")
-_FORMAT_ALIASES = {"alphapose": "coco", "json": "openpose", "blazepose": "mediapipe"}
+_FORMAT_ALIASES = {"alphapose": "coco", "blazepose": "mediapipe"}
 
 #: the keys of a MediaPipe landmarks file (layout in the module docstring)
 MEDIAPIPE_KEYS: tuple[str, ...] = ("frames", "landmarks", "world_landmarks", "fps", "width", "height", "video")
