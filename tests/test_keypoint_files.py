@@ -293,6 +293,9 @@ def test_error_no_person_in_any_frame(tmp_path):
         _openpose_file(tmp_path, f"c.{n:04d}.json", [])
     _one_line_error("no person in any frame", tmp_path)
     _one_line_error("no person in any frame", _write(tmp_path / "empty.json", []))
+    _one_line_error("no person in any frame", _write(tmp_path / "mm.json", {"meta_info": {}, "instance_info": []}))
+    cars = [_coco_entry(0, person(COCO_17, 0, 0, 300), category=3)]
+    _one_line_error("no person in any frame", _write(tmp_path / "cars.json", cars))
     zeros = np.zeros((25, 3))
     _one_line_error(
         "no person in any frame", _write(tmp_path / "z.json", [_coco_entry(0, zeros)]), keypoint_set="BODY_25"

@@ -416,8 +416,8 @@ def _finish(
 def _from_frames(
     frames: list[_Frame], path: Path, given: KeypointDefinition | None, hint: str | None, fps: float | None
 ) -> Detections:
-    if not frames:
-        raise InputError(f"{path}: no frames")
+    if not frames:  # e.g. MMPose's empty instance_info, COCO results without a person entry
+        raise InputError(f"{path}: no person in any frame")
     for f in frames:  # an empty keypoint list (OpenPose writes some) is nobody
         keep = [i for i, p in enumerate(f.people) if len(p)]
         f.people, f.tracks = [f.people[i] for i in keep], [f.tracks[i] for i in keep]
