@@ -51,11 +51,15 @@ class VideoInfo:
     height: int
 
 
-def _open(cv2: ModuleType, path: Path):  # -> cv2.VideoCapture
+def _check_file(path: Path) -> None:
     if not path.exists():
         raise InputError(f"video not found: {path}")
     if path.is_dir():
         raise InputError(f"video {path} is a folder, not a video file")
+
+
+def _open(cv2: ModuleType, path: Path):  # -> cv2.VideoCapture
+    _check_file(path)
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         cap.release()
@@ -66,8 +70,9 @@ def _open(cv2: ModuleType, path: Path):  # -> cv2.VideoCapture
 def video_info(path: str | Path) -> VideoInfo:
     """Open `path`, decode its first frame and describe it. InputError: no such file, a folder, a file that
     is no video or has no frame that decodes, OpenCV not installed."""
-    cv2 = import_cv2()
     path = Path(path)
+    _check_file(path)  # a missing file is named before a missing OpenCV
+    cv2 = import_cv2()
     cap = _open(cv2, path)
     try:
         ok, bgr = cap.read()
