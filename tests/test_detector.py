@@ -289,3 +289,32 @@ def test_cli_detect_stderr_holds_only_ptrack_lines(short_clip, tmp_path):
     assert all(line.startswith("ptrack: ") for line in lines), r.stderr
     assert lines[0].startswith("ptrack: INFO: detect: frame 1/5 (20%), ")
     assert lines[-1].startswith("ptrack: a person in 5 of 5 frames; ")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="POSIX signals")
+def test_cli_detect_killed_leaves_nothing(cam01, mediapipe, tmp_path):
+    """SIGTERM while detecting: `ptrack: terminated`, status 143, no landmarks file and no temporary one."""
+    import signal
+    import time
+
+    env = {**os.environ, "PYTHONPATH": str(REPO), "PTRACK_PROGRESS_SECONDS": "0"}
+    out = tmp_path / "out.npz"
+    log = tmp_path / "stderr.txt"
+    with log.open("w") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "ptrack.cli", "detect", str(cam01), "--out", str(out)], env=env, stderr=err
+        )
+    try:
+        deadline = time.monotonic() + 300  # a slow, shared machine: never an assertion on speed
+        while "detect: frame" not in log.read_text():
+            assert proc.poll() is None, log.read_text()
+            assert time.monotonic() < deadline, "no progress line"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=300) == 143, log.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert log.read_text().splitlines()[-1] == "ptrack: terminated"
+    assert list(tmp_path.iterdir()) == [log]

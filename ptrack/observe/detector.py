@@ -2,8 +2,9 @@
 
 `detect(video)` runs `mediapipe.solutions.pose.Pose(model_complexity=1, static_image_mode=False)` (the
 model shipped inside the `mediapipe==0.10.14` wheel; complexities 0 and 2 download theirs at run time)
-frame by frame in decoding order, tracking one person from frame to frame as MediaPipe's video mode does.
-The same video gives the same landmarks (no randomness; one process, one CPU).
+frame by frame in decoding order, tracking one person from frame to frame as MediaPipe's video mode does
+(its landmark smoothing takes every video as 30 fps: the Python API stamps frames 1/30 s apart). There is no
+randomness: the same frames give the same landmarks.
 
 Per frame and landmark (the 33 of MediaPipe Pose, `MEDIAPIPE33_NAMES`):
 - image landmarks in pixels: MediaPipe's normalised (x, y) times the decoded frame's (W, H), so the
@@ -39,7 +40,7 @@ from types import ModuleType
 import numpy as np
 
 from ptrack.errors import InputError
-from ptrack.observe.video import INSTALL_HINT, import_cv2, read_frames
+from ptrack.observe.video import INSTALL_HINT, read_frames
 
 log = logging.getLogger(__name__)
 
@@ -165,7 +166,6 @@ def detect(
             raise InputError(f"{name} must lie in [0, 1], got {value}")
     frames = read_frames(video, start, stop)  # the video's errors before MediaPipe loads
     info = frames.info
-    import_cv2()
     mp = import_mediapipe()
     numbers: list[int] = []
     image: list[np.ndarray] = []
