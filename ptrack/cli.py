@@ -1,6 +1,6 @@
 """Command line: `ptrack run CONFIG [key=value ...]`, `ptrack evaluate CONFIG --clips LIST`,
 `ptrack compare EVAL_A EVAL_B`, `ptrack fit-motion CONFIG [--out FILE]`, `ptrack replay RUN_DIR`,
-`ptrack config --list [SECTION]`.
+`ptrack config --list [SECTION]`, `ptrack detect VIDEO [--out FILE]`.
 
 stdout carries only what a script reads: the run folder's path (the table's for `evaluate`), or with
 `--json` the metrics (`results.json` for `evaluate`); messages and progress go to stderr, progress bars
@@ -90,6 +90,16 @@ def _parser() -> argparse.ArgumentParser:
         help="serve rerun's web viewer instead (no display needed) and print the address to open",
     )
     v.add_argument("--bind", default="127.0.0.1", help="with --web: the address to listen on (default 127.0.0.1)")
+    d = sub.add_parser(
+        "detect", help="MediaPipe Pose on every frame of a video (the video extra): writes its landmarks"
+    )
+    d.add_argument("video", help="a video file OpenCV decodes, e.g. an .mp4")
+    d.add_argument(
+        "--out", default=None, help="landmarks file to write (default: VIDEO_STEM.landmarks.npz in the current folder)"
+    )
+    d.add_argument(
+        "--quiet", action="store_true", help="no progress (bar on a terminal, a line now and then elsewhere)"
+    )
     k = sub.add_parser("config", help="list the config keys: default, type and one line of help each")
     k.add_argument(
         "--list",
@@ -227,6 +237,24 @@ def _main(args: argparse.Namespace) -> int:
             print(
                 f"ptrack: {len(model.info['clips'])} clips, {model.num_components} components explain {shares} "
                 f"of the variance ({100 * float(model.explained.sum()):.1f}% in all); fitted in {seconds:.1f} s",
+                file=sys.stderr,
+            )
+            print(out, flush=True)
+        elif args.command == "detect":
+            import time
+
+            from ptrack.observe.detector import check_output, default_output, detect, write_mediapipe_landmarks
+            from ptrack.pipeline.run import progress_display
+
+            out = check_output(args.out or default_output(args.video))  # before minutes of detection
+            logging.getLogger("ptrack.pipeline.run.progress").setLevel(logging.INFO)  # its lines off a terminal
+            start = time.perf_counter()
+            found = detect(args.video, progress=progress_display(not args.quiet, "detect"))
+            seconds = time.perf_counter() - start
+            write_mediapipe_landmarks(out, found)
+            T = len(found.frames)
+            print(
+                f"ptrack: a person in {int(found.found.sum())} of {T} frames; {T / max(seconds, 1e-9):.1f} frames/s",
                 file=sys.stderr,
             )
             print(out, flush=True)

@@ -13,7 +13,7 @@ import rerun.chunk
 import torch
 
 from ptrack.errors import InputError
-from ptrack.io.viz import RunLog, open_viewer, write_recording
+from ptrack.io.viz import RunLog, log_video, open_viewer, write_recording
 from ptrack.observe.camera import Camera
 
 T, J, N = 5, 4, 3
@@ -374,3 +374,47 @@ def test_long_run_is_written(tmp_path):
     )
     write_recording(tmp_path / "long.rrd", log)
     assert (tmp_path / "long.rrd").stat().st_size > 600 * 31 * 3 * 4
+
+
+CAM01 = (
+    Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pose2sim" / "balancing" / "videos" / "cam01.mp4"
+)
+
+
+def test_video_under_the_camera_view(tmp_path):
+    """The Pose2Sim clip (60 fps) as a video asset, frames 10..19 shown on the run's `frame` and `time` rows."""
+    if not CAM01.is_file():
+        pytest.skip(f"Pose2Sim demo video not found at {CAM01.resolve()}")
+    frames = np.arange(10, 20)
+    path = tmp_path / "video.rrd"
+    rec = rr.RecordingStream(application_id="ptrack")
+    rec.save(path)
+    index = [rr.TimeColumn("frame", sequence=frames + 100), rr.TimeColumn("time", duration=frames / 60.0)]
+    assert log_video(rec, CAM01, frames, index) == 100
+    rec.flush()
+    rec.disconnect()
+    got = Rec(path)
+    static = got.static["world/camera/image/video"]
+    assert bytes(static["AssetVideo:blob"][0]) == CAM01.read_bytes()
+    assert static["AssetVideo:media_type"] == ["video/mp4"]
+    assert static["VideoFrameReference:draw_order"] == [-20.0]  # under the keypoints and bones
+    rows = got.temporal["world/camera/image/video"]
+    assert [r["frame"] for r in rows] == list(range(110, 120))
+    stamps = [r["VideoFrameReference:timestamp"] for r in rows]
+    np.testing.assert_allclose(np.ravel(stamps), frames * 1e9 / 60, atol=1)  # the video's own 60 fps stamps, ns
+
+
+def test_video_errors(tmp_path):
+    rec = rr.RecordingStream(application_id="ptrack")
+    index = [rr.TimeColumn("frame", sequence=[0, 1])]
+    with pytest.raises(InputError, match=r"video not found: .*gone\.mp4"):
+        log_video(rec, tmp_path / "gone.mp4", np.arange(2), index)
+    text = tmp_path / "notes.mp4"
+    text.write_text("not a video\n")
+    with pytest.raises(InputError, match=r"cannot show video .*notes\.mp4"):
+        log_video(rec, text, np.arange(2), index)
+    with pytest.raises(InputError, match="integers"):
+        log_video(rec, text, np.array([0.0, 1.0]), index)
+    if CAM01.is_file():
+        with pytest.raises(InputError, match=r"has 100 frames; frame numbers 99..100"):
+            log_video(rec, CAM01, np.array([99, 100]), index)

@@ -47,6 +47,8 @@ Entity layout (stable: tests and users rely on it):
                                         "reprojected estimate" (static)
     world/camera/image/silhouette       SegmentationImage, class 1 = silhouette, class 0
                                         transparent  [if masks]
+    world/camera/image/video            AssetVideo (the input video's file, static) + VideoFrameReference
+                                        per frame, drawn under everything else in the image  [log_video]
     world/estimate/std                  Points3D at the estimate's joints, radius = that joint's 3D
                                         standard deviation (metres), translucent  [if joint_std]
     metrics/<name>                      Scalars, one per frame with a finite value
@@ -93,7 +95,7 @@ from ptrack.errors import InputError
 if TYPE_CHECKING:
     from ptrack.observe.camera import Camera
 
-__all__ = ["RunLog", "blueprint", "open_viewer", "plot_groups", "write_recording"]
+__all__ = ["RunLog", "blueprint", "log_video", "open_viewer", "plot_groups", "write_recording"]
 
 logger = logging.getLogger(__name__)
 
@@ -115,6 +117,8 @@ KEYPOINT_BONE_RADIUS = 1.0  # pixels
 LEGEND_RADIUS = 0.05  # metres
 LEGEND_SPACING = 0.4  # metres between the 3D legend's entries
 IMAGE_PLANE_FRACTION = 0.3  # the camera's image plane in 3D, as a share of its distance to the person
+VIDEO_ENTITY = "world/camera/image/video"
+VIDEO_DRAW_ORDER = -20.0  # under the border (5), the bones (10, 30) and the keypoints (20, 40)
 EYE_AZIMUTH_DEG = 75.0  # 3D scene viewpoint: from the person-to-camera direction turned about +Y by this,
 EYE_ELEVATION_DEG = 20.0  # ... and raised by this, far enough that a cone of half-angle
 EYE_HALF_FOV_DEG = 24.0  # ... this holds the sphere around the camera and the whole motion
@@ -302,6 +306,44 @@ def write_recording(path: str | Path, log: RunLog) -> None:
         logger.info("wrote rerun recording %s (%d frames)", path, T)
     finally:
         rec.disconnect()
+
+
+def log_video(
+    rec: rr.RecordingStream,
+    video: str | Path,
+    video_frames: np.ndarray,
+    index: Sequence[rr.TimeColumn],
+    entity: str = VIDEO_ENTITY,
+) -> int:
+    """Show the frames of the file `video` in the camera's image, on the run's timelines: the file itself as a
+    static `rr.AssetVideo` at `entity` (its bytes go into the recording; the viewer decodes it), and for each of
+    the T rows of `index` a `VideoFrameReference` to the video's frame `video_frames[t]` (counted from 0 in
+    presentation order, as `ptrack.observe.video` numbers them).
+
+    video_frames: (T,) int; index: the run's time columns (`frame`, `time`), T rows each. Only MP4 files can be
+    shown (rerun's limit; its native viewer decodes AV1, and H.264 through an `ffmpeg` on the PATH).
+    -> the number of frames in the video. InputError: no such file, a file rerun cannot read, a frame number
+    outside the video, `video_frames` not (T,) integers.
+    """
+    path = Path(video)
+    if not path.is_file():
+        raise InputError(f"video not found: {path}")
+    frames = np.asarray(video_frames)
+    if frames.ndim != 1 or not np.issubdtype(frames.dtype, np.integer):
+        raise InputError(f"video frame numbers must be (T,) integers, got {frames.dtype} {frames.shape}")
+    asset = rr.AssetVideo(path=path)
+    try:
+        stamps = np.sort(np.asarray(asset.read_frame_timestamps_nanos(), dtype=np.int64))
+    except Exception as e:  # rerun raises RuntimeError (or a PanicException) for what it cannot demux
+        raise InputError(f"cannot show video {path} in the recording (rerun reads MP4 files only): {e}") from None
+    if len(frames) and (frames.min() < 0 or frames.max() >= len(stamps)):
+        raise InputError(
+            f"video {path} has {len(stamps)} frames; frame numbers {int(frames.min())}..{int(frames.max())} asked"
+        )
+    rec.log(entity, asset, static=True)
+    rec.log(entity, rr.VideoFrameReference.from_fields(draw_order=VIDEO_DRAW_ORDER), static=True)
+    rec.send_columns(entity, indexes=list(index), columns=rr.VideoFrameReference.columns_nanos(stamps[frames]))
+    return len(stamps)
 
 
 def has_display() -> bool:

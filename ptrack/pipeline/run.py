@@ -569,7 +569,7 @@ def estimate(cfg: RunConfig, progress: bool = False) -> tuple[Prepared, Estimate
     prep = prepare(cfg)
     check_memory(cfg, prep.problem)  # refuse settings that would not fit before the estimator allocates
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)  # the samplers' draws (cfg.seed: the observations')
-    return prep, ESTIMATORS[cfg.method](prep.problem, cfg, gen, _progress(progress, cfg.method))
+    return prep, ESTIMATORS[cfg.method](prep.problem, cfg, gen, progress_display(progress, cfg.method))
 
 
 def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
@@ -618,7 +618,7 @@ PROGRESS_SECONDS, PROGRESS_FIRST_SECONDS = 20.0, 10.0
 progress_log = logging.getLogger(f"{__name__}.progress")
 
 
-def _progress(show: bool, desc: str) -> Callable[[Iterable], Iterable]:
+def progress_display(show: bool, desc: str) -> Callable[[Iterable], Iterable]:
     """A progress bar on stderr on a terminal; elsewhere (a file, a CI log: each update of a bar would be a line)
     a log line now and then (`progress_lines`)."""
     if not show:
