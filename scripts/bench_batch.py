@@ -16,7 +16,7 @@ Ours: `banded_levenberg_marquardt`, 30 iterations (no early stop). scipy:
 the sparse Jacobian), run until its cost is within 1% of ours or `--scipy-nfev` evaluations; the
 script prints both times, both costs and the ratio, and the wall time of one iteration's parts
 (linearisation, factorisation, solve). Threads (`--threads`, default 1): the solve inside
-`ptrack.optim.banded.one_thread`, so every op runs on one intra-op thread, as `method: batch` runs it;
+`ptrack.threads.one_thread`, so every op runs on one intra-op thread, as `method: batch` runs it;
 with `--threads 2` (a budget of 2, what `method: batch` gets from torch's default on a 2-core
 machine) the linearisation's two halves of the sequence also run on two Python threads. One thread
 is the default because it was as fast or faster on the shared 2-core machine these numbers come
@@ -49,11 +49,11 @@ from ptrack.estimators.batch import (  # noqa: E402
     trajectory_objective,
     warp_to_keyframes,
 )
-from ptrack.optim.banded import one_thread  # noqa: E402
 from ptrack.optim.solvers import banded_levenberg_marquardt  # noqa: E402
 from ptrack.pipeline.config import load_config  # noqa: E402
 from ptrack.pipeline.run import prepare  # noqa: E402
 from ptrack.problem import evaluate_pose  # noqa: E402
+from ptrack.threads import one_thread  # noqa: E402
 
 CONFIG = REPO / "configs" / "batch.yaml"
 

@@ -134,27 +134,6 @@ def test_numpy_loops_equal_torch_loops(w, diagonal_coupling, monkeypatch):
     assert torch.allclose(xn, xt, atol=1e-13, rtol=1e-11)
 
 
-def test_thread_budget_and_two_threads():
-    """one_thread keeps the count it replaced as the budget parallel_halves reads (CPU only); on_two_threads
-    returns both results in order, the first computed on the worker thread."""
-    import threading
-
-    before = torch.get_num_threads()
-    try:
-        for budget in (1, 2):
-            torch.set_num_threads(budget)
-            with bd.one_thread():
-                assert torch.get_num_threads() == 1
-                assert bd.parallel_halves(torch.device("cpu")) == (budget >= 2)
-                assert not bd.parallel_halves(torch.device("meta"))
-            assert torch.get_num_threads() == budget
-    finally:
-        torch.set_num_threads(before)
-    names = bd.on_two_threads(lambda x: (x, threading.current_thread().name), (1,), (2,))
-    assert [n[0] for n in names] == [1, 2]
-    assert names[0][1].startswith("ptrack-banded") and names[1][1] == threading.current_thread().name
-
-
 def test_float32_and_shapes_follow_inputs():
     a = random_banded(1, 5, 3, 2, True)
     a32 = bd.BlockBanded(a.diagonal.float(), a.lower.float())

@@ -33,7 +33,7 @@ SHORT = ["data.stop=160", "progress=false", "batch.uncertainty=false", "batch.fl
 def _one_thread():
     """The runs around the solver (per-frame starts, metrics, recordings) on one thread too: on the
     shared 2-core machine multithreaded small ops made this file 3x slower."""
-    from ptrack.optim.banded import one_thread
+    from ptrack.threads import one_thread
 
     with one_thread():
         yield

@@ -355,15 +355,16 @@ def test_product_ik(sk, poses):
 
 def test_generic_axes_path_matches_frames(sk, poses):
     """Joints whose axes are not a frame go through Rodrigues products: same rotations as C Z C^T."""
-    from ptrack.hypotheses.ik import _local, _slot_angles, _tensors  # the two paths of one joint's rotation
+    from ptrack.hypotheses.ik.kinematics import local_rotation, slot_angles  # the two paths of one joint's rotation
+    from ptrack.hypotheses.ik.plan import plan_tensors
 
     plan = ik_plan(sk, default_chains(sk, ["larm"])[0])
-    tc = _tensors(plan, torch.float64, torch.device("cpu"))
+    tc = plan_tensors(plan, torch.float64, torch.device("cpu"))
     qs = poses.index_select(1, tc["used"]).T.contiguous()
     for j in plan.ancestors + plan.path:
         pj = tc["per"][j]
-        theta = _slot_angles(pj, qs)
-        torch.testing.assert_close(_local(dict(pj, c=None), theta), _local(pj, theta))
+        theta = slot_angles(pj, qs)
+        torch.testing.assert_close(local_rotation(dict(pj, c=None), theta), local_rotation(pj, theta))
 
 
 def test_euler_zyx_solutions():

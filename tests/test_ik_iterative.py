@@ -115,17 +115,18 @@ def test_closed_form_can_be_declined(cmu):
 def test_chain_jacobian_matches_joint_jacobian(model, arm, cmu):
     """The fit's forward kinematics and Jacobian along the chain equal the skeleton's
     (`forward_kinematics`, `ptrack.optim.jacobians.joint_jacobian`) restricted to the chain's dofs."""
-    from ptrack.hypotheses.ik import _root_parent, _tensors, _walk_fk
+    from ptrack.hypotheses.ik.kinematics import root_parent, walk_fk
+    from ptrack.hypotheses.ik.plan import plan_tensors
     from ptrack.optim.jacobians import joint_jacobian
 
     sk, names = (arm, ARM_CHAIN) if model == "arm" else (cmu, ("lclavicle", "lhumerus", "lradius"))
     chain = make_chain(sk, names)
     plan = ik_plan(sk, chain, closed_form=False)
     q = _random_poses(sk, 16, 6)
-    tc = _tensors(plan, q.dtype, q.device)
+    tc = plan_tensors(plan, q.dtype, q.device)
     qs = q.index_select(1, tc["used"]).T.contiguous()
-    g_par, pivot = _root_parent(plan, tc, qs)
-    pos, jac = _walk_fk(plan, tc, g_par, pivot, qs, q[:, list(plan.dofs)].T, True)
+    g_par, pivot = root_parent(plan, tc, qs)
+    pos, jac = walk_fk(plan, tc, g_par, pivot, qs, q[:, list(plan.dofs)].T, True)
     joints, want = joint_jacobian(sk, q)
     idx = list(chain.joints)
     torch.testing.assert_close(pos.permute(2, 0, 1), joints[:, idx], atol=1e-12, rtol=0)

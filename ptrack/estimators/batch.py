@@ -62,18 +62,11 @@ from ptrack.errors import InputError
 from ptrack.hypotheses.branches import BranchPosterior, branch_posterior, relax_branches
 from ptrack.hypotheses.ik import ik_plan
 from ptrack.hypotheses.jumps import check_independent, default_chains
-from ptrack.optim.banded import (
-    BlockBanded,
-    factorize,
-    marginal_blocks,
-    numpy_path,
-    on_two_threads,
-    one_thread,
-    parallel_halves,
-)
+from ptrack.optim.banded import BlockBanded, factorize, marginal_blocks, numpy_path
 from ptrack.optim.jacobians import joint_jacobian, joint_jacobian_product
 from ptrack.optim.solvers import BandedLinearization, BandedLMInfo, banded_levenberg_marquardt
 from ptrack.problem import Estimate, Problem
+from ptrack.threads import on_two_threads, one_thread, parallel_halves
 
 log = logging.getLogger(__name__)
 
@@ -316,7 +309,7 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
     b_len, t_len, _d = q.shape
     idx = kps.index(q.device)
     # the per-frame work (joint Jacobians, projections, J^T W J) runs on the two halves of the
-    # sequence at once when torch may use two threads (`ptrack.optim.banded.parallel_halves`)
+    # sequence at once when torch may use two threads (`ptrack.threads.parallel_halves`)
     parts = [slice(0, t_len)]
     if with_jacobian and t_len >= 2 * _MIN_PART and parallel_halves(q.device):
         parts = [slice(0, t_len // 2), slice(t_len // 2, t_len)]
@@ -605,7 +598,7 @@ def estimate_batch(
     `estimate_frames`; no estimator imports another). Needed then, and None, it raises ValueError.
 
     callback(iteration, q (1, T, D), cost (1,)) is called after every solver iteration. Runs on one
-    intra-op thread (`ptrack.optim.banded.one_thread`: small per-frame products, shared cores); with torch
+    intra-op thread (`ptrack.threads.one_thread`: small per-frame products, shared cores); with torch
     allowed 2 or more threads, the linearisation's per-frame work runs on the sequence's two halves on
     two threads (`evaluate`)."""
     with one_thread():

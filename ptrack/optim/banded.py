@@ -67,11 +67,7 @@ inputs' dtype and device.
 
 from __future__ import annotations
 
-import os
-import threading
-from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -79,6 +75,7 @@ import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
+from ptrack.threads import one_thread
 
 HALVES_MIN_FRAMES = 32  # `factorize` splits a system of this many frames or more into two halves
 NUMPY_LOOPS = True  # the sequential loops on numpy/LAPACK for CPU tensors (`numpy_path`); False: torch's
@@ -126,68 +123,6 @@ class BandedFactor(NamedTuple):
     decoupled: Tensor
     batch: tuple
     size: int
-
-
-_OUTER = threading.local()  # .threads: torch's thread count outside the outermost `one_thread`
-
-
-@contextmanager
-def one_thread() -> Iterator[None]:
-    """Run torch on one intra-op thread inside the block (restored after). The sequential sweeps
-    run on it: their products are small (n x n per frame), multithreaded BLAS gains nothing on them
-    and, on a loaded machine, its spinning threads made a 40-frame sweep 370x slower (2.3 s against
-    6 ms, measured on 2 shared cores); `method: batch` runs its whole solve inside it. The count it
-    replaced stays the thread budget that `parallel_halves` reads (the batch linearisation runs the two
-    halves of a sequence on two Python threads, one intra-op thread each, when it is 2 or more)."""
-    n = torch.get_num_threads()
-    outer = getattr(_OUTER, "threads", None)
-    if outer is None:
-        _OUTER.threads = n
-    try:
-        if n == 1:
-            yield
-            return
-        torch.set_num_threads(1)
-        try:
-            yield
-        finally:
-            torch.set_num_threads(n)
-    finally:
-        if outer is None:
-            del _OUTER.threads
-
-
-_POOL: ThreadPoolExecutor | None = None
-
-
-def _forget_pool() -> None:  # a forked child has the pool object but not its thread
-    global _POOL
-    _POOL = None
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pool)
-
-
-def parallel_halves(device: torch.device) -> bool:
-    """Whether two halves of a sequence run on two threads (`on_two_threads`): a thread budget
-    (`one_thread`) of 2 or more, on the CPU."""
-    return device.type == "cpu" and getattr(_OUTER, "threads", torch.get_num_threads()) >= 2
-
-
-def on_two_threads(fn: Callable, first: tuple, second: tuple) -> tuple:
-    """(fn(*first), fn(*second)), the first on a second thread (one worker for the process, one
-    intra-op thread; torch ops release the GIL, so the two run at once when each op is big enough for
-    the GIL's handoffs not to matter: not the sweeps here, ~1,000 small ops a half). Callers ask
-    `parallel_halves` first."""
-    global _POOL
-    if _POOL is None:  # one worker, for the process's life, on one intra-op thread
-        _POOL = ThreadPoolExecutor(
-            max_workers=1, thread_name_prefix="ptrack-banded", initializer=torch.set_num_threads, initargs=(1,)
-        )
-    job = _POOL.submit(fn, *first)
-    last = fn(*second)
-    return job.result(), last
 
 
 def _check(a: BlockBanded, who: str) -> tuple[int, int, int]:
@@ -830,34 +765,32 @@ def _solve_dense(f: _Chol | _Twisted, b: Tensor) -> Tensor:
     return x
 
 
-def _frames(f: _Chol | _Twisted) -> int:
-    if isinstance(f, _Twisted):
-        w = f.sep_inv.shape[-1] // f.halves.inv_chol_t.shape[-1]
-        return f.halves.inv_chol_t.shape[1] + w + f.top
-    return f.inv_chol_t.shape[1]
+def _frames(f: BandedFactor) -> int:
+    """T of `factorize`'s factor."""
+    if isinstance(f.dense, _Twisted):
+        w = f.dense.sep_inv.shape[-1] // f.dense.halves.inv_chol_t.shape[-1]
+        return f.dense.halves.inv_chol_t.shape[1] + w + f.dense.top
+    if f.dense is not None:
+        return f.dense.inv_chol_t.shape[1]
+    assert f.scalar is not None  # factorize fills at least one of the two
+    return f.scalar.diag.shape[1]
 
 
 def solve(f: BandedFactor, b: Tensor) -> Tensor:
-    """Solve A x = b with `factorize`'s factor; b (..., T, D) -> x (..., T, D)."""
-    if f.dense is not None:
-        t_len = _frames(f.dense)
-    else:
-        assert f.scalar is not None  # factorize fills at least one of the two
-        t_len = f.scalar.diag.shape[1]
+    """Solve A x = b with `factorize`'s factor; b (..., T, D) -> x (..., T, D): the coupled dofs by the
+    dense factor's two sweeps, the decoupled ones by their scalar systems."""
+    t_len = _frames(f)
     if not isinstance(b, Tensor) or b.shape != (*f.batch, t_len, f.size):
         raise InputError(f"solve: b must have shape {(*f.batch, t_len, f.size)}, got {tuple(getattr(b, 'shape', ()))}")
     flat = b.reshape(-1, t_len, f.size)
-    if f.scalar is None:
-        assert f.dense is not None
-        with one_thread():
-            return _solve_dense(f.dense, flat).reshape(b.shape)
     x = torch.empty_like(flat)
     if f.dense is not None:
         with one_thread():
             x[..., f.coupled] = _solve_dense(f.dense, flat[..., f.coupled])
-    u = f.decoupled.numel()
-    xs = _solve_reduced(f.scalar, flat[..., f.decoupled].permute(0, 2, 1).reshape(-1, t_len))
-    x[..., f.decoupled] = xs.reshape(-1, u, t_len).permute(0, 2, 1)
+    if f.scalar is not None:
+        u = f.decoupled.numel()
+        xs = _solve_reduced(f.scalar, flat[..., f.decoupled].permute(0, 2, 1).reshape(-1, t_len))
+        x[..., f.decoupled] = xs.reshape(-1, u, t_len).permute(0, 2, 1)
     return x.reshape(b.shape)
 
 
@@ -895,20 +828,23 @@ def _marginals_any(f: _Chol | _Twisted) -> Tensor:
 
 def marginal_blocks(f: BandedFactor) -> Tensor:
     """Diagonal blocks of A^{-1} from `factorize`'s factor -> (..., T, D, D): the marginal
-    covariances of a Gaussian with precision A (module docstring; the inverse's band only)."""
-    if f.scalar is None:
-        assert f.dense is not None
-        with one_thread():
-            return _marginals_any(f.dense).reshape(*f.batch, _frames(f.dense), f.size, f.size)
-    u = f.decoupled.numel()
-    bsz, t_len = f.scalar.diag.shape[0] // u, f.scalar.diag.shape[1]
-    out = f.scalar.diag.new_zeros(bsz, t_len, f.size, f.size)
+    covariances of a Gaussian with precision A (module docstring; the inverse's band only): the
+    coupled dofs' blocks from the dense factor, the decoupled dofs' variances from their scalar
+    systems, zero between the two."""
+    t_len = _frames(f)
+    shape = (math.prod(f.batch), t_len, f.size, f.size)
     if f.dense is not None:
         with one_thread():
-            out[:, :, f.coupled[:, None], f.coupled] = _marginals_any(f.dense)
-    chol, _ = _factor_scalar(f.scalar.diag, f.scalar.lower)  # sequential, once: the variances need L
-    var = _marginals(chol)[..., 0, 0].reshape(bsz, u, t_len).permute(0, 2, 1)
-    out[:, :, f.decoupled, f.decoupled] = var
+            dense = _marginals_any(f.dense)  # (B, T, n, n)
+        out = dense.new_zeros(shape)
+        out[:, :, f.coupled[:, None], f.coupled] = dense
+    else:
+        assert f.scalar is not None  # factorize fills at least one of the two
+        out = f.scalar.diag.new_zeros(shape)
+    if f.scalar is not None:
+        chol, _ = _factor_scalar(f.scalar.diag, f.scalar.lower)  # sequential, once: the variances need L
+        var = _marginals(chol)[..., 0, 0].reshape(out.shape[0], f.decoupled.numel(), t_len).permute(0, 2, 1)
+        out[:, :, f.decoupled, f.decoupled] = var
     return out.reshape(*f.batch, t_len, f.size, f.size)
 
 

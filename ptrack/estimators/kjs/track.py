@@ -20,8 +20,8 @@ from ptrack.estimators.kjs.model import CSS, KJS, SS, Strategy, make_setup
 from ptrack.estimators.kjs.start import backward_start, feed_backward, first_modes
 from ptrack.estimators.kjs.step import merge_mixtures, track_step
 from ptrack.hypotheses.mixture import Modes
-from ptrack.optim.banded import one_thread
 from ptrack.problem import Estimate, Problem
+from ptrack.threads import one_thread
 
 
 def track(
@@ -32,7 +32,7 @@ def track(
     progress: Callable[[Iterable], Iterable] = lambda x: x,
 ) -> Estimate:
     """Run the tracker `strategy` over every frame of `problem` (`ptrack.estimators.kjs`' docstring), on one
-    intra-op thread (`ptrack.optim.banded.one_thread`): its products are small batched ones, and
+    intra-op thread (`ptrack.threads.one_thread`): its products are small batched ones, and
     `scripts/bench_kjs.py` measured 6.1 fps on one thread and on two on an idle 2-core machine, but
     0.7 fps on two threads when another job held a core.
 
