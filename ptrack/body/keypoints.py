@@ -120,3 +120,26 @@ def make_keypoints(skeleton: Skeleton, mapping: Mapping[str, str] | None = None)
     swaps = tuple((pos[n], pos["r_" + n[2:]]) for n in names if n.startswith("l_") and "r_" + n[2:] in pos)
     limbs = tuple((pos[a], pos[b]) for a, b in H36M17_LIMBS if a in pos and b in pos)
     return KeypointSet(names=names, joints=tuple(joints), swap_pairs=swaps, limbs=limbs)
+
+
+#: limbs of the landmark vocabulary (`ptrack.body.keypoint_sets.LANDMARKS`) whose depth order the flip
+#: metric checks, as `H36M17_LIMBS` does for the simulated set
+LANDMARK_LIMBS: tuple[tuple[str, str], ...] = tuple(
+    (f"{s}_{a}", f"{s}_{b}")
+    for s in "rl"
+    for a, b in (("hip", "knee"), ("knee", "ankle"), ("shoulder", "elbow"), ("elbow", "wrist"))
+)
+
+
+def landmark_keypoints(
+    skeleton: Skeleton, names: tuple[str, ...], landmarks: tuple[str, ...], joints: list[str]
+) -> KeypointSet:
+    """Keypoint set of a detector's format: names (K,) as the format spells them, the landmark (K,) each
+    marks and the joint (K,) of `skeleton` placed there. Swap pairs and limbs come from the landmarks."""
+    if not (len(names) == len(landmarks) == len(joints)):
+        raise InputError(f"{len(names)} keypoint names, {len(landmarks)} landmarks and {len(joints)} joints differ")
+    index = tuple(skeleton.joint_index(j) for j in joints)
+    pos = {m: i for i, m in enumerate(landmarks)}
+    swaps = tuple((pos[m], pos["r_" + m[2:]]) for m in landmarks if m.startswith("l_") and "r_" + m[2:] in pos)
+    limbs = tuple((pos[a], pos[b]) for a, b in LANDMARK_LIMBS if a in pos and b in pos)
+    return KeypointSet(names=names, joints=index, swap_pairs=swaps, limbs=limbs)

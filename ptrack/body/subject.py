@@ -1,0 +1,169 @@
+"""The person: a template skeleton given a subject's height, and where a detector's landmarks sit on it.
+
+A detector's keypoints mark anatomical landmarks (`ptrack.body.keypoint_sets.LANDMARKS`), not the joint
+centres of a motion-capture skeleton. `CMU_LANDMARK_JOINTS` places each landmark that has a counterpart
+on a CMU ASF skeleton at the end point of one of its bones (the knee at the end of the femur, the base of
+the neck at the end of the thorax, ...). Landmarks without a counterpart (eyes, ears, heels, hand points)
+are not placed: a run leaves those keypoints out and says so.
+
+`scale_to_height` gives the template the body proportions of a person of a given height: each segment's
+length is a fixed fraction of the height (`SEGMENTS`, from Winter's anthropometric table, below), fitted
+on the template's rest pose by adjusting groups of bones (left and right together). The segment lengths
+are between the landmarks a detector reports (hip to knee, knee to ankle, ...), so they are what the 2D
+constrains.
+
+Sources: D. A. Winter, *Biomechanics and Motor Control of Human Movement*, 4th ed. (2009), fig. 4.1
+(segment lengths as fractions of the body height H, after Drillis and Contini 1966): shoulder height
+0.818 H, hip (greater trochanter) 0.530 H, knee 0.285 H, ankle 0.039 H, upper arm 0.186 H, forearm
+0.146 H, shoulder width 0.259 H, hip width 0.191 H, foot length 0.152 H. Two rows are not in the table and
+are approximations stated here: the distance between the hip joint centres (0.11 H, about 60% of the
+hip width, as hip joint centre regressions on the pelvis width give) and the distance between a
+detector's shoulder points (0.20 H: the shoulder joint centres lie about 0.03 H inside the acromia on
+each side).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+
+from ptrack.body.skeleton import Skeleton
+from ptrack.errors import InputError
+
+#: landmark -> CMU ASF bone whose end point marks it ("root" is the pelvis centre)
+CMU_LANDMARK_JOINTS: dict[str, str] = {
+    "pelvis": "root",
+    "spine": "upperback",
+    "thorax": "thorax",
+    # BODY_25's Neck (the shoulders' midpoint) and BODY_25B's UpperNeck (on the Pose2Sim data 4-6 cm above
+    # that midpoint) both fall nearest the lower neck's end: CMU's shoulders sit 6 cm above its thorax's end
+    "neck": "lowerneck",
+    "upper_neck": "lowerneck",
+    "head_top": "head",
+    **{
+        f"{s}_{part}": f"{s}{bone}"
+        for s in "lr"
+        for part, bone in (
+            ("shoulder", "clavicle"),
+            ("elbow", "humerus"),
+            ("wrist", "radius"),
+            ("hip", "hipjoint"),
+            ("knee", "femur"),
+            ("ankle", "tibia"),
+            ("big_toe", "toes"),
+            ("foot_index", "toes"),
+        )
+    },
+}
+
+#: segment -> (landmark a, landmark b, length / height): Winter (2009) fig. 4.1, see the module docstring
+SEGMENTS: dict[str, tuple[str, str, float]] = {
+    "thigh": ("l_hip", "l_knee", 0.530 - 0.285),
+    "shank": ("l_knee", "l_ankle", 0.285 - 0.039),
+    "upper_arm": ("l_shoulder", "l_elbow", 0.186),
+    "forearm": ("l_elbow", "l_wrist", 0.146),
+    "hips": ("l_hip", "r_hip", 0.11),
+    "shoulders": ("l_shoulder", "r_shoulder", 0.20),
+    "trunk": ("pelvis", "neck", 0.818 - 0.530),
+    "head": ("neck", "head_top", 1.0 - 0.818),
+    "foot": ("l_ankle", "l_big_toe", 0.152 - 0.039),
+}
+
+#: segment -> the CMU bones scaled together to fit it (each side's bones get the same factor)
+CMU_SEGMENT_BONES: dict[str, tuple[str, ...]] = {
+    "thigh": ("lfemur", "rfemur"),
+    "shank": ("ltibia", "rtibia"),
+    "upper_arm": ("lhumerus", "rhumerus"),
+    "forearm": ("lradius", "rradius", "lwrist", "rwrist", "lhand", "rhand", "lfingers", "rfingers", "lthumb", "rthumb"),
+    "hips": ("lhipjoint", "rhipjoint"),
+    "shoulders": ("lclavicle", "rclavicle"),
+    "trunk": ("lowerback", "upperback", "thorax"),
+    "head": ("lowerneck", "upperneck", "head"),
+    "foot": ("lfoot", "rfoot", "ltoes", "rtoes"),
+}
+
+#: the plausible range of a subject's height, metres
+HEIGHT_RANGE_M = (0.5, 2.6)
+
+
+def check_height(height_m: float, key: str = "subject.height_m") -> float:
+    """`height_m` as a float; InputError unless it is finite and within `HEIGHT_RANGE_M`."""
+    h = float(height_m)
+    lo, hi = HEIGHT_RANGE_M
+    if not (lo <= h <= hi):  # also false for NaN
+        raise InputError(f"config key {key!r} is {height_m} m; a person's height must be within {lo}-{hi} m")
+    return h
+
+
+def landmark_joints(skeleton: Skeleton, landmarks: tuple[str, ...]) -> list[str | None]:
+    """For each landmark (K,), the joint of `skeleton` that marks it, None where it has no place.
+
+    Only CMU ASF skeletons (joint names as in `CMU_LANDMARK_JOINTS`) are placed; InputError for others."""
+    placed = [CMU_LANDMARK_JOINTS.get(m) for m in landmarks]
+    missing = sorted({j for j in placed if j is not None and j not in skeleton.joint_names})
+    if missing:
+        raise InputError(
+            f"skeleton {skeleton.name!r} lacks the CMU joints {missing} that place a detector's keypoints; "
+            f"real keypoint files need a CMU ASF skeleton (data.asf)"
+        )
+    return placed
+
+
+def segment_lengths(skeleton: Skeleton) -> dict[str, float]:
+    """Each segment of `SEGMENTS` measured on `skeleton`'s rest pose, metres."""
+    joints = skeleton.forward_kinematics(torch.zeros(skeleton.num_dofs, dtype=torch.float64)).numpy()
+    out = {}
+    for name, (a, b, _) in SEGMENTS.items():
+        ia, ib = (skeleton.joint_index(CMU_LANDMARK_JOINTS[m]) for m in (a, b))
+        out[name] = float(np.linalg.norm(joints[ia] - joints[ib]))
+    return out
+
+
+def scale_to_height(skeleton: Skeleton, height_m: float, targets: Mapping[str, float] | None = None) -> Skeleton:
+    """`skeleton` (a CMU ASF model) with its bone lengths set so that every segment of `SEGMENTS` has its
+    fraction of `height_m` (or the length `targets` gives it, metres), the root's rest height scaled along.
+
+    The bones of a segment (`CMU_SEGMENT_BONES`) share one factor, found by Gauss-Newton on the rest pose's
+    segment lengths (the segments overlap: the trunk's length depends on the hips' bones too)."""
+    h = check_height(height_m)
+    want = {name: frac * h for name, (_, _, frac) in SEGMENTS.items()}
+    want.update(targets or {})
+    names = list(SEGMENTS)
+    groups = [[skeleton.joint_index(b) for b in CMU_SEGMENT_BONES[n]] for n in names]
+    landmarks = [
+        (skeleton.joint_index(CMU_LANDMARK_JOINTS[a]), skeleton.joint_index(CMU_LANDMARK_JOINTS[b]))
+        for a, b, _ in SEGMENTS.values()
+    ]
+    base = torch.as_tensor(skeleton.lengths, dtype=torch.float64)
+    target = torch.tensor([want[n] for n in names], dtype=torch.float64)
+    q = torch.zeros(skeleton.num_dofs, dtype=torch.float64)
+    member = torch.zeros(len(names), skeleton.num_joints, dtype=torch.float64)
+    for g, idx in enumerate(groups):
+        member[g, idx] = 1.0
+
+    def residual(log_s: torch.Tensor) -> torch.Tensor:
+        lengths = base * torch.exp(log_s @ member)
+        joints = skeleton.forward_kinematics(q, lengths=lengths)
+        seg = torch.stack([(joints[a] - joints[b]).norm() for a, b in landmarks])
+        return torch.log(seg / target)
+
+    log_s = torch.zeros(len(names), dtype=torch.float64)
+    for _ in range(20):
+        r = residual(log_s)
+        if float(r.abs().max()) < 1e-10:
+            break
+        jac = torch.autograd.functional.jacobian(residual, log_s)
+        log_s = log_s - torch.linalg.lstsq(jac, r.unsqueeze(-1)).solution.squeeze(-1)
+    factor = torch.exp(log_s @ member).numpy()
+    lengths = skeleton.lengths * factor
+    # the root's rest position (ASF: where it is in the rest pose) follows the legs
+    legs = float(np.exp(log_s[names.index("thigh")] + log_s[names.index("shank")]) / 2)
+    return dataclasses.replace(
+        skeleton,
+        name=f"{skeleton.name} scaled to {h:.2f} m",
+        lengths=lengths,
+        root_position=skeleton.root_position * legs,
+    )
