@@ -103,15 +103,41 @@ class CameraConfig:
     azimuth_deg: float = setting(30.0, "about world up (+Y), from +Z towards +X, degrees")
     elevation_deg: float = setting(10.0, "above the horizontal, degrees; positive looks down")
     focal_px: float = setting(1000.0, "focal length, pixels")
-    width: int = setting(640, "image width, pixels")
-    height: int = setting(480, "image height, pixels")
+    width: int | None = setting(
+        None, "image width, pixels; null: 640 when simulating, else the camera file's or video's"
+    )
+    height: int | None = setting(
+        None, "image height, pixels; null: 480 when simulating, else the camera file's or video's"
+    )
+    file: str | None = setting(
+        None, "real footage: camera file (Pose2Sim TOML, OpenCV YAML/JSON, EasyMocap intri/extri)"
+    )
+    name: str | None = setting(None, "the camera of camera.file (cam01, cam_01 or 1); null: its only camera")
+    up: str | None = setting(
+        None, "the calibration world's up axis (x, y, z, -y, ...); null: +Z for Pose2Sim, else level camera"
+    )
+    fov_deg: float | None = setting(
+        None, "no camera.file: diagonal field of view, degrees; null: focal = image diagonal"
+    )
 
 
 @dataclass(frozen=True)
 class ObservationsConfig:
     """The 2D observations: a file, or the seeded lossy channel that simulates them (DiFranco et al. §2)."""
 
-    file: str | None = setting(None, "npz of real 2D keypoints (Observations.save_npz layout); null = simulate")
+    file: str | None = setting(
+        None, "real 2D keypoints: a detector's file or folder (OpenPose, COCO, MMPose, MediaPipe, npz); null = simulate"
+    )
+    video: str | None = setting(None, "a video to detect the keypoints in first (MediaPipe; the video extra)")
+    format: str | None = setting(
+        None, "observations.file's format: openpose, coco, mmpose, mediapipe, npz; null: inferred"
+    )
+    keypoint_set: str | None = setting(None, "the file's keypoint set (BODY_25B, COCO_17, ...); null: inferred")
+    fps: float | None = setting(None, "frames per second of the keypoint file; null: the file's or the video's")
+    person: int | tuple[float, ...] | None = setting(
+        None, "the person to reconstruct: a track id, or [x, y] px in the first frame; null: largest, most present"
+    )
+    min_score: float = setting(0.3, "detector scores below this are missing keypoints (Pose2Sim's threshold)")
     noise_px: float = setting(2.0, "Gaussian pixel noise std")
     missing: float = setting(0.0, "fraction of keypoints deleted at random")
     outliers: float = setting(0.0, "fraction of kept keypoints (confidence 1) that are gross outliers")
@@ -219,6 +245,13 @@ class KjsMethodConfig:
     smooth_link_m: float = setting(0.1, "smoother: neighbours within this mean joint distance (metres) are linked")
     recombine: bool = setting(True, "one more hypothesis per frame: each chain's reading by its own Viterbi pass")
     recombine_sigma_m: float = setting(0.15, "recombine: velocity std on the chain's joints, metres per frame")
+
+
+@dataclass(frozen=True)
+class SubjectConfig:
+    """The person of real footage: the template skeleton (data.asf) scaled to a height."""
+
+    height_m: float | None = setting(None, "the person's height, metres; null: 1.70 m, with a warning")
 
 
 @dataclass(frozen=True)
@@ -342,6 +375,7 @@ class RunConfig:
     costs: CostsConfig = field(default_factory=CostsConfig)
     frame: FrameMethodConfig = field(default_factory=FrameMethodConfig)
     kjs: KjsMethodConfig = field(default_factory=KjsMethodConfig)
+    subject: SubjectConfig = field(default_factory=SubjectConfig)
     keyframes: KeyframesConfig = field(default_factory=KeyframesConfig)
     batch: BatchMethodConfig = field(default_factory=BatchMethodConfig)
     pca: PcaMethodConfig = field(default_factory=PcaMethodConfig)
@@ -356,6 +390,8 @@ _PATH_KEYS = {
     "data.amc",
     "observations.file",
     "observations.correspondence_file",
+    "observations.video",
+    "camera.file",
     "out_dir",
     "keyframes.file",
     "init_from",
@@ -568,8 +604,10 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         return
     if not cfg.data.asf:
         raise InputError("config key 'data.asf' is required (path to the ASF file)")
-    if not cfg.data.amc and not cfg.observations.file:
-        raise InputError("config key 'data.amc' is required (path to the AMC file)")
+    if not cfg.data.amc and not cfg.observations.file and not cfg.observations.video:
+        raise InputError(
+            "config key 'data.amc' is required (path to the AMC file), or observations.file / observations.video"
+        )
     d = cfg.data
     if d.start < 0:
         raise InputError(f"config key 'data.start' must be >= 0, got {d.start}")
@@ -582,7 +620,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         if getattr(c, k) <= 0:
             raise InputError(f"config key 'camera.{k}' must be positive, got {getattr(c, k)}")
     for k in ("width", "height"):
-        if getattr(c, k) <= 0:
+        if getattr(c, k) is not None and getattr(c, k) <= 0:
             raise InputError(f"config key 'camera.{k}' must be positive, got {getattr(c, k)}")
     from ptrack.observe.observations import CHANNEL_RANGES, channel_range_error
 
@@ -591,6 +629,20 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         if error:
             raise InputError(f"config key 'observations.{k}' {error}")
     o = cfg.observations
+    if o.file and o.video:
+        raise InputError("config keys 'observations.file' and 'observations.video' are both set: give one")
+    if o.fps is not None and not 0 < o.fps <= 10000:
+        raise InputError(f"config key 'observations.fps' must be in (0, 10000], got {o.fps}")
+    if not 0 <= o.min_score < 1:
+        raise InputError(f"config key 'observations.min_score' must be in [0, 1), got {o.min_score}")
+    if isinstance(o.person, tuple) and len(o.person) != 2:
+        raise InputError(f"config key 'observations.person' must be a track id or [x, y], got {list(o.person)}")
+    if c.fov_deg is not None and not 1 <= c.fov_deg <= 170:
+        raise InputError(f"config key 'camera.fov_deg' must be in [1, 170] degrees, got {c.fov_deg}")
+    if cfg.subject.height_m is not None:
+        from ptrack.body.subject import check_height
+
+        check_height(cfg.subject.height_m)
     if o.correspondences < 0:
         raise InputError(f"config key 'observations.correspondences' must be >= 0, got {o.correspondences}")
     if not 0 <= o.correspondence_noise_px < float("inf"):

@@ -49,6 +49,7 @@ from ptrack.observe.observations import ChannelConfig, Observations, simulate_ob
 from ptrack.observe.silhouette import capsule_radii, render_silhouettes
 from ptrack.pipeline import metrics as M
 from ptrack.pipeline.config import RunConfig, check_device, dump_yaml
+from ptrack.pipeline.footage import FootageFrame, keypoints_in_world, prepare_footage
 from ptrack.pipeline.keyframes import ground_truth_keyframes, read_keyframes
 from ptrack.pipeline.memory import check_memory
 from ptrack.problem import Estimate, Problem
@@ -78,6 +79,7 @@ class Prepared:
     frames: np.ndarray  # (T,) AMC frame numbers (or observation indices)
     # (T, K) keypoints the camera sees (simulated: in front and in the image; a file: confidence > 0)
     visible: torch.Tensor | None = None
+    footage: FootageFrame | None = None  # real footage: input frame numbers, frames of reference, the person
 
 
 def _device(cfg: RunConfig) -> torch.device:
@@ -86,8 +88,23 @@ def _device(cfg: RunConfig) -> torch.device:
     return torch.device(cfg.device)
 
 
+def is_observations_npz(path: str | Path) -> bool:
+    """Whether `path` is an npz in ptrack's own observations layout (`Observations.save_npz`), as opposed to
+    a detector's keypoint file."""
+    p = Path(path)
+    if p.suffix != ".npz" or not p.is_file():
+        return False
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            return {"keypoints", "confidence", "times"} <= set(z.files)
+    except (OSError, ValueError):
+        return False
+
+
 def prepare(cfg: RunConfig) -> Prepared:
     """Load data and make the observations for `cfg` (see module docstring)."""
+    if cfg.observations.video or (cfg.observations.file and not is_observations_npz(cfg.observations.file)):
+        return prepare_real(cfg)
     dtype, device = DTYPES[cfg.dtype], _device(cfg)
     full = Skeleton.from_asf(cfg.data.asf).with_limits(cfg.model.limits)
     model = full.freeze(list(cfg.model.freeze)) if cfg.model.freeze else full
@@ -133,7 +150,7 @@ def prepare(cfg: RunConfig) -> Prepared:
         assert motion is not None and gt_joints is not None  # the config check: data.amc without observations.file
         c = cfg.camera
         camera = camera_for_motion(
-            gt_joints, c.distance_m, c.azimuth_deg, c.elevation_deg, c.focal_px, c.width, c.height
+            gt_joints, c.distance_m, c.azimuth_deg, c.elevation_deg, c.focal_px, c.width or 640, c.height or 480
         )
         o = cfg.observations
         channel = ChannelConfig(
@@ -232,6 +249,45 @@ def prepare(cfg: RunConfig) -> Prepared:
         problem=problem,
         frames=np.asarray(frames),
         visible=visible.cpu(),
+    )
+
+
+def prepare_real(cfg: RunConfig) -> Prepared:
+    """`prepare` for real footage: a detector's keypoint file (or a video detected first), a camera file (or
+    none), the subject's height (`ptrack.pipeline.footage`)."""
+    dtype, device = DTYPES[cfg.dtype], _device(cfg)
+    if cfg.data.amc:
+        log.warning("data.amc is ignored: observations come from real footage (%s)", cfg.observations.file)
+    if cfg.keyframes.every_s is not None or cfg.keyframes.last:
+        log.warning("keyframes.every_s/last take ground truth, which real footage has not; they are ignored")
+    template = Skeleton.from_asf(cfg.data.asf).with_limits(cfg.model.limits)
+    keypoints_file = cfg.observations.file
+    if keypoints_file is None:
+        raise InputError(
+            "observations.video is not wired yet"
+        )  # the detection step lands with ptrack.pipeline.detections
+    full, kps, obs, footage = prepare_footage(cfg, template, keypoints_file)
+    model = full.freeze(list(cfg.model.freeze)) if cfg.model.freeze else full
+    visible = obs.confidence > 0
+    check_visibility(visible)
+    check_observed(obs.confidence > 0, visible)
+    obs = obs.to(device=device, dtype=dtype)
+    keyframes = joint_keyframes = None
+    if cfg.keyframes.file:
+        kc = cfg.keyframes
+        keyframes, joint_keyframes = read_keyframes(kc.file, model, obs.num_frames, kc.sigma_deg, kc.sigma_m, dtype)
+    problem = Problem(
+        skeleton=model, keypoints=kps, observations=obs, keyframes=keyframes, joint_keyframes=joint_keyframes
+    )
+    return Prepared(
+        full=full,
+        motion=None,
+        gt_q=None,
+        gt_joints=None,
+        problem=problem,
+        frames=np.asarray(footage.frames),
+        visible=visible.cpu(),
+        footage=footage,
     )
 
 
@@ -593,6 +649,8 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
             "fps": float(est.q.shape[0] / seconds),
             **summary,
         }
+        if prep.footage is not None:
+            summary["footage"] = prep.footage.summary()
         _write_outputs(claim.path, cfg, prep, est, result_arrays(prep, est, reproj), summary, series)
         claim.finish(out)
     except BaseException:
@@ -708,6 +766,9 @@ def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[s
     }
     if prep.gt_joints is not None:
         arrays["gt_joints"] = prep.gt_joints.detach().cpu().numpy()
+    if prep.footage is not None:  # the keypoints under the input format's names, in the calibration's world
+        arrays["keypoints"] = keypoints_in_world(prep.footage, prob.keypoints, joints)
+        arrays["world_from_model"] = prep.footage.world_from_model
     for name in (
         "hypotheses",
         "hypothesis_weights",

@@ -1,0 +1,221 @@
+"""Real footage in: a detector's keypoint file (or a video to detect), a camera, a person's height -> the
+`Problem` an estimator solves, and the frames to report the result in.
+
+The steps, each owned by its module: read the keypoint file (`observe.keypoint_files`), choose the person
+(`observe.people`), read the camera (`observe.camera_files`; without one, intrinsics from the image size)
+and remove its lens distortion from the keypoints, scale the template skeleton to the person's height and
+place the detector's landmarks on it (`body.subject`).
+
+Frames of reference. ptrack's estimators work in a Y-up world (the CMU skeleton stands along +Y). The
+model frame is the calibration's world rotated so that its up axis is +Y:
+
+- a camera file with extrinsics and a known up axis (Pose2Sim: +Z; or `camera.up`): that axis; a
+  coordinate axis is brought to +Y by a cyclic permutation of the axes (Z up: model (X, Y, Z) = world
+  (Y, Z, X), as OpenSim's TRC files write the Pose2Sim lab), any other direction by the smallest rotation;
+- extrinsics, up unknown: the camera's image-up direction (-y of the camera) as the world's up, i.e. the
+  camera is taken to be level;
+- no extrinsics: the camera frame turned Y-up: origin at the camera, X right, Y up, Z towards the viewer
+  (the camera looks along -Z).
+
+`FootageFrame.world_from_model` (3, 3) takes model coordinates back to the calibration's world (the
+identity without extrinsics); `result.npz`'s `keypoints` are written in that world.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ptrack.body.keypoint_sets import get_keypoint_set
+from ptrack.body.keypoints import KeypointSet, landmark_keypoints
+from ptrack.body.skeleton import Skeleton
+from ptrack.body.subject import check_height, landmark_joints, scale_to_height
+from ptrack.errors import InputError
+from ptrack.observe.camera import Camera
+from ptrack.observe.camera_files import CameraFile, default_intrinsics, read_camera, undistort_points, world_up
+from ptrack.observe.keypoint_files import read_keypoints
+from ptrack.observe.observations import Observations
+from ptrack.observe.people import PersonTrack, select_person
+
+log = logging.getLogger(__name__)
+
+#: the height assumed when subject.height_m is not given, metres (an adult's, both sexes pooled)
+DEFAULT_HEIGHT_M = 1.70
+
+
+@dataclasses.dataclass(frozen=True)
+class FootageFrame:
+    """What a real-footage run reports besides the estimate.
+
+    frames: (T,) the input's frame numbers; keypoint_names: (K,) the input format's names of the keypoints
+    the model places; world_from_model: (3, 3) rotation, model frame -> the calibration's world;
+    camera: how the camera was obtained ("file NAME" or "focal from the image size ..."); height_m: the
+    subject height used and whether it was given; person: the chosen track and how many there were;
+    missing_frames: (M,) input frame numbers without the person; dropped: keypoints the model does not place.
+    """
+
+    frames: np.ndarray
+    keypoint_names: tuple[str, ...]
+    world_from_model: np.ndarray
+    camera: str
+    height_m: float
+    height_given: bool
+    track_id: int
+    n_tracks: int
+    missing_frames: np.ndarray
+    dropped: tuple[str, ...]
+    keypoint_set: str
+
+    def summary(self) -> dict:
+        """JSON-ready record for metrics.json."""
+        return {
+            "keypoint_set": self.keypoint_set,
+            "camera": self.camera,
+            "height_m": self.height_m,
+            "height_given": self.height_given,
+            "person_track": self.track_id,
+            "tracks": self.n_tracks,
+            "frames_without_person": [int(f) for f in self.missing_frames],
+            "keypoints_not_placed": list(self.dropped),
+        }
+
+
+def axis_to_y(up: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation A with A @ up = +Y: a cyclic permutation of the axes when `up` is +-X, +-Y or +-Z
+    (a coordinate axis stays a coordinate axis), else the smallest rotation. up: (3,) unit vector."""
+    up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    k = int(np.argmax(np.abs(up)))
+    if abs(abs(up[k]) - 1.0) < 1e-12:
+        perm = {0: [[0, 0, 1], [1, 0, 0], [0, 1, 0]], 1: np.eye(3), 2: [[0, 1, 0], [0, 0, 1], [1, 0, 0]]}[k]
+        A = np.asarray(perm, dtype=np.float64)
+        return A if up[k] > 0 else np.diag([1.0, -1.0, -1.0]) @ A  # turned half about X: -axis -> +Y
+    y = np.array([0.0, 1.0, 0.0])
+    v, c = np.cross(up, y), float(up @ y)
+    if np.linalg.norm(v) < 1e-12:  # up = -Y
+        return np.diag([1.0, -1.0, -1.0])
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def _camera(cfg, track_image_size: tuple[int, int] | None, video_size: tuple[int, int] | None):
+    """-> (CameraFile or None, K (3,3), R (3,3) world->camera, t (3,), width, height, description)."""
+    c = cfg.camera
+    if c.file:
+        cam = read_camera(c.file, c.name)
+        width = cam.width or (video_size or track_image_size or (None, None))[0]
+        height = cam.height or (video_size or track_image_size or (None, None))[1]
+        if width is None or height is None:
+            raise InputError(f"camera file {c.file} does not give the image size; set camera.width and camera.height")
+        R = cam.R if cam.R is not None else np.eye(3)
+        t = cam.t if cam.t is not None else np.zeros(3)
+        return cam, cam.K, R, t, int(width), int(height), f"file {c.file} camera {cam.name}"
+    size = video_size or track_image_size
+    if size is None:
+        if c.width is None or c.height is None:
+            raise InputError(
+                "no camera.file and the keypoint file does not give the image size: set camera.width and "
+                "camera.height (the video's size in pixels) or camera.file"
+            )
+        size = (c.width, c.height)
+    width, height = int(size[0]), int(size[1])
+    K = default_intrinsics(width, height, c.fov_deg)
+    fov = c.fov_deg if c.fov_deg is not None else math.degrees(2 * math.atan(0.5))
+    what = f"no camera file: focal {K[0, 0]:.1f} px from the image size {width} x {height} (diagonal field of view {fov:.1f} deg)"
+    return None, K, np.eye(3), np.zeros(3), width, height, what
+
+
+def model_frame(cam: CameraFile | None, R: np.ndarray, up_key: str | None) -> np.ndarray:
+    """(3, 3) A: model coordinates = A @ world coordinates (see the module docstring)."""
+    if cam is None or cam.R is None:
+        return R.T @ np.diag([1.0, -1.0, -1.0])  # world = camera frame here (R = I): camera turned Y-up
+    up = world_up(cam, up_key)
+    if up is None:
+        up = R.T @ np.array([0.0, -1.0, 0.0])  # the camera's image-up, taken as level
+        log.info("camera %s: the world's up axis is not known; the camera's image-up is taken as up", cam.name)
+    return axis_to_y(up)
+
+
+def person_observations(
+    track: PersonTrack, placed: np.ndarray, cam: CameraFile | None, camera: Camera, fps: float, min_score: float
+) -> Observations:
+    """The chosen person's placed keypoints (K of them, `placed` (K,) indices into the file's) as
+    `Observations`: lens distortion removed, scores clipped to [0, 1], those under `min_score` missing."""
+    xy = track.points[:, placed].astype(np.float64)
+    conf = np.clip(np.nan_to_num(track.scores[:, placed], nan=0.0), 0.0, 1.0)
+    conf[conf < min_score] = 0.0
+    conf[~np.isfinite(xy).all(-1)] = 0.0
+    if cam is not None and np.any(cam.dist != 0):
+        seen = conf > 0
+        xy[seen] = undistort_points(xy[seen], cam)
+        conf[~np.isfinite(xy).all(-1)] = 0.0
+    xy[conf == 0] = 0.0
+    times = (track.frames - track.frames[0]) / fps
+    return Observations(
+        keypoints=torch.as_tensor(xy),
+        confidence=torch.as_tensor(conf),
+        times=torch.as_tensor(times, dtype=torch.float64),
+        camera=camera,
+        keypoint_names=tuple(get_keypoint_set(track.keypoint_set).names[i] for i in placed),
+    )
+
+
+def prepare_footage(cfg, template: Skeleton, keypoints_path: str | Path, video_size=None, video_fps=None):
+    """-> (skeleton scaled to the subject, KeypointSet, Observations (float64, CPU), FootageFrame)."""
+    o = cfg.observations
+    det = read_keypoints(keypoints_path, o.format, o.keypoint_set, o.fps)
+    fps = o.fps or det.fps or video_fps
+    if fps is None:
+        raise InputError(f"{keypoints_path} does not say its frame rate: set observations.fps")
+    track = select_person(
+        det, None if o.person is None else (o.person if isinstance(o.person, int) else tuple(o.person))
+    )
+    definition = get_keypoint_set(track.keypoint_set)
+    given = cfg.subject.height_m is not None
+    height = check_height(cfg.subject.height_m) if given else DEFAULT_HEIGHT_M
+    if not given:
+        log.warning("subject.height_m is not given: %.2f m is assumed (the result's scale follows it)", height)
+    skeleton = scale_to_height(template, height)
+    joints = landmark_joints(skeleton, definition.landmarks)
+    placed = np.array([k for k, j in enumerate(joints) if j is not None], dtype=np.int64)
+    dropped = tuple(definition.names[k] for k, j in enumerate(joints) if j is None)
+    if len(placed) < 6:
+        raise InputError(
+            f"keypoint set {definition.name} has {len(placed)} keypoints ptrack can place; at least 6 are needed"
+        )
+    if dropped:
+        log.info("keypoints %s have no place on the skeleton and are not used", ", ".join(dropped))
+    cam, K, R, t, width, height_px, what = _camera(cfg, det.image_size, video_size)
+    A = model_frame(cam, R, cfg.camera.up)
+    camera = Camera(K=torch.tensor(K), R=torch.tensor(R @ A.T), t=torch.tensor(t), width=width, height=height_px)
+    obs = person_observations(track, placed, cam, camera, float(fps), o.min_score)
+    kps = landmark_keypoints(
+        skeleton,
+        tuple(definition.names[k] for k in placed),
+        tuple(definition.landmarks[k] for k in placed),
+        [str(joints[k]) for k in placed],
+    )
+    frame = FootageFrame(
+        frames=track.frames,
+        keypoint_names=obs.keypoint_names,
+        world_from_model=A.T,
+        camera=what,
+        height_m=height,
+        height_given=given,
+        track_id=track.track_id,
+        n_tracks=track.n_tracks,
+        missing_frames=track.frames[~track.present],
+        dropped=dropped,
+        keypoint_set=definition.name,
+    )
+    return skeleton, kps, obs, frame
+
+
+def keypoints_in_world(frame: FootageFrame, kps: KeypointSet, joints: torch.Tensor) -> np.ndarray:
+    """joints (T, J, 3) model frame -> (T, K, 3) the placed keypoints in the calibration's world."""
+    pts = joints.detach().cpu().double().index_select(-2, kps.index()).numpy()
+    return pts @ frame.world_from_model.T

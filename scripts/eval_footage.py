@@ -1,0 +1,94 @@
+"""Real footage against its 3D reference: the Pose2Sim balancing trial (../shared/data/pose2sim), each camera
+on its own.
+
+For each camera (cam01, cam02): `ptrack run configs/video.yaml` on its OpenPose BODY_25B folder with the
+calibration and the participant's height (1.72 m, the session's own config), then the 12 body keypoints
+(shoulders, elbows, wrists, hips, knees, ankles) of result.npz's `keypoints` (the calibration's world, Z up)
+against the triangulated TRC (OpenSim's axes: TRC (X, Y, Z) = lab (Y, Z, X); TRC row i is frame i):
+
+    MPJPE     mean over frames of the mean keypoint distance, no alignment (world frame), mm
+    PA-MPJPE  the same after a per-frame similarity (rotation, translation, scale) onto the reference, mm
+
+The reference is a triangulation of the same detector's keypoints from four cameras, not marker motion
+capture: it reprojects into cam01/cam02 at about 8-12 px (README of the data).
+
+    python scripts/eval_footage.py [--out logs/eval_footage] [--cameras cam01,cam02] [key=value ...]
+
+Extra key=value arguments are passed to every run (e.g. method=batch). Existing run folders are reused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data" / "pose2sim"
+BODY12 = ["LShoulder", "RShoulder", "LElbow", "RElbow", "LWrist", "RWrist"]
+BODY12 += ["LHip", "RHip", "LKnee", "RKnee", "LAnkle", "RAnkle"]
+HEIGHT_M = 1.72
+FPS = 60
+
+
+def read_trc(path: Path) -> tuple[list[str], np.ndarray]:
+    """An OpenSim TRC file -> (marker names (M,), positions (T, M, 3) in the file's axes and units)."""
+    lines = path.read_text().splitlines()
+    names = [n for n in lines[3].split("\t")[2:] if n.strip()]
+    rows = [line.split("\t") for line in lines[5:] if line.strip()]
+    data = np.array([[float(x) for x in r[2 : 2 + 3 * len(names)]] for r in rows])
+    return names, data.reshape(len(rows), len(names), 3)
+
+
+def similarity_align(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """x, y (K, 3) -> x moved by the similarity transform that best fits it onto y (Umeyama)."""
+    mx, my = x.mean(0), y.mean(0)
+    a, b = x - mx, y - my
+    u, s, vt = np.linalg.svd(a.T @ b)
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    r = u @ d @ vt
+    scale = (s * np.diag(d)).sum() / (a**2).sum()
+    return scale * a @ r + my
+
+
+def errors(result: Path, trc: Path) -> dict[str, float]:
+    """result.npz of a run against the TRC -> {mpjpe_mm, pa_mpjpe_mm, frames}."""
+    with np.load(result) as z:
+        names = [str(n) for n in z["keypoint_names"]]
+        est = z["keypoints"][:, [names.index(n) for n in BODY12]]
+        frames = z["frames"]
+    tnames, ref = read_trc(trc)
+    ref = ref[:, [tnames.index(n) for n in BODY12]][:, :, [2, 0, 1]]  # TRC (X, Y, Z) = lab (Y, Z, X)
+    ref = ref[frames]
+    mpjpe = np.linalg.norm(est - ref, axis=-1).mean(-1)
+    pa = np.array([np.linalg.norm(similarity_align(e, r) - r, axis=-1).mean() for e, r in zip(est, ref)])
+    return {"mpjpe_mm": 1000 * float(mpjpe.mean()), "pa_mpjpe_mm": 1000 * float(pa.mean()), "frames": len(frames)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="logs/eval_footage")
+    ap.add_argument("--cameras", default="cam01,cam02")
+    ap.add_argument("overrides", nargs="*")
+    args = ap.parse_args()
+    if not DATA.is_dir():
+        sys.exit(f"eval_footage: no data at {DATA}")
+    print(f"| camera | MPJPE mm | PA-MPJPE mm | frames | overrides: {' '.join(args.overrides) or '(defaults)'} |")
+    print("|---|---|---|---|---|")
+    for cam in args.cameras.split(","):
+        out = Path(args.out) / cam
+        if not (out / "result.npz").is_file():
+            cmd = [sys.executable, "-m", "ptrack.cli", "run", str(REPO / "configs" / "video.yaml")]
+            cmd += [f"observations.file={DATA / 'balancing' / 'pose' / f'{cam}_json'}"]
+            cmd += [f"camera.file={DATA / 'Calib_qualisys.toml'}", f"camera.name={cam}"]
+            cmd += [f"subject.height_m={HEIGHT_M}", f"observations.fps={FPS}", f"out_dir={out}", "progress=false"]
+            subprocess.run([*cmd, *args.overrides], check=True)
+        e = errors(out / "result.npz", DATA / "balancing" / "triangulated.trc")
+        print(f"| {cam} | {e['mpjpe_mm']:.1f} | {e['pa_mpjpe_mm']:.1f} | {e['frames']} | |")
+
+
+if __name__ == "__main__":
+    main()
