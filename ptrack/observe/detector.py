@@ -40,6 +40,11 @@ from ptrack.observe.video import INSTALL_HINT, read_frames
 log = logging.getLogger(__name__)
 
 K = MEDIAPIPE_33.num_keypoints
+#: MediaPipe Pose's model: 1 is the one inside the wheel (0 and 2 download theirs)
+MODEL_COMPLEXITY = 1
+#: the version of what `detect` makes of MediaPipe's output: raise it when that changes for the same video, so
+#: that cached detections (`ptrack.pipeline.detections`, keyed on it) are made again
+OUTPUT_VERSION = 1
 
 
 def import_mediapipe() -> ModuleType:
@@ -118,7 +123,7 @@ def detect(
                     with _native_stderr_to_log():
                         pose = mp.solutions.pose.Pose(
                             static_image_mode=False,
-                            model_complexity=1,
+                            model_complexity=MODEL_COMPLEXITY,
                             smooth_landmarks=smooth_landmarks,
                             enable_segmentation=False,
                             min_detection_confidence=min_detection_confidence,
