@@ -31,6 +31,10 @@ _EXPORTS = {
     "Motion": "ptrack.body.skeleton",
     "Skeleton": "ptrack.body.skeleton",
     "load_amc": "ptrack.body.skeleton",
+    "read_keypoints": "ptrack.observe.keypoint_files",
+    "select_person": "ptrack.observe.people",
+    "read_camera": "ptrack.observe.camera_files",
+    "detect": "ptrack.observe.detector",
 }
 
 __all__ = sorted(_EXPORTS)
@@ -54,6 +58,10 @@ if TYPE_CHECKING:
     from ptrack.body.skeleton import Motion, Skeleton, load_amc
     from ptrack.errors import InputError
     from ptrack.observe.camera import Camera, camera_for_motion, look_at
+    from ptrack.observe.camera_files import read_camera
+    from ptrack.observe.detector import detect
+    from ptrack.observe.keypoint_files import read_keypoints
     from ptrack.observe.observations import ChannelConfig, Observations, simulate_observations
+    from ptrack.observe.people import select_person
     from ptrack.pipeline.config import load_config
     from ptrack.pipeline.run import estimate

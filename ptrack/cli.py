@@ -243,7 +243,8 @@ def _main(args: argparse.Namespace) -> int:
         elif args.command == "detect":
             import time
 
-            from ptrack.observe.detector import check_output, default_output, detect, write_mediapipe_landmarks
+            from ptrack.observe.detector import check_output, default_output, detect
+            from ptrack.observe.keypoint_files import write_mediapipe_landmarks
             from ptrack.pipeline.run import progress_display
 
             out = check_output(args.out or default_output(args.video))  # before minutes of detection

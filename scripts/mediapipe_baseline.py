@@ -34,7 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ptrack.observe.detector import MEDIAPIPE33_NAMES, detect
+from ptrack.body.keypoint_sets import MEDIAPIPE_33
+from ptrack.observe.detector import detect
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO_ROOT / ".." / "shared" / "data" / "pose2sim"
@@ -109,7 +110,7 @@ def evaluate(data: Path, cam: str, stop: int | None) -> dict[str, np.ndarray]:
     R, _ = read_calibration(data / "Calib_qualisys.toml", cam)
     lm = detect(data / "balancing" / "videos" / f"{cam}.mp4", stop=stop)
     ref_idx = [names.index(n) for n, _ in BODY12]
-    mp_idx = [MEDIAPIPE33_NAMES.index(n) for _, n in BODY12]
+    mp_idx = [MEDIAPIPE_33.names.index(n) for _, n in BODY12]
     by_frame = {int(f): i for i, f in enumerate(trc_frames)}
     pa, root, per_joint, unswapped, still = [], [], [], [], []
     first = trc_to_lab(trc[by_frame[int(lm.frames[0]) + 1], ref_idx]) if len(lm.frames) else None

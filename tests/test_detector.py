@@ -19,13 +19,8 @@ from cli_errors import fail
 
 from ptrack.cli import main
 from ptrack.errors import InputError
-from ptrack.observe.detector import (
-    MEDIAPIPE33_NAMES,
-    Landmarks,
-    default_output,
-    detect,
-    write_mediapipe_landmarks,
-)
+from ptrack.observe.detector import default_output, detect
+from ptrack.observe.keypoint_files import MediaPipeLandmarks, read_keypoints, write_mediapipe_landmarks
 from ptrack.observe.video import read_frames, video_info
 
 REPO = Path(__file__).resolve().parents[1]
@@ -53,7 +48,7 @@ def mediapipe():
 
 
 @pytest.fixture(scope="module")
-def detected(cam01, mediapipe) -> tuple[Landmarks, list[int]]:
+def detected(cam01, mediapipe) -> tuple[MediaPipeLandmarks, list[int]]:
     """detect() on cam01's first FRAMES frames, and the lengths its progress wrapper was given."""
     lengths: list[int] = []
 
@@ -138,7 +133,7 @@ def test_detect_finds_the_participant_where_openpose_does(detected):
     assert lengths == [T]  # the progress wrapper gets the sized frames
     assert lm.frames.tolist() == list(range(T))
     assert lm.landmarks.shape == (T, 33, 3) and lm.world_landmarks.shape == (T, 33, 3)
-    assert (lm.width, lm.height, lm.fps, lm.keypoint_set) == (1080, 1920, 60.0, "mediapipe33")
+    assert (lm.width, lm.height, lm.fps) == (1080, 1920, 60.0)
     assert lm.found.all()
     xy, score = lm.landmarks[:, BODY, :2], lm.landmarks[:, BODY, 2]
     assert ((xy >= 0) & (xy <= [1080, 1920])).all()  # the participant stands inside the portrait frame
@@ -191,9 +186,9 @@ def test_frames_without_a_person_are_nan_with_score_zero(tmp_path, mediapipe):
 # ---------------------------------------------------------------- the landmarks file
 
 
-def _landmarks(T: int = 4) -> Landmarks:
+def _landmarks(T: int = 4) -> MediaPipeLandmarks:
     rng = np.random.default_rng(0)
-    return Landmarks(
+    return MediaPipeLandmarks(
         frames=np.arange(T) + 10,
         landmarks=rng.uniform(0, 100, (T, 33, 3)),
         world_landmarks=rng.normal(size=(T, 33, 3)),
@@ -219,12 +214,11 @@ def test_landmarks_file_layout(tmp_path):
             "keypoint_set",
         }
         assert z["frames"].dtype == np.int64 and z["frames"].tolist() == [10, 11, 12, 13]
-        np.testing.assert_array_equal(z["landmarks"], lm.landmarks)
-        np.testing.assert_array_equal(z["world_landmarks"], lm.world_landmarks)
+        np.testing.assert_allclose(z["landmarks"], lm.landmarks, rtol=1e-6)  # float32
+        np.testing.assert_allclose(z["world_landmarks"], lm.world_landmarks, rtol=1e-6)
         assert (float(z["fps"]), int(z["width"]), int(z["height"])) == (30.0, 640, 480)
-        assert (str(z["video"]), str(z["keypoint_set"])) == ("clip.mp4", "mediapipe33")
+        assert (str(z["video"]), str(z["keypoint_set"])) == ("clip.mp4", "MEDIAPIPE_33")
     assert list(path.parent.iterdir()) == [path]  # no temporary file left
-    assert len(MEDIAPIPE33_NAMES) == 33 and MEDIAPIPE33_NAMES[23] == "left_hip"
     assert default_output("/data/videos/cam01.mp4") == Path("cam01.landmarks.npz")
 
 
@@ -237,7 +231,7 @@ def test_interrupted_write_leaves_nothing(tmp_path, monkeypatch, stop):
         f.write(b"half")
         raise stop("stopped while writing")
 
-    monkeypatch.setattr(np, "savez_compressed", broken)
+    monkeypatch.setattr(np, "savez", broken)
     with pytest.raises(stop):
         write_mediapipe_landmarks(out, _landmarks())
     assert out.read_bytes() == b"the previous file"  # replaced only when complete
@@ -256,6 +250,31 @@ def test_cli_detect_writes_landmarks_in_the_current_folder(short_clip, tmp_path,
     with np.load(tmp_path / "clip.landmarks.npz", allow_pickle=False) as z:
         assert z["landmarks"].shape == (FRAMES, 33, 3) and np.isfinite(z["landmarks"]).all()
         assert str(z["video"]) == str(short_clip)
+    det = read_keypoints(tmp_path / "clip.landmarks.npz")
+    assert det.keypoint_set == "MEDIAPIPE_33" and det.frames.tolist() == list(range(FRAMES)) and det.present.all()
+
+
+def test_read_keypoints_reads_what_detect_writes(cam01, detected, tmp_path, monkeypatch, capsys):
+    """`ptrack detect`'s file, read back as keypoints: MediaPipe-33, the video's frames, size, rate and path."""
+    monkeypatch.setattr("ptrack.observe.detector.detect", lambda *a, **k: detected[0])  # the FRAMES already found
+    out = tmp_path / "cam01.landmarks.npz"
+    assert main(["detect", str(cam01), "--out", str(out), "--quiet"]) == 0
+    assert capsys.readouterr().out == f"{out}\n"
+    det = read_keypoints(out)  # the format inferred from the content
+    lm = detected[0]
+    assert det.keypoint_set == "MEDIAPIPE_33" and det.definition.names[23] == "left_hip"
+    assert det.frames.tolist() == list(range(FRAMES)) and det.people.shape == (FRAMES, 1, 33, 3)
+    assert (det.fps, det.image_size, det.video) == (60.0, (1080, 1920), str(cam01))
+    np.testing.assert_allclose(det.people[:, 0], lm.landmarks, rtol=1e-6)  # float32 in the file
+    assert det.present.all()
+
+
+def test_a_video_without_a_rate_writes_and_reads(tmp_path):
+    """A container without a frame rate: detect's fps is NaN; the file keeps it, and read_keypoints takes it as
+    unknown (or the given fps)."""
+    lm = _landmarks()
+    path = write_mediapipe_landmarks(tmp_path / "x.npz", MediaPipeLandmarks(**{**lm.__dict__, "fps": float("nan")}))
+    assert read_keypoints(path).fps is None and read_keypoints(path, fps=25).fps == 25.0
 
 
 def test_cli_detect_bad_video(tmp_path, capsys, mediapipe):

@@ -12,6 +12,7 @@ from keypoint_fixtures import SHIPPED_FRAMES, person, pose2sim
 from ptrack.body.keypoint_sets import BODY_25, BODY_25B, COCO_17, H36M_17, HALPE_26, KEYPOINT_SETS
 from ptrack.errors import InputError
 from ptrack.observe.keypoint_files import (
+    MediaPipeLandmarks,
     read_keypoints,
     read_mediapipe_landmarks,
     write_mediapipe_landmarks,
@@ -181,16 +182,8 @@ def test_mediapipe_landmarks_round_trip(tmp_path):
     lm[2] = np.nan  # no person detected in frame 2
     world = np.random.default_rng(0).normal(0, 0.3, (T, 33, 3))
     world[2] = np.nan
-    path = write_mediapipe_landmarks(
-        tmp_path / "clip.mediapipe.npz",
-        np.arange(10, 10 + T),
-        lm,
-        world,
-        fps=30,
-        width=1920,
-        height=1080,
-        video="a.mp4",
-    )
+    m = MediaPipeLandmarks(np.arange(10, 10 + T), lm, world, fps=30, width=1920, height=1080, video="a.mp4")
+    path = write_mediapipe_landmarks(tmp_path / "clip.mediapipe.npz", m)
     assert [p.name for p in tmp_path.iterdir()] == ["clip.mediapipe.npz"]  # nothing left beside it
     m = read_mediapipe_landmarks(path)
     np.testing.assert_allclose(m.world_landmarks, world, atol=1e-6)
@@ -204,9 +197,8 @@ def test_mediapipe_landmarks_round_trip(tmp_path):
 
 def test_write_mediapipe_rejects_bad_shapes(tmp_path):
     with pytest.raises(InputError, match="shape"):
-        write_mediapipe_landmarks(
-            tmp_path / "x.npz", np.arange(3), np.zeros((3, 17, 3)), np.zeros((3, 17, 3)), 30, 10, 10
-        )
+        bad = MediaPipeLandmarks(np.arange(3), np.zeros((3, 17, 3)), np.zeros((3, 17, 3)), 30, 10, 10, "")
+        write_mediapipe_landmarks(tmp_path / "x.npz", bad)
     assert not list(tmp_path.iterdir())
 
 

@@ -172,3 +172,17 @@ def test_allowed_imports_pass(tmp_path):
     (root / "cli.py").write_text("from ptrack import __version__\nfrom ptrack.pipeline import run\n")
     (root / "pipeline" / "run.py").write_text("from ptrack.estimators import frame\n")
     assert violations(root) == []
+
+
+def test_public_api_table_matches_its_type_checking_imports():
+    """`ptrack/__init__.py`: every lazily exported name resolves to the object its table names, and the
+    `if TYPE_CHECKING:` block imports exactly the table's names from the same modules (what type checkers see)."""
+    import ptrack
+
+    tree = ast.parse((PKG / "__init__.py").read_text())
+    block = next(n for n in tree.body if isinstance(n, ast.If) and ast.unparse(n.test) == "TYPE_CHECKING")
+    typed = {a.name: n.module for n in block.body if isinstance(n, ast.ImportFrom) for a in n.names}
+    assert typed == ptrack._EXPORTS
+    for name, module in ptrack._EXPORTS.items():
+        assert getattr(ptrack, name) is getattr(__import__(module, fromlist=[name]), name), name
+    assert {"read_keypoints", "select_person", "read_camera", "detect"} <= set(ptrack.__all__)

@@ -40,7 +40,10 @@ VIEW_CLASSES = {
     "LineStrips2D": {"2D", "3D"},
     "SegmentationImage": {"2D", "3D"},
     "AnnotationContext": {"2D", "3D"},
+    "AssetVideo": {"2D", "3D"},
+    "VideoFrameReference": {"2D", "3D"},
 }
+CAM01 = ROOT / ".." / "shared" / "data" / "pose2sim" / "balancing" / "videos" / "cam01.mp4"
 
 
 def _camera() -> Camera:
@@ -223,9 +226,13 @@ def test_scene_viewpoint_sees_the_person_and_the_camera(full):
     assert np.linalg.norm(camera - position) > 1.0
 
 
-@pytest.mark.parametrize("full_log", [True, False])
+@pytest.mark.parametrize("full_log", [True, False, "video"])
 def test_every_logged_entity_is_in_a_view(tmp_path, full_log):
-    log = _log(full=full_log)
+    log = _log(full=bool(full_log))
+    if full_log == "video":
+        if not CAM01.is_file():
+            pytest.skip(f"Pose2Sim demo video not found at {CAM01.resolve()}")
+        log = dataclasses.replace(log, video=str(CAM01), video_frames=np.arange(T))
     # a whole-sequence solver's uncertainty and cost per iteration (on its own timeline)
     log = dataclasses.replace(log, solver_cost=np.array([9.0, 5.0, 4.0]), joint_std=np.full((T, J), 0.02))
     write_recording(tmp_path / "run.rrd", log)
@@ -241,6 +248,26 @@ def test_every_logged_entity_is_in_a_view(tmp_path, full_log):
             missing.append(entity)
     assert not missing
     assert "metrics/never" not in rec.archetypes  # all NaN: neither logged nor plotted
+
+
+def test_video_is_under_the_points_in_the_camera_view(tmp_path):
+    """The camera's 2D view holds the video and draws it under every 2D point and line of the image."""
+    if not CAM01.is_file():
+        pytest.skip(f"Pose2Sim demo video not found at {CAM01.resolve()}")
+    write_recording(tmp_path / "run.rrd", dataclasses.replace(_log(), video=str(CAM01), video_frames=np.arange(T)))
+    rec = Recording(tmp_path / "run.rrd")
+    camera_view = next(v for v in rec.reachable_views() if v["class_identifier"][0] == "2D")
+    assert camera_view["display_name"] == ["camera: video, observed and reprojected keypoints"]
+    video = "world/camera/image/video"
+    assert _matches(camera_view, video) and {"AssetVideo", "VideoFrameReference"} <= rec.archetypes[video]
+    under = rec.static[video]["VideoFrameReference:draw_order"][0]
+    others = {
+        e: s[k][0]
+        for e, s in rec.static.items()
+        for k in s
+        if e.startswith("world/camera/image/") and e != video and k.endswith(":draw_order") and s[k]
+    }
+    assert len(others) >= 4 and all(under < order for order in others.values()), (under, others)
 
 
 def test_plot_groups_cover_each_scalar_once(full):

@@ -277,6 +277,7 @@ def test_optional_parts_absent(tmp_path):
     } <= rec.entities
     assert not any(e.startswith(("world/ground_truth", "world/hypotheses")) for e in rec.entities)
     assert "world/camera/image/silhouette" not in rec.entities
+    assert "world/camera/image/video" not in rec.entities  # no video given: none logged
     assert len(rec.temporal["world/estimate/joints"]) == T
 
 
@@ -418,3 +419,40 @@ def test_video_errors(tmp_path):
     if CAM01.is_file():
         with pytest.raises(InputError, match=r"has 100 frames; frame numbers 99..100"):
             log_video(rec, CAM01, np.array([99, 100]), index)
+
+
+def test_run_log_with_video(tmp_path):
+    """RunLog.video: the file as an AssetVideo under the camera image, one VideoFrameReference per logged frame
+    on the same `frame` and `time` rows as the 3D, pointing at RunLog.video_frames."""
+    if not CAM01.is_file():
+        pytest.skip(f"Pose2Sim demo video not found at {CAM01.resolve()}")
+    video_frames = np.arange(T) * 2 + 3
+    log = dataclasses.replace(_run_log(full=False), video=CAM01, video_frames=video_frames)
+    assert log.video == str(CAM01)
+    path = tmp_path / "video.rrd"
+    write_recording(path, log)
+    rec = Rec(path)
+    static = rec.static["world/camera/image/video"]
+    assert bytes(static["AssetVideo:blob"][0]) == CAM01.read_bytes()
+    assert static["VideoFrameReference:draw_order"] == [-20.0]
+    rows = rec.temporal["world/camera/image/video"]
+    joints = rec.temporal["world/estimate/joints"]
+    assert [r["frame"] for r in rows] == [r["frame"] for r in joints] == log.frames.tolist()
+    assert [r["time"] for r in rows] == [r["time"] for r in joints]
+    stamps = np.ravel([r["VideoFrameReference:timestamp"] for r in rows])
+    np.testing.assert_allclose(stamps, video_frames * 1e9 / 60, atol=1)  # cam01 runs at 60 fps
+
+
+def test_run_log_video_errors(tmp_path):
+    log = _run_log(full=False)
+    with pytest.raises(InputError, match="go together"):
+        dataclasses.replace(log, video=str(CAM01))
+    with pytest.raises(InputError, match="video_frames"):
+        dataclasses.replace(log, video=str(CAM01), video_frames=np.arange(T + 1))
+    with pytest.raises(InputError, match="video_frames must be frame numbers"):
+        dataclasses.replace(log, video=str(CAM01), video_frames=np.arange(T) - 1)
+    text = tmp_path / "notes.mp4"
+    text.write_text("not a video\n")
+    with pytest.raises(InputError, match=r"cannot show video .*notes\.mp4"):
+        write_recording(tmp_path / "run.rrd", dataclasses.replace(log, video=str(text), video_frames=np.arange(T)))
+    assert not (tmp_path / "run.rrd").exists()  # checked before the recording is started

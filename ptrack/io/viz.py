@@ -48,7 +48,9 @@ Entity layout (stable: tests and users rely on it):
     world/camera/image/silhouette       SegmentationImage, class 1 = silhouette, class 0
                                         transparent  [if masks]
     world/camera/image/video            AssetVideo (the input video's file, static) + VideoFrameReference
-                                        per frame, drawn under everything else in the image  [log_video]
+                                        per frame (`RunLog.video_frames`), drawn under everything else
+                                        in the image, on the same `frame`/`time` rows as the 3D
+                                        [if video; `log_video`]
     world/estimate/std                  Points3D at the estimate's joints, radius = that joint's 3D
                                         standard deviation (metres), translucent  [if joint_std]
     metrics/<name>                      Scalars, one per frame with a finite value
@@ -145,6 +147,9 @@ class RunLog:
     masks: (T, H, W) bool silhouettes with H, W the camera's height, width, or None.
     joint_std: (T, J) metres, per-joint 3D standard deviation of the estimate, or None.
     solver_cost: (I+1,) objective after each iteration of a whole-sequence solver, or None.
+    video: the input video's file (MP4), shown under the camera view's keypoints, or None; its frames are the
+        camera's image (the same W x H pixels).
+    video_frames: (T,) int, the video's frame number (from 0) of each logged frame; given with `video`.
 
     Shapes are checked on construction; a mismatch raises `InputError` naming the field.
     """
@@ -170,6 +175,8 @@ class RunLog:
     masks: np.ndarray | None = None
     joint_std: np.ndarray | None = None
     solver_cost: np.ndarray | None = None
+    video: str | None = None
+    video_frames: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name in (
@@ -187,6 +194,7 @@ class RunLog:
             "masks",
             "joint_std",
             "solver_cost",
+            "video_frames",
         ):
             value = getattr(self, name)
             if value is not None:
@@ -198,6 +206,8 @@ class RunLog:
             object.__setattr__(self, "keypoint_joints", tuple(int(j) for j in self.keypoint_joints))
         object.__setattr__(self, "scalars", {str(k): _as_numpy(v) for k, v in self.scalars.items()})
         object.__setattr__(self, "jumps", {str(k): _as_numpy(v) for k, v in self.jumps.items()})
+        if self.video is not None:
+            object.__setattr__(self, "video", str(self.video))
         self._validate()
 
     def _validate(self) -> None:
@@ -244,6 +254,12 @@ class RunLog:
             _check_shape("joint_std", self.joint_std, (T, J))
         if self.solver_cost is not None and _check_shape("solver_cost", self.solver_cost, (None,))[0] == 0:
             raise InputError("RunLog.solver_cost is empty")
+        if (self.video is None) != (self.video_frames is None):
+            raise InputError("RunLog.video and RunLog.video_frames go together: give both or neither")
+        if self.video_frames is not None:
+            _check_shape("video_frames", self.video_frames, (T,))
+            if not np.issubdtype(self.video_frames.dtype, np.integer) or (self.video_frames < 0).any():
+                raise InputError(f"RunLog.video_frames must be frame numbers >= 0, got {self.video_frames.dtype}")
 
     @property
     def num_frames(self) -> int:
@@ -255,11 +271,13 @@ def write_recording(path: str | Path, log: RunLog) -> None:
     """Write `log` to the rerun file `path` (.rrd), with the entity layout in the module docstring.
 
     Uses its own `rr.RecordingStream`; the global rerun recording is not touched.
-    Raises FileNotFoundError if the parent folder of `path` does not exist.
+    Raises FileNotFoundError if the parent folder of `path` does not exist; `log_video`'s InputError for
+    `log.video` (before anything is written).
     """
     path = Path(path)
     if not path.parent.is_dir():
         raise FileNotFoundError(f"cannot write rerun recording {path}: folder {path.parent} does not exist")
+    video = None if log.video is None else _video_asset(log.video, log.video_frames)
     rec = rr.RecordingStream(application_id="ptrack")
     rec.save(path)
     try:
@@ -289,6 +307,8 @@ def write_recording(path: str | Path, log: RunLog) -> None:
         _log_camera(rec, log.camera, _center(log))
         _log_legend(rec, log)
         _log_keypoints(rec, log, index)
+        if video is not None:
+            _log_video_asset(rec, video[0], video[1], index, VIDEO_ENTITY)
         if log.masks is not None:
             _log_masks(rec, log.masks, index)
         for name, values in log.scalars.items():
@@ -325,6 +345,14 @@ def log_video(
     -> the number of frames in the video. InputError: no such file, a file rerun cannot read, a frame number
     outside the video, `video_frames` not (T,) integers.
     """
+    asset, stamps, count = _video_asset(video, video_frames)
+    _log_video_asset(rec, asset, stamps, index, entity)
+    return count
+
+
+def _video_asset(video: str | Path, video_frames: np.ndarray | None) -> tuple[rr.AssetVideo, np.ndarray, int]:
+    """`log_video`'s checks: the asset of `video`, the (T,) int64 presentation time stamps (nanoseconds) of the
+    frames `video_frames`, and the number of frames in the video (`log_video`: errors)."""
     path = Path(video)
     if not path.is_file():
         raise InputError(f"video not found: {path}")
@@ -340,10 +368,15 @@ def log_video(
         raise InputError(
             f"video {path} has {len(stamps)} frames; frame numbers {int(frames.min())}..{int(frames.max())} asked"
         )
+    return asset, stamps[frames], len(stamps)
+
+
+def _log_video_asset(
+    rec: rr.RecordingStream, asset: rr.AssetVideo, stamps: np.ndarray, index: Sequence[rr.TimeColumn], entity: str
+) -> None:
     rec.log(entity, asset, static=True)
     rec.log(entity, rr.VideoFrameReference.from_fields(draw_order=VIDEO_DRAW_ORDER), static=True)
-    rec.send_columns(entity, indexes=list(index), columns=rr.VideoFrameReference.columns_nanos(stamps[frames]))
-    return len(stamps)
+    rec.send_columns(entity, indexes=list(index), columns=rr.VideoFrameReference.columns_nanos(stamps))
 
 
 def has_display() -> bool:
@@ -819,7 +852,9 @@ def blueprint(log: RunLog) -> rrb.Blueprint:
         eye_controls=_closeup_eye(log),
     )
     image = rrb.Spatial2DView(
-        name="camera: observed and reprojected keypoints",
+        name="camera: video, observed and reprojected keypoints"
+        if log.video is not None
+        else "camera: observed and reprojected keypoints",
         origin="/world/camera",
         contents="$origin/**",
         visual_bounds=rrb.VisualBounds2D(x_range=[-margin, W + margin], y_range=[-margin, H + margin]),

@@ -6,7 +6,7 @@ frame by frame in decoding order, tracking one person from frame to frame as Med
 (its landmark smoothing takes every video as 30 fps: the Python API stamps frames 1/30 s apart). There is no
 randomness: the same frames give the same landmarks.
 
-Per frame and landmark (the 33 of MediaPipe Pose, `MEDIAPIPE33_NAMES`):
+Per frame and landmark (the 33 of MediaPipe Pose, `ptrack.body.keypoint_sets.MEDIAPIPE_33`):
 - image landmarks in pixels: MediaPipe's normalised (x, y) times the decoded frame's (W, H), so the
   image's left/top edge is at 0 (OpenCV's pixel-centre convention puts it at -0.5); they may lie outside
   the image (MediaPipe predicts landmarks it does not see). The score is MediaPipe's `visibility`.
@@ -14,14 +14,8 @@ Per frame and landmark (the 33 of MediaPipe Pose, `MEDIAPIPE33_NAMES`):
   camera's (x right, y down, z away from the camera).
 A frame where MediaPipe finds nobody has score 0 and NaN coordinates.
 
-The landmarks file (`write_mediapipe_landmarks`) is an npz with
-    frames           (T,) int64        the video's frame numbers (from 0)
-    landmarks        (T, 33, 3) f8     x px, y px, visibility
-    world_landmarks  (T, 33, 3) f8     x, y, z metres
-    fps              ()  f8            the video's frame rate (NaN if the container gives none)
-    width, height    ()  int64         a decoded frame's size, pixels
-    video            ()  str           the video's path as given
-    keypoint_set     ()  str           "mediapipe33"
+The result is a `ptrack.observe.keypoint_files.MediaPipeLandmarks`; `write_mediapipe_landmarks` there writes
+it as the landmarks file (layout in that module's docstring) that `read_keypoints` reads back.
 """
 
 from __future__ import annotations
@@ -33,77 +27,24 @@ import sys
 import tempfile
 import warnings
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 
+from ptrack.body.keypoint_sets import MEDIAPIPE_33
 from ptrack.errors import InputError
+from ptrack.observe.keypoint_files import MediaPipeLandmarks
 from ptrack.observe.video import INSTALL_HINT, read_frames
 
 log = logging.getLogger(__name__)
 
-KEYPOINT_SET = "mediapipe33"
-#: MediaPipe Pose's landmarks in its order (`mediapipe.solutions.pose.PoseLandmark`)
-MEDIAPIPE33_NAMES: tuple[str, ...] = (
-    "nose",
-    "left_eye_inner",
-    "left_eye",
-    "left_eye_outer",
-    "right_eye_inner",
-    "right_eye",
-    "right_eye_outer",
-    "left_ear",
-    "right_ear",
-    "mouth_left",
-    "mouth_right",
-    "left_shoulder",
-    "right_shoulder",
-    "left_elbow",
-    "right_elbow",
-    "left_wrist",
-    "right_wrist",
-    "left_pinky",
-    "right_pinky",
-    "left_index",
-    "right_index",
-    "left_thumb",
-    "right_thumb",
-    "left_hip",
-    "right_hip",
-    "left_knee",
-    "right_knee",
-    "left_ankle",
-    "right_ankle",
-    "left_heel",
-    "right_heel",
-    "left_foot_index",
-    "right_foot_index",
-)
-K = len(MEDIAPIPE33_NAMES)
-
-
-@dataclass(frozen=True)
-class Landmarks:
-    """MediaPipe Pose's output for a run of video frames (module docstring: meaning and units).
-
-    frames: (T,) int64; landmarks: (T, 33, 3) x px, y px, visibility; world_landmarks: (T, 33, 3) metres;
-    fps: frames per second; width, height: pixels; video: the video's path as given."""
-
-    frames: np.ndarray
-    landmarks: np.ndarray
-    world_landmarks: np.ndarray
-    fps: float
-    width: int
-    height: int
-    video: str
-    keypoint_set: str = KEYPOINT_SET
-
-    @property
-    def found(self) -> np.ndarray:
-        """(T,) bool: frames where MediaPipe found a person."""
-        return np.isfinite(self.landmarks[..., 0]).all(axis=1)
+K = MEDIAPIPE_33.num_keypoints
+#: MediaPipe Pose's model: 1 is the one inside the wheel (0 and 2 download theirs)
+MODEL_COMPLEXITY = 1
+#: the version of what `detect` makes of MediaPipe's output: raise it when that changes for the same video, so
+#: that cached detections (`ptrack.pipeline.detections`, keyed on it) are made again
+OUTPUT_VERSION = 1
 
 
 def import_mediapipe() -> ModuleType:
@@ -151,8 +92,8 @@ def detect(
     min_detection_confidence: float = 0.5,
     min_tracking_confidence: float = 0.5,
     smooth_landmarks: bool = True,
-) -> Landmarks:
-    """MediaPipe Pose on the frames `start:stop` of `video` -> `Landmarks` (T = the frames decoded).
+) -> MediaPipeLandmarks:
+    """MediaPipe Pose on the frames `start:stop` of `video` -> `MediaPipeLandmarks` (T = the frames decoded).
 
     progress: wraps the iterable of frames (`(frame number, rgb)`, sized by the container's count), e.g. a
     progress bar; None: none. The confidences and `smooth_landmarks` are MediaPipe's options. InputError: the
@@ -182,7 +123,7 @@ def detect(
                     with _native_stderr_to_log():
                         pose = mp.solutions.pose.Pose(
                             static_image_mode=False,
-                            model_complexity=1,
+                            model_complexity=MODEL_COMPLEXITY,
                             smooth_landmarks=smooth_landmarks,
                             enable_segmentation=False,
                             min_detection_confidence=min_detection_confidence,
@@ -204,7 +145,7 @@ def detect(
             if pose is not None:
                 pose.close()
     T = len(numbers)
-    out = Landmarks(
+    out = MediaPipeLandmarks(
         frames=np.asarray(numbers, dtype=np.int64),
         landmarks=np.stack(image) if T else np.zeros((0, K, 3)),
         world_landmarks=np.stack(world) if T else np.zeros((0, K, 3)),
@@ -236,30 +177,3 @@ def check_output(path: str | Path) -> Path:
 def default_output(video: str | Path) -> Path:
     """`VIDEO_STEM.landmarks.npz` in the current folder."""
     return Path(f"{Path(video).stem}.landmarks.npz")
-
-
-def write_mediapipe_landmarks(path: str | Path, landmarks: Landmarks) -> Path:
-    """Write `landmarks` to the npz at `path` (module docstring: keys) atomically: a hidden temporary file
-    beside it, renamed when complete, removed on any error or interruption. -> path."""
-    path = check_output(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")  # a file mode as the umask says, unlike mkstemp's
-    try:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(
-                f,
-                frames=np.asarray(landmarks.frames, dtype=np.int64),
-                landmarks=np.asarray(landmarks.landmarks, dtype=np.float64),
-                world_landmarks=np.asarray(landmarks.world_landmarks, dtype=np.float64),
-                fps=np.float64(landmarks.fps),
-                width=np.int64(landmarks.width),
-                height=np.int64(landmarks.height),
-                video=np.array(landmarks.video),
-                keypoint_set=np.array(landmarks.keypoint_set),
-            )
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    return path

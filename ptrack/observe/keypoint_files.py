@@ -42,12 +42,15 @@ MediaPipe landmarks file (`MEDIAPIPE_KEYS`), a plain npz (no pickles):
 
     frames           int   (T,)        input video frame numbers (0-based)
     landmarks        float (T, 33, 3)  x px, y px (MediaPipe's normalised image coordinates times the
-                                       width and height), visibility in [0, 1]; NaN where no person
+                                       width and height), visibility in [0, 1]; NaN, NaN, 0 where no person
     world_landmarks  float (T, 33, 3)  MediaPipe's pose_world_landmarks unchanged: metres, origin midway
                                        between the hips; NaN where no person
-    fps              float ()          the video's frame rate
+    fps              float ()          the video's frame rate (NaN if the container gives none)
     width, height    int   ()          image size, pixels
     video            str   ()          the video file the landmarks come from ("" if unknown)
+    keypoint_set     str   ()          "MEDIAPIPE_33" (optional when read)
+
+The landmarks are stored as float32 (a thousandth of a pixel at 4K; MediaPipe's own are float32).
 
 Every problem is an `InputError` of one line naming the file and the first bad frame.
 """
@@ -65,7 +68,13 @@ from typing import Any
 
 import numpy as np
 
-from ptrack.body.keypoint_sets import KEYPOINT_SETS, KeypointDefinition, get_keypoint_set, infer_keypoint_set
+from ptrack.body.keypoint_sets import (
+    KEYPOINT_SETS,
+    MEDIAPIPE_33,
+    KeypointDefinition,
+    get_keypoint_set,
+    infer_keypoint_set,
+)
 from ptrack.errors import InputError
 from ptrack.observe.observations import read_npz
 
@@ -76,7 +85,7 @@ FORMATS: tuple[str, ...] = ("openpose", "coco", "mmpose", "mediapipe", "npz")
 _FORMAT_ALIASES = {"alphapose": "coco", "blazepose": "mediapipe"}
 
 #: the keys of a MediaPipe landmarks file (layout in the module docstring)
-MEDIAPIPE_KEYS: tuple[str, ...] = ("frames", "landmarks", "world_landmarks", "fps", "width", "height", "video")
+MEDIAPIPE_KEYS = ("frames", "landmarks", "world_landmarks", "fps", "width", "height", "video", "keypoint_set")
 
 #: MMPose `meta_info.dataset_name` -> keypoint set
 _MMPOSE_DATASETS = {
@@ -125,8 +134,12 @@ class Detections:
 
 @dataclass(frozen=True, eq=False)
 class MediaPipeLandmarks:
-    """A MediaPipe landmarks file (module docstring). frames (T,), landmarks (T, 33, 3), world_landmarks
-    (T, 33, 3), fps, width, height, video."""
+    """MediaPipe Pose's landmarks for a run of video frames (`ptrack.observe.detector.detect`'s result, the
+    content of a MediaPipe landmarks file; meaning and units in the module docstring).
+
+    frames: (T,) int64; landmarks: (T, 33, 3) x px, y px, visibility; world_landmarks: (T, 33, 3) metres;
+    fps: frames per second (NaN when unknown); width, height: pixels (0 when unknown); video: the video's
+    path as given ("" when unknown). The keypoints are `ptrack.body.keypoint_sets.MEDIAPIPE_33`'s."""
 
     frames: np.ndarray
     landmarks: np.ndarray
@@ -135,6 +148,11 @@ class MediaPipeLandmarks:
     width: int
     height: int
     video: str
+
+    @property
+    def found(self) -> np.ndarray:
+        """(T,) bool: frames where MediaPipe found a person."""
+        return np.isfinite(self.landmarks[..., :2]).all((-1, -2))
 
 
 # --- one frame's people as the containers give them --------------------------------------------------
@@ -501,13 +519,17 @@ def read_mediapipe_landmarks(path: str | Path) -> MediaPipeLandmarks:
     missing = [k for k in ("landmarks", "world_landmarks") if k not in arrays]
     if missing:
         raise InputError(f"{path}: missing keys {missing} of a MediaPipe landmarks file (has {sorted(arrays)})")
+    kset = arrays.get("keypoint_set")
+    if kset is not None and (kset.dtype.kind not in "US" or str(kset.reshape(()).item()) != MEDIAPIPE_33.name):
+        raise InputError(f"{path}: key 'keypoint_set' must be {MEDIAPIPE_33.name!r}, got {kset!r}")
     lm = _numeric(arrays, "landmarks", path)
     world = _numeric(arrays, "world_landmarks", path)
     if lm.ndim != 3 or lm.shape[1:] != (33, 3) or lm.shape[0] == 0:
         raise InputError(f"{path}: key 'landmarks' must have shape (T, 33, 3), got {lm.shape}")
     if world.shape != lm.shape:
         raise InputError(f"{path}: key 'world_landmarks' must have shape {lm.shape}, got {world.shape}")
-    fps = _check_fps(_scalar(arrays, "fps", path), str(path))
+    fps = _scalar(arrays, "fps", path)
+    fps = _check_fps(None if fps is None or np.isnan(fps) else fps, str(path))  # NaN: the video gave none
     size = [_scalar(arrays, k, path) for k in ("width", "height")]
     video = arrays.get("video")
     return MediaPipeLandmarks(
@@ -521,26 +543,17 @@ def read_mediapipe_landmarks(path: str | Path) -> MediaPipeLandmarks:
     )
 
 
-def write_mediapipe_landmarks(
-    path: str | Path,
-    frames: np.ndarray,
-    landmarks: np.ndarray,
-    world_landmarks: np.ndarray,
-    fps: float,
-    width: int,
-    height: int,
-    video: str | Path = "",
-) -> Path:
-    """Write MediaPipe landmarks in the layout of the module docstring (the file `ptrack detect` writes).
+def write_mediapipe_landmarks(path: str | Path, landmarks: MediaPipeLandmarks) -> Path:
+    """Write `landmarks` to the npz at `path` in the layout of the module docstring (the file `ptrack detect`
+    writes; its folder is made when missing). The file appears complete or not at all: written to a hidden
+    file beside it and renamed, the hidden file removed on any error or interruption. -> path.
 
-    frames: (T,) int; landmarks: (T, 33, 3) [x px, y px, visibility], NaN rows where no person;
-    world_landmarks: (T, 33, 3) metres, NaN rows where no person. The file appears complete or not at all
-    (written beside, then renamed). Returns the path.
-    """
+    InputError: no frames, frames not strictly increasing integers (T,), landmarks or world_landmarks not
+    (T, 33, 3), fps neither positive nor NaN, width or height not positive."""
     path = Path(path)
-    frames = np.asarray(frames)
-    lm = np.asarray(landmarks, dtype=np.float32)
-    world = np.asarray(world_landmarks, dtype=np.float32)
+    frames = np.asarray(landmarks.frames)
+    lm = np.asarray(landmarks.landmarks, dtype=np.float32)
+    world = np.asarray(landmarks.world_landmarks, dtype=np.float32)
     T = len(frames)
     if T == 0:
         raise InputError("MediaPipe landmarks: no frames to write")
@@ -551,9 +564,14 @@ def write_mediapipe_landmarks(
             f"MediaPipe landmarks: landmarks and world_landmarks must have shape {(T, 33, 3)}, "
             f"got {lm.shape} and {world.shape}"
         )
-    if _check_fps(fps, "MediaPipe landmarks") is None or int(width) <= 0 or int(height) <= 0:
+    fps = float(landmarks.fps)
+    if not np.isnan(fps):
+        _check_fps(fps, "MediaPipe landmarks")
+    width, height = int(landmarks.width), int(landmarks.height)
+    if width <= 0 or height <= 0:
         raise InputError(f"MediaPipe landmarks: width and height must be positive, got {width} x {height}")
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # a file mode as the umask says, unlike mkstemp's
     try:
         with open(tmp, "wb") as f:
             np.savez(
@@ -564,7 +582,8 @@ def write_mediapipe_landmarks(
                 fps=np.float64(fps),
                 width=np.int64(width),
                 height=np.int64(height),
-                video=np.str_(str(video)),
+                video=np.str_(str(landmarks.video)),
+                keypoint_set=np.str_(MEDIAPIPE_33.name),
             )
         os.replace(tmp, path)
     finally:
@@ -581,7 +600,7 @@ def _read_mediapipe(path: Path, fps: float | None) -> Detections:
     wheres = [f"{path}: frame {n}" for n in m.frames]
     size = (m.width, m.height) if m.width > 0 and m.height > 0 else None
     fps = fps if fps is not None else (None if np.isnan(m.fps) else m.fps)
-    return _finish(people, m.frames, tracks, wheres, KEYPOINT_SETS["MEDIAPIPE_33"], fps, path, size, m.video or None)
+    return _finish(people, m.frames, tracks, wheres, MEDIAPIPE_33, fps, path, size, m.video or None)
 
 
 def _json_format(data: Any) -> str | None:

@@ -51,7 +51,8 @@ class VideoInfo:
     height: int
 
 
-def _check_file(path: Path) -> None:
+def check_video_file(path: Path) -> None:
+    """InputError naming `path` when it does not exist or is a folder (checked before OpenCV is needed)."""
     if not path.exists():
         raise InputError(f"video not found: {path}")
     if path.is_dir():
@@ -59,7 +60,7 @@ def _check_file(path: Path) -> None:
 
 
 def _open(cv2: ModuleType, path: Path):  # -> cv2.VideoCapture
-    _check_file(path)
+    check_video_file(path)
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         cap.release()
@@ -71,7 +72,7 @@ def video_info(path: str | Path) -> VideoInfo:
     """Open `path`, decode its first frame and describe it. InputError: no such file, a folder, a file that
     is no video or has no frame that decodes, OpenCV not installed."""
     path = Path(path)
-    _check_file(path)  # a missing file is named before a missing OpenCV
+    check_video_file(path)  # a missing file is named before a missing OpenCV
     cv2 = import_cv2()
     cap = _open(cv2, path)
     try:
