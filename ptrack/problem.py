@@ -140,6 +140,29 @@ def rest_pose_in_view(problem: Problem, dtype: torch.dtype, frame: int | None = 
     return q
 
 
+def root_headings(skeleton: Skeleton, q: Tensor, yaws: int, tilts: tuple[float, ...] = (0.0,)) -> Tensor:
+    """Start poses: q (D,) with its root turned to `yaws` headings about the world's up axis (+Y), each
+    leaned by every one of `tilts` (radians) about the root's other horizontal axis. A pose fitted from one
+    heading keeps that heading's depth order of the torso (which shoulder and hip is nearer the camera),
+    so trackers without a 3D start try every heading. -> (yaws * len(tilts), D); q[None] when the root
+    cannot rotate."""
+    driven = [k for k in range(3) if skeleton.axis_dof[0, k] >= 0]
+    if not driven:
+        return q[None]
+    world = skeleton.rest_rotation[0] @ skeleton.axes[0].T  # (3, 3): columns = the root's axes in the world
+    up = max(driven, key=lambda k: abs(world[1, k]))
+    side = [k for k in driven if k != up]
+    starts = []
+    for i in range(yaws):
+        for tilt in tilts if side else (0.0,):
+            x = q.clone()
+            x[int(skeleton.axis_dof[0, up])] += 2 * math.pi * i / yaws * (1.0 if world[1, up] >= 0 else -1.0)
+            if side:
+                x[int(skeleton.axis_dof[0, side[-1]])] += tilt
+            starts.append(x)
+    return torch.stack(starts)
+
+
 def warn_keyframes_outside_limits(skeleton: Skeleton, keyframes: Keyframes, tol: float = 1e-3) -> int:
     """Log a warning for each keyframe whose given dofs lie outside the model's joint limits.
 

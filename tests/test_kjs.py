@@ -548,14 +548,12 @@ def test_best_trajectory_beats_frame(cmu_file):
 def test_tree_start_headings(kjs_run):
     """The tree start turns the rest pose to 8 headings about the world's up axis (Y), each leaned
     forward and back: the hip line sweeps the circle, the spine stays vertical at lean 0."""
-    from ptrack.estimators.kjs.start import _root_starts
+    from ptrack.problem import root_headings
 
     prep, _ = kjs_run
-    cfg = load_config(KJS_YAML, [*EXACT, "kjs.init=tree"])
-    s = make_setup(prep.problem, cfg, KJS)
     sk = prep.problem.skeleton
     q0 = torch.zeros(sk.num_dofs)
-    starts = _root_starts(s, q0, 8, (0.0, 0.5, -0.5))
+    starts = root_headings(sk, q0, 8, (0.0, 0.5, -0.5))
     assert starts.shape == (24, sk.num_dofs)
     X = sk.forward_kinematics(starts)
     lhip, rhip, thorax = (sk.joint_index(n) for n in ("lhipjoint", "rhipjoint", "thorax"))

@@ -25,6 +25,7 @@ each side).
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 
 import numpy as np
@@ -57,7 +58,78 @@ CMU_LANDMARK_JOINTS: dict[str, str] = {
             ("foot_index", "toes"),
         )
     },
+    **{
+        m: f"lm_{m}"
+        for m in ("nose", "l_eye", "r_eye", "l_ear", "r_ear", "l_heel", "r_heel", "l_small_toe", "r_small_toe")
+    },
 }
+
+#: landmarks placed off the skeleton's joints: landmark -> (CMU bone it moves with, the bone whose end the
+#: offset starts from, offset / height in the rest pose: x the person's left, y up, z forward). Head points
+#: from the head's end (the vertex): eyes 0.07 H below it (mid head: the head is 0.13 H from chin to
+#: vertex), 0.045 H forward, 0.018 H to each side (pupils 6.3 cm apart at 1.75 m); the nose tip 0.09 H below
+#: and 0.06 H forward; the ears (tragus) 0.075 H below, 0.045 H to each side (head breadth 0.09 H). Foot
+#: points from the ankle (the tibia's end, 0.039 H above the floor): the heel 0.035 H back and 0.03 H down,
+#: the little toe 0.11 H forward (the foot is 0.152 H long from the heel), 0.03 H outwards and 0.03 H down.
+#: Approximations from the head and foot dimensions of Winter (2009) fig. 4.1 and adult head anthropometry
+#: (head height 0.13 H, breadth 0.09 H); a detector marks these points within a few centimetres anyway.
+OFFSET_LANDMARKS: dict[str, tuple[str, str, tuple[float, float, float]]] = {
+    "nose": ("head", "head", (0.0, -0.09, 0.06)),
+    **{
+        f"{s}_{part}": (bone.replace("*", s), end.replace("*", s), (sign * dx, dy, dz))
+        for s, sign in (("l", 1.0), ("r", -1.0))
+        for part, bone, end, (dx, dy, dz) in (
+            ("eye", "head", "head", (0.018, -0.07, 0.045)),
+            ("ear", "head", "head", (0.045, -0.075, 0.0)),
+            ("heel", "*foot", "*tibia", (0.0, -0.03, -0.035)),
+            ("small_toe", "*foot", "*tibia", (0.03, -0.03, 0.11)),
+        )
+    },
+}
+
+
+def add_landmark_joints(skeleton: Skeleton, height_m: float) -> Skeleton:
+    """`skeleton` (CMU ASF) with one joint more per landmark of `OFFSET_LANDMARKS`, named "lm_<landmark>":
+    no dofs, a child of the bone it moves with, at the offset (times `height_m`) from its start bone's end
+    in the rest pose. Existing joints, dofs and limits are unchanged (new joints come last)."""
+    J = skeleton.num_joints
+    q0 = torch.zeros(skeleton.num_dofs, dtype=torch.float64)
+    joints, rotations = skeleton.forward_kinematics(q0, rotations=True)
+    joints, rotations = joints.numpy(), rotations.numpy()
+    names, parents, offsets, lengths = [], [], [], []
+    for landmark, (bone, start, offset) in OFFSET_LANDMARKS.items():
+        b, a = skeleton.joint_index(bone), skeleton.joint_index(start)
+        target = joints[a] + height_m * np.asarray(offset)
+        v = rotations[b].T @ (target - joints[b])  # in the bone's frame: turns with it
+        names.append(f"lm_{landmark}")
+        parents.append(b)
+        lengths.append(float(np.linalg.norm(v)))
+        offsets.append(v / max(lengths[-1], 1e-12))
+    n = len(names)
+
+    def grow(x: np.ndarray, fill: np.ndarray) -> np.ndarray:
+        return np.concatenate([x, np.broadcast_to(fill, (n, *x.shape[1:]))])
+
+    return dataclasses.replace(
+        skeleton,
+        joint_names=(*skeleton.joint_names, *names),
+        parents=(*skeleton.parents, *parents),
+        axes=grow(skeleton.axes, np.zeros((3, 3))),
+        axis_dof=grow(skeleton.axis_dof, -np.ones(3, dtype=skeleton.axis_dof.dtype)),
+        rest_rotation=grow(skeleton.rest_rotation, np.eye(3)),
+        offset_parent=np.concatenate([skeleton.offset_parent, np.zeros((n, 3))]),
+        offset_local=np.concatenate([skeleton.offset_local, np.asarray(offsets)]),
+        lengths=np.concatenate([skeleton.lengths, np.asarray(lengths)]),
+        frozen_axes=grow(skeleton.frozen_axes, np.zeros(3)),
+        axis_scale=grow(skeleton.axis_scale, np.ones(3)),
+        slide_axis=grow(skeleton.slide_axis, np.zeros(3)),
+        slide_dof=grow(skeleton.slide_dof, -np.ones((), dtype=skeleton.slide_dof.dtype)),
+    )
+
+
+#: height of the neck landmark above the line between the shoulder points, / height (on the Pose2Sim data:
+#: 4-6 cm for a 1.72 m participant)
+NECK_ABOVE_SHOULDERS = 0.025
 
 #: segment -> (landmark a, landmark b, length / height): Winter (2009) fig. 4.1, see the module docstring
 SEGMENTS: dict[str, tuple[str, str, float]] = {
@@ -67,8 +139,8 @@ SEGMENTS: dict[str, tuple[str, str, float]] = {
     "forearm": ("l_elbow", "l_wrist", 0.146),
     "hips": ("l_hip", "r_hip", 0.11),
     "shoulders": ("l_shoulder", "r_shoulder", 0.20),
-    "trunk": ("pelvis", "neck", 0.818 - 0.530),
-    "head": ("neck", "head_top", 1.0 - 0.818),
+    "trunk": ("l_hip", "l_shoulder", math.hypot(0.818 - 0.530, (0.20 - 0.11) / 2)),
+    "head": ("neck", "head_top", 1.0 - 0.818 - NECK_ABOVE_SHOULDERS),
     "foot": ("l_ankle", "l_big_toe", 0.152 - 0.039),
 }
 
@@ -80,8 +152,8 @@ CMU_SEGMENT_BONES: dict[str, tuple[str, ...]] = {
     "forearm": ("lradius", "rradius", "lwrist", "rwrist", "lhand", "rhand", "lfingers", "rfingers", "lthumb", "rthumb"),
     "hips": ("lhipjoint", "rhipjoint"),
     "shoulders": ("lclavicle", "rclavicle"),
-    "trunk": ("lowerback", "upperback", "thorax"),
-    "head": ("lowerneck", "upperneck", "head"),
+    "trunk": ("lowerback", "upperback", "thorax", "lowerneck"),
+    "head": ("upperneck", "head"),
     "foot": ("lfoot", "rfoot", "ltoes", "rtoes"),
 }
 
@@ -151,12 +223,23 @@ def scale_to_height(skeleton: Skeleton, height_m: float, targets: Mapping[str, f
         return torch.log(seg / target)
 
     log_s = torch.zeros(len(names), dtype=torch.float64)
-    for _ in range(20):
-        r = residual(log_s)
+    r = residual(log_s)
+    for _ in range(50):
         if float(r.abs().max()) < 1e-10:
             break
         jac = torch.autograd.functional.jacobian(residual, log_s)
-        log_s = log_s - torch.linalg.lstsq(jac, r.unsqueeze(-1)).solution.squeeze(-1)
+        step = torch.linalg.lstsq(jac, r.unsqueeze(-1)).solution.squeeze(-1)
+        step = step * min(1.0, 0.3 / float(step.abs().max()))  # at most a 35% change per bone group and step
+        for _ in range(30):  # backtrack until the squared residual drops
+            trial = residual(log_s - step)
+            if bool(torch.isfinite(trial).all()) and float(trial @ trial) < float(r @ r):
+                break
+            step = step / 2
+        else:
+            break
+        log_s, r = log_s - step, trial
+    if float(r.abs().max()) > 1e-3:
+        raise InputError(f"the template skeleton {skeleton.name!r} cannot take the proportions of a {h} m person")
     factor = torch.exp(log_s @ member).numpy()
     lengths = skeleton.lengths * factor
     # the root's rest position (ASF: where it is in the rest pose) follows the legs

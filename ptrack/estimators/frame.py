@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from ptrack.costs import JointLimits, PoseEval, Reprojection, Smoothness
-from ptrack.problem import Estimate, Problem, evaluate_pose, first_keyframe, rest_pose_in_view
+from ptrack.problem import Estimate, Problem, evaluate_pose, first_keyframe, rest_pose_in_view, root_headings
 
 
 def _total(e: dict[str, Tensor]) -> Tensor:
@@ -46,8 +46,10 @@ def estimate_frames(
 
     if fc.init == "keyframe":
         q0 = first_keyframe(problem, "frame.init", lower, upper)  # kept as given (Problem warns off limits)
+        starts = q0[None]
     else:
         q0 = torch.clamp(rest_pose_in_view(problem, dtype), lower, upper)
+        starts = torch.clamp(root_headings(sk, q0, fc.init_yaws), lower, upper)  # frame 0: every heading tried
     q_prev = q0
     history: list[Tensor] = []  # previous solutions, which the temporal prior sees
 
@@ -64,7 +66,6 @@ def estimate_frames(
         anchor = q_prev.detach()
         # start from a constant-velocity prediction (kept inside the limits) when two past frames are known
         start = torch.clamp(2 * past[1] - past[0], lower, upper) if len(past) == 2 else anchor
-        q = start.clone().requires_grad_(True)
         prior = smooth if len(past) == 2 else smooth_pair
 
         def energies(q: Tensor) -> dict[str, Tensor]:
@@ -77,27 +78,33 @@ def estimate_frames(
                 e["smooth"] = torch.zeros((), dtype=dtype, device=device)
             return e
 
-        opt = torch.optim.LBFGS(
-            [q],
-            lr=1.0,
-            max_iter=fc.first_iterations if t == 0 else fc.iterations,
-            line_search_fn="strong_wolfe",
-            tolerance_grad=1e-9,
-            tolerance_change=1e-12,
-            history_size=20,
-        )
+        def fit(start: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+            q = start.clone().requires_grad_(True)
+            opt = torch.optim.LBFGS(
+                [q],
+                lr=1.0,
+                max_iter=fc.first_iterations if t == 0 else fc.iterations,
+                line_search_fn="strong_wolfe",
+                tolerance_grad=1e-9,
+                tolerance_change=1e-12,
+                history_size=20,
+            )
 
-        def closure() -> Tensor:
-            opt.zero_grad()
-            total = _total(energies(q))
-            total.backward()
-            return total
+            def closure() -> Tensor:
+                opt.zero_grad()
+                total = _total(energies(q))
+                total.backward()
+                return total
 
-        opt.step(closure)
-        with torch.no_grad():
-            if not bool(torch.isfinite(q).all()):
-                q.copy_(anchor)
-            e = energies(q)
+            opt.step(closure)
+            with torch.no_grad():
+                if not bool(torch.isfinite(q).all()):
+                    q.copy_(anchor)
+                return q, energies(q)
+
+        # frame 0 without a keyframe: every heading's fit, the cheapest kept (the first on a tie)
+        fits = [fit(x) for x in starts] if t == 0 else [fit(start)]
+        q, e = min(fits, key=lambda f: float(_total(f[1])))
         q_prev = q.detach()
         history.append(q_prev)
         qs.append(q_prev)

@@ -191,6 +191,7 @@ class FrameMethodConfig:
     init: str = setting("keyframe", "keyframe: first frame's 3D pose given (as a user keyframe); rest: rest pose")
     iterations: int = setting(40, "L-BFGS iterations per frame")
     first_iterations: int = setting(200, "L-BFGS iterations on the first frame")
+    init_yaws: int = setting(1, "init rest: headings of the rest pose fitted on the first frame (the cheapest kept)")
 
 
 @dataclass(frozen=True)
@@ -669,6 +670,8 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     check_device(cfg.device)
     if cfg.frame.init not in ("keyframe", "rest"):
         raise InputError(f"config key 'frame.init' must be 'keyframe' or 'rest', got {cfg.frame.init!r}")
+    if cfg.frame.init_yaws < 1:
+        raise InputError(f"config key 'frame.init_yaws' must be >= 1, got {cfg.frame.init_yaws}")
     if cfg.frame.iterations < 1 or cfg.frame.first_iterations < 1:
         raise InputError("config keys 'frame.iterations' and 'frame.first_iterations' must be >= 1")
     kc = cfg.kjs

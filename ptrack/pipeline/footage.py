@@ -70,6 +70,7 @@ class FootageFrame:
     missing_frames: np.ndarray
     dropped: tuple[str, ...]
     keypoint_set: str
+    video: str | None = None
 
     def summary(self) -> dict:
         """JSON-ready record for metrics.json."""
@@ -125,7 +126,8 @@ def _camera(cfg, track_image_size: tuple[int, int] | None, video_size: tuple[int
     width, height = int(size[0]), int(size[1])
     K = default_intrinsics(width, height, c.fov_deg)
     fov = c.fov_deg if c.fov_deg is not None else math.degrees(2 * math.atan(0.5))
-    what = f"no camera file: focal {K[0, 0]:.1f} px from the image size {width} x {height} (diagonal field of view {fov:.1f} deg)"
+    what = f"no camera file: focal {K[0, 0]:.1f} px from the image size {width} x {height}"
+    what += f" (diagonal field of view {fov:.1f} deg)"
     return None, K, np.eye(3), np.zeros(3), width, height, what
 
 
@@ -164,8 +166,17 @@ def person_observations(
     )
 
 
-def prepare_footage(cfg, template: Skeleton, keypoints_path: str | Path, video_size=None, video_fps=None):
-    """-> (skeleton scaled to the subject, KeypointSet, Observations (float64, CPU), FootageFrame)."""
+def prepare_footage(
+    cfg,
+    template: Skeleton,
+    keypoints_path: str | Path,
+    video_size: tuple[int, int] | None = None,
+    video_fps: float | None = None,
+    video: str | None = None,
+):
+    """-> (skeleton scaled to the subject, KeypointSet, Observations (float64, CPU), FootageFrame).
+
+    video_size (width, height) and video_fps: of the video the keypoints come from, when known."""
     o = cfg.observations
     det = read_keypoints(keypoints_path, o.format, o.keypoint_set, o.fps)
     fps = o.fps or det.fps or video_fps
@@ -173,6 +184,15 @@ def prepare_footage(cfg, template: Skeleton, keypoints_path: str | Path, video_s
         raise InputError(f"{keypoints_path} does not say its frame rate: set observations.fps")
     track = select_person(
         det, None if o.person is None else (o.person if isinstance(o.person, int) else tuple(o.person))
+    )
+    d = cfg.data
+    if d.start >= len(track.frames):
+        raise InputError(
+            f"config key 'data.start' is {d.start} but {keypoints_path} has only {len(track.frames)} frames"
+        )
+    cut = slice(d.start, d.stop)  # data.start/stop index the input's frames (data.stride is for AMC clips)
+    track = dataclasses.replace(
+        track, frames=track.frames[cut], points=track.points[cut], scores=track.scores[cut], present=track.present[cut]
     )
     definition = get_keypoint_set(track.keypoint_set)
     given = cfg.subject.height_m is not None
@@ -211,6 +231,7 @@ def prepare_footage(cfg, template: Skeleton, keypoints_path: str | Path, video_s
         missing_frames=track.frames[~track.present],
         dropped=dropped,
         keypoint_set=definition.name,
+        video=video or det.video,
     )
     return skeleton, kps, obs, frame
 

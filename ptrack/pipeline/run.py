@@ -101,10 +101,14 @@ def is_observations_npz(path: str | Path) -> bool:
         return False
 
 
-def prepare(cfg: RunConfig) -> Prepared:
-    """Load data and make the observations for `cfg` (see module docstring)."""
+def prepare(cfg: RunConfig, work_dir: Path | None = None) -> Prepared:
+    """Load data and make the observations for `cfg` (see module docstring). work_dir: where a run keeps
+    what it derives from its inputs (observations.video's detections); None: a temporary folder."""
     if cfg.observations.video or (cfg.observations.file and not is_observations_npz(cfg.observations.file)):
-        return prepare_real(cfg)
+        if work_dir is None:
+            with tempfile.TemporaryDirectory(prefix="ptrack-") as tmp:
+                return prepare_real(cfg, Path(tmp))
+        return prepare_real(cfg, work_dir)
     dtype, device = DTYPES[cfg.dtype], _device(cfg)
     full = Skeleton.from_asf(cfg.data.asf).with_limits(cfg.model.limits)
     model = full.freeze(list(cfg.model.freeze)) if cfg.model.freeze else full
@@ -252,29 +256,38 @@ def prepare(cfg: RunConfig) -> Prepared:
     )
 
 
-def prepare_real(cfg: RunConfig) -> Prepared:
-    """`prepare` for real footage: a detector's keypoint file (or a video detected first), a camera file (or
-    none), the subject's height (`ptrack.pipeline.footage`)."""
+def prepare_real(cfg: RunConfig, work_dir: Path) -> Prepared:
+    """`prepare` for real footage: a detector's keypoint file (or a video detected first, its detections
+    written to `work_dir`), a camera file (or none), the subject's height (`ptrack.pipeline.footage`)."""
     dtype, device = DTYPES[cfg.dtype], _device(cfg)
     if cfg.data.amc:
         log.warning("data.amc is ignored: observations come from real footage (%s)", cfg.observations.file)
     if cfg.keyframes.every_s is not None or cfg.keyframes.last:
         log.warning("keyframes.every_s/last take ground truth, which real footage has not; they are ignored")
     template = Skeleton.from_asf(cfg.data.asf).with_limits(cfg.model.limits)
-    keypoints_file = cfg.observations.file
-    if keypoints_file is None:
-        raise InputError(
-            "observations.video is not wired yet"
-        )  # the detection step lands with ptrack.pipeline.detections
-    full, kps, obs, footage = prepare_footage(cfg, template, keypoints_file)
+    video = cfg.observations.video
+    keypoints_file: str | Path
+    size: tuple[int, int] | None = None
+    fps: float | None = None
+    if video:
+        from ptrack.observe.video import video_info
+        from ptrack.pipeline.detections import detections_for_video
+
+        info = video_info(video)
+        keypoints_file = detections_for_video(video, work_dir, progress=progress_display(cfg.progress, "detect"))
+        size, fps = (info.width, info.height), info.fps
+    else:
+        assert cfg.observations.file is not None  # prepare's choice
+        keypoints_file = cfg.observations.file
+    full, kps, obs, footage = prepare_footage(cfg, template, keypoints_file, size, fps, video)
     model = full.freeze(list(cfg.model.freeze)) if cfg.model.freeze else full
     visible = obs.confidence > 0
     check_visibility(visible)
     check_observed(obs.confidence > 0, visible)
     obs = obs.to(device=device, dtype=dtype)
     keyframes = joint_keyframes = None
-    if cfg.keyframes.file:
-        kc = cfg.keyframes
+    kc = cfg.keyframes
+    if kc.file:
         keyframes, joint_keyframes = read_keyframes(kc.file, model, obs.num_frames, kc.sigma_deg, kc.sigma_m, dtype)
     problem = Problem(
         skeleton=model, keypoints=kps, observations=obs, keyframes=keyframes, joint_keyframes=joint_keyframes
@@ -618,11 +631,11 @@ def _remove_if_stale(path: Path) -> bool:
         os.close(fd)
 
 
-def estimate(cfg: RunConfig, progress: bool = False) -> tuple[Prepared, Estimate]:
+def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = None) -> tuple[Prepared, Estimate]:
     """The data and observations of `cfg` (`prepare`) and the configured method's estimate of them, as
     `execute` computes them (same seed, same result), without writing anything. progress: a progress
     bar on stderr (on a terminal only)."""
-    prep = prepare(cfg)
+    prep = prepare(cfg, work_dir)
     check_memory(cfg, prep.problem)  # refuse settings that would not fit before the estimator allocates
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)  # the samplers' draws (cfg.seed: the observations')
     return prep, ESTIMATORS[cfg.method](prep.problem, cfg, gen, progress_display(progress, cfg.method))
@@ -636,7 +649,7 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
     try:
         cfg = dataclasses.replace(cfg, out_dir=str(out.resolve()))  # config.yaml records the folder used
         t0 = time.perf_counter()
-        prep, est = estimate(cfg, cfg.progress if progress is None else progress)
+        prep, est = estimate(cfg, cfg.progress if progress is None else progress, work_dir=claim.path)
         seconds = time.perf_counter() - t0
         check_finite(est, cfg.method)
         reproj = reprojected_keypoints(prep, est)
@@ -830,5 +843,14 @@ def _write_outputs(
         masks=obs.masks.cpu().numpy() if obs.masks is not None else None,
         joint_std=res.get("joint_std"),
         solver_cost=res.get("solver_cost"),
+        **_video(prep),
     )
     write_recording(tmp / "run.rrd", rlog)
+
+
+def _video(prep: Prepared) -> dict:
+    """RunLog's video arguments: the run's MP4 video and the video frame of each run frame, where there is one."""
+    video = prep.footage.video if prep.footage is not None else None
+    if video is None or Path(video).suffix.lower() != ".mp4" or not Path(video).is_file():
+        return {}
+    return {"video": str(video), "video_frames": np.asarray(prep.frames, dtype=np.int64)}

@@ -28,7 +28,7 @@ from ptrack.hypotheses.mixture import Modes, distinct_minima
 from ptrack.hypotheses.samplers import project_to_limits
 from ptrack.optim.jacobians import objective_linearization
 from ptrack.optim.solvers import levenberg_marquardt
-from ptrack.problem import first_keyframe, rest_pose_in_view
+from ptrack.problem import first_keyframe, rest_pose_in_view, root_headings
 
 
 def _init_keyframe(s: Setup) -> Tensor:
@@ -54,29 +54,6 @@ def _start_prior(s: Setup, q: Tensor) -> tuple[Tensor, Tensor]:
     return mean, sigma
 
 
-def _root_starts(s: Setup, q: Tensor, yaws: int, tilts: tuple[float, ...]) -> Tensor:
-    """Start poses for the rigid fit: q (D,) with its root turned to `yaws` headings about the world's up
-    axis (+Y) and leaned by each of `tilts` (radians) about the root's other horizontal axis. A pose
-    fitted from one heading keeps that heading's depth order of the torso (which shoulder and hip is
-    nearer the camera), so every heading is tried. -> (S, D); q[None] when the root cannot rotate."""
-    sk = s.problem.skeleton
-    driven = [k for k in range(3) if sk.axis_dof[0, k] >= 0]
-    if not driven:
-        return q[None]
-    world = sk.rest_rotation[0] @ sk.axes[0].T  # (3, 3): columns = the root's axes in the world
-    up = max(driven, key=lambda k: abs(world[1, k]))
-    side = [k for k in driven if k != up]
-    starts = []
-    for i in range(yaws):
-        for tilt in tilts if side else (0.0,):
-            x = q.clone()
-            x[int(sk.axis_dof[0, up])] += 2 * math.pi * i / yaws * (1.0 if world[1, up] >= 0 else -1.0)
-            if side:
-                x[int(sk.axis_dof[0, side[-1]])] += tilt
-            starts.append(x)
-    return torch.stack(starts)
-
-
 def _init_tree(s: Setup, t: int = 0) -> Tensor:
     """No 3D input: the rest pose in view under every heading, each fitted rigidly to frame t's 2D
     (root dofs only), then in every dof with the rest prior; the distinct fits (by cost, at most
@@ -86,7 +63,11 @@ def _init_tree(s: Setup, t: int = 0) -> Tensor:
     k = s.cfg.kjs
     rest = torch.clamp(rest_pose_in_view(prob, s.lower.dtype, t), s.lower, s.upper)
     q = project_to_limits(
-        _root_starts(s, rest, k.init_yaws, (0.0, 0.5, -0.5)), s.lower, s.upper, s.angular, mode="reflect"
+        root_headings(s.problem.skeleton, rest, k.init_yaws, (0.0, 0.5, -0.5)),
+        s.lower,
+        s.upper,
+        s.angular,
+        mode="reflect",
     )
     lo = torch.where(s.root, s.lower, q[0])
     hi = torch.where(s.root, s.upper, q[0])
