@@ -47,6 +47,7 @@ keyframes) and `estimate` (`estimate_batch`).
 
 from __future__ import annotations
 
+from ptrack.estimators.batch.config import BatchMethodConfig
 from ptrack.estimators.batch.estimate import PerFrame, estimate_batch
 from ptrack.estimators.batch.objective import Evaluation, Trajectory, evaluate, total_energy, trajectory_objective
 from ptrack.estimators.batch.smoothing import robust_smoothing, smoothing_band, weighted_band
@@ -55,6 +56,7 @@ from ptrack.estimators.batch.start import has_full_keyframe, interpolate_keyfram
 from ptrack.estimators.batch.uncertainty import flip_posterior, joint_std, lower_branch
 
 __all__ = [
+    "BatchMethodConfig",
     "Evaluation",
     "PerFrame",
     "Trajectory",

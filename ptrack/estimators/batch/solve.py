@@ -8,6 +8,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from ptrack.estimators.batch.config import BatchMethodConfig
 from ptrack.estimators.batch.objective import Trajectory, evaluate
 from ptrack.estimators.batch.smoothing import weighted_band
 from ptrack.optim.banded import BlockBanded
@@ -32,7 +33,7 @@ def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
 
 
 def solve_trajectory(
-    obj: Trajectory, start: Tensor, bc, callback: Callable[[int, Tensor, Tensor], None] | None = None
+    obj: Trajectory, start: Tensor, bc: BatchMethodConfig, callback: Callable[[int, Tensor, Tensor], None] | None = None
 ) -> tuple[Tensor, BandedLMInfo]:
     """The whole objective's Levenberg-Marquardt from start (B, T, D) inside the joint-limit box, with
     the `batch.*` settings bc (iterations, tol, damping) -> q (B, T, D), `BandedLMInfo`."""

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from ptrack.errors import InputError
+from ptrack.estimators.batch.config import BatchMethodConfig
 from ptrack.estimators.batch.objective import Trajectory, evaluate, total_energy
 from ptrack.estimators.batch.solve import solve_trajectory
 from ptrack.hypotheses.branches import BranchPosterior, branch_posterior, relax_branches
@@ -42,7 +43,7 @@ def joint_std(obj: Trajectory, q: Tensor, hessian: BlockBanded, branches: Branch
     return torch.where(ok[:, None, None], std, torch.full_like(std, math.nan))
 
 
-def flip_posterior(obj: Trajectory, q: Tensor, bc) -> BranchPosterior | None:
+def flip_posterior(obj: Trajectory, q: Tensor, bc: BatchMethodConfig) -> BranchPosterior | None:
     """The flip branches of the solution q (B, T, D) in the posterior (`ptrack.hypotheses.branches`): every limb's
     depth-labelled leaves (the default chains: arms, legs, head) through q's projections, each leaf's
     whole trajectory re-solved from there by `solve_trajectory` with the `batch.*` settings bc (0

@@ -61,6 +61,7 @@ initial timing and root) and `track` (`estimate_pca`).
 
 from __future__ import annotations
 
+from ptrack.estimators.pca.config import PcaMethodConfig
 from ptrack.estimators.pca.pairs import StartBody, WindowPairs, correspondence_residuals
 from ptrack.estimators.pca.poses import poses_of, root_angles
 from ptrack.estimators.pca.setup import Setup, motion_model_for
@@ -69,6 +70,7 @@ from ptrack.estimators.pca.track import estimate_pca
 from ptrack.estimators.pca.window import Prediction
 
 __all__ = [
+    "PcaMethodConfig",
     "Prediction",
     "Setup",
     "StartBody",

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from torch import Tensor
@@ -14,6 +13,7 @@ from torch import Tensor
 from ptrack.body.skeleton import Skeleton
 from ptrack.costs.ray_silhouette import mask_samples
 from ptrack.errors import InputError
+from ptrack.estimators.pca.config import PcaRunConfig
 from ptrack.motion.motion_model import (
     MotionModel,
     clip_paths,
@@ -30,7 +30,7 @@ from ptrack.problem import Problem
 log = logging.getLogger(__name__)
 
 
-def motion_model_for(cfg, skeleton: Skeleton) -> MotionModel:
+def motion_model_for(cfg: PcaRunConfig, skeleton: Skeleton) -> MotionModel:
     """The run's motion model: `motion.model_file` (or the cache path) if it exists, else fitted from
     `motion.clips` and saved there. InputError for a corrupt file, one of another skeleton, or no file
     and no clips."""
@@ -56,7 +56,7 @@ class Setup:
     foreground samples."""
 
     problem: Problem
-    cfg: Any  # the run's config (ptrack.pipeline.config.RunConfig, not imported: estimators sit below it)
+    cfg: PcaRunConfig  # the run's config (a `ptrack.pipeline.config.RunConfig`)
     model: MotionModel
     model_dofs: Tensor  # (Dm,) positions of the model's dofs in q
     root_dofs: Tensor  # (6,) positions of root tx, ty, tz and the root's three angles in q
@@ -81,7 +81,7 @@ class Setup:
         return self.model.num_components
 
 
-def make_setup(problem: Problem, cfg) -> Setup:
+def make_setup(problem: Problem, cfg: PcaRunConfig) -> Setup:
     sk, obs, kps = problem.skeleton, problem.observations, problem.keypoints
     p = cfg.pca
     dtype, device = obs.keypoints.dtype, obs.keypoints.device

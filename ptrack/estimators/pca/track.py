@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable
+from typing import cast
 
 import torch
+from torch import Tensor
 
 from ptrack.costs import robust_loss
 from ptrack.costs.ray_silhouette import RaySilhouette
+from ptrack.estimators.pca.config import PcaRunConfig
 from ptrack.estimators.pca.pairs import correspondence_residuals, start_pairs
 from ptrack.estimators.pca.poses import orthonormal, poses_of, rotation_exp
 from ptrack.estimators.pca.setup import make_setup
@@ -27,7 +30,10 @@ log = logging.getLogger(__name__)
 
 
 def estimate_pca(
-    problem: Problem, cfg, generator: torch.Generator, progress: Callable[[Iterable], Iterable] = lambda x: x
+    problem: Problem,
+    cfg: PcaRunConfig,
+    generator: torch.Generator,
+    progress: Callable[[Iterable], Iterable] = lambda x: x,
 ) -> Estimate:
     """Track the whole sequence with the PCA motion model (`ptrack.estimators.pca`). Deterministic."""
     s = make_setup(problem, cfg)
@@ -104,4 +110,4 @@ def estimate_pca(
             assert r_c is not None  # s.corr is set
             rho = robust_loss(cfg.costs.loss)(r_c.square().sum(-1), cfg.costs.robust_scale)
             terms["correspondence"] = 0.5 * p.correspondence_weight * rho.sum(-1)
-    return Estimate(q=q.detach(), joints=joints, cost=sum(terms.values()), terms=terms)
+    return Estimate(q=q.detach(), joints=joints, cost=cast(Tensor, sum(terms.values())), terms=terms)
