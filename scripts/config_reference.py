@@ -1,5 +1,6 @@
 """Writes the config reference into docs/config.md: one markdown table per section (key, default, type, help),
-made from the dataclasses of ptrack/pipeline/config.py (`ptrack.pipeline.config.config_reference`).
+made from the config's dataclasses, `RunConfig` of ptrack/pipeline/config.py and the sections it composes
+(`ptrack.pipeline.config.config_reference`).
 
     python scripts/config_reference.py           # rewrite the generated part of docs/config.md
     python scripts/config_reference.py --check   # exit 1 if docs/config.md is out of date

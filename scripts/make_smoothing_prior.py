@@ -7,7 +7,7 @@ acceleration scale, fitted to real CMU motion.
         --out ptrack/data/cmu_smoothing_train.json
 
 The batch objective's smoothing terms are zero-mean Gaussians on each dof's velocity and acceleration
-(`ptrack/estimators/batch.py`), and the trackers' dynamics a prior on each dof's velocity
+(`ptrack/estimators/batch/`), and the trackers' dynamics a prior on each dof's velocity
 (`kjs.dynamics`); the maximum-likelihood std of such a Gaussian on a clip is the RMS of
 the dof's finite-difference velocity (acceleration) there. Per clip (whole AMC at --fps, angle
 differences wrapped into [-pi, pi)) the RMS is taken; the scale written is the median over the clips

@@ -18,7 +18,7 @@ from ptrack.cli import main
 from ptrack.costs import robust_loss_derivative
 from ptrack.errors import InputError
 from ptrack.estimators import batch, estimate_batch
-from ptrack.estimators.batch import _energy, lower_branch, trajectory_objective, warp_to_keyframes
+from ptrack.estimators.batch import lower_branch, total_energy, trajectory_objective, warp_to_keyframes
 from ptrack.pipeline import metrics as M
 from ptrack.pipeline.config import load_config
 from ptrack.pipeline.keyframes import read_keyframes
@@ -121,6 +121,7 @@ def test_linearisation_on_two_threads_equals_one(tmp_path, monkeypatch):
     and avx2): 1.4e-14 on H, 2.2e-14 on g, 3,810 of 200,000 entries of H not bit-equal, energies
     bit-equal. A half on the wrong frames, or a term left out of one, moves them by O(1) of these scales."""
     import ptrack.estimators.batch as batch
+    import ptrack.estimators.batch.objective as objective
 
     cfg = load_config(BATCH, ["data.stop=320", "progress=false"])  # 80 frames
     prep = prepare(cfg)
@@ -141,7 +142,7 @@ def test_linearisation_on_two_threads_equals_one(tmp_path, monkeypatch):
     q = q + 0.01 * torch.randn(q.shape, generator=torch.Generator().manual_seed(0), dtype=q.dtype)
     out = {}
     for two in (False, True):
-        monkeypatch.setattr(batch, "parallel_halves", lambda device, two=two: two)
+        monkeypatch.setattr(objective, "parallel_halves", lambda device, two=two: two)
         out[two] = batch.evaluate(obj, q)
     (terms1, h1, g1, _), (terms2, h2, g2, _) = out[False], out[True]
     tol = 1e-11
@@ -321,7 +322,7 @@ def test_lower_branch_replaces_the_solution_only_when_the_objective_prefers_it()
     solution = est.q.to(torch.float64)[None]
     start = solution.clone()
     start[..., 6:] += 0.2  # every angle off: a trajectory the objective likes less
-    assert float(_energy(obj, start)[0]) > float(_energy(obj, solution)[0])
+    assert float(total_energy(obj, start)[0]) > float(total_energy(obj, solution)[0])
 
     class Leaves:  # the fields of a BranchPosterior that lower_branch reads: (B, C, L, T, D) trajectories
         def __init__(self, q):

@@ -1,4 +1,4 @@
-"""`method: pca` (ptrack/estimators/pca.py): the decoder's closed-form derivatives, the root's rotation
+"""`method: pca` (ptrack/estimators/pca/): the decoder's closed-form derivatives, the root's rotation
 round trip, the window linearization against finite differences, a held-out golf swing tracked to
 MPJPE < 40 mm, and bad input (model files, pca.* values) as one `ptrack: error:` line, exit 2."""
 
@@ -15,6 +15,10 @@ from cli_errors import fail
 
 from ptrack.cli import main
 from ptrack.estimators import pca as P
+from ptrack.estimators.pca.pairs import window_pairs
+from ptrack.estimators.pca.poses import body_poses, decode_jacobian, rotation_exp, rotation_of
+from ptrack.estimators.pca.setup import make_setup
+from ptrack.estimators.pca.window import window_linearization, window_silhouette
 from ptrack.motion.motion_model import MotionModel, decode, fit_motion_model, read_clips, save_motion_model
 from ptrack.pipeline.config import load_config
 from ptrack.pipeline.run import prepare
@@ -45,7 +49,7 @@ def _setup(cmu_file, model: Path, *extra: str):
         ],
     )
     prep = prepare(cfg)
-    return cfg, prep, P._setup(prep.problem, cfg)
+    return cfg, prep, make_setup(prep.problem, cfg)
 
 
 def test_decode_jacobian_matches_decode(heldout_model):
@@ -55,7 +59,7 @@ def test_decode_jacobian_matches_decode(heldout_model):
     g = torch.Generator().manual_seed(0)
     alpha = torch.randn(2, model.num_components, generator=g, dtype=torch.float64)
     mu = torch.tensor([[0.1, 0.4371, 0.9], [0.0, 0.5, 1.0]], dtype=torch.float64)
-    q, dq_da, dq_dmu = P._decode_jacobian(model, alpha, mu)
+    q, dq_da, dq_dmu = decode_jacobian(model, alpha, mu)
     assert torch.allclose(q, decode(model, alpha[:, None], mu))
     eps = 1e-6
     for k in range(model.num_components):
@@ -71,8 +75,8 @@ def test_decode_jacobian_matches_decode(heldout_model):
 def test_root_rotation_round_trip_and_window_jacobian(cmu_file, heldout_model):
     _cfg, prep, s = _setup(cmu_file, heldout_model)
     gt = prep.gt_q[:4]
-    rot = P._rotation_of(s, gt[:, s.root_dofs[3:]])
-    assert torch.allclose(P._rotation_of(s, P.root_angles(s, rot)), rot, atol=1e-12)
+    rot = rotation_of(s, gt[:, s.root_dofs[3:]])
+    assert torch.allclose(rotation_of(s, P.root_angles(s, rot)), rot, atol=1e-12)
     # the world joints of a state equal forward kinematics of its poses
     m, f = s.m, 3
     frames = torch.arange(40, 43)
@@ -92,11 +96,11 @@ def test_root_rotation_round_trip_and_window_jacobian(cmu_file, heldout_model):
     pred = P.Prediction(
         torch.zeros(m, dtype=torch.float64), mu[frames], torch.zeros(f, 3, dtype=torch.float64), timing=mu[frames]
     )
-    lin = P._window_linearization(s, frames, ref, pred, P._silhouette(s, frames))
+    lin = window_linearization(s, frames, ref, pred, window_silhouette(s, frames))
     out = lin(x)
     assert out.residuals.shape[0] == 1 and out.jacobian.shape == (1, out.residuals.shape[1], m + 7 * f)
     g6 = x[0, m + f :].reshape(f, 6)
-    q = P.poses_of(s, x[0, :m].expand(f, m), x[0, m : m + f], P._exp(g6[:, 3:])[0] @ ref[0], g6[:, :3])
+    q = P.poses_of(s, x[0, :m].expand(f, m), x[0, m : m + f], rotation_exp(g6[:, 3:])[0] @ ref[0], g6[:, :3])
     proj = prep.problem.observations.camera.project(prep.problem.skeleton.forward_kinematics(q)[:, s.tracked])
     r = (proj.pixels - s.observed[frames]) * s.weight[frames][..., None]
     assert torch.allclose(out.residuals[0, : r.numel()], r.flatten(), atol=1e-8)
@@ -195,7 +199,7 @@ def test_window_correspondence_rows_match_autograd(cmu_file, heldout_model):
     m, f = s.m, 3
     frames = torch.arange(40, 43)
     _, mu = P.initial_timing(s)
-    rot = P._rotation_of(s, prep.gt_q[frames][:, s.root_dofs[3:]])
+    rot = rotation_of(s, prep.gt_q[frames][:, s.root_dofs[3:]])
     g = torch.Generator().manual_seed(2)
     trans = prep.gt_q[frames][:, s.root_dofs[:3]] + 0.02 * torch.randn(f, 3, generator=g, dtype=torch.float64)
     w = 0.05 * torch.randn(f, 3, generator=g, dtype=torch.float64)
@@ -203,21 +207,21 @@ def test_window_correspondence_rows_match_autograd(cmu_file, heldout_model):
         [0.3 * torch.randn(m, generator=g, dtype=torch.float64), mu[frames], torch.cat([trans, w], -1).flatten()]
     )
     joints_prev, rot_prev = sk.forward_kinematics(prep.gt_q[frames - 1], rotations=True)
-    pairs = P._window_pairs(s, frames, joints_prev, rot_prev)
+    pairs = window_pairs(s, frames, joints_prev, rot_prev)
     assert pairs is not None and int((pairs.weight > 0).sum()) >= 12
     pred = P.Prediction(None, None, None, rotation=False)
-    out = P._window_linearization(s, frames, rot[None], pred, None, pairs)(x[None])
+    out = window_linearization(s, frames, rot[None], pred, None, pairs)(x[None])
     rows = slice(f * s.tracked.numel() * 2, f * s.tracked.numel() * 2 + pairs.weight.numel() * 2)
 
     def residuals(state: torch.Tensor) -> torch.Tensor:
         alpha, mu_w, g6 = state[:m], state[m : m + f], state[m + f :].reshape(f, 6)
-        q, _ = P._body(s, alpha[None], mu_w[None])
+        q, _ = body_poses(s, alpha[None], mu_w[None])
         xb, rb = sk.forward_kinematics(q[0], rotations=True)  # (f, J, 3), (f, J, 3, 3)
         fr = torch.arange(f)[:, None]
         joint, local = pairs.anchors.joint, pairs.anchors.local
         pts = xb[fr, joint] + (rb[fr, joint] @ local[..., None])[..., 0]
         r0 = xb[:, :1]
-        world = g6[:, None, :3] + r0 + (pts - r0) @ (P._exp(g6[:, 3:])[0] @ rot).mT
+        world = g6[:, None, :3] + r0 + (pts - r0) @ (rotation_exp(g6[:, 3:])[0] @ rot).mT
         r = (cam.project(world).pixels - pairs.target) * pairs.weight[..., None]
         return math.sqrt(s.cfg.pca.correspondence_weight) * torch.where(pairs.weight[..., None] > 0, r, 0.0).flatten()
 

@@ -92,7 +92,6 @@ def add_landmark_joints(skeleton: Skeleton, height_m: float) -> Skeleton:
     """`skeleton` (CMU ASF) with one joint more per landmark of `OFFSET_LANDMARKS`, named "lm_<landmark>":
     no dofs, a child of the bone it moves with, at the offset (times `height_m`) from its start bone's end
     in the rest pose. Existing joints, dofs and limits are unchanged (new joints come last)."""
-    J = skeleton.num_joints
     q0 = torch.zeros(skeleton.num_dofs, dtype=torch.float64)
     joints, rotations = skeleton.forward_kinematics(q0, rotations=True)
     joints, rotations = joints.numpy(), rotations.numpy()

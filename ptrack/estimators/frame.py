@@ -12,13 +12,48 @@ or from the rest pose placed in front of the camera (`rest`).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from typing import cast
+from dataclasses import dataclass
+from typing import Protocol, cast
 
 import torch
 from torch import Tensor
 
 from ptrack.costs import JointLimits, PoseEval, Reprojection, Smoothness
+from ptrack.costs.config import CostsConfig
+from ptrack.errors import InputError
 from ptrack.problem import Estimate, Problem, evaluate_pose, first_keyframe, rest_pose_in_view, root_headings
+from ptrack.settings import setting
+
+
+@dataclass(frozen=True)
+class FrameMethodConfig:
+    """`method: frame`, the per-frame baseline: L-BFGS on each frame from the previous one."""
+
+    init: str = setting("keyframe", "keyframe: first frame's 3D pose given (as a user keyframe); rest: rest pose")
+    iterations: int = setting(40, "L-BFGS iterations per frame")
+    first_iterations: int = setting(200, "L-BFGS iterations on the first frame")
+    init_yaws: int = setting(1, "init rest: headings of the rest pose fitted on the first frame (the cheapest kept)")
+
+
+class FrameRunConfig(Protocol):
+    """What the per-frame fits read of the run's config: `ptrack.pipeline.config.RunConfig` is one (estimators sit
+    below the pipeline and do not import it; its module checks that it fits)."""
+
+    @property
+    def frame(self) -> FrameMethodConfig: ...
+
+    @property
+    def costs(self) -> CostsConfig: ...
+
+
+def validate_frame(f: FrameMethodConfig) -> None:
+    """Value checks of the `frame:` section (InputError naming the key)."""
+    if f.init not in ("keyframe", "rest"):
+        raise InputError(f"config key 'frame.init' must be 'keyframe' or 'rest', got {f.init!r}")
+    if f.init_yaws < 1:
+        raise InputError(f"config key 'frame.init_yaws' must be >= 1, got {f.init_yaws}")
+    if f.iterations < 1 or f.first_iterations < 1:
+        raise InputError("config keys 'frame.iterations' and 'frame.first_iterations' must be >= 1")
 
 
 def _total(e: dict[str, Tensor]) -> Tensor:
@@ -27,7 +62,10 @@ def _total(e: dict[str, Tensor]) -> Tensor:
 
 
 def estimate_frames(
-    problem: Problem, cfg, generator: torch.Generator, progress: Callable[[Iterable], Iterable] = lambda x: x
+    problem: Problem,
+    cfg: FrameRunConfig,
+    generator: torch.Generator,
+    progress: Callable[[Iterable], Iterable] = lambda x: x,
 ) -> Estimate:
     """Per-frame L-BFGS fits (see module docstring). Deterministic: uses no randomness."""
     fc, cc = cfg.frame, cfg.costs

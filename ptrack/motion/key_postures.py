@@ -29,8 +29,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.ndimage import gaussian_filter1d
-from scipy.signal import find_peaks
 from torch import Tensor
 
 from ptrack.errors import InputError
@@ -117,6 +115,8 @@ def signals(points: np.ndarray, fps: float, smooth_s: float, up_sign: float = 1.
 
     Height is points[:, 1] * up_sign (3D, Y up: +1; image rows: -1); speed is per second.
     """
+    from scipy.ndimage import gaussian_filter1d  # scipy's modules are imported on use: see `_apply`
+
     sigma = smooth_s * fps
     p = gaussian_filter1d(points, sigma, axis=0, mode="nearest") if sigma > 0 else points
     height = p[:, 1] * up_sign
@@ -183,6 +183,10 @@ def _apply(
     seg = sig[lo:hi]
     if r.which == "global":
         return lo + int(np.argmax(seg))
+    # imported here, not with the module: loading scipy.signal takes ~1 s, which every import of the estimators
+    # (and so of the config, `ptrack config --list`) would pay
+    from scipy.signal import find_peaks
+
     span = float(np.ptp(sig))
     peaks, _ = find_peaks(seg, prominence=max(prominence * span, 1e-12))
     if len(peaks) == 0:

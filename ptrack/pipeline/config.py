@@ -4,8 +4,14 @@ overrides replace them. Unknown keys and wrong types are `InputError`s naming th
 Paths in a YAML file are relative to that file's folder; paths given as command-line overrides are
 relative to the working directory. Both are stored resolved (absolute) in the run's config.yaml.
 
-Every key carries one line of help (`setting`): `config_reference` lists them for `ptrack config --list` and
-docs/config.md. Why a default is what it is: docs/notes/config-history.md.
+Every key carries one line of help (`ptrack.settings.setting`): `config_reference` lists them for `ptrack config
+--list` and docs/config.md. Why a default is what it is: docs/notes/config-history.md.
+
+`RunConfig` composes the sections. A method's section and its value checks live beside the method
+(`ptrack/estimators/frame.py`, `estimators/kjs/config.py`, `estimators/batch/config.py`, `estimators/pca/config.py`),
+the motion model's in `ptrack/motion/config.py`, the shared cost terms' in `ptrack/costs/config.py`; the sections
+of the run itself (data, camera, observations, model, keyframes), loading, overrides and the checks that span
+sections are here.
 """
 
 from __future__ import annotations
@@ -23,9 +29,15 @@ from typing import Any, Union
 import yaml
 
 from ptrack.body.acclaim import skeleton_beside
-from ptrack.body.pose_prior import check_smoothing_table
 from ptrack.costs.base import ROBUST_LOSSES
+from ptrack.costs.config import CostsConfig
 from ptrack.errors import InputError
+from ptrack.estimators.batch.config import BatchMethodConfig, validate_batch
+from ptrack.estimators.frame import FrameMethodConfig, validate_frame
+from ptrack.estimators.kjs.config import KjsMethodConfig, validate_kjs
+from ptrack.estimators.pca.config import PcaMethodConfig, validate_pca
+from ptrack.motion.config import MotionConfig, validate_motion
+from ptrack.settings import setting
 
 log = logging.getLogger(__name__)
 
@@ -72,16 +84,6 @@ YamlLoader.add_constructor(_FLOAT_TAG, _construct_float)
 def load_yaml(text: str) -> Any:
     """YAML text -> Python objects, floats as people write them (`YamlLoader`)."""
     return yaml.load(text, Loader=YamlLoader)  # a SafeLoader subclass
-
-
-_T = typing.TypeVar("_T")
-
-
-def setting(default: _T, help: str) -> _T:
-    """A config key's field: its default and one line of help, which `config_reference` (`ptrack config --list`,
-    docs/config.md) reads from the field's metadata. The measurements behind the defaults are in
-    docs/notes/config-history.md."""
-    return field(default=default, metadata={"help": help})
 
 
 @dataclass(frozen=True)
@@ -169,86 +171,6 @@ class ModelConfig:
 
 
 @dataclass(frozen=True)
-class CostsConfig:
-    """Cost terms shared by the estimators: reprojection, joint limits, temporal prior."""
-
-    sigma_px: float = setting(2.0, "reprojection noise scale, pixels")
-    loss: str = setting("cauchy", "robust kernel of the reprojection: l2, huber, cauchy, geman_mcclure")
-    robust_scale: float = setting(3.0, "the robust kernel's scale, in sigmas")
-    limits_weight: float = setting(1.0, "weight of the joint-limit barrier")
-    limits_sigma: float = setting(0.02, "scale of the joint-limit barrier, radians")
-    smooth_weight: float = setting(1.0, "weight of the temporal prior")
-    smooth_sigma: float = setting(0.15, "velocity scale of the temporal prior, radians (or metres) per frame")
-    accel_sigma: float | None = setting(
-        None, "acceleration scale of the temporal prior, radians (or metres) per frame^2; null = velocity only"
-    )
-
-
-@dataclass(frozen=True)
-class FrameMethodConfig:
-    """`method: frame`, the per-frame baseline: L-BFGS on each frame from the previous one."""
-
-    init: str = setting("keyframe", "keyframe: first frame's 3D pose given (as a user keyframe); rest: rest pose")
-    iterations: int = setting(40, "L-BFGS iterations per frame")
-    first_iterations: int = setting(200, "L-BFGS iterations on the first frame")
-    init_yaws: int = setting(1, "init rest: headings of the rest pose fitted on the first frame (the cheapest kept)")
-
-
-@dataclass(frozen=True)
-class KjsMethodConfig:
-    """Settings of the sampling trackers `kjs` (kinematic jumps + CSS diffusion), `css` and `ss`."""
-
-    modes: int = setting(8, "K: mixture modes kept per frame")
-    samples: int = setting(256, "hypotheses per frame: the K predicted modes, diffusion samples and (kjs) jump leaves")
-    scale: float = setting(4.0, "covariance scale s of the diffusion (s times the inverse Gauss-Newton Hessian)")
-    tail: str = setting("student", "diffusion tail: gaussian, student, cauchy")
-    tail_dof: float = setting(3.0, "Student-t degrees of freedom (tail: student)")
-    chains: tuple[str, ...] = setting(
-        ("larm", "rarm", "lleg", "rleg", "head"), "kinematic sub-chains that may be flipped (ptrack.hypotheses.jumps)"
-    )
-    jumps_per_sample: int = setting(1, "chains flipped per diffusion sample, chosen by covariance voting")
-    limits_mode: str = setting("prune", "jump leaves outside the joint limits: prune or project")
-    polisher: str = setting("lm", "local optimiser of every hypothesis: lm (Levenberg-Marquardt) or lbfgs")
-    polish_iterations: int = setting(4, "Levenberg-Marquardt iterations of every hypothesis")
-    refine_iterations: int = setting(10, "further iterations of the 4K most promising distinct minima")
-    momentum: float = setting(0.0, "share of a mode's last velocity in its prediction (0: constant position)")
-    distinct_mm: float = setting(0.0, "minima whose joints are all closer (mm) are one; 0: compare dofs (distinct_deg)")
-    distinct_deg: float = setting(3.0, "with distinct_mm 0: minima closer than this in every dof are one")
-    even_share: float = setting(0.5, "share of the diffusion samples split equally over the modes (the rest by weight)")
-    temperature: float = setting(1.0, "weights ∝ prior * exp(-cost / temperature)")
-    weight_memory: float = setting(0.5, "a new mode's weight ∝ parent's weight ** weight_memory * exp(-cost / T)")
-    prior_sigma: float = setting(0.05, "the dynamics' velocity std, radians (or metres) per frame, where no table")
-    dynamics: str | None = setting(
-        "cmu-train", "per-dof velocity std table: cmu-train, cmu (dev clips) or null (prior_sigma for all)"
-    )
-    dynamics_scale: float = setting(1.5, "the table's stds are multiplied by this")
-    dynamics_floor: float = setting(0.02, "least velocity std per frame from the table")
-    prior_tail: str = setting("cauchy", "tails of the dynamics prior: gaussian, or a robust loss (cauchy, ...)")
-    prior_tail_scale: float = setting(3.0, "where the robust tail begins, in standard deviations")
-    motion_scale: float = setting(1.0, "the prior's std widened by this times each mode's last displacement")
-    pose_prior_weight: float = setting(
-        0.1, "weight of the CMU pose prior (ptrack.body.pose_prior) in every tracking step"
-    )
-    collision_weight: float = setting(1.0, "weight of the body non-self-intersection term")
-    floor_deg: float = setting(0.5, "smallest sampling std per dof (unobservable directions), degrees")
-    ceiling_deg: float = setting(30.0, "largest sampling std per dof, degrees")
-    viterbi_space: str = setting("joints", "best trajectory's velocity prior: on joints relative to the root, or dofs")
-    viterbi_sigma_m: float = setting(0.05, "viterbi_space joints: velocity std, metres per frame and coordinate")
-    viterbi_sigma: float = setting(0.05, "viterbi_space dofs: velocity std, radians per frame")
-    init: str = setting("keyframe", "keyframe: frame 0's 3D pose given; tree: rest pose fitted in view + every flip")
-    start_prior_scale: float = setting(1.5, "init tree: the CMU pose prior's spread is scaled by this")
-    rest_sigma: float = setting(1.0, "init tree: std around 0 of the angles the pose prior does not name, radians")
-    init_yaws: int = setting(8, "init tree: headings of the rest pose tried (each also leaned forward and back)")
-    init_fits: int = setting(4, "init tree: distinct fitted poses whose chains are flipped (every combination)")
-    backward_pass: str = setting("always", "a second pass backwards in time: always, tree (after a tree start), never")
-    smooth_sweeps: int = setting(1, "sweeps of the smoother over every frame's hypotheses after the passes (0: none)")
-    smooth_scale: float = setting(0.2, "the smoother's prior std, times the dynamics'")
-    smooth_link_m: float = setting(0.1, "smoother: neighbours within this mean joint distance (metres) are linked")
-    recombine: bool = setting(True, "one more hypothesis per frame: each chain's reading by its own Viterbi pass")
-    recombine_sigma_m: float = setting(0.15, "recombine: velocity std on the chain's joints, metres per frame")
-
-
-@dataclass(frozen=True)
 class SubjectConfig:
     """The person of real footage: the template skeleton (data.asf) scaled to a height."""
 
@@ -267,96 +189,6 @@ class KeyframesConfig:
     noise_deg: float = setting(0.0, "Gaussian noise (std, degrees) added to the ground-truth keyframes' angles")
     sigma_deg: float = setting(2.0, "prior std of a ground-truth keyframe's angles (and a file's default), degrees")
     sigma_m: float = setting(0.02, "prior std of a ground-truth keyframe's root position (and a file's default), m")
-
-
-@dataclass(frozen=True)
-class PcaMethodConfig:
-    """`method: pca`, the golf-swing tracker over a PCA motion model (Urtasun, Fleet & Fua 2004): per sliding
-    window, the PCA weights (shared), a normalised time per frame and the root pose per frame (eq. 5), fitted by
-    Levenberg-Marquardt to the tracked joints and the silhouettes (eq. 7). The model is `motion.model_file`
-    (fitted from `motion.clips` on first use and cached there)."""
-
-    window: int = setting(3, "f: frames per window")
-    step: int = setting(1, "frames the window slides by (at most the window; 1: every frame is fitted f times)")
-    iterations: int = setting(2, "Levenberg-Marquardt iterations per window; 0 = the start alone (the mean motion)")
-    joints: tuple[str, ...] = setting(
-        ("l_knee", "r_knee", "l_ankle", "r_ankle", "l_wrist", "r_wrist", "head"),
-        "tracked keypoints (names of the keypoint set): the paper's knees, ankles, wrists, head",
-    )
-    joint_weight: float = setting(1.0, "w of the joint projections (pixels / costs.sigma_px, robust by costs.loss)")
-    silhouette_weight: float = setting(1.0, "w of the foreground term (section 4.1); 0 = joints only")
-    correspondence_weight: float = setting(0.3, "w of each point correspondence (section 4.3); 0 = unused")
-    correspondence_margin_m: float = setting(
-        0.03, "a pair counts only where p1's line of sight passes this far (m) from the model's outline"
-    )
-    silhouette_sigma_m: float = setting(0.02, "a ray this far (metres) from the model counts as one sigma")
-    silhouette_samples: int = setting(96, "foreground samples per frame (a regular grid, evenly thinned)")
-    silhouette_step_px: int = setting(4, "grid step of the samples, pixels")
-    root_sigma_m: float = setting(0.02, "prediction std of the root position, metres per frame")
-    root_sigma_deg: float = setting(3.0, "prediction std of the root orientation, degrees per frame")
-    time_sigma: float = setting(0.01, "prediction std of the normalised time per frame")
-    timing_sigma: float | None = setting(0.03, "std of a prior holding each frame's time near the start's; null: none")
-    alpha_sigma: float = setting(0.1, "prediction std of the PCA weights, in the model's per-component std")
-    alpha_prior_weight: float = setting(1.0, "weight of the prior alpha ~ N(0, sigma^2) of the training swings")
-    alpha_bound: float = setting(3.0, "|alpha_i| at most this many training stds (a box in the solver)")
-    init_yaws: int = setting(8, "headings of the first frame's root placement tried (section 5.1)")
-    key_smooth_s: float = setting(0.05, "Gaussian smoothing (std, s) of the 2D wrist track before the key postures")
-
-
-@dataclass(frozen=True)
-class BatchMethodConfig:
-    """`method: batch`, the MAP trajectory of the whole sequence (DiFranco, Cham & Rehg 2001)."""
-
-    iterations: int = setting(30, "Levenberg-Marquardt iterations on the whole trajectory")
-    tol: float = setting(1e-9, "relative energy decrease (or step) at which it stops")
-    damping: float = setting(1e-8, "initial lambda, relative to the Hessian's largest diagonal entry")
-    velocity_sigma: float | None = setting(3.0, "velocity smoothing std of the angles, rad/s; null drops the term")
-    accel_sigma: float | None = setting(8.0, "acceleration smoothing std of the angles, rad/s^2; null drops the term")
-    velocity_sigma_m: float | None = setting(1.0, "velocity smoothing std of the root position, m/s; null: none")
-    accel_sigma_m: float | None = setting(2.0, "acceleration smoothing std of the root position, m/s^2; null: none")
-    prior: str | None = setting("cmu", "per-dof smoothing scales replacing the sigmas: cmu (real motion) or null")
-    smooth_loss: str = setting("cauchy", "the smoothing residuals' loss: l2, huber, cauchy, geman_mcclure")
-    smooth_scale: float = setting(2.0, "the smoothing loss's scale, in prior standard deviations")
-    upsample: int = setting(1, "reconstruct N frames per observed frame (data.stride must be divisible by N)")
-    init: str = setting("frame", "start: frame (per-frame fits, frame.* settings) or keyframes (interpolated)")
-    uncertainty: bool | str = setting(
-        "branches", "joint_std in result.npz: branches (true), laplace (faster, overconfident), false = none"
-    )
-    flip_restarts: int = setting(3, "rounds of restarts from the limbs' depth-flip branches (0: none)")
-
-
-#: the golf swing's key postures (Urtasun, Fleet & Fua 2004, fig. 2), rules of `ptrack.motion.key_postures`
-GOLF_KEY_POSTURES = {
-    "start": "rest before top",  # start of upswing: the hands still, before the upswing's fastest motion
-    "top": "first max height",  # top of upswing: the hands' first high point
-    "hit": "first min height after top",  # ball hit: the hands' low point of the downswing
-    "end": "min speed after hit within 0.8 s",  # end of downswing: the hands' slowest, at the finish
-}
-
-
-@dataclass(frozen=True)
-class MotionConfig:
-    """`ptrack fit-motion`: a time-warped PCA motion model of one motion type (`ptrack.motion.motion_model`)."""
-
-    clips: tuple[str, ...] = setting((), "training clips: AMC files, or one text file listing them; .asf beside each")
-    joints: tuple[str, ...] = setting(("lradius", "rradius"), "tracked point of the key postures: their mean (wrists)")
-    exclude: tuple[str, ...] = setting(
-        ("*fingers", "*thumb", "*hand", "*toes"), "dofs left out of the model besides the root's (as model.freeze)"
-    )
-    key_postures: dict[str, str] = field(
-        default_factory=lambda: dict(GOLF_KEY_POSTURES),
-        metadata={
-            "help": "name -> rule, in temporal order (ptrack/motion/key_postures.py); an override replaces them all"
-        },
-    )
-    smooth_s: float = setting(0.05, "Gaussian smoothing (std, seconds) of the tracked point before the rules")
-    prominence: float = setting(0.02, "first/last extrema: least prominence, as a fraction of the signal's range")
-    rest_fraction: float = setting(0.05, "rest: slower than this fraction of the clip's top speed")
-    samples: int = setting(200, "N: normalised times per swing")
-    components: int = setting(4, "m: eigen-motions kept (at most the number of clips - 1)")
-    model_file: str | None = setting(
-        None, "where fit-motion writes the model and pca reads it; null = ~/.cache/ptrack/motion/<name>.npz"
-    )
 
 
 @dataclass(frozen=True)
@@ -383,6 +215,15 @@ class RunConfig:
     motion: MotionConfig = field(default_factory=MotionConfig)
     init_from: str | None = setting(None, "batch: start from this earlier run folder's trajectory (same model, frames)")
     name: str = setting("run", "config name (default: the YAML file's), used in the default out_dir")
+
+
+if typing.TYPE_CHECKING:
+    from ptrack.estimators.frame import FrameRunConfig
+    from ptrack.estimators.kjs.config import KjsRunConfig
+    from ptrack.estimators.pca.config import PcaRunConfig
+
+    # mypy: RunConfig is what each estimator reads of it (the protocols typing their `cfg`)
+    _READ_BY_ESTIMATORS: tuple[FrameRunConfig, KjsRunConfig, PcaRunConfig] = (RunConfig(), RunConfig(), RunConfig())
 
 
 METHODS = ("frame", "kjs", "css", "ss", "batch", "pca")
@@ -668,66 +509,8 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     if cfg.dtype not in ("float32", "float64"):
         raise InputError(f"config key 'dtype' must be float32 or float64, got {cfg.dtype!r}")
     check_device(cfg.device)
-    if cfg.frame.init not in ("keyframe", "rest"):
-        raise InputError(f"config key 'frame.init' must be 'keyframe' or 'rest', got {cfg.frame.init!r}")
-    if cfg.frame.init_yaws < 1:
-        raise InputError(f"config key 'frame.init_yaws' must be >= 1, got {cfg.frame.init_yaws}")
-    if cfg.frame.iterations < 1 or cfg.frame.first_iterations < 1:
-        raise InputError("config keys 'frame.iterations' and 'frame.first_iterations' must be >= 1")
-    kc = cfg.kjs
-    if kc.modes < 1:
-        raise InputError(f"config key 'kjs.modes' must be >= 1, got {kc.modes}")
-    if kc.samples < kc.modes:
-        raise InputError(f"config key 'kjs.samples' must be at least kjs.modes ({kc.modes}), got {kc.samples}")
-    for key in (
-        "scale",
-        "tail_dof",
-        "distinct_deg",
-        "temperature",
-        "prior_sigma",
-        "floor_deg",
-        "ceiling_deg",
-        "viterbi_sigma",
-        "viterbi_sigma_m",
-        "rest_sigma",
-        "start_prior_scale",
-        "prior_tail_scale",
-        "dynamics_scale",
-        "smooth_scale",
-        "smooth_link_m",
-        "recombine_sigma_m",
-    ):
-        if not getattr(kc, key) > 0:
-            raise InputError(f"config key 'kjs.{key}' must be positive, got {getattr(kc, key)}")
-    if not kc.dynamics_floor >= 0:
-        raise InputError(f"config key 'kjs.dynamics_floor' must be >= 0, got {kc.dynamics_floor}")
-    check_smoothing_table(kc.dynamics, "kjs.dynamics")
-    for key in ("init_yaws", "init_fits"):
-        if getattr(kc, key) < 1:
-            raise InputError(f"config key 'kjs.{key}' must be >= 1, got {getattr(kc, key)}")
-    if kc.collision_weight < 0:
-        raise InputError(f"config key 'kjs.collision_weight' must be >= 0, got {kc.collision_weight}")
-    if kc.polish_iterations < 0 or kc.refine_iterations < 0 or kc.jumps_per_sample < 0:
-        raise InputError(
-            "config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' must be >= 0"
-        )
-    for key in ("motion_scale", "pose_prior_weight", "distinct_mm", "smooth_sweeps"):
-        if getattr(kc, key) < 0:
-            raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")
-    for key in ("momentum", "even_share", "weight_memory"):
-        if not 0 <= getattr(kc, key) <= 1:
-            raise InputError(f"config key 'kjs.{key}' must be in [0, 1], got {getattr(kc, key)}")
-    for key, allowed in (
-        ("tail", ("gaussian", "student", "cauchy")),
-        ("limits_mode", ("prune", "project")),
-        ("polisher", ("lm", "lbfgs")),
-        ("init", ("keyframe", "tree")),
-        ("backward_pass", ("tree", "always", "never")),
-        ("viterbi_space", ("joints", "dofs")),
-        ("prior_tail", ("gaussian", *(n for n in ROBUST_LOSSES if n != "l2"))),
-    ):
-        if getattr(kc, key) not in allowed:
-            raise InputError(f"config key 'kjs.{key}' must be one of {', '.join(allowed)}, got {getattr(kc, key)!r}")
+    validate_frame(cfg.frame)
+    validate_kjs(cfg.kjs)
     kf = cfg.keyframes
     if kf.every_s is not None and not kf.every_s > 0:
         raise InputError(f"config key 'keyframes.every_s' must be positive or null, got {kf.every_s}")
@@ -737,29 +520,7 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         if not getattr(kf, key) > 0:
             raise InputError(f"config key 'keyframes.{key}' must be positive, got {getattr(kf, key)}")
     b = cfg.batch
-    if b.iterations < 1 or b.upsample < 1:
-        raise InputError("config keys 'batch.iterations' and 'batch.upsample' must be >= 1")
-    for key in ("tol", "damping"):
-        if not getattr(b, key) > 0:
-            raise InputError(f"config key 'batch.{key}' must be positive, got {getattr(b, key)}")
-    for key in ("velocity_sigma", "accel_sigma", "velocity_sigma_m", "accel_sigma_m"):
-        if getattr(b, key) is not None and not getattr(b, key) > 0:
-            raise InputError(f"config key 'batch.{key}' must be positive or null, got {getattr(b, key)}")
-    if b.smooth_loss not in ROBUST_LOSSES:
-        raise InputError(
-            f"config key 'batch.smooth_loss' must be one of {', '.join(ROBUST_LOSSES)}, got {b.smooth_loss!r}"
-        )
-    if not b.smooth_scale > 0:
-        raise InputError(f"config key 'batch.smooth_scale' must be positive, got {b.smooth_scale}")
-    if b.init not in ("frame", "keyframes"):
-        raise InputError(f"config key 'batch.init' must be 'frame' or 'keyframes', got {b.init!r}")
-    if isinstance(b.flip_restarts, bool) or not isinstance(b.flip_restarts, int) or b.flip_restarts < 0:
-        raise InputError(f"config key 'batch.flip_restarts' must be an integer >= 0, got {b.flip_restarts!r}")
-    if isinstance(b.uncertainty, str) and b.uncertainty not in ("laplace", "branches"):
-        raise InputError(
-            f"config key 'batch.uncertainty' must be 'branches', 'laplace', true (= branches) or false, "
-            f"got {b.uncertainty!r}"
-        )
+    validate_batch(b)
     if b.upsample > 1 and cfg.data.stride % b.upsample:
         raise InputError(
             f"config key 'batch.upsample' ({b.upsample}) must divide data.stride ({cfg.data.stride}): "
@@ -794,61 +555,6 @@ def check_device(device: str) -> None:
         f"config key 'device' must be a device this machine has: {', '.join(here)} (cuda and cuda:N need a CUDA GPU, "
         f"mps an Apple GPU), got {device!r}"
     )
-
-
-def validate_pca(p: PcaMethodConfig, keypoints: dict[str, str] | None = None, names: bool = True) -> None:
-    """Value checks of the `pca:` section; with `names` (method pca), the tracked joints must be names of the
-    keypoint set `keypoints` (None: the default H36M-17 set)."""
-    from ptrack.body.keypoints import H36M17
-
-    if p.window < 1:
-        raise InputError(f"config key 'pca.window' must be >= 1, got {p.window}")
-    if p.iterations < 0:
-        raise InputError(f"config key 'pca.iterations' must be >= 0, got {p.iterations}")
-    for key in ("step", "silhouette_samples", "silhouette_step_px", "init_yaws"):
-        if getattr(p, key) < 1:
-            raise InputError(f"config key 'pca.{key}' must be >= 1, got {getattr(p, key)}")
-    for key in (
-        "joint_weight",
-        "silhouette_weight",
-        "correspondence_weight",
-        "correspondence_margin_m",
-        "alpha_prior_weight",
-    ):
-        if not getattr(p, key) >= 0:
-            raise InputError(f"config key 'pca.{key}' must be >= 0, got {getattr(p, key)}")
-    if p.timing_sigma is not None and not p.timing_sigma > 0:
-        raise InputError(f"config key 'pca.timing_sigma' must be positive or null, got {p.timing_sigma}")
-    if p.key_smooth_s < 0:
-        raise InputError(f"config key 'pca.key_smooth_s' must be >= 0, got {p.key_smooth_s}")
-    for key in ("silhouette_sigma_m", "root_sigma_m", "root_sigma_deg", "time_sigma", "alpha_sigma", "alpha_bound"):
-        if not getattr(p, key) > 0:
-            raise InputError(f"config key 'pca.{key}' must be positive, got {getattr(p, key)}")
-    if not p.joints:
-        raise InputError("config key 'pca.joints' must name at least one tracked keypoint")
-    known = tuple(keypoints) if keypoints is not None else H36M17
-    for j in p.joints if names else ():
-        if j not in known:
-            raise InputError(f"config key 'pca.joints': unknown keypoint {j!r} (keypoints: {', '.join(known)})")
-
-
-def validate_motion(m: MotionConfig) -> None:
-    """Value checks of the `motion:` section (the clip count is checked when fitting)."""
-    from ptrack.motion.key_postures import parse_rules
-
-    if m.samples < 2:
-        raise InputError(f"config key 'motion.samples' must be >= 2, got {m.samples}")
-    if m.components < 1:
-        raise InputError(f"config key 'motion.components' must be >= 1, got {m.components}")
-    if not m.joints:
-        raise InputError("config key 'motion.joints' must name at least one joint")
-    if m.smooth_s < 0:
-        raise InputError(f"config key 'motion.smooth_s' must be >= 0, got {m.smooth_s}")
-    if not 0 <= m.prominence < 1:
-        raise InputError(f"config key 'motion.prominence' must be in [0, 1), got {m.prominence}")
-    if not 0 < m.rest_fraction < 1:
-        raise InputError(f"config key 'motion.rest_fraction' must be in (0, 1), got {m.rest_fraction}")
-    parse_rules(m.key_postures)
 
 
 def to_dict(cfg) -> dict:

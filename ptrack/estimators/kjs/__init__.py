@@ -73,6 +73,7 @@ The package: `model` (the fixed setup, each frame's objective and polishing), `s
 (the loop and the estimators).
 """
 
+from ptrack.estimators.kjs.config import KjsMethodConfig
 from ptrack.estimators.kjs.lattice import principal_directions
 from ptrack.estimators.kjs.model import CSS, KJS, SS, Setup, Strategy
 from ptrack.estimators.kjs.track import estimate_css, estimate_kjs, estimate_ss, track
@@ -81,6 +82,7 @@ __all__ = [
     "CSS",
     "KJS",
     "SS",
+    "KjsMethodConfig",
     "Setup",
     "Strategy",
     "estimate_css",

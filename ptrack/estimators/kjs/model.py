@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from torch import Tensor
@@ -23,6 +22,7 @@ from ptrack.costs import (
     SelfIntersection,
 )
 from ptrack.errors import InputError
+from ptrack.estimators.kjs.config import KjsRunConfig
 from ptrack.hypotheses.ik import ChainIK, ClosedFormUnavailable, ik_plan
 from ptrack.hypotheses.jumps import Chain, check_independent, default_chains
 from ptrack.hypotheses.mixture import Modes, distinct_minima, posterior_weights
@@ -52,7 +52,7 @@ class Setup:
     chains with their IK plans."""
 
     problem: Problem
-    cfg: Any  # the run's config (ptrack.pipeline.config.RunConfig, not imported: estimators sit below it)
+    cfg: KjsRunConfig  # the run's config (a `ptrack.pipeline.config.RunConfig`)
     lower: Tensor  # (D,)
     upper: Tensor  # (D,)
     angular: Tensor  # (D,) bool
@@ -66,7 +66,7 @@ class Setup:
     dynamics_sigma: float | Tensor  # the dynamics' velocity std per frame before widening (`kjs.dynamics`)
 
 
-def make_setup(problem: Problem, cfg, strategy: Strategy) -> Setup:
+def make_setup(problem: Problem, cfg: KjsRunConfig, strategy: Strategy) -> Setup:
     sk = problem.skeleton
     obs = problem.observations
     dtype, device = obs.keypoints.dtype, obs.keypoints.device

@@ -8,6 +8,7 @@ from collections.abc import Callable, Iterable
 import torch
 from torch import Tensor
 
+from ptrack.estimators.kjs.config import KjsRunConfig
 from ptrack.estimators.kjs.lattice import (
     best_path,
     lead_pass,
@@ -26,7 +27,7 @@ from ptrack.threads import one_thread
 
 def track(
     problem: Problem,
-    cfg,
+    cfg: KjsRunConfig,
     generator: torch.Generator,
     strategy: Strategy,
     progress: Callable[[Iterable], Iterable] = lambda x: x,
@@ -61,7 +62,11 @@ def _ordinary(est: Estimate) -> Estimate:
 
 
 def _track(
-    problem: Problem, cfg, generator: torch.Generator, strategy: Strategy, progress: Callable[[Iterable], Iterable]
+    problem: Problem,
+    cfg: KjsRunConfig,
+    generator: torch.Generator,
+    strategy: Strategy,
+    progress: Callable[[Iterable], Iterable],
 ) -> Estimate:
     s = make_setup(problem, cfg, strategy)
     sk, obs = problem.skeleton, problem.observations
@@ -119,16 +124,16 @@ def _track(
     )
 
 
-def estimate_kjs(problem, cfg, generator, progress=lambda x: x) -> Estimate:
+def estimate_kjs(problem: Problem, cfg: KjsRunConfig, generator: torch.Generator, progress=lambda x: x) -> Estimate:
     """`method: kjs`: kinematic jump sampling with CSS diffusion."""
     return track(problem, cfg, generator, KJS, progress)
 
 
-def estimate_css(problem, cfg, generator, progress=lambda x: x) -> Estimate:
+def estimate_css(problem: Problem, cfg: KjsRunConfig, generator: torch.Generator, progress=lambda x: x) -> Estimate:
     """`method: css`: covariance scaled sampling only, same hypothesis budget."""
     return track(problem, cfg, generator, CSS, progress)
 
 
-def estimate_ss(problem, cfg, generator, progress=lambda x: x) -> Estimate:
+def estimate_ss(problem: Problem, cfg: KjsRunConfig, generator: torch.Generator, progress=lambda x: x) -> Estimate:
     """`method: ss`: spherical sampling only, same hypothesis budget and core volume."""
     return track(problem, cfg, generator, SS, progress)

@@ -1,0 +1,24 @@
+"""The config section of the cost terms the estimators share (`costs:`): reprojection, joint limits, temporal
+prior. Composed into the run's config by `ptrack.pipeline.config`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ptrack.settings import setting
+
+
+@dataclass(frozen=True)
+class CostsConfig:
+    """Cost terms shared by the estimators: reprojection, joint limits, temporal prior."""
+
+    sigma_px: float = setting(2.0, "reprojection noise scale, pixels")
+    loss: str = setting("cauchy", "robust kernel of the reprojection: l2, huber, cauchy, geman_mcclure")
+    robust_scale: float = setting(3.0, "the robust kernel's scale, in sigmas")
+    limits_weight: float = setting(1.0, "weight of the joint-limit barrier")
+    limits_sigma: float = setting(0.02, "scale of the joint-limit barrier, radians")
+    smooth_weight: float = setting(1.0, "weight of the temporal prior")
+    smooth_sigma: float = setting(0.15, "velocity scale of the temporal prior, radians (or metres) per frame")
+    accel_sigma: float | None = setting(
+        None, "acceleration scale of the temporal prior, radians (or metres) per frame^2; null = velocity only"
+    )

@@ -1,0 +1,79 @@
+"""`method: batch` — the maximum a posteriori trajectory of the whole sequence (DiFranco, Cham &
+Rehg 2001, eq. 5), by Levenberg-Marquardt on its block-banded normal equations.
+
+For the trajectory Q = (q_0 .. q_{T-1}), q_t (D,), the energy is
+
+    L(Q) = sum_t [ robust reprojection_t(q_t) + joint limits_t(q_t) ]        per frame (eqs. 1, 2)
+         + 1/2 sum_n sum_t,d rho(|a_n * diff_n(Q)_t,d|^2)                   smoothing (eq. 3), n = 1, 2
+         + 1/2 sum_f |(q_{t_f} - f_f) / sigma_f|^2 over the given dofs       angle keyframes (eq. 4)
+         + 1/2 sum_g |(X_j(q_{t_g}) - x_g) / sigma_g|^2 over the given joints joint-position keyframes
+
+with a_1 = 1 / (dt sigma_velocity), a_2 = 1 / (dt^2 sigma_acceleration) per dof: by default
+(`batch.prior: cmu`) each CMU dof's own scale, the RMS velocity and acceleration of real motion
+(`ptrack/data/cmu_smoothing.json`, fitted to the dev clips by `scripts/make_smoothing_prior.py`: a
+knee accelerates at ~27 rad/s^2, the head at ~7), else `batch.velocity_sigma` / `accel_sigma` for
+angles and `*_sigma_m` for the root position. rho is `batch.smooth_loss` at `batch.smooth_scale`
+prior std (default Cauchy at 2: quadratic for the motion the prior expects, logarithmic for faster
+motion, so a run's legs are not pulled flat; l2 is the paper's Gaussian). Missing keypoints
+(confidence 0) and frames without any 2D add nothing: the dynamics fill them, which is how
+`batch.upsample` reconstructs frames between the observed ones. The per-frame terms give the
+diagonal blocks J_t^T W J_t of the Gauss-Newton Hessian (J_t from the geometric joint Jacobian, one
+FK pass batched over all frames); the smoothing prior is linear in Q and couples each dof only with
+itself, so it adds a band of diagonal couplings (block-pentadiagonal with an acceleration term;
+constant for l2, else D_n^T diag(w a_n^2) D_n with the IRLS weights w = rho' of the residuals at the
+current Q). `ptrack.optim.solvers.banded_levenberg_marquardt` solves it with `ptrack.optim.banded` (never a
+dense (T*D)^2 matrix) inside the joint-limit box.
+
+Uncertainty: the diagonal blocks of the inverse Gauss-Newton Hessian at the solution (the banded
+recursion of `ptrack.optim.banded.marginal_blocks`) are the per-frame marginal covariances of the pose;
+through the joint Jacobian G_t (J, 3, D) each joint's position covariance is G Sigma_t G^T, and
+`joint_std` (T, J) is the square root of its trace (metres: the RMS 3D error it predicts). That
+Laplace approximation only sees the curvature of the branch the solution took; with
+`batch.uncertainty: branches` (the default) each limb's depth flips are added as a mixture
+(`flip_posterior`, `ptrack.hypotheses.branches`): their second moment about the solution joins the trace.
+The same re-solved branches restart the solve (`batch.flip_restarts` rounds, `lower_branch`): one
+whose whole energy is lower than the solution's shows the solve stopped in a local minimum on the
+other branch, and the solve continues from it.
+
+The start is the per-frame fit (`method: frame`), or an earlier run's trajectory (`init_from`, warped
+onto the keyframes: `warp_to_keyframes`), or the keyframes interpolated (`batch.init: keyframes`;
+the per-frame fit where no keyframe gives every dof, e.g. a user's file of partial or joint keyframes).
+
+Modules: `objective` (the energy: `Trajectory`, `trajectory_objective`, `evaluate`), `smoothing` (the smoothing
+prior's differences, band and robust weights), `solve` (the banded linearisation and Levenberg-Marquardt),
+`uncertainty` (`joint_std`, the flip branches and the restarts from them), `start` (`init_from`, interpolated
+keyframes) and `estimate` (`estimate_batch`).
+"""
+
+from __future__ import annotations
+
+from ptrack.estimators.batch.config import BatchMethodConfig
+from ptrack.estimators.batch.estimate import PerFrame, estimate_batch
+from ptrack.estimators.batch.objective import Evaluation, Trajectory, evaluate, total_energy, trajectory_objective
+from ptrack.estimators.batch.smoothing import robust_smoothing, smoothing_band, weighted_band
+from ptrack.estimators.batch.solve import linearization, solve_trajectory
+from ptrack.estimators.batch.start import has_full_keyframe, interpolate_keyframes, load_init, warp_to_keyframes
+from ptrack.estimators.batch.uncertainty import flip_posterior, joint_std, lower_branch
+
+__all__ = [
+    "BatchMethodConfig",
+    "Evaluation",
+    "PerFrame",
+    "Trajectory",
+    "estimate_batch",
+    "evaluate",
+    "flip_posterior",
+    "has_full_keyframe",
+    "interpolate_keyframes",
+    "joint_std",
+    "linearization",
+    "load_init",
+    "lower_branch",
+    "robust_smoothing",
+    "smoothing_band",
+    "solve_trajectory",
+    "total_energy",
+    "trajectory_objective",
+    "warp_to_keyframes",
+    "weighted_band",
+]

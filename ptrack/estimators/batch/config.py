@@ -1,0 +1,60 @@
+"""The config section of the batch estimator (`batch:`) and its checks. Composed into the run's config by
+`ptrack.pipeline.config`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ptrack.costs.base import ROBUST_LOSSES
+from ptrack.errors import InputError
+from ptrack.settings import setting
+
+
+@dataclass(frozen=True)
+class BatchMethodConfig:
+    """`method: batch`, the MAP trajectory of the whole sequence (DiFranco, Cham & Rehg 2001)."""
+
+    iterations: int = setting(30, "Levenberg-Marquardt iterations on the whole trajectory")
+    tol: float = setting(1e-9, "relative energy decrease (or step) at which it stops")
+    damping: float = setting(1e-8, "initial lambda, relative to the Hessian's largest diagonal entry")
+    velocity_sigma: float | None = setting(3.0, "velocity smoothing std of the angles, rad/s; null drops the term")
+    accel_sigma: float | None = setting(8.0, "acceleration smoothing std of the angles, rad/s^2; null drops the term")
+    velocity_sigma_m: float | None = setting(1.0, "velocity smoothing std of the root position, m/s; null: none")
+    accel_sigma_m: float | None = setting(2.0, "acceleration smoothing std of the root position, m/s^2; null: none")
+    prior: str | None = setting("cmu", "per-dof smoothing scales replacing the sigmas: cmu (real motion) or null")
+    smooth_loss: str = setting("cauchy", "the smoothing residuals' loss: l2, huber, cauchy, geman_mcclure")
+    smooth_scale: float = setting(2.0, "the smoothing loss's scale, in prior standard deviations")
+    upsample: int = setting(1, "reconstruct N frames per observed frame (data.stride must be divisible by N)")
+    init: str = setting("frame", "start: frame (per-frame fits, frame.* settings) or keyframes (interpolated)")
+    uncertainty: bool | str = setting(
+        "branches", "joint_std in result.npz: branches (true), laplace (faster, overconfident), false = none"
+    )
+    flip_restarts: int = setting(3, "rounds of restarts from the limbs' depth-flip branches (0: none)")
+
+
+def validate_batch(b: BatchMethodConfig) -> None:
+    """Value checks of the `batch:` section (InputError naming the key); `batch.upsample` against `data.stride`
+    is checked with the whole config (`ptrack.pipeline.config.validate`)."""
+    if b.iterations < 1 or b.upsample < 1:
+        raise InputError("config keys 'batch.iterations' and 'batch.upsample' must be >= 1")
+    for key in ("tol", "damping"):
+        if not getattr(b, key) > 0:
+            raise InputError(f"config key 'batch.{key}' must be positive, got {getattr(b, key)}")
+    for key in ("velocity_sigma", "accel_sigma", "velocity_sigma_m", "accel_sigma_m"):
+        if getattr(b, key) is not None and not getattr(b, key) > 0:
+            raise InputError(f"config key 'batch.{key}' must be positive or null, got {getattr(b, key)}")
+    if b.smooth_loss not in ROBUST_LOSSES:
+        raise InputError(
+            f"config key 'batch.smooth_loss' must be one of {', '.join(ROBUST_LOSSES)}, got {b.smooth_loss!r}"
+        )
+    if not b.smooth_scale > 0:
+        raise InputError(f"config key 'batch.smooth_scale' must be positive, got {b.smooth_scale}")
+    if b.init not in ("frame", "keyframes"):
+        raise InputError(f"config key 'batch.init' must be 'frame' or 'keyframes', got {b.init!r}")
+    if isinstance(b.flip_restarts, bool) or not isinstance(b.flip_restarts, int) or b.flip_restarts < 0:
+        raise InputError(f"config key 'batch.flip_restarts' must be an integer >= 0, got {b.flip_restarts!r}")
+    if isinstance(b.uncertainty, str) and b.uncertainty not in ("laplace", "branches"):
+        raise InputError(
+            f"config key 'batch.uncertainty' must be 'branches', 'laplace', true (= branches) or false, "
+            f"got {b.uncertainty!r}"
+        )

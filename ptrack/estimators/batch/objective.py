@@ -1,0 +1,270 @@
+"""The batch objective (`method: batch`; its energy in `ptrack.estimators.batch`): `Trajectory`, built from a
+problem and the config by `trajectory_objective`, and `evaluate`, each term's per-frame energy with the per-frame
+Gauss-Newton pieces. Shapes: B trajectories, T frames, D dofs, J joints, K keypoints."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ptrack.body.limits import wrap_to_limits, wrapped_difference
+from ptrack.body.pose_prior import smoothing_prior
+from ptrack.costs import PoseEval, Reprojection, robust_loss, robust_loss_derivative
+from ptrack.costs.base import PoseJacobian
+from ptrack.errors import InputError
+from ptrack.estimators.batch.smoothing import band_matvec, robust_smoothing, smoothing_band
+from ptrack.optim.banded import numpy_path
+from ptrack.optim.jacobians import joint_jacobian, joint_jacobian_product
+from ptrack.problem import Problem
+from ptrack.threads import on_two_threads, parallel_halves
+
+_MIN_PART = 32  # `evaluate` splits the frames in two halves for two threads from 2 * _MIN_PART frames
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """The MAP objective of one sequence of T frames (D dofs, J joints, K keypoints); see
+    `ptrack.estimators.batch`. Built by `trajectory_objective`.
+
+    reprojection: `Reprojection` on observed (T, K, 2); lower, upper (D,) joint limits; limits_scale
+    sqrt(weight) / sigma; smooth: ((n, a_n (D,)), ...) difference order and per-dof weight;
+    band (T, W+1, D) the smoothing Hessian (band[t, k] = its (t, t-k) diagonal block's diagonal);
+    kf_frames (F,), kf_target (F, D), kf_weight (F, D) = 1/sigma (0 where not given), angular (D,)
+    bool; jk_frames (G,), jk_target (G, J, 3), jk_weight (G, J) = 1/sigma (0 where not given),
+    jk_joints the joints some joint keyframe gives (the others' weights are all 0).
+    """
+
+    problem: Problem
+    reprojection: Reprojection
+    lower: Tensor
+    upper: Tensor
+    limits_scale: float
+    smooth: tuple[tuple[int, Tensor], ...]
+    band: Tensor
+    kf_frames: Tensor
+    kf_target: Tensor
+    kf_weight: Tensor
+    angular: Tensor
+    jk_frames: Tensor
+    jk_target: Tensor
+    jk_weight: Tensor
+    jk_joints: tuple[int, ...]
+    smooth_loss: str = "l2"
+    smooth_scale: float = 1.0
+
+    def smooth_rho(self) -> Callable[[Tensor], Tensor] | None:
+        """The smoothing residuals' robust loss on their squares (in prior std units), None for l2."""
+        if self.smooth_loss == "l2":
+            return None
+        rho, c = robust_loss(self.smooth_loss), self.smooth_scale
+        return lambda s: rho(s, c)
+
+
+def trajectory_objective(
+    problem: Problem, cfg, dtype: torch.dtype, device: torch.device, smoothing: bool = True, limits: bool = True
+) -> Trajectory:
+    """The batch objective of `problem` under config `cfg` (costs.*, batch.*, keyframes.*).
+    smoothing / limits False drop those terms (the ablation)."""
+    sk, obs, cc, bc = problem.skeleton, problem.observations, cfg.costs, cfg.batch
+    t_len, d = obs.num_frames, sk.num_dofs
+    reproj = Reprojection(
+        obs.keypoints.to(device=device, dtype=dtype),
+        obs.confidence.to(device=device, dtype=dtype),
+        sigma_px=cc.sigma_px,
+        loss=cc.loss,
+        scale=cc.robust_scale,
+    )
+    lower, upper = sk.limits(dtype=dtype, device=device)
+    if not limits:
+        lower, upper = torch.full_like(lower, -math.inf), torch.full_like(upper, math.inf)
+    dt = obs.frame_interval
+    trans = torch.zeros(d, dtype=torch.bool, device=device)
+    trans[[i for i in sk.translation_dof.tolist() if i >= 0]] = True
+    angular = torch.as_tensor(sk.angular_dofs(), device=device)
+
+    table = smoothing_prior(bc.prior)
+
+    def weights(sigma_angle: float | None, sigma_m: float | None, n: int, per_dof: dict) -> Tensor | None:
+        if sigma_angle is None and sigma_m is None:
+            return None
+        sigma = [(sigma_m if is_t else sigma_angle) for is_t in trans.tolist()]
+        # the prior's scale replaces the scalar of the dofs it names, in the terms that are on
+        sigma = [per_dof.get(name, s) if s is not None else None for name, s in zip(sk.dof_names, sigma)]
+        return torch.tensor([0.0 if s is None else 1.0 / (dt**n * s) for s in sigma], dtype=dtype, device=device)
+
+    smooth = []
+    if smoothing:
+        for n, sa, sm, key in (
+            (1, bc.velocity_sigma, bc.velocity_sigma_m, "velocity"),
+            (2, bc.accel_sigma, bc.accel_sigma_m, "accel"),
+        ):
+            a = weights(sa, sm, n, table.get(key, {}))
+            if a is not None:
+                smooth.append((n, a))
+    like = torch.zeros(d, dtype=dtype, device=device)
+    band = smoothing_band(t_len, tuple(smooth), like)
+
+    kf = problem.keyframes
+    if kf is not None:
+        frames = kf.frames.to(device=device, dtype=torch.long)
+        mask = torch.ones_like(kf.q, dtype=torch.bool) if kf.mask is None else kf.mask
+        mask = mask.to(device)
+        default = torch.where(trans, cfg.keyframes.sigma_m, math.radians(cfg.keyframes.sigma_deg)).to(dtype)
+        sigma = default.expand(kf.q.shape) if kf.sigma is None else kf.sigma.to(device=device, dtype=dtype)
+        target = torch.where(mask, kf.q.to(device=device, dtype=dtype), 0.0)
+        target = wrap_to_limits(target, *sk.limits(dtype=dtype, device=device), angular)
+        kf_frames, kf_target, kf_weight = frames, target, torch.where(mask, 1.0 / sigma, 0.0)
+    else:
+        kf_frames, kf_target, kf_weight = (
+            torch.zeros(0, dtype=torch.long, device=device),
+            like.new_zeros(0, d),
+            like.new_zeros(0, d),
+        )
+    jk = problem.joint_keyframes
+    j = sk.num_joints
+    if jk is not None:
+        mask = jk.mask.to(device)
+        jk_frames = jk.frames.to(device=device, dtype=torch.long)
+        jk_target = torch.where(mask[..., None], jk.joints.to(device=device, dtype=dtype), 0.0)
+        jk_weight = torch.where(mask, 1.0 / jk.sigma.to(device=device, dtype=dtype)[:, None], 0.0)
+    else:
+        jk_frames = torch.zeros(0, dtype=torch.long, device=device)
+        jk_target, jk_weight = like.new_zeros(0, j, 3), like.new_zeros(0, j)
+    for name, fr in (("keyframe", kf_frames), ("joint keyframe", jk_frames)):
+        if fr.numel() and (int(fr.min()) < 0 or int(fr.max()) >= t_len):
+            raise InputError(f"a {name} at frame {int(fr.max())} lies outside the {t_len} reconstructed frames")
+    return Trajectory(
+        problem,
+        reproj,
+        lower,
+        upper,
+        math.sqrt(cc.limits_weight) / cc.limits_sigma,
+        tuple(smooth),
+        band,
+        kf_frames,
+        kf_target,
+        kf_weight,
+        angular,
+        jk_frames,
+        jk_target,
+        jk_weight,
+        tuple(torch.nonzero((jk_weight != 0).any(0)).flatten().tolist()),
+        bc.smooth_loss,
+        bc.smooth_scale,
+    )
+
+
+class Evaluation(NamedTuple):
+    """`evaluate`'s result: terms {name: (B, T)} (reprojection, limits, smooth, keyframes; each
+    smoothing residual counted at its middle frame), h (B, T, D, D) the per-frame blocks J_t^T W J_t
+    of every term but the smoothing band, g (B, T, D) the gradient of the whole energy (smoothing
+    included), smooth_weights the robust smoothing's Gauss-Newton weights (`robust_smoothing`; empty
+    for l2, whose band is the fixed `Trajectory.band`); h and g are None and smooth_weights empty
+    without the Jacobian."""
+
+    terms: dict[str, Tensor]
+    h: Tensor | None
+    g: Tensor | None
+    smooth_weights: tuple[tuple[int, Tensor], ...]
+
+
+def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluation:
+    """Per-frame energies of each term, and the per-frame Gauss-Newton pieces: q (B, T, D) ->
+    `Evaluation`."""
+    p = obj.problem
+    sk, cam, kps = p.skeleton, p.observations.camera.to(device=q.device, dtype=q.dtype), p.keypoints
+    b_len, t_len, _d = q.shape
+    idx = kps.index(q.device)
+    # the per-frame work (joint Jacobians, projections, J^T W J) runs on the two halves of the
+    # sequence at once when torch may use two threads (`ptrack.threads.parallel_halves`)
+    parts = [slice(0, t_len)]
+    if with_jacobian and t_len >= 2 * _MIN_PART and parallel_halves(q.device):
+        parts = [slice(0, t_len // 2), slice(t_len // 2, t_len)]
+
+    def per_parts(fn: Callable[..., Any], extra: list | None = None) -> list:
+        """fn(part, extra[i]) for every part, on two threads if two."""
+        args = [(part,) if extra is None else (part, e) for part, e in zip(parts, extra or parts)]
+        return [fn(*args[0])] if len(parts) == 1 else list(on_two_threads(fn, args[0], args[1]))
+
+    fk: list[tuple[Tensor, Tensor]] | None = None
+    if with_jacobian:
+
+        def geometry(part: slice) -> tuple[Tensor, ...]:
+            joints, rot = sk.forward_kinematics(q[:, part], rotations=True)  # (B, t, J, 3), (B, t, J, 3, 3)
+            proj, dpix = cam.project_jacobian(joints.index_select(-2, idx))  # d pixels / d X (B, t, K, 2, 3)
+            return joints, rot, proj.pixels, proj.depth, dpix
+
+        geo = per_parts(geometry)
+        joints, pixels, depth, dpix = (torch.cat([part[i] for part in geo], 1) for i in (0, 2, 3, 4))
+        fk = [(part[0], part[1]) for part in geo]  # each part's FK, not joined: only read per part
+        ev = PoseEval(q=q, joints=joints, pixels=pixels, depth=depth)
+    else:
+        from ptrack.problem import evaluate_pose
+
+        ev = evaluate_pose(sk, cam, kps, q)
+    rp = obj.reprojection
+    k = rp.observed.shape[-2]
+    r = rp.residual(ev).unflatten(-1, (t_len, k, 2))  # (B, T, K, 2)
+    s = r.square().sum(-1)
+    terms = {"reprojection": 0.5 * robust_loss(rp.loss)(s, rp.scale).sum(-1)}
+    lim = (torch.clamp(q - obj.lower, max=0.0) + torch.clamp(q - obj.upper, min=0.0)) * obj.limits_scale
+    terms["limits"] = 0.5 * lim.square().sum(-1)
+    # the smoothing's derivatives only where used: l2's gradient and band come from the fixed band
+    robust = with_jacobian and obj.smooth_loss != "l2"
+    terms["smooth"], smooth_grad, smooth_weights = robust_smoothing(obj, q, derivatives=robust)
+    kf_r = wrapped_difference(q[:, obj.kf_frames] - obj.kf_target, obj.angular) * obj.kf_weight  # (B, F, D)
+    keyframes = q.new_zeros(b_len, t_len).index_add(1, obj.kf_frames, 0.5 * kf_r.square().sum(-1))
+    jk_r = (ev.joints[:, obj.jk_frames] - obj.jk_target) * obj.jk_weight[..., None]  # (B, G, J, 3)
+    terms["keyframes"] = keyframes.index_add(1, obj.jk_frames, 0.5 * jk_r.square().sum((-1, -2)))
+    if not with_jacobian:
+        return Evaluation(terms, None, None, smooth_weights)
+    assert fk is not None  # with_jacobian
+
+    # J_t^T W J_t of the reprojection: per keypoint, the residual's 2 x 3 derivative w.r.t. its joint
+    # (`Reprojection.jacobian` on d pixels / d X) times sqrt(W), times that joint's geometric Jacobian
+    # (`joint_jacobian_product`: from the keypoints' joints' (joint, ancestor slot) pairs, 2 values
+    # each, never the (K, 3, D) rows)
+    root_w = robust_loss_derivative(rp.loss)(s, rp.scale).sqrt()[..., None]  # (B, T, K, 1) sqrt IRLS weights
+    jp = rp.jacobian(ev, PoseJacobian(ev.joints, dpix, ev.depth)).unflatten(-2, (t_len, k, 2))  # (B, T, K, 2, 3)
+    jp = jp * root_w[..., None]
+    rw = (r * root_w).flatten(-2)[..., None]  # (B, T, 2K, 1)
+    h = q.new_empty(b_len, t_len, _d, _d)
+    g = q.new_empty(b_len, t_len, _d)
+
+    def normal_equations(part: slice, fk_part: tuple[Tensor, Tensor]) -> None:
+        jw = joint_jacobian_product(sk, q[:, part], kps.joints, jp[:, part], fk_part)  # (B, t, K, 2, D)
+        jw = jw.flatten(-3, -2)  # (B, t, 2K, D), rows (keypoint, x|y)
+        if numpy_path(jw):  # CPU: numpy's batched product (BLAS per frame, less overhead than torch's)
+            np.matmul(jw.numpy().swapaxes(-1, -2), jw.numpy(), out=h[:, part].numpy())
+        else:
+            torch.matmul(jw.mT, jw, out=h[:, part])  # one batched product per frame, in place
+        torch.matmul(jw.mT, rw[:, part], out=g[:, part, :, None])
+
+    per_parts(normal_equations, fk)
+    outside = ((q < obj.lower) | (q > obj.upper)).to(q.dtype)
+    diag = outside * obj.limits_scale**2
+    g = g + lim * obj.limits_scale
+    kf_w2 = obj.kf_weight.square()
+    diag = diag.index_add(1, obj.kf_frames, kf_w2.expand(b_len, -1, -1))
+    g = g.index_add(1, obj.kf_frames, kf_r * obj.kf_weight)
+    if obj.jk_frames.numel():
+        # only the rows of joints some joint keyframe gives (the others weigh 0): (B, G, J', 3, D)
+        _, dx_jk = joint_jacobian(sk, q[:, obj.jk_frames], obj.jk_joints)
+        gj = dx_jk * obj.jk_weight[:, list(obj.jk_joints), None, None]
+        h.index_add_(1, obj.jk_frames, torch.einsum("bgjcd,bgjce->bgde", gj, gj))
+        g = g.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjc->bgd", gj, jk_r[:, :, list(obj.jk_joints)]))
+    h.diagonal(dim1=-2, dim2=-1).add_(diag)  # in place: a diag_embed would write T D^2 zeros
+    g = g + (smooth_grad if smooth_grad is not None else band_matvec(obj.band, q))
+    return Evaluation(terms, h, g, smooth_weights)
+
+
+def total_energy(obj: Trajectory, q: Tensor) -> Tensor:
+    """The whole objective of trajectories q (N, T, D) -> (N,)."""
+    terms = evaluate(obj, q, with_jacobian=False).terms
+    return torch.stack(list(terms.values())).sum(0).sum(-1)

@@ -1,0 +1,84 @@
+"""What the batch solution leaves uncertain: `joint_std` from the marginal covariances of the Gauss-Newton
+Hessian (the Laplace approximation), and the limbs' depth-flip branches (`flip_posterior`, in the posterior of
+`ptrack.hypotheses.branches`), which add to it and whose lowest one restarts the solve (`lower_branch`)."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import torch
+from torch import Tensor
+
+from ptrack.errors import InputError
+from ptrack.estimators.batch.config import BatchMethodConfig
+from ptrack.estimators.batch.objective import Trajectory, evaluate, total_energy
+from ptrack.estimators.batch.solve import solve_trajectory
+from ptrack.hypotheses.branches import BranchPosterior, branch_posterior, relax_branches
+from ptrack.hypotheses.ik import ik_plan
+from ptrack.hypotheses.jumps import check_independent, default_chains
+from ptrack.optim.banded import BlockBanded, factorize, marginal_blocks
+from ptrack.optim.jacobians import joint_jacobian
+
+log = logging.getLogger(__name__)
+
+
+def joint_std(obj: Trajectory, q: Tensor, hessian: BlockBanded, branches: BranchPosterior | None = None) -> Tensor:
+    """Per-joint 3D standard deviation from the Gauss-Newton Hessian at the solution.
+
+    q (B, T, D), hessian (diagonal (B, T, D, D)) -> (B, T, J) metres = sqrt(trace(G_t Sigma_t G_t^T))
+    per joint, Sigma_t the marginal covariance of q_t (banded recursion). A tiny ridge (1e-9 of the
+    largest diagonal entry) keeps directions no term constrains finite. With `branches`
+    (`flip_posterior`), the flip branches' second moment about q is added to the variance:
+    sqrt(trace(G Sigma G^T) + sum_c sum_l p_l |X_l - X|^2), each branch with q's curvature."""
+    ridge = 1e-9 * hessian.diagonal.diagonal(dim1=-2, dim2=-1).amax((-2, -1)).clamp(min=1e-30)
+    eye = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device)
+    factor, ok = factorize(BlockBanded(hessian.diagonal + ridge[:, None, None, None] * eye, hessian.lower))
+    sigma = marginal_blocks(factor)  # (B, T, D, D)
+    _, g = joint_jacobian(obj.problem.skeleton, q)  # (B, T, J, 3, D)
+    var = torch.einsum("btjcd,btde,btjce->btj", g, sigma, g)
+    if branches is not None:
+        var = var + branches.variance
+    std = var.clamp(min=0).sqrt()
+    return torch.where(ok[:, None, None], std, torch.full_like(std, math.nan))
+
+
+def flip_posterior(obj: Trajectory, q: Tensor, bc: BatchMethodConfig) -> BranchPosterior | None:
+    """The flip branches of the solution q (B, T, D) in the posterior (`ptrack.hypotheses.branches`): every limb's
+    depth-labelled leaves (the default chains: arms, legs, head) through q's projections, each leaf's
+    whole trajectory re-solved from there by `solve_trajectory` with the `batch.*` settings bc (0
+    iterations: the rigid leaves), and their marginal
+    probabilities per frame from the objective itself (per-frame terms, smoothing between
+    consecutive frames' leaves; forward-backward). None (with a warning) for a model without the
+    default chains. Costs one batched solve of 4 trajectories per chain (20 on CMU skeletons)."""
+    sk = obj.problem.skeleton
+    try:
+        chains = default_chains(sk)
+        check_independent(sk, chains)
+        plans = tuple(ik_plan(sk, c) for c in chains)
+    except InputError as e:
+        log.warning("batch: no flip chains on this model (%s): no flip restarts, the Laplace std only", e)
+        return None
+
+    def frame_energy(x: Tensor) -> Tensor:
+        terms = evaluate(obj, x, with_jacobian=False).terms
+        return terms["reprojection"] + terms["limits"] + terms["keyframes"]
+
+    def relax(starts: Tensor) -> Tensor:
+        return relax_branches(starts, lambda x: solve_trajectory(obj, x, bc)[0])
+
+    cam = obj.problem.observations.camera
+    relaxed = relax if bc.iterations > 0 else None
+    return branch_posterior(sk, cam, q, chains, plans, frame_energy, obj.smooth, relaxed, obj.smooth_rho())
+
+
+def lower_branch(obj: Trajectory, q: Tensor, branches: BranchPosterior) -> Tensor | None:
+    """The re-solved flip branch (`flip_posterior`) of lowest whole energy, if it is lower than the
+    solution q's (B = 1): -> (1, T, D), or None. A flipped limb's trajectory that the objective itself
+    prefers means the solve stopped in a local minimum on the other branch."""
+    cand = branches.branches.q[0].flatten(0, 1)  # (C L, T, D)
+    energy = total_energy(obj, torch.cat([q, cand]))
+    best = int(torch.argmin(energy[1:]))
+    if not bool(energy[1 + best] < energy[0] - 1e-9 * energy[0].abs()):
+        return None
+    return cand[best][None]

@@ -1,0 +1,113 @@
+"""`estimate_pca`: the golf tracker's sliding windows over a whole sequence (`ptrack.estimators.pca`)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable
+from typing import cast
+
+import torch
+from torch import Tensor
+
+from ptrack.costs import robust_loss
+from ptrack.costs.ray_silhouette import RaySilhouette
+from ptrack.estimators.pca.config import PcaRunConfig
+from ptrack.estimators.pca.pairs import correspondence_residuals, start_pairs
+from ptrack.estimators.pca.poses import orthonormal, poses_of, rotation_exp
+from ptrack.estimators.pca.setup import make_setup
+from ptrack.estimators.pca.start import initial_timing, place_root
+from ptrack.estimators.pca.window import (
+    Prediction,
+    state_vector,
+    window_bounds,
+    window_linearization,
+    window_silhouette,
+)
+from ptrack.optim.solvers import levenberg_marquardt
+from ptrack.problem import Estimate, Problem
+
+log = logging.getLogger(__name__)
+
+
+def estimate_pca(
+    problem: Problem,
+    cfg: PcaRunConfig,
+    generator: torch.Generator,
+    progress: Callable[[Iterable], Iterable] = lambda x: x,
+) -> Estimate:
+    """Track the whole sequence with the PCA motion model (`ptrack.estimators.pca`). Deterministic."""
+    s = make_setup(problem, cfg)
+    p = cfg.pca
+    obs = problem.observations
+    sk = problem.skeleton
+    dtype, device = obs.keypoints.dtype, obs.keypoints.device
+    t_count, m = obs.num_frames, s.m
+    f = min(p.window, t_count)
+    keys, mu_init = initial_timing(s)
+    log.info("pca: key postures at frames %s", keys.tolist())
+    rot0, trans0 = place_root(s, mu_init[0])
+    alpha = torch.zeros(t_count, m, dtype=dtype, device=device)  # per frame: the weights of its last window
+    mu = mu_init.clone()
+    rot = rot0.expand(t_count, 3, 3).clone()
+    trans = trans0.expand(t_count, 3).clone()
+    if p.iterations > 0:
+        a_prev = torch.zeros(m, dtype=dtype, device=device)
+        lo, hi = window_bounds(s, f, mu)
+        step = min(p.step, f)
+        starts = list(range(0, t_count - f + 1, step))
+        if starts[-1] != t_count - f:
+            starts.append(t_count - f)
+        known = 0  # frames [0, known) have been in a window
+        for start in progress(starts):
+            frames = torch.arange(start, start + f, device=device)
+            for t in range(max(known, 1), start + f):  # frames new to this window: the trajectory continued
+                if t >= 2:  # at the speed of the two frames before (each new frame from the ones predicted before it)
+                    mu[t] = (2 * mu[t - 1] - mu[t - 2]).clamp(0, 1)
+                    trans[t] = 2 * trans[t - 1] - trans[t - 2]
+                    rot[t] = orthonormal(rot[t - 1] @ rot[t - 2].mT @ rot[t - 1])
+                else:
+                    mu[t], rot[t], trans[t] = mu[t - 1], rot[t - 1], trans[t - 1]
+            known = start + f
+            mu_hat, rot_hat, trans_hat = mu[frames].clone(), rot[frames].clone(), trans[frames].clone()
+            if start > 0:  # time runs forward: no frame of the window before the frame that left it last
+                lo[m : m + f] = mu[start - 1]
+                mu_hat = torch.maximum(mu_hat, mu[start - 1])
+            pred = Prediction(a_prev, mu_hat, trans_hat, timing=mu_init[frames])
+            pairs = body0 = None
+            if s.corr is not None:  # backprojected on the window's starting state (frame start - 1: its estimate)
+                b = start - 1
+                before = (alpha[b], mu[b], rot[b], trans[b]) if start > 0 else None
+                pairs, body0 = start_pairs(s, frames, a_prev, mu_hat, rot_hat, trans_hat, before)
+            lin = window_linearization(s, frames, rot_hat[None], pred, window_silhouette(s, frames), pairs, body0)
+            x, _ = levenberg_marquardt(
+                lin, state_vector(a_prev, mu_hat, trans_hat), lo, hi, max_iter=p.iterations, tol=1e-6
+            )
+            x = x[0]
+            a_prev = x[:m]
+            g = x[m + f :].reshape(f, 6)
+            alpha[frames] = a_prev
+            mu[frames] = x[m : m + f]
+            trans[frames] = g[:, :3]
+            rot[frames] = orthonormal(rotation_exp(g[:, 3:])[0] @ rot_hat)
+    q = poses_of(s, alpha, mu, rot, trans)
+    with torch.no_grad():
+        joints = sk.forward_kinematics(q)
+        # per frame, the observation terms of the final poses (the prediction terms belong to windows)
+        proj = obs.camera.project(joints[:, s.tracked])
+        r = (proj.pixels - s.observed) * s.weight[..., None]
+        terms = {
+            "joints": 0.5
+            * p.joint_weight
+            * robust_loss(cfg.costs.loss)(r.square().sum(-1), cfg.costs.robust_scale).sum(-1)
+        }
+        if s.rays is not None:
+            assert s.ray_valid is not None  # set with rays
+            sil = RaySilhouette(s.rays, s.ray_valid, obs.camera.center, s.bones, s.radii, sigma_m=p.silhouette_sigma_m)
+            terms["silhouette"] = 0.5 * p.silhouette_weight * sil.residual_per_frame(joints).square().sum(-1)
+        if s.corr is not None:
+            _, rotations = sk.forward_kinematics(q, rotations=True)
+            r_c = correspondence_residuals(s, joints, rotations)
+            assert r_c is not None  # s.corr is set
+            rho = robust_loss(cfg.costs.loss)(r_c.square().sum(-1), cfg.costs.robust_scale)
+            terms["correspondence"] = 0.5 * p.correspondence_weight * rho.sum(-1)
+    return Estimate(q=q.detach(), joints=joints, cost=cast(Tensor, sum(terms.values())), terms=terms)
