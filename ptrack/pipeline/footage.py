@@ -34,7 +34,7 @@ import torch
 from ptrack.body.keypoint_sets import get_keypoint_set
 from ptrack.body.keypoints import KeypointSet, landmark_keypoints
 from ptrack.body.skeleton import Skeleton
-from ptrack.body.subject import check_height, landmark_joints, scale_to_height
+from ptrack.body.subject import add_landmark_joints, check_height, landmark_joints, scale_to_height
 from ptrack.errors import InputError
 from ptrack.observe.camera import Camera
 from ptrack.observe.camera_files import CameraFile, default_intrinsics, read_camera, undistort_points, world_up
@@ -199,7 +199,7 @@ def prepare_footage(
     height = check_height(cfg.subject.height_m) if given else DEFAULT_HEIGHT_M
     if not given:
         log.warning("subject.height_m is not given: %.2f m is assumed (the result's scale follows it)", height)
-    skeleton = scale_to_height(template, height)
+    skeleton = add_landmark_joints(scale_to_height(template, height), height)
     joints = landmark_joints(skeleton, definition.landmarks)
     placed = np.array([k for k, j in enumerate(joints) if j is not None], dtype=np.int64)
     dropped = tuple(definition.names[k] for k, j in enumerate(joints) if j is None)
