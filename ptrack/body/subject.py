@@ -249,3 +249,23 @@ def scale_to_height(skeleton: Skeleton, height_m: float, targets: Mapping[str, f
         lengths=lengths,
         root_position=skeleton.root_position * legs,
     )
+
+
+#: the landmark joints of `OFFSET_LANDMARKS` scale with these segments
+_OFFSET_SEGMENT = {"nose": "head", "eye": "head", "ear": "head", "heel": "foot", "small_toe": "foot"}
+
+
+def segment_groups(skeleton: Skeleton) -> tuple[tuple[str, ...], np.ndarray]:
+    """The segments of `CMU_SEGMENT_BONES` as bone groups of `skeleton`: (names (G,), membership (G, J) 0/1);
+    the landmark joints ("lm_...") join their segment (the face the head's, the heel and little toe the
+    foot's)."""
+    names = tuple(CMU_SEGMENT_BONES)
+    member = np.zeros((len(names), skeleton.num_joints))
+    for g, name in enumerate(names):
+        for bone in CMU_SEGMENT_BONES[name]:
+            member[g, skeleton.joint_index(bone)] = 1.0
+    for j, joint in enumerate(skeleton.joint_names):
+        if joint.startswith("lm_"):
+            part = joint[3:].removeprefix("l_").removeprefix("r_")
+            member[names.index(_OFFSET_SEGMENT[part]), j] = 1.0
+    return names, member

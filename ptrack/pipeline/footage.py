@@ -17,8 +17,8 @@ model frame is the calibration's world rotated so that its up axis is +Y:
 - no extrinsics: the camera frame turned Y-up: origin at the camera, X right, Y up, Z towards the viewer
   (the camera looks along -Z).
 
-`FootageFrame.world_from_model` (3, 3) takes model coordinates back to the calibration's world (the
-identity without extrinsics); `result.npz`'s `keypoints` are written in that world.
+`FootageFrame.world_from_model` (3, 3) takes model coordinates back to the calibration's world;
+`result.npz`'s `keypoints` are written in that world (without extrinsics: in the model frame, Y up).
 """
 
 from __future__ import annotations
@@ -71,10 +71,12 @@ class FootageFrame:
     dropped: tuple[str, ...]
     keypoint_set: str
     video: str | None = None
+    length_factors: dict | None = None  # {segment: {factor, std}} when the lengths were fitted
 
     def summary(self) -> dict:
         """JSON-ready record for metrics.json."""
         return {
+            "bone_length_factors": self.length_factors,
             "keypoint_set": self.keypoint_set,
             "camera": self.camera,
             "height_m": self.height_m,
@@ -222,7 +224,7 @@ def prepare_footage(
     frame = FootageFrame(
         frames=track.frames,
         keypoint_names=obs.keypoint_names,
-        world_from_model=A.T,
+        world_from_model=A.T if cam is not None and cam.R is not None else np.eye(3),
         camera=what,
         height_m=height,
         height_given=given,

@@ -638,7 +638,32 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     prep = prepare(cfg, work_dir)
     check_memory(cfg, prep.problem)  # refuse settings that would not fit before the estimator allocates
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)  # the samplers' draws (cfg.seed: the observations')
-    return prep, ESTIMATORS[cfg.method](prep.problem, cfg, gen, progress_display(progress, cfg.method))
+    est = ESTIMATORS[cfg.method](prep.problem, cfg, gen, progress_display(progress, cfg.method))
+    if prep.footage is not None and cfg.subject.lengths == "fit":
+        prep, est = fit_subject(prep, est, cfg)
+    return prep, est
+
+
+def fit_subject(prep: Prepared, est: Estimate, cfg: RunConfig) -> tuple[Prepared, Estimate]:
+    """Real footage: the bone lengths fitted with the trajectory (`ptrack.estimators.lengths`), starting from
+    `est`; the prepared model takes the fitted lengths and the footage record their values."""
+    from ptrack.body.subject import segment_groups
+    from ptrack.estimators.lengths import fit_lengths
+
+    assert prep.footage is not None
+    sk = prep.problem.skeleton
+    names, member = segment_groups(sk)
+    fit = fit_lengths(prep.problem, est, torch.as_tensor(member), cfg.costs, cfg.subject.length_sigma)
+    lengths = fit.lengths.detach().cpu().double().numpy()
+    problem = dataclasses.replace(prep.problem, skeleton=dataclasses.replace(sk, lengths=lengths))
+    full = dataclasses.replace(prep.full, lengths=lengths)
+    factors = {
+        n: {"factor": float(torch.exp(f)), "std": float(sd)}
+        for n, f, sd in zip(names, fit.log_factors, fit.log_factor_std)
+    }
+    footage = dataclasses.replace(prep.footage, length_factors=factors)
+    log.info("bone lengths fitted: %s", ", ".join(f"{n} x{v['factor']:.3f}" for n, v in factors.items()))
+    return dataclasses.replace(prep, problem=problem, full=full, footage=footage), fit.estimate
 
 
 def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
