@@ -52,8 +52,8 @@ def make(
     height: int = 720,
     face: bool = False,
 ) -> dict:
-    """Write the footage of `frames` frames (every `stride`-th AMC frame: 30 fps from 120) into `out` (face: the face keypoints
-    scored as the rest); -> a summary {height_m, fps, frames}."""
+    """Write the footage of `frames` frames (every `stride`-th AMC frame: 30 fps from 120) into `out` (face:
+    the face keypoints scored as the rest); -> a summary {height_m, fps, frames, nobody}."""
     rng = np.random.default_rng(seed)
     sk = Skeleton.from_asf(asf)
     h = standing_height(sk)

@@ -242,7 +242,7 @@ def scale_to_height(skeleton: Skeleton, height_m: float, targets: Mapping[str, f
     factor = torch.exp(log_s @ member).numpy()
     lengths = skeleton.lengths * factor
     # the root's rest position (ASF: where it is in the rest pose) follows the legs
-    legs = float(np.exp(log_s[names.index("thigh")] + log_s[names.index("shank")]) / 2)
+    legs = float(torch.exp(log_s[[names.index("thigh"), names.index("shank")]]).mean())
     return dataclasses.replace(
         skeleton,
         name=f"{skeleton.name} scaled to {h:.2f} m",
