@@ -12,7 +12,10 @@ against the triangulated TRC (OpenSim's axes: TRC (X, Y, Z) = lab (Y, Z, X); TRC
 The reference is a triangulation of the same detector's keypoints from four cameras, not marker motion
 capture: it reprojects into cam01/cam02 at about 8-12 px (README of the data).
 
-    python scripts/eval_footage.py [--out logs/eval_footage] [--cameras cam01,cam02] [key=value ...]
+    python scripts/eval_footage.py [--out logs/eval_footage] [--cameras cam01,cam02] [--video] [key=value ...]
+
+--video: from the videos (MediaPipe through `ptrack detect`'s detector, the `video` extra) instead of the
+OpenPose files.
 
 Extra key=value arguments are passed to every run (e.g. method=batch). Existing run folders are reused.
 """
@@ -72,6 +75,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="logs/eval_footage")
     ap.add_argument("--cameras", default="cam01,cam02")
+    ap.add_argument("--video", action="store_true", help="from the videos through MediaPipe (observations.video)")
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args()
     if not DATA.is_dir():
@@ -82,7 +86,10 @@ def main() -> None:
         out = Path(args.out) / cam
         if not (out / "result.npz").is_file():
             cmd = [sys.executable, "-m", "ptrack.cli", "run", str(REPO / "configs" / "video.yaml")]
-            cmd += [f"observations.file={DATA / 'balancing' / 'pose' / f'{cam}_json'}"]
+            if args.video:
+                cmd += [f"observations.video={DATA / 'balancing' / 'videos' / f'{cam}.mp4'}"]
+            else:
+                cmd += [f"observations.file={DATA / 'balancing' / 'pose' / f'{cam}_json'}"]
             cmd += [f"camera.file={DATA / 'Calib_qualisys.toml'}", f"camera.name={cam}"]
             cmd += [f"subject.height_m={HEIGHT_M}", f"observations.fps={FPS}", f"out_dir={out}", "progress=false"]
             subprocess.run([*cmd, *args.overrides], check=True)
