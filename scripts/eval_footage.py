@@ -23,11 +23,14 @@ Extra key=value arguments are passed to every run (e.g. method=batch). Existing 
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from ptrack.body.keypoint_sets import BODY_25B, get_keypoint_set
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "pose2sim"
@@ -59,9 +62,11 @@ def similarity_align(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def errors(result: Path, trc: Path) -> dict[str, float]:
     """result.npz of a run against the TRC -> {mpjpe_mm, pa_mpjpe_mm, frames}."""
-    with np.load(result) as z:
+    keypoint_set = get_keypoint_set(json.loads((result.parent / "metrics.json").read_text())["footage"]["keypoint_set"])
+    with np.load(result) as z:  # the result's keypoints by landmark (the TRC's names are BODY_25B's)
         names = [str(n) for n in z["keypoint_names"]]
-        est = z["keypoints"][:, [names.index(n) for n in BODY12]]
+        body = [keypoint_set.names[keypoint_set.index(BODY_25B.landmarks[BODY_25B.index(n)])] for n in BODY12]
+        est = z["keypoints"][:, [names.index(n) for n in body]]
         frames = z["frames"]
     tnames, ref = read_trc(trc)
     ref = ref[:, [tnames.index(n) for n in BODY12]][:, :, [2, 0, 1]]  # TRC (X, Y, Z) = lab (Y, Z, X)
