@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from cli_errors import fail
+
 from ptrack.body.skeleton import Skeleton
 from ptrack.body.subject import (
     CMU_LANDMARK_JOINTS,
@@ -112,7 +112,6 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
 
 
 def test_without_a_camera_file_the_focal_is_the_image_diagonal(synthetic, tmp_path):
-    folder, _ = synthetic
     out = tmp_path / "run"
     assert (
         _run_synthetic(synthetic, out, "camera.file=null", "camera.width=1280", "camera.height=720", "data.stop=4") == 0

@@ -38,8 +38,8 @@ def segment_lengths_from_2d(
     obs, kps = problem.observations, problem.keypoints
     cam = obs.camera
     with torch.no_grad():
-        depth = cam.world_to_camera(est.joints.detach().index_select(-2, kps.index(est.joints.device)))[..., 2]
-    depth = depth.double().cpu().numpy()  # (T, K)
+        z = cam.world_to_camera(est.joints.detach().index_select(-2, kps.index(est.joints.device)))[..., 2]
+    depth = z.double().cpu().numpy()  # (T, K)
     px = obs.keypoints.detach().double().cpu().numpy()
     seen = obs.confidence.detach().cpu().numpy() > 0
     focal = float(cam.K[0, 0] + cam.K[1, 1]) / 2
