@@ -12,13 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from cli_errors import fail
+
 from ptrack.body.skeleton import Skeleton
 from ptrack.body.subject import (
     CMU_LANDMARK_JOINTS,
     SEGMENTS,
     add_landmark_joints,
+    rescale_segments,
     scale_to_height,
     segment_lengths,
 )
@@ -111,9 +112,10 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
 
 
 def test_without_a_camera_file_the_focal_is_the_image_diagonal(synthetic, tmp_path):
-    folder, _ = synthetic
     out = tmp_path / "run"
-    assert _run_synthetic(synthetic, out, "camera.file=null", "camera.width=1280", "camera.height=720", "data.stop=4") == 0
+    assert (
+        _run_synthetic(synthetic, out, "camera.file=null", "camera.width=1280", "camera.height=720", "data.stop=4") == 0
+    )
     with np.load(out / "result.npz") as r:
         assert r["camera_K"][0, 0] == pytest.approx(np.hypot(1280, 720))
     assert "no camera file" in json.loads((out / "metrics.json").read_text())["footage"]["camera"]
@@ -186,3 +188,55 @@ def test_footage_fixture_copy_runs_from_a_plain_clone(tmp_path):
     shutil.copytree(src, tmp_path / "kp")
     track = select_person(read_keypoints(tmp_path / "kp"))
     assert track.keypoint_set == "BODY_25B" and track.points.shape[1:] == (25, 2)
+
+
+def test_segment_lengths_from_2d_reach_the_length_in_the_image_plane():
+    """Exact 2D of a body turning in front of a level camera: a vertical segment (thigh, shank, trunk of the rest
+    pose) lies in the image plane in every frame, so d Z / f gives its length; a horizontal one (the arms of the
+    T pose) only when the body faces the camera, so the maximum over a half turn is its length, the median less."""
+    from ptrack.body.keypoint_sets import COCO_17
+    from ptrack.body.keypoints import landmark_keypoints
+    from ptrack.body.subject import landmark_joints
+    from ptrack.estimators.lengths import segment_lengths_from_2d
+    from ptrack.observe.camera import look_at
+    from ptrack.observe.observations import Observations
+    from ptrack.problem import Estimate, Problem
+
+    sk = add_landmark_joints(scale_to_height(Skeleton.from_asf(data_file("10.asf")), 1.7), 1.7)
+    joints = [str(j) for j in landmark_joints(sk, COCO_17.landmarks)]
+    kps = landmark_keypoints(sk, COCO_17.names, COCO_17.landmarks, joints)
+    T = 19
+    q = torch.zeros(T, sk.num_dofs, dtype=torch.float64)
+    q[:, sk.dof_names.index("root.ry")] = torch.linspace(-torch.pi / 2, torch.pi / 2, T)
+    X = sk.forward_kinematics(q)
+    cam = look_at([0.0, 0.0, 0.0], 4.0, 0.0, 0.0, 1000.0, 1280, 720)
+    px = cam.project(X[:, kps.index()]).pixels
+    obs = Observations(px, torch.ones(T, 17, dtype=torch.float64), torch.arange(T) / 30.0, cam, COCO_17.names)
+    problem = Problem(skeleton=sk, keypoints=kps, observations=obs)
+    est = Estimate(q=q, joints=X, cost=torch.zeros(T), terms={})
+    segments = {n: (a, b) for n, (a, b, _) in SEGMENTS.items() if n in ("thigh", "trunk", "upper_arm")}
+    rest = sk.forward_kinematics(torch.zeros(sk.num_dofs, dtype=torch.float64))
+
+    def length(a: str, b: str) -> float:
+        return float((rest[kps.joints[COCO_17.index(a)]] - rest[kps.joints[COCO_17.index(b)]]).norm())
+
+    # the CMU template is not symmetric (its right humerus is 9% longer): the longer side reaches the top quantile
+    want = {n: max(length(a, b), length(*("r_" + m[2:] for m in (a, b)))) for n, (a, b) in segments.items()}
+    top = segment_lengths_from_2d(problem, est, COCO_17.landmarks, segments, quantile=1.0)
+    mid = segment_lengths_from_2d(problem, est, COCO_17.landmarks, segments, quantile=0.5)
+    for name in segments:
+        assert top[name][0] == pytest.approx(want[name], rel=0.01), name
+        assert top[name][1] == 2 * T
+    assert mid["upper_arm"][0] < 0.9 * want["upper_arm"]  # the arm turns out of the image plane
+    assert mid["thigh"][0] == pytest.approx(want["thigh"], rel=0.05)
+
+
+def test_rescale_segments_sets_the_targets_and_moves_the_landmark_joints():
+    sk = add_landmark_joints(scale_to_height(Skeleton.from_asf(data_file("10.asf")), 1.7), 1.7)
+    new = rescale_segments(sk, 1.7, {"shank": 0.5, "forearm": 0.2})
+    got = segment_lengths(new)
+    assert got["shank"] == pytest.approx(0.5, rel=1e-6) and got["forearm"] == pytest.approx(0.2, rel=1e-6)
+    assert got["thigh"] == pytest.approx(SEGMENTS["thigh"][2] * 1.7, rel=1e-6)
+    heel = sk.joint_index("lm_l_heel")
+    foot = [sk.joint_index(b) for b in ("lfoot", "rfoot")]
+    assert new.lengths[heel] / sk.lengths[heel] == pytest.approx(np.mean(new.lengths[foot] / sk.lengths[foot]))

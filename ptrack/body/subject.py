@@ -269,3 +269,21 @@ def segment_groups(skeleton: Skeleton) -> tuple[tuple[str, ...], np.ndarray]:
             part = joint[3:].removeprefix("l_").removeprefix("r_")
             member[names.index(_OFFSET_SEGMENT[part]), j] = 1.0
     return names, member
+
+
+def rescale_segments(skeleton: Skeleton, height_m: float, targets: Mapping[str, float]) -> Skeleton:
+    """`skeleton` (already scaled to `height_m`, landmark joints included) with the segments of `targets`
+    (metres) at those lengths and the others at their fractions of the height; each landmark joint
+    ("lm_...") takes its segment's mean factor."""
+    new = scale_to_height(skeleton, height_m, targets)
+    names, member = segment_groups(skeleton)
+    lengths = new.lengths.copy()
+    bones = member.copy()
+    bones[:, [j for j, n in enumerate(skeleton.joint_names) if n.startswith("lm_")]] = 0.0
+    ratio = np.divide(new.lengths, skeleton.lengths, out=np.ones_like(new.lengths), where=skeleton.lengths > 0)
+    for g in range(len(names)):
+        factor = float((bones[g] * ratio).sum() / max(bones[g].sum(), 1.0))
+        for j, n in enumerate(skeleton.joint_names):
+            if n.startswith("lm_") and member[g, j]:
+                lengths[j] = skeleton.lengths[j] * factor
+    return dataclasses.replace(new, lengths=lengths)

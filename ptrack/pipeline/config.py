@@ -175,8 +175,9 @@ class SubjectConfig:
     """The person of real footage: the template skeleton (data.asf) scaled to a height."""
 
     height_m: float | None = setting(None, "the person's height, metres; null: 1.70 m, with a warning")
-    lengths: str = setting("template", "template: the height's proportions; fit: fitted with the trajectory")
-    length_sigma: float = setting(0.08, "lengths fit: prior std of each bone group's log length factor")
+    lengths: str = setting(
+        "template", "template: the height's proportions; observed: measured in the 2D, then the method run again"
+    )
 
 
 @dataclass(frozen=True)
@@ -483,10 +484,8 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         raise InputError(f"config key 'observations.person' must be a track id or [x, y], got {list(o.person)}")
     if c.fov_deg is not None and not 1 <= c.fov_deg <= 170:
         raise InputError(f"config key 'camera.fov_deg' must be in [1, 170] degrees, got {c.fov_deg}")
-    if cfg.subject.lengths not in ("fit", "template"):
-        raise InputError(f"config key 'subject.lengths' must be fit or template, got {cfg.subject.lengths!r}")
-    if not 0 < cfg.subject.length_sigma <= 1:
-        raise InputError(f"config key 'subject.length_sigma' must be in (0, 1], got {cfg.subject.length_sigma}")
+    if cfg.subject.lengths not in ("observed", "template"):
+        raise InputError(f"config key 'subject.lengths' must be observed or template, got {cfg.subject.lengths!r}")
     if cfg.subject.height_m is not None:
         from ptrack.body.subject import check_height
 

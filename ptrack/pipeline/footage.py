@@ -71,12 +71,13 @@ class FootageFrame:
     dropped: tuple[str, ...]
     keypoint_set: str
     video: str | None = None
-    length_factors: dict | None = None  # {segment: {factor, std}} when the lengths were fitted
+    landmarks: tuple[str, ...] = ()  # (K,) the landmark of each keypoint
+    segments: dict | None = None  # {segment: {length_m, frames}} measured in the 2D (subject.lengths: observed)
 
     def summary(self) -> dict:
         """JSON-ready record for metrics.json."""
         return {
-            "bone_length_factors": self.length_factors,
+            "segments_measured": self.segments,
             "keypoint_set": self.keypoint_set,
             "camera": self.camera,
             "height_m": self.height_m,
@@ -224,6 +225,7 @@ def prepare_footage(
     frame = FootageFrame(
         frames=track.frames,
         keypoint_names=obs.keypoint_names,
+        landmarks=tuple(definition.landmarks[k] for k in placed),
         world_from_model=A.T if cam is not None and cam.R is not None else np.eye(3),
         camera=what,
         height_m=height,

@@ -639,31 +639,35 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     check_memory(cfg, prep.problem)  # refuse settings that would not fit before the estimator allocates
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)  # the samplers' draws (cfg.seed: the observations')
     est = ESTIMATORS[cfg.method](prep.problem, cfg, gen, progress_display(progress, cfg.method))
-    if prep.footage is not None and cfg.subject.lengths == "fit":
-        prep, est = fit_subject(prep, est, cfg)
+    if prep.footage is not None and cfg.subject.lengths == "observed":
+        prep, est = fit_subject(prep, est, cfg, progress)
     return prep, est
 
 
-def fit_subject(prep: Prepared, est: Estimate, cfg: RunConfig) -> tuple[Prepared, Estimate]:
-    """Real footage: the bone lengths fitted with the trajectory (`ptrack.estimators.lengths`), starting from
-    `est`; the prepared model takes the fitted lengths and the footage record their values."""
-    from ptrack.body.subject import segment_groups
-    from ptrack.estimators.lengths import fit_lengths
+#: the segments `subject.lengths: observed` measures in the 2D
+MEASURED_SEGMENTS = ("thigh", "shank", "upper_arm", "forearm", "trunk")
+
+
+def fit_subject(prep: Prepared, est: Estimate, cfg: RunConfig, progress: bool) -> tuple[Prepared, Estimate]:
+    """Real footage, `subject.lengths: observed`: the segments' lengths measured in the 2D at the depths of
+    `est` (`ptrack.estimators.lengths`), the model rescaled to them, and the method run again on it."""
+    from ptrack.body.subject import SEGMENTS, rescale_segments
+    from ptrack.estimators.lengths import segment_lengths_from_2d
 
     assert prep.footage is not None
-    sk = prep.problem.skeleton
-    names, member = segment_groups(sk)
-    fit = fit_lengths(prep.problem, est, torch.as_tensor(member), cfg.costs, cfg.subject.length_sigma)
-    lengths = fit.lengths.detach().cpu().double().numpy()
-    problem = dataclasses.replace(prep.problem, skeleton=dataclasses.replace(sk, lengths=lengths))
-    full = dataclasses.replace(prep.full, lengths=lengths)
-    factors = {
-        n: {"factor": float(torch.exp(f)), "std": float(sd)}
-        for n, f, sd in zip(names, fit.log_factors, fit.log_factor_std)
-    }
-    footage = dataclasses.replace(prep.footage, length_factors=factors)
-    log.info("bone lengths fitted: %s", ", ".join(f"{n} x{v['factor']:.3f}" for n, v in factors.items()))
-    return dataclasses.replace(prep, problem=problem, full=full, footage=footage), fit.estimate
+    f = prep.footage
+    # the limbs and the trunk: the widths (hips, shoulders) reach the image plane only when the person faces the
+    # camera, the head and foot segments rarely
+    segments = {n: (a, b) for n, (a, b, _) in SEGMENTS.items() if n in MEASURED_SEGMENTS}
+    measured = segment_lengths_from_2d(prep.problem, est, f.landmarks, segments)
+    sk = rescale_segments(prep.problem.skeleton, f.height_m, {n: v for n, (v, _) in measured.items()})
+    problem = dataclasses.replace(prep.problem, skeleton=sk)
+    full = dataclasses.replace(prep.full, lengths=sk.lengths)
+    record = {n: {"length_m": v, "frames": k} for n, (v, k) in measured.items()}
+    log.info("segment lengths from the 2D: %s", ", ".join(f"{n} {v:.3f} m" for n, (v, _) in measured.items()))
+    prep = dataclasses.replace(prep, problem=problem, full=full, footage=dataclasses.replace(f, segments=record))
+    gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
+    return prep, ESTIMATORS[cfg.method](problem, cfg, gen, progress_display(progress, cfg.method))
 
 
 def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
