@@ -89,8 +89,9 @@ def _device(cfg: RunConfig) -> torch.device:
 
 
 def is_observations_npz(path: str | Path) -> bool:
-    """Whether `path` is an npz in ptrack's own observations layout (`Observations.save_npz`), as opposed to
-    a detector's keypoint file."""
+    """Whether `path` is for `Observations.load_npz`, ptrack's own observations layout, rather than a detector's
+    keypoint file: an .npz holding its arrays (keypoints, confidence, times), or one numpy cannot read (whose
+    error `load_npz` reports)."""
     p = Path(path)
     if p.suffix != ".npz" or not p.is_file():
         return False
@@ -98,7 +99,7 @@ def is_observations_npz(path: str | Path) -> bool:
         with np.load(p, allow_pickle=False) as z:
             return {"keypoints", "confidence", "times"} <= set(z.files)
     except (OSError, ValueError):
-        return False
+        return True
 
 
 def prepare(cfg: RunConfig, work_dir: Path | None = None) -> Prepared:
