@@ -29,8 +29,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from ptrack.body.keypoint_sets import BODY_25B, get_keypoint_set
+from ptrack.pipeline.metrics import pa_mpjpe
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "pose2sim"
@@ -49,17 +51,6 @@ def read_trc(path: Path) -> tuple[list[str], np.ndarray]:
     return names, data.reshape(len(rows), len(names), 3)
 
 
-def similarity_align(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """x, y (K, 3) -> x moved by the similarity transform that best fits it onto y (Umeyama)."""
-    mx, my = x.mean(0), y.mean(0)
-    a, b = x - mx, y - my
-    u, s, vt = np.linalg.svd(a.T @ b)
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    r = u @ d @ vt
-    scale = (s * np.diag(d)).sum() / (a**2).sum()
-    return scale * a @ r + my
-
-
 def errors(result: Path, trc: Path) -> dict[str, float]:
     """result.npz of a run against the TRC -> {mpjpe_mm, pa_mpjpe_mm, frames}."""
     keypoint_set = get_keypoint_set(json.loads((result.parent / "metrics.json").read_text())["footage"]["keypoint_set"])
@@ -72,8 +63,8 @@ def errors(result: Path, trc: Path) -> dict[str, float]:
     ref = ref[:, [tnames.index(n) for n in BODY12]][:, :, [2, 0, 1]]  # TRC (X, Y, Z) = lab (Y, Z, X)
     ref = ref[frames]
     mpjpe = np.linalg.norm(est - ref, axis=-1).mean(-1)
-    pa = np.array([np.linalg.norm(similarity_align(e, r) - r, axis=-1).mean() for e, r in zip(est, ref)])
-    return {"mpjpe_mm": 1000 * float(mpjpe.mean()), "pa_mpjpe_mm": 1000 * float(pa.mean()), "frames": len(frames)}
+    pa = pa_mpjpe(torch.as_tensor(est), torch.as_tensor(ref))
+    return {"mpjpe_mm": 1000 * float(mpjpe.mean()), "pa_mpjpe_mm": float(pa.mean()), "frames": len(frames)}
 
 
 def main() -> None:

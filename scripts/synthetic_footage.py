@@ -27,6 +27,7 @@ from ptrack.body.keypoint_sets import COCO_17
 from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.body.subject import add_landmark_joints, landmark_joints
 from ptrack.observe.camera import look_at
+from ptrack.pipeline.metrics import pa_mpjpe
 
 FACE = ("nose", "l_eye", "r_eye", "l_ear", "r_ear")
 
@@ -124,21 +125,12 @@ def score(result: Path, truth: Path, names: tuple[str, ...] | None = None) -> di
         ref = t["keypoints"][r["frames"]][:, [tn.index(n) for n in names]]
     hips = [names.index(n) for n in ("left_hip", "right_hip")]
     rel = (est - est[:, hips].mean(1, keepdims=True)) - (ref - ref[:, hips].mean(1, keepdims=True))
-    pa = [np.linalg.norm(similarity_align(e, g) - g, axis=-1).mean() for e, g in zip(est, ref)]
+    pa = pa_mpjpe(torch.as_tensor(est), torch.as_tensor(ref))
     return {
         "mpjpe_mm": 1000 * float(np.linalg.norm(rel, axis=-1).mean()),
-        "pa_mpjpe_mm": 1000 * float(np.mean(pa)),
+        "pa_mpjpe_mm": float(pa.mean()),
         "frames": len(est),
     }
-
-
-def similarity_align(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """x, y (K, 3) -> x moved by the similarity transform that best fits it onto y (Umeyama)."""
-    mx, my = x.mean(0), y.mean(0)
-    a, b = x - mx, y - my
-    u, s, vt = np.linalg.svd(a.T @ b)
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    return (s * np.diag(d)).sum() / (a**2).sum() * a @ (u @ d @ vt) + my
 
 
 if __name__ == "__main__":

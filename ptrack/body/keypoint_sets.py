@@ -64,6 +64,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ptrack.body.keypoints import H36M17
 from ptrack.errors import InputError
 
 #: the shared landmark vocabulary (name -> where it is); see the module docstring
@@ -457,26 +458,7 @@ H36M_17 = KeypointDefinition(
         "r_elbow",
         "r_wrist",
     ),
-    # ptrack's own spelling (ptrack.body.keypoints.H36M17, the simulated observations' keypoint_names)
-    other_names=(
-        "pelvis",
-        "r_hip",
-        "r_knee",
-        "r_ankle",
-        "l_hip",
-        "l_knee",
-        "l_ankle",
-        "spine",
-        "thorax",
-        "neck",
-        "head",
-        "l_shoulder",
-        "l_elbow",
-        "l_wrist",
-        "r_shoulder",
-        "r_elbow",
-        "r_wrist",
-    ),
+    other_names=H36M17,  # ptrack's own spelling, the simulated observations' keypoint_names
     source="Human3.6M 17-joint subset (VideoPose3D; MMPose configs/_base_/datasets/h36m.py)",
 )
 
