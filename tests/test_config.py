@@ -52,7 +52,8 @@ def test_defaults_load():
     assert cfg.method == "frame" and cfg.seed == 0 and cfg.out_dir is None
     assert cfg.name == "run"  # no YAML file: the default config name
     assert cfg.data.stride == 4 and cfg.data.start == 0 and cfg.data.stop is None
-    assert isinstance(cfg.camera.focal_px, float) and isinstance(cfg.camera.width, int)
+    assert isinstance(cfg.camera.focal_px, float)
+    assert cfg.camera.width is None and cfg.camera.height is None  # 640 x 480 when simulating, else the file's
 
 
 def test_defaults_without_data_paths_name_the_missing_key():
