@@ -157,14 +157,15 @@ def test_bad_footage_files_are_one_line_errors(synthetic, tmp_path, capsys):
 
 
 @pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")
-def test_pose2sim_openpose_folder_in_the_lab_frame(tmp_path):
+def test_pose2sim_openpose_folder_in_the_lab_frame(tmp_path, capsys):
     """Real OpenPose BODY_25B and the real calibration: the participant chosen over the bystander, the
     keypoints in the lab's Z-up world, where the multi-camera triangulation puts them (within 0.3 m)."""
     src = P2S / "balancing" / "pose" / "cam01_json"
     out = tmp_path / "run"
     argv = ["run", VIDEO_YAML, f"observations.file={src}", f"camera.file={P2S / 'Calib_qualisys.toml'}"]
-    argv += ["camera.name=cam01", "subject.height_m=1.72", "observations.fps=60", "data.stop=8", f"out_dir={out}"]
-    assert main([*argv, "progress=false"]) == 0
+    argv += ["subject.height_m=1.72", "observations.fps=60", "data.stop=8", f"out_dir={out}"]
+    fail(capsys, out, argv, "camera.name", "cam_01, cam_02")  # four cameras in the file: which one?
+    assert main([*argv, "camera.name=cam01", "progress=false"]) == 0
     with np.load(out / "result.npz") as r:
         names = [str(n) for n in r["keypoint_names"]]
         kp, frames = r["keypoints"], r["frames"]

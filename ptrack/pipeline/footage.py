@@ -37,7 +37,14 @@ from ptrack.body.skeleton import Skeleton
 from ptrack.body.subject import add_landmark_joints, check_height, landmark_joints, scale_to_height
 from ptrack.errors import InputError
 from ptrack.observe.camera import Camera
-from ptrack.observe.camera_files import CameraFile, default_intrinsics, read_camera, undistort_points, world_up
+from ptrack.observe.camera_files import (
+    CameraFile,
+    default_intrinsics,
+    read_camera,
+    read_cameras,
+    undistort_points,
+    world_up,
+)
 from ptrack.observe.keypoint_files import read_keypoints
 from ptrack.observe.observations import Observations
 from ptrack.observe.people import PersonTrack, select_person
@@ -110,6 +117,10 @@ def _camera(cfg, track_image_size: tuple[int, int] | None, video_size: tuple[int
     """-> (CameraFile or None, K (3,3), R (3,3) world->camera, t (3,), width, height, description)."""
     c = cfg.camera
     if c.file:
+        if c.name is None:
+            names = list(read_cameras(c.file))
+            if len(names) > 1:
+                raise InputError(f"{c.file} holds {len(names)} cameras ({', '.join(names)}): set camera.name to one")
         cam = read_camera(c.file, c.name)
         width = cam.width or (video_size or track_image_size or (None, None))[0]
         height = cam.height or (video_size or track_image_size or (None, None))[1]
