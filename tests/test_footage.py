@@ -105,6 +105,13 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["footage"]["keypoint_set"] == "COCO_17" and metrics["footage"]["tracks"] == 2
     assert metrics["footage"]["camera"].startswith("file ")
+    per_kp = metrics["reprojection_error_px_per_keypoint"]
+    assert set(per_kp) == set(names) and per_kp["nose"] is None  # the face is never observed (score 0)
+    assert 0 < metrics["jitter_mm_per_frame2"] < 100 and set(metrics["foot_skating_mm_per_frame"]) == {
+        "left_ankle",
+        "right_ankle",
+    }
+    assert 0 <= metrics["ambiguous_frame_share"] <= 1  # kjs has modes
     score = synthetic_footage.score(out / "result.npz", folder / "truth.npz")
     # the frame method from no 3D at all, on a skeleton with other proportions than the template's: a loose
     # bound (a pose with the torso turned by 90 degrees scores over 200 mm); docs/results.md has the numbers

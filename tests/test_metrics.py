@@ -434,3 +434,46 @@ def test_best_of_k_batched_gradcheck_and_bad_shapes():
         best_of_k_mpjpe(hyps[..., :0, :, :], gt)
     with pytest.raises(InputError, match=r"gt must have shape"):
         best_of_k_mpjpe(hyps, gt[..., :2])
+
+
+def test_checks_without_ground_truth():
+    """Per-keypoint reprojection medians, jitter, foot skating and ambiguous limb frames on hand-made cases."""
+    from ptrack.pipeline.metrics import (
+        ambiguous_limb_frames,
+        foot_skating_mm,
+        jitter_mm,
+        reprojection_error_per_keypoint,
+    )
+
+    obs = torch.zeros(5, 2, 2)
+    pix = obs.clone()
+    pix[:, 0, 0] = torch.tensor([1.0, 2.0, 3.0, 4.0, 100.0])  # keypoint 0: errors 1..4 and an outlier
+    conf = torch.ones(5, 2)
+    conf[:, 1] = 0  # keypoint 1 never observed
+    med = reprojection_error_per_keypoint(pix, obs, conf)
+    assert float(med[0]) == 3.0 and torch.isnan(med[1])
+
+    t = torch.arange(6, dtype=torch.float64)
+    line = torch.stack([t * 0.01, torch.zeros(6), torch.zeros(6)], -1)[:, None]  # constant velocity: no jitter
+    shake = line.clone()
+    shake[::2, 0, 1] += 0.002  # +-1 mm zigzag
+    assert float(jitter_mm(line)[0]) == pytest.approx(0.0, abs=1e-9)
+    assert float(jitter_mm(shake)[0]) == pytest.approx(4.0, rel=1e-6)  # |2 mm + 2 mm| each frame
+
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    planted = torch.zeros(6, 1, 3, dtype=torch.float64)
+    sliding = line.clone()  # on the floor, 10 mm per frame sideways
+    lifted = line.clone()
+    lifted[:, 0, 1] = torch.linspace(0, 0.5, 6)  # moving while leaving the floor: contact only at the start
+    got = foot_skating_mm(torch.cat([planted, sliding, lifted], 1), up)
+    assert float(got[0]) == pytest.approx(0.0) and float(got[1]) == pytest.approx(10.0)
+    assert torch.isnan(got[2])  # in contact in frame 0 only: no step on the floor
+
+    # two modes of one limb (keypoints 0 -> 1) seen by a camera at the origin looking along +z
+    R, tt = torch.eye(3), torch.zeros(3)
+    near = torch.tensor([[0.0, 0.0, 3.0], [0.0, 0.3, 2.8]])  # end nearer the camera
+    far = torch.tensor([[0.0, 0.0, 3.0], [0.0, 0.3, 3.2]])
+    hyp = torch.stack([near, far])[None].repeat(3, 1, 1, 1)  # (T=3, N=2, K=2, 3)
+    w = torch.tensor([[0.5, 0.5], [0.95, 0.05], [0.0, 1.0]])
+    amb = ambiguous_limb_frames(hyp, w, [(0, 1)], R, tt)
+    assert amb[:, 0].tolist() == [True, False, False]

@@ -307,3 +307,62 @@ def best_of_k_mpjpe(hypotheses, gt, root: int = 0) -> Tensor:
         raise InputError(f"hypotheses must hold at least one hypothesis, got {tuple(hypotheses.shape)}")
     errors = mpjpe(hypotheses, gt.unsqueeze(-3).expand_as(hypotheses), root=root)
     return errors.min(dim=-1).values
+
+
+# ---------------------------------------------------------------------------------------------
+# Checks without ground truth: what a person can look at on real footage.
+
+
+def reprojection_error_per_keypoint(pixels, observed, confidence) -> Tensor:
+    """Median reprojection error of each keypoint over the frames that observe it, pixels.
+
+    pixels, observed: (T, K, 2); confidence (T, K) -> (K,), NaN for a keypoint never observed."""
+    err = (torch.as_tensor(pixels) - torch.as_tensor(observed)).norm(dim=-1)
+    seen = torch.as_tensor(confidence) > 0
+    return torch.stack(
+        [err[seen[:, k], k].median() if seen[:, k].any() else err.new_tensor(float("nan")) for k in range(err.shape[1])]
+    )
+
+
+def jitter_mm(points) -> Tensor:
+    """Mean second difference |x_{t+1} - 2 x_t + x_{t-1}| of each point, mm per frame^2: how much the
+    estimate shakes (motion capture of a walk at 30 fps: a few mm).
+
+    points: (T, K, 3) metres -> (K,); NaN with fewer than 3 frames."""
+    x = torch.as_tensor(points)
+    if x.shape[0] < 3:
+        return x.new_full((x.shape[1],), float("nan"))
+    return 1000 * (x[2:] - 2 * x[1:-1] + x[:-2]).norm(dim=-1).mean(0)
+
+
+def foot_skating_mm(feet, up, contact_m: float = 0.05) -> Tensor:
+    """Foot skating: the mean horizontal speed of each foot point in the frames where it is in contact, mm per
+    frame, contact = within `contact_m` of that point's lowest height over the sequence (a foot on the floor
+    should not slide).
+
+    feet: (T, F, 3) metres; up: (3,) unit vector of the world's up -> (F,), NaN where never in contact."""
+    x = torch.as_tensor(feet)
+    u = torch.as_tensor(up, dtype=x.dtype)
+    h = x @ u  # (T, F)
+    contact = (h - h.min(0).values) < contact_m
+    step = x[1:] - x[:-1]
+    horizontal = (step - (step @ u)[..., None] * u).norm(dim=-1)  # (T-1, F)
+    both = contact[1:] & contact[:-1]
+    total = (horizontal * both).sum(0)
+    n = both.sum(0)
+    return torch.where(n > 0, 1000 * total / n.clamp_min(1), torch.full_like(total, float("nan")))
+
+
+def ambiguous_limb_frames(hypotheses, weights, limbs: Sequence[tuple[int, int]], R, t, share: float = 0.1) -> Tensor:
+    """Whether the modes disagree about a limb's depth order: in each frame and limb, the summed weight of the
+    modes that put the limb's end nearer the camera than its start lies in [share, 1 - share].
+
+    hypotheses: (T, N, K, 3) keypoints; weights (T, N) summing to 1; limbs (L,) keypoint index pairs; R (3, 3),
+    t (3,) world -> camera -> (T, L) bool."""
+    X = torch.as_tensor(hypotheses)
+    w = torch.as_tensor(weights, dtype=X.dtype)
+    z = (X @ torch.as_tensor(R, dtype=X.dtype).T + torch.as_tensor(t, dtype=X.dtype))[..., 2]  # (T, N, K)
+    idx = torch.as_tensor(list(limbs), dtype=torch.long).reshape(-1, 2)
+    nearer = (z[..., idx[:, 1]] < z[..., idx[:, 0]]).to(X.dtype)  # (T, N, L)
+    p = (w[..., None] * nearer).sum(1)
+    return (p >= share) & (p <= 1 - share)

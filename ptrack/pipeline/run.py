@@ -435,6 +435,8 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
             series["flip_error_rate"] = flips.nanmean(-1).double().cpu().numpy()
         if est.hypotheses is not None:
             put("best_of_k_mpjpe_mm", M.best_of_k_mpjpe(est.hypotheses.index_select(-2, idx), gt_kp, root=root))
+    if prep.footage is not None:
+        summary.update(footage_checks(prep, est, reproj))
     if est.joint_std is not None:
         put("joint_std_mean_m", est.joint_std.mean(-1))
         series["joint_std_max_m"] = est.joint_std.amax(-1).detach().double().cpu().numpy()
@@ -448,6 +450,43 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
     for k, v in est.terms.items():
         series[f"cost_{k}"] = v.detach().double().cpu().numpy()
     return summary, series
+
+
+#: foot landmarks whose skating `footage_checks` measures
+FOOT_LANDMARKS = ("l_ankle", "r_ankle", "l_heel", "r_heel", "l_big_toe", "r_big_toe")
+
+
+def footage_checks(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict:
+    """What a person checks without ground truth (real footage): the median reprojection error of each
+    keypoint (px), each keypoint's jitter (mean second difference, mm/frame^2) and their means, the skating
+    of the feet (horizontal mm/frame while within 5 cm of their lowest height; the model frame is Y up), and
+    with hypotheses the share of frames where the modes disagree about some limb's depth order (summed weight
+    between 0.1 and 0.9)."""
+    assert prep.footage is not None
+    prob = prep.problem
+    obs, kps = prob.observations, prob.keypoints
+    names = kps.names
+    kp = est.joints.detach().index_select(-2, kps.index(est.joints.device)).double().cpu()
+    per_kp = M.reprojection_error_per_keypoint(reproj.cpu(), obs.keypoints.cpu(), obs.confidence.cpu())
+    jitter = M.jitter_mm(kp)
+    out: dict = {
+        "reprojection_error_px_per_keypoint": {n: float(v) for n, v in zip(names, per_kp)},
+        "jitter_mm_per_frame2": float(jitter.nanmean()),
+        "jitter_mm_per_frame2_per_keypoint": {n: float(v) for n, v in zip(names, jitter)},
+    }
+    feet = [k for k, m in enumerate(prep.footage.landmarks) if m in FOOT_LANDMARKS]
+    if feet:
+        skate = M.foot_skating_mm(kp[:, feet], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+        out["foot_skating_mm_per_frame"] = {names[k]: float(v) for k, v in zip(feet, skate)}
+    if est.hypotheses is not None and est.hypothesis_weights is not None and kps.limbs:
+        hyp = est.hypotheses.detach().index_select(-2, kps.index(est.hypotheses.device)).double().cpu()
+        cam = obs.camera.to(device="cpu", dtype=torch.float64)
+        ambiguous = M.ambiguous_limb_frames(hyp, est.hypothesis_weights.detach().cpu(), kps.limbs, cam.R, cam.t)
+        out["ambiguous_frame_share"] = float(ambiguous.any(-1).double().mean())
+        out["ambiguous_frame_share_per_limb"] = {
+            f"{names[a]}-{names[b]}": float(v) for (a, b), v in zip(kps.limbs, ambiguous.double().mean(0))
+        }
+    return out
 
 
 def json_safe(obj):
