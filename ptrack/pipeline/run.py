@@ -437,6 +437,9 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
             put("best_of_k_mpjpe_mm", M.best_of_k_mpjpe(est.hypotheses.index_select(-2, idx), gt_kp, root=root))
     if prep.footage is not None:
         summary.update(footage_checks(prep, est, reproj))
+        kp = est_kp.double().cpu()  # the rerun log's plots: how much the estimate shakes, frame by frame
+        shake = 1000 * (kp[2:] - 2 * kp[1:-1] + kp[:-2]).norm(dim=-1).mean(-1) if len(kp) > 2 else kp.new_zeros(0)
+        series["jitter_mm_per_frame2"] = np.concatenate([[np.nan], shake.numpy(), [np.nan]])[: len(kp)]
     if est.joint_std is not None:
         put("joint_std_mean_m", est.joint_std.mean(-1))
         series["joint_std_max_m"] = est.joint_std.amax(-1).detach().double().cpu().numpy()
