@@ -117,11 +117,15 @@ def _camera(cfg, track_image_size: tuple[int, int] | None, video_size: tuple[int
     """-> (CameraFile or None, K (3,3), R (3,3) world->camera, t (3,), width, height, description)."""
     c = cfg.camera
     if c.file:
-        if c.name is None:
-            names = list(read_cameras(c.file))
-            if len(names) > 1:
-                raise InputError(f"{c.file} holds {len(names)} cameras ({', '.join(names)}): set camera.name to one")
-        cam = read_camera(c.file, c.name)
+        if c.name is None:  # the file's only camera, read once
+            cameras = read_cameras(c.file)
+            if len(cameras) > 1:
+                raise InputError(
+                    f"{c.file} holds {len(cameras)} cameras ({', '.join(cameras)}): set camera.name to one"
+                )
+            cam = next(iter(cameras.values()))
+        else:
+            cam = read_camera(c.file, c.name)
         width = cam.width or (video_size or track_image_size or (None, None))[0]
         height = cam.height or (video_size or track_image_size or (None, None))[1]
         if width is None or height is None:
@@ -147,8 +151,8 @@ def _camera(cfg, track_image_size: tuple[int, int] | None, video_size: tuple[int
 
 def model_frame(cam: CameraFile | None, R: np.ndarray, up_key: str | None) -> np.ndarray:
     """(3, 3) A: model coordinates = A @ world coordinates (see the module docstring)."""
-    if cam is None or cam.R is None:
-        return R.T @ np.diag([1.0, -1.0, -1.0])  # world = camera frame here (R = I): camera turned Y-up
+    if cam is None or not cam.has_extrinsics:
+        return np.diag([1.0, -1.0, -1.0])  # the world is the camera frame (R = I), turned Y-up
     up = world_up(cam, up_key)
     if up is None:
         up = R.T @ np.array([0.0, -1.0, 0.0])  # the camera's image-up, taken as level
@@ -157,9 +161,15 @@ def model_frame(cam: CameraFile | None, R: np.ndarray, up_key: str | None) -> np
 
 
 def person_observations(
-    track: PersonTrack, placed: np.ndarray, cam: CameraFile | None, camera: Camera, fps: float, min_score: float
+    track: PersonTrack,
+    placed: np.ndarray,
+    names: tuple[str, ...],
+    cam: CameraFile | None,
+    camera: Camera,
+    fps: float,
+    min_score: float,
 ) -> Observations:
-    """The chosen person's placed keypoints (K of them, `placed` (K,) indices into the file's) as
+    """The chosen person's placed keypoints (K of them, `placed` (K,) indices into the file's, named `names`) as
     `Observations`: lens distortion removed, scores clipped to [0, 1], those under `min_score` missing."""
     xy = track.points[:, placed].astype(np.float64)
     conf = np.clip(np.nan_to_num(track.scores[:, placed], nan=0.0), 0.0, 1.0)
@@ -176,7 +186,7 @@ def person_observations(
         confidence=torch.as_tensor(conf),
         times=torch.as_tensor(times, dtype=torch.float64),
         camera=camera,
-        keypoint_names=tuple(get_keypoint_set(track.keypoint_set).names[i] for i in placed),
+        keypoint_names=names,
     )
 
 
@@ -226,18 +236,15 @@ def prepare_footage(
     cam, K, R, t, width, height_px, what = _camera(cfg, det.image_size, video_size)
     A = model_frame(cam, R, cfg.camera.up)
     camera = Camera(K=torch.tensor(K), R=torch.tensor(R @ A.T), t=torch.tensor(t), width=width, height=height_px)
-    obs = person_observations(track, placed, cam, camera, float(fps), o.min_score)
-    kps = landmark_keypoints(
-        skeleton,
-        tuple(definition.names[k] for k in placed),
-        tuple(definition.landmarks[k] for k in placed),
-        [str(joints[k]) for k in placed],
-    )
+    names = tuple(definition.names[k] for k in placed)
+    landmarks = tuple(definition.landmarks[k] for k in placed)
+    obs = person_observations(track, placed, names, cam, camera, float(fps), o.min_score)
+    kps = landmark_keypoints(skeleton, names, landmarks, [str(joints[k]) for k in placed])
     frame = FootageFrame(
         frames=track.frames,
-        keypoint_names=obs.keypoint_names,
-        landmarks=tuple(definition.landmarks[k] for k in placed),
-        world_from_model=A.T if cam is not None and cam.R is not None else np.eye(3),
+        keypoint_names=names,
+        landmarks=landmarks,
+        world_from_model=A.T if cam is not None and cam.has_extrinsics else np.eye(3),
         camera=what,
         height_m=height,
         height_given=given,

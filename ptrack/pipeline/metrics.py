@@ -324,15 +324,13 @@ def reprojection_error_per_keypoint(pixels, observed, confidence) -> Tensor:
     )
 
 
-def jitter_mm(points) -> Tensor:
-    """Mean second difference |x_{t+1} - 2 x_t + x_{t-1}| of each point, mm per frame^2: how much the
-    estimate shakes (motion capture of a walk at 30 fps: a few mm).
+def second_differences_mm(points) -> Tensor:
+    """|x_{t+1} - 2 x_t + x_{t-1}| of each point, mm per frame^2: how much an estimate shakes (motion capture of
+    a walk at 30 fps: a few mm). Their mean over the frames is the jitter.
 
-    points: (T, K, 3) metres -> (K,); NaN with fewer than 3 frames."""
+    points: (T, K, 3) metres -> (T-2, K); (0, K) with fewer than 3 frames."""
     x = torch.as_tensor(points)
-    if x.shape[0] < 3:
-        return x.new_full((x.shape[1],), float("nan"))
-    return 1000 * (x[2:] - 2 * x[1:-1] + x[:-2]).norm(dim=-1).mean(0)
+    return 1000 * (x[2:] - 2 * x[1:-1] + x[:-2]).norm(dim=-1)
 
 
 def foot_skating_mm(feet, up, contact_m: float = 0.05) -> Tensor:

@@ -282,9 +282,8 @@ def prepare_real(cfg: RunConfig, work_dir: Path) -> Prepared:
         keypoints_file = cfg.observations.file
     full, kps, obs, footage = prepare_footage(cfg, template, keypoints_file, size, fps, video)
     model = full.freeze(list(cfg.model.freeze)) if cfg.model.freeze else full
-    visible = obs.confidence > 0
+    visible = obs.confidence > 0  # what a real camera sees is what the detector found
     check_visibility(visible)
-    check_observed(obs.confidence > 0, visible)
     obs = obs.to(device=device, dtype=dtype)
     keyframes = joint_keyframes = None
     kc = cfg.keyframes
@@ -436,10 +435,9 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
         if est.hypotheses is not None:
             put("best_of_k_mpjpe_mm", M.best_of_k_mpjpe(est.hypotheses.index_select(-2, idx), gt_kp, root=root))
     if prep.footage is not None:
-        summary.update(footage_checks(prep, est, reproj))
-        kp = est_kp.double().cpu()  # the rerun log's plots: how much the estimate shakes, frame by frame
-        shake = 1000 * (kp[2:] - 2 * kp[1:-1] + kp[:-2]).norm(dim=-1).mean(-1) if len(kp) > 2 else kp.new_zeros(0)
-        series["jitter_mm_per_frame2"] = np.concatenate([[np.nan], shake.numpy(), [np.nan]])[: len(kp)]
+        checks, per_frame = footage_checks(prep, est, est_kp, reproj)
+        summary.update(checks)
+        series.update(per_frame)
     if est.joint_std is not None:
         put("joint_std_mean_m", est.joint_std.mean(-1))
         series["joint_std_max_m"] = est.joint_std.amax(-1).detach().double().cpu().numpy()
@@ -459,24 +457,29 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
 FOOT_LANDMARKS = ("l_ankle", "r_ankle", "l_heel", "r_heel", "l_big_toe", "r_big_toe")
 
 
-def footage_checks(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict:
+def footage_checks(
+    prep: Prepared, est: Estimate, est_kp: torch.Tensor, reproj: torch.Tensor
+) -> tuple[dict, dict[str, np.ndarray]]:
     """What a person checks without ground truth (real footage): the median reprojection error of each
     keypoint (px), each keypoint's jitter (mean second difference, mm/frame^2) and their means, the skating
     of the feet (horizontal mm/frame while within 5 cm of their lowest height; the model frame is Y up), and
     with hypotheses the share of frames where the modes disagree about some limb's depth order (summed weight
-    between 0.1 and 0.9)."""
+    between 0.1 and 0.9). est_kp: (T, K, 3) the estimate's keypoints. -> (summary, per-frame series: the
+    jitter, NaN at the two ends, for the rerun log's plots)."""
     assert prep.footage is not None
     prob = prep.problem
     obs, kps = prob.observations, prob.keypoints
     names = kps.names
-    kp = est.joints.detach().index_select(-2, kps.index(est.joints.device)).double().cpu()
+    kp = est_kp.detach().double().cpu()
     per_kp = M.reprojection_error_per_keypoint(reproj.cpu(), obs.keypoints.cpu(), obs.confidence.cpu())
-    jitter = M.jitter_mm(kp)
+    shake = M.second_differences_mm(kp)  # (T-2, K)
+    jitter = shake.mean(0) if len(shake) else shake.new_full((len(names),), float("nan"))
     out: dict = {
         "reprojection_error_px_per_keypoint": {n: float(v) for n, v in zip(names, per_kp)},
         "jitter_mm_per_frame2": float(jitter.nanmean()),
         "jitter_mm_per_frame2_per_keypoint": {n: float(v) for n, v in zip(names, jitter)},
     }
+    series = {"jitter_mm_per_frame2": np.concatenate([[np.nan], shake.mean(-1).numpy(), [np.nan]])[: len(kp)]}
     feet = [k for k, m in enumerate(prep.footage.landmarks) if m in FOOT_LANDMARKS]
     if feet:
         skate = M.foot_skating_mm(kp[:, feet], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
@@ -489,7 +492,7 @@ def footage_checks(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict:
         out["ambiguous_frame_share_per_limb"] = {
             f"{names[a]}-{names[b]}": float(v) for (a, b), v in zip(kps.limbs, ambiguous.double().mean(0))
         }
-    return out
+    return out, series
 
 
 def json_safe(obj):
@@ -680,10 +683,17 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     bar on stderr (on a terminal only)."""
     prep = prepare(cfg, work_dir)
     check_memory(cfg, prep.problem)  # refuse settings that would not fit before the estimator allocates
-    gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)  # the samplers' draws (cfg.seed: the observations')
-    est = ESTIMATORS[cfg.method](prep.problem, cfg, gen, progress_display(progress, cfg.method))
-    if prep.footage is not None and cfg.subject.lengths == "observed":
-        prep, est = fit_subject(prep, est, cfg, progress)
+
+    def run(problem: Problem) -> Estimate:
+        gen = torch.Generator(device="cpu").manual_seed(
+            cfg.seed + 1
+        )  # the samplers' draws (cfg.seed: the observations')
+        return ESTIMATORS[cfg.method](problem, cfg, gen, progress_display(progress, cfg.method))
+
+    est = run(prep.problem)
+    if prep.footage is not None and cfg.subject.lengths == "observed":  # measure the lengths, then run again
+        prep = rescale_subject(prep, est)
+        est = run(prep.problem)
     return prep, est
 
 
@@ -691,9 +701,9 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
 MEASURED_SEGMENTS = ("thigh", "shank", "upper_arm", "forearm", "trunk")
 
 
-def fit_subject(prep: Prepared, est: Estimate, cfg: RunConfig, progress: bool) -> tuple[Prepared, Estimate]:
-    """Real footage, `subject.lengths: observed`: the segments' lengths measured in the 2D at the depths of
-    `est` (`ptrack.estimators.lengths`), the model rescaled to them, and the method run again on it."""
+def rescale_subject(prep: Prepared, est: Estimate) -> Prepared:
+    """Real footage, `subject.lengths: observed`: `prep` with its model rescaled to the segments' lengths measured
+    in the 2D at the depths of `est` (`ptrack.estimators.lengths`), the footage record holding them."""
     from ptrack.body.subject import SEGMENTS, rescale_segments
     from ptrack.estimators.lengths import segment_lengths_from_2d
 
@@ -708,9 +718,7 @@ def fit_subject(prep: Prepared, est: Estimate, cfg: RunConfig, progress: bool) -
     full = dataclasses.replace(prep.full, lengths=sk.lengths)
     record = {n: {"length_m": v, "frames": k} for n, (v, k) in measured.items()}
     log.info("segment lengths from the 2D: %s", ", ".join(f"{n} {v:.3f} m" for n, (v, _) in measured.items()))
-    prep = dataclasses.replace(prep, problem=problem, full=full, footage=dataclasses.replace(f, segments=record))
-    gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
-    return prep, ESTIMATORS[cfg.method](problem, cfg, gen, progress_display(progress, cfg.method))
+    return dataclasses.replace(prep, problem=problem, full=full, footage=dataclasses.replace(f, segments=record))
 
 
 def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
