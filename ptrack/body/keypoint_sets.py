@@ -199,6 +199,9 @@ _COCO17_NAMES = (
     "right_ankle",
 )
 # OpenPose's CamelCase spelling of the COCO body, shared by BODY_25B and HALPE-26
+# OpenPose's six foot keypoints (BODY_25 and BODY_25B put them last, in this order) and their landmarks
+_OPENPOSE_FEET = ("LBigToe", "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel")
+_OPENPOSE_FEET_LANDMARKS = ("l_big_toe", "l_small_toe", "l_heel", "r_big_toe", "r_small_toe", "r_heel")
 _COCO17_CAMEL = (
     "Nose",
     "LEye",
@@ -244,12 +247,7 @@ BODY_25 = KeypointDefinition(
         "LEye",
         "REar",
         "LEar",
-        "LBigToe",
-        "LSmallToe",
-        "LHeel",
-        "RBigToe",
-        "RSmallToe",
-        "RHeel",
+        *_OPENPOSE_FEET,
     ),
     landmarks=(
         "nose",
@@ -271,12 +269,7 @@ BODY_25 = KeypointDefinition(
         "l_eye",
         "r_ear",
         "l_ear",
-        "l_big_toe",
-        "l_small_toe",
-        "l_heel",
-        "r_big_toe",
-        "r_small_toe",
-        "r_heel",
+        *_OPENPOSE_FEET_LANDMARKS,
     ),
     source="OpenPose doc/02_output.md, POSE_BODY_25_BODY_PARTS",
 )
@@ -293,23 +286,13 @@ BODY_25B = KeypointDefinition(
         *_COCO17_CAMEL,
         "UpperNeck",
         "HeadTop",
-        "LBigToe",
-        "LSmallToe",
-        "LHeel",
-        "RBigToe",
-        "RSmallToe",
-        "RHeel",
+        *_OPENPOSE_FEET,
     ),
     landmarks=(
         *_COCO17_LANDMARKS,
         "upper_neck",
         "head_top",
-        "l_big_toe",
-        "l_small_toe",
-        "l_heel",
-        "r_big_toe",
-        "r_small_toe",
-        "r_heel",
+        *_OPENPOSE_FEET_LANDMARKS,
     ),
     other_names=(*_COCO17_CAMEL, "Neck", "Head", "LBigToe", "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel"),
     source="OpenPose src/openpose/pose/poseParameters.cpp, POSE_BODY_25B_BODY_PARTS",
