@@ -35,6 +35,22 @@ VIDEO_YAML = str(REPO / "configs" / "video.yaml")
 P2S = REPO.parent / "shared" / "data" / "pose2sim"
 
 
+def logged_metrics(rrd: Path) -> dict[str, dict[int, float]]:
+    """The per-frame scalars a run logged under metrics/ in its rerun file: {name: {frame: value}}."""
+    import rerun.chunk
+
+    out: dict[str, dict[int, float]] = {}
+    for chunk in rerun.chunk.RrdReader(rrd).stream().to_chunks():
+        entity = chunk.entity_path.lstrip("/")
+        if chunk.is_static or not entity.startswith("metrics/"):
+            continue
+        batch = chunk.to_record_batch()
+        values = batch.column("Scalars:scalars").to_pylist()
+        frames = batch.column("frame").to_pylist()
+        out.setdefault(entity.removeprefix("metrics/"), {}).update({f: v[0] for f, v in zip(frames, values)})
+    return out
+
+
 def test_scale_to_height_gives_every_segment_its_fraction():
     sk = scale_to_height(Skeleton.from_asf(data_file("10.asf")), 1.72)
     got = segment_lengths(sk)
@@ -112,6 +128,19 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
         "right_ankle",
     }
     assert 0 <= metrics["ambiguous_frame_share"] <= 1  # kjs has modes
+    # the same checks frame by frame in the rerun log, on the run's frames
+    logged = logged_metrics(out / "run.rrd")
+    assert set(logged["ambiguous_frame"]) == set(frames.tolist()) and set(logged["ambiguous_frame"].values()) <= {0, 1}
+    assert np.mean(list(logged["ambiguous_frame"].values())) == pytest.approx(metrics["ambiguous_frame_share"])
+    shares = metrics["ambiguous_frame_share_per_limb"].values()
+    assert np.mean(list(logged["ambiguous_limb_share"].values())) == pytest.approx(np.mean(list(shares)))
+    assert logged["person_missing"] == dict.fromkeys(frames.tolist(), 0.0)  # the empty image is not a frame
+    skating = logged["foot_skating_mm_per_frame"]  # the feet's mean step while on the floor
+    assert 3 <= len(skating) < len(frames) and frames[0] not in skating
+    assert all(v >= 0 for v in skating.values())
+    per_foot = [v for v in metrics["foot_skating_mm_per_frame"].values() if v is not None]
+    assert min(per_foot) <= max(skating.values()) and max(per_foot) >= min(skating.values())
+    assert len(logged["jitter_mm_per_frame2"]) == len(frames) - 2
     score = synthetic_footage.score(out / "result.npz", folder / "truth.npz")
     # the frame method from no 3D at all, on a skeleton with other proportions than the template's: a loose
     # bound (a pose with the torso turned by 90 degrees scores over 200 mm); docs/results.md has the numbers

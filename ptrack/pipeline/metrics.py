@@ -333,12 +333,12 @@ def second_differences_mm(points) -> Tensor:
     return 1000 * (x[2:] - 2 * x[1:-1] + x[:-2]).norm(dim=-1)
 
 
-def foot_skating_mm(feet, up, contact_m: float = 0.05) -> Tensor:
-    """Foot skating: the mean horizontal speed of each foot point in the frames where it is in contact, mm per
-    frame, contact = within `contact_m` of that point's lowest height over the sequence (a foot on the floor
-    should not slide).
+def foot_sliding_steps_mm(feet, up, contact_m: float = 0.05) -> Tensor:
+    """The horizontal step of each foot point from frame t-1 to frame t, mm, where it is in contact in both frames
+    (within `contact_m` of that point's lowest height over the sequence), else NaN: frame by frame, what
+    `foot_skating_mm` averages.
 
-    feet: (T, F, 3) metres; up: (3,) unit vector of the world's up -> (F,), NaN where never in contact."""
+    feet: (T, F, 3) metres; up: (3,) unit vector of the world's up -> (T-1, F), row t-1 the step into frame t."""
     x = torch.as_tensor(feet)
     u = torch.as_tensor(up, dtype=x.dtype)
     h = x @ u  # (T, F)
@@ -346,9 +346,16 @@ def foot_skating_mm(feet, up, contact_m: float = 0.05) -> Tensor:
     step = x[1:] - x[:-1]
     horizontal = (step - (step @ u)[..., None] * u).norm(dim=-1)  # (T-1, F)
     both = contact[1:] & contact[:-1]
-    total = (horizontal * both).sum(0)
-    n = both.sum(0)
-    return torch.where(n > 0, 1000 * total / n.clamp_min(1), torch.full_like(total, float("nan")))
+    return torch.where(both, 1000 * horizontal, torch.full_like(horizontal, float("nan")))
+
+
+def foot_skating_mm(feet, up, contact_m: float = 0.05) -> Tensor:
+    """Foot skating: the mean horizontal speed of each foot point in the frames where it is in contact, mm per
+    frame, contact = within `contact_m` of that point's lowest height over the sequence (a foot on the floor
+    should not slide); the mean over the frames of `foot_sliding_steps_mm`.
+
+    feet: (T, F, 3) metres; up: (3,) unit vector of the world's up -> (F,), NaN where never in contact."""
+    return foot_sliding_steps_mm(feet, up, contact_m).nanmean(0)
 
 
 def ambiguous_limb_frames(hypotheses, weights, limbs: Sequence[tuple[int, int]], R, t, share: float = 0.1) -> Tensor:
