@@ -141,6 +141,14 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
     per_foot = [v for v in metrics["foot_skating_mm_per_frame"].values() if v is not None]
     assert min(per_foot) <= max(skating.values()) and max(per_foot) >= min(skating.values())
     assert len(logged["jitter_mm_per_frame2"]) == len(frames) - 2
+    # subject.lengths: template: every length is the height's proportion, its spread a stated prior, not the data's
+    lengths = metrics["bone_lengths"]
+    assert set(lengths) == set(SEGMENTS) and metrics["footage"]["segments_measured"] is None
+    for name, (_, _, fraction) in SEGMENTS.items():
+        row = lengths[name]
+        assert (row["source"], row["std_source"]) == ("template", "prior"), name
+        assert row["length_m"] == pytest.approx(fraction * info["height_m"], rel=1e-3), name
+        assert row["std_m"] == pytest.approx(0.05 * row["length_m"]), name
     score = synthetic_footage.score(out / "result.npz", folder / "truth.npz")
     # the frame method from no 3D at all, on a skeleton with other proportions than the template's: a loose
     # bound (a pose with the torso turned by 90 degrees scores over 200 mm); docs/results.md has the numbers
@@ -216,6 +224,28 @@ def test_pose2sim_openpose_folder_in_the_lab_frame(tmp_path, capsys):
     assert kp[:, names.index("LShoulder"), 2].mean() > kp[:, names.index("LAnkle"), 2].mean() + 1.0  # Z is up
 
 
+@pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")
+def test_observed_lengths_carry_their_spread_over_the_frames(tmp_path):
+    """subject.lengths: observed on real OpenPose: the measured segments report the length the model used and a
+    bootstrap spread, the segments it cannot measure the template's length and the prior spread."""
+    out = tmp_path / "run"
+    argv = ["run", VIDEO_YAML, f"observations.file={P2S / 'balancing' / 'pose' / 'cam01_json'}", "camera.name=cam01"]
+    argv += [f"camera.file={P2S / 'Calib_qualisys.toml'}", "subject.height_m=1.72", "observations.fps=60"]
+    argv += ["data.stop=6", "kjs.modes=2", "kjs.samples=32"]  # a short, cheap tracking: the lengths' report is tested
+    assert main([*argv, "subject.lengths=observed", f"out_dir={out}", "progress=false"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    lengths, measured = metrics["bone_lengths"], metrics["footage"]["segments_measured"]
+    assert set(measured) == {"thigh", "shank", "upper_arm", "forearm", "trunk"}  # left and right: 12 >= 10 samples
+    for name, row in lengths.items():
+        if name in measured:
+            assert row["source"] == "observed" and row["frames"] == measured[name]["frames"] == 12, name
+            assert row["length_m"] == pytest.approx(measured[name]["length_m"], rel=1e-4), name  # what the model has
+            assert row["std_m"] == measured[name]["std_m"] and 0 < row["std_m"] < 0.1 * row["length_m"], name
+        else:
+            assert (row["source"], row["std_source"]) == ("template", "prior"), name
+            assert row["length_m"] == pytest.approx(SEGMENTS[name][2] * 1.72, rel=1e-4), name
+
+
 def test_footage_fixture_copy_runs_from_a_plain_clone(tmp_path):
     """The shipped OpenPose frames (tests/data/keypoints) read without ../shared: three frames, two people."""
     from ptrack.observe.keypoint_files import read_keypoints
@@ -277,3 +307,46 @@ def test_rescale_segments_sets_the_targets_and_moves_the_landmark_joints():
     heel = sk.joint_index("lm_l_heel")
     foot = [sk.joint_index(b) for b in ("lfoot", "rfoot")]
     assert new.lengths[heel] / sk.lengths[heel] == pytest.approx(np.mean(new.lengths[foot] / sk.lengths[foot]))
+
+
+def test_segment_length_spread_is_the_spread_over_other_frames_and_noise():
+    """The bootstrap's std of each measured length on a body turning in front of the camera, with 8 px of 2D noise:
+    the order of the std over independent re-filmings of the same motion (other noise) for a segment that stays in
+    the image plane (thigh, trunk), larger for the upper arm whose measurement depends on which frames are drawn
+    (it turns out of the image plane); seeded, so the same twice."""
+    from ptrack.body.keypoint_sets import COCO_17
+    from ptrack.body.keypoints import landmark_keypoints
+    from ptrack.body.subject import landmark_joints
+    from ptrack.estimators.lengths import segment_length_spread, segment_lengths_from_2d
+    from ptrack.observe.camera import look_at
+    from ptrack.observe.observations import Observations
+    from ptrack.problem import Estimate, Problem
+
+    sk = add_landmark_joints(scale_to_height(Skeleton.from_asf(data_file("10.asf")), 1.7), 1.7)
+    kps = landmark_keypoints(
+        sk, COCO_17.names, COCO_17.landmarks, [str(j) for j in landmark_joints(sk, COCO_17.landmarks)]
+    )
+    T = 60  # 2 s at 30 fps: four 0.5 s blocks
+    q = torch.zeros(T, sk.num_dofs, dtype=torch.float64)
+    q[:, sk.dof_names.index("root.ry")] = torch.linspace(-torch.pi / 2, torch.pi / 2, T)
+    X = sk.forward_kinematics(q)
+    cam = look_at([0.0, 0.0, 0.0], 4.0, 0.0, 0.0, 1000.0, 1280, 720)
+    px = cam.project(X[:, kps.index()]).pixels
+    est = Estimate(q=q, joints=X, cost=torch.zeros(T), terms={})
+    segments = {n: (a, b) for n, (a, b, _) in SEGMENTS.items() if n in ("thigh", "trunk", "upper_arm")}
+
+    def filmed(seed: int) -> Problem:
+        noise = 8.0 * torch.randn(px.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+        obs = Observations(
+            px + noise, torch.ones(T, 17, dtype=torch.float64), torch.arange(T) / 30.0, cam, COCO_17.names
+        )
+        return Problem(skeleton=sk, keypoints=kps, observations=obs)
+
+    refilmed = [segment_lengths_from_2d(filmed(s), est, COCO_17.landmarks, segments) for s in range(100, 200)]
+    across = {n: float(np.std([r[n][0] for r in refilmed], ddof=1)) for n in segments}  # 6-9 mm
+    spreads = [segment_length_spread(filmed(seed), est, COCO_17.landmarks, segments) for seed in range(3)]
+    for seed, spread in enumerate(spreads):
+        for n in ("thigh", "trunk"):  # ratios 0.5-1.4 over seeds 0-5
+            assert across[n] / 3 < spread[n] < 3 * across[n], (seed, n, spread, across)
+        assert spread["upper_arm"] > 2 * across["upper_arm"], (seed, spread, across)  # ratios 3.0-4.1
+    assert segment_length_spread(filmed(0), est, COCO_17.landmarks, segments) == spreads[0]

@@ -486,3 +486,27 @@ def test_checks_without_ground_truth():
     w = torch.tensor([[0.5, 0.5], [0.95, 0.05], [0.0, 1.0]])
     amb = ambiguous_limb_frames(hyp, w, [(0, 1)], R, tt)
     assert amb[:, 0].tolist() == [True, False, False]
+
+
+def test_bone_lengths_report_says_where_each_length_and_its_spread_come_from():
+    from ptrack.pipeline.metrics import TEMPLATE_LENGTH_SPREAD, bone_lengths_report
+
+    lengths = {"thigh": 0.42, "shank": 0.40, "hips": 0.19}
+    template = bone_lengths_report(lengths, None)
+    assert {n: (r["source"], r["std_source"]) for n, r in template.items()} == dict.fromkeys(
+        lengths, ("template", "prior")
+    )
+    assert (
+        template["thigh"]["std_m"] == pytest.approx(TEMPLATE_LENGTH_SPREAD * 0.42) and "frames" not in template["thigh"]
+    )
+    measured = {"thigh": {"length_m": 0.42, "frames": 80, "std_m": 0.003}, "shank": {"length_m": 0.4, "frames": 12}}
+    mixed = bone_lengths_report(lengths, measured)
+    assert mixed["thigh"] == {
+        "length_m": 0.42,
+        "source": "observed",
+        "std_m": 0.003,
+        "std_source": "bootstrap",
+        "frames": 80,
+    }
+    assert mixed["shank"]["std_m"] is None  # measured, but too few resamples for a spread
+    assert mixed["hips"] == template["hips"]

@@ -371,3 +371,35 @@ def ambiguous_limb_frames(hypotheses, weights, limbs: Sequence[tuple[int, int]],
     nearer = (z[..., idx[:, 1]] < z[..., idx[:, 0]]).to(X.dtype)  # (T, N, L)
     p = (w[..., None] * nearer).sum(1)
     return (p >= share) & (p <= 1 - share)
+
+
+#: the spread (1 sd, a share of the length) reported for a segment length taken from the height's proportions
+#: (`ptrack.body.subject.SEGMENTS`, Winter 2009 fig. 4.1) rather than measured: an assumed anthropometric prior, not
+#: a measurement of this person. Winter's fractions are means without a spread; adult limb segment lengths vary
+#: between people by about 5% of their mean (coefficient of variation in anthropometric surveys such as ANSUR II:
+#: C. C. Gordon et al., "2012 Anthropometric Survey of U.S. Army Personnel", NATICK/TR-15/007, 2014), and less
+#: among people of one height, so for a given height this is a generous figure.
+TEMPLATE_LENGTH_SPREAD = 0.05
+
+
+def bone_lengths_report(lengths: dict[str, float], measured: dict[str, dict] | None) -> dict[str, dict]:
+    """The segment lengths a run's model has and how well they are known, for metrics.json: {segment: {length_m,
+    source, std_m, std_source[, frames]}}. Measured segments (`measured`: {segment: {"frames", "std_m"}}, from
+    `subject.lengths: observed`) have source "observed" and the data's spread (std_source "bootstrap": the moving-block
+    bootstrap over frames of `ptrack.estimators.lengths.segment_length_spread`, null when it could not be taken);
+    the others keep the template's proportions (source "template") with the prior spread TEMPLATE_LENGTH_SPREAD x
+    length (std_source "prior"), which says nothing about the data. lengths: {segment: metres} of the model."""
+    out: dict[str, dict] = {}
+    for name, length in lengths.items():
+        m = (measured or {}).get(name)
+        if m is not None:
+            out[name] = {"length_m": length, "source": "observed", "std_m": m.get("std_m"), "std_source": "bootstrap"}
+            out[name]["frames"] = m["frames"]
+        else:
+            out[name] = {
+                "length_m": length,
+                "source": "template",
+                "std_m": TEMPLATE_LENGTH_SPREAD * length,
+                "std_source": "prior",
+            }
+    return out

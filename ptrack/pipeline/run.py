@@ -40,6 +40,7 @@ import torch
 
 from ptrack.body.keypoints import make_keypoints
 from ptrack.body.skeleton import Motion, Skeleton, load_amc
+from ptrack.body.subject import segment_lengths
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators import ESTIMATORS
 from ptrack.io.export import write_bvh
@@ -498,6 +499,7 @@ def footage_checks(
             f"{names[a]}-{names[b]}": float(v) for (a, b), v in zip(kps.limbs, ambiguous.double().mean(0))
         }
     series["person_missing"] = np.isin(prep.footage.frames, prep.footage.missing_frames).astype(np.float64)  # 0/1
+    out["bone_lengths"] = M.bone_lengths_report(segment_lengths(prob.skeleton), prep.footage.segments)
     return out, series
 
 
@@ -711,7 +713,7 @@ def rescale_subject(prep: Prepared, est: Estimate) -> Prepared:
     """Real footage, `subject.lengths: observed`: `prep` with its model rescaled to the segments' lengths measured
     in the 2D at the depths of `est` (`ptrack.estimators.lengths`), the footage record holding them."""
     from ptrack.body.subject import SEGMENTS, rescale_segments
-    from ptrack.estimators.lengths import segment_lengths_from_2d
+    from ptrack.estimators.lengths import segment_length_spread, segment_lengths_from_2d
 
     assert prep.footage is not None
     f = prep.footage
@@ -722,7 +724,8 @@ def rescale_subject(prep: Prepared, est: Estimate) -> Prepared:
     sk = rescale_segments(prep.problem.skeleton, f.height_m, {n: v for n, (v, _) in measured.items()})
     problem = dataclasses.replace(prep.problem, skeleton=sk)
     full = dataclasses.replace(prep.full, lengths=sk.lengths)
-    record = {n: {"length_m": v, "frames": k} for n, (v, k) in measured.items()}
+    spread = segment_length_spread(prep.problem, est, f.landmarks, segments)  # how much other frames would change them
+    record = {n: {"length_m": v, "frames": k, "std_m": spread.get(n)} for n, (v, k) in measured.items()}
     log.info("segment lengths from the 2D: %s", ", ".join(f"{n} {v:.3f} m" for n, (v, _) in measured.items()))
     return dataclasses.replace(prep, problem=problem, full=full, footage=dataclasses.replace(f, segments=record))
 
