@@ -14,6 +14,7 @@ import pytest
 import torch
 from cli_errors import fail
 
+from ptrack.body.keypoint_sets import get_keypoint_set
 from ptrack.body.skeleton import Skeleton
 from ptrack.body.subject import (
     CMU_LANDMARK_JOINTS,
@@ -244,6 +245,61 @@ def test_observed_lengths_carry_their_spread_over_the_frames(tmp_path):
         else:
             assert (row["source"], row["std_source"]) == ("template", "prior"), name
             assert row["length_m"] == pytest.approx(SEGMENTS[name][2] * 1.72, rel=1e-4), name
+
+
+@pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")
+def test_two_people_trial_fits_the_person_chosen(tmp_path):
+    """End to end on real OpenPose of the two-people trial (three people tracked, 2-4 detections a frame): by
+    default the largest, most present person, who enters at frame 2 (frames 0 and 1 reported without the person, in
+    metrics.json and frame by frame in the rerun log); by a point in the first frame, the person at the image's left
+    edge. The 2D fitted is the chosen person's: the estimate reprojects within a few tens of pixels of that person's
+    detections, as read from the raw files here, and hundreds of pixels from everyone else's."""
+    src = P2S / "two_people" / "pose" / "cam01_json"
+    argv = ["run", VIDEO_YAML, f"observations.file={src}", f"camera.file={P2S / 'Calib_qualisys.toml'}"]
+    argv += ["camera.name=cam01", "subject.height_m=1.72", "observations.fps=60", "data.stop=6", "progress=false"]
+
+    def detections(frame: int) -> list[np.ndarray]:  # each person's (25, 3) x, y, score in the raw OpenPose file
+        people = json.loads((src / f"cam01.{frame:04d}.json").read_text())["people"]
+        return [np.asarray(p["pose_keypoints_2d"], dtype=float).reshape(-1, 3) for p in people]
+
+    def fitted(out: Path) -> tuple[dict, np.ndarray]:
+        """-> metrics.json, and per frame the median distance (px) from the reprojected keypoints to each person
+        detected in the raw file (NaN for a frame without the chosen person), nearest first: (T, people)."""
+        metrics = json.loads((out / "metrics.json").read_text())
+        with np.load(out / "result.npz") as r:
+            assert [str(n) for n in r["keypoint_names"]] == list(get_keypoint_set("BODY_25B").names)  # file order
+            frames, reproj, observed, conf = (
+                r["frames"],
+                r["keypoints_reprojected"],
+                r["keypoints_observed"],
+                r["confidence"],
+            )
+        rows = []
+        for t, frame in enumerate(frames):
+            people = [k for k in detections(int(frame)) if (k[:, 2] > 0.3).sum() >= 6]
+            dist = [float(np.median(np.linalg.norm(reproj[t] - k[:, :2], axis=-1)[k[:, 2] > 0.3])) for k in people]
+            seen = conf[t] > 0
+            if not seen.any():
+                rows.append([np.nan] * 4)
+                continue
+            nearest = people[int(np.argmin(dist))]  # the observations are its detections (undistorted: a few px)
+            assert np.median(np.linalg.norm(observed[t, seen] - nearest[seen, :2], axis=-1)) < 5.0
+            rows.append(sorted(dist) + [np.nan] * (4 - len(dist)))
+        return metrics, np.asarray(rows)
+
+    default = tmp_path / "default"
+    assert main([*argv, f"out_dir={default}"]) == 0
+    metrics, dist = fitted(default)
+    assert metrics["footage"]["tracks"] == 3 and metrics["footage"]["frames_without_person"] == [0, 1]
+    assert np.isnan(dist[:2]).all() and (dist[2:, 0] < 40).all() and (dist[2:, 1] > 150).all(), dist
+    assert logged_metrics(default / "run.rrd")["person_missing"] == {0: 1.0, 1: 1.0, 2: 0.0, 3: 0.0, 4: 0.0, 5: 0.0}
+
+    by_point = tmp_path / "by_point"
+    assert main([*argv, "observations.person=[60, 700]", f"out_dir={by_point}"]) == 0  # a pixel of frame 0
+    other, dist = fitted(by_point)
+    assert other["footage"]["person_track"] != metrics["footage"]["person_track"]
+    assert other["footage"]["frames_without_person"] == []
+    assert (dist[:, 0] < 40).all() and (dist[:, 1] > 150).all(), dist
 
 
 def test_footage_fixture_copy_runs_from_a_plain_clone(tmp_path):
