@@ -10,9 +10,13 @@ the two ends on their camera rays, joined in that plane, at the fit's depth; a c
 person does not shorten them), the median over the frames, left and right pooled. The up axis is the
 calibration's (or, without extrinsics, the camera's image-up: the camera taken as level).
 
-The height's template is the prior twice over: the fit's depth, which sets the scale of every measured
-length, comes from a body of the template's size (one camera cannot tell a large person far away from a small
-one near), so the static trial gives the body's proportions at the height's scale; and a measured length
+The height's template is the prior. One camera cannot tell a large person far away from a small one near:
+the fit's depth, which sets the scale of every measured length, comes from a body of the template's size, and
+the lengths measured at it are only as right as that depth (on the Pose2Sim static trial the fit stands the
+person 1-5% too near). So the static trial gives the proportions and the height the size: the measured
+lengths are scaled by one common factor that gives the skeleton the template's stature (`stature_scale`:
+the standing height of the rest pose). Without it, legs measured shorter than the template's make a shorter
+person, whom the main trial then places nearer the camera (on Pose2Sim: 6-9% too near). A measured length
 outside `PRIOR_RANGE` times the template's is taken to be a detection fault and held at that bound (with a
 warning). The main trial is then prepared with those lengths (`ptrack.body.subject.rescale_segments`); the
 segments not measured keep their fractions of the height.
@@ -31,6 +35,7 @@ import torch
 from ptrack.errors import InputError
 
 if TYPE_CHECKING:
+    from ptrack.body.skeleton import Skeleton
     from ptrack.pipeline.config import RunConfig
     from ptrack.pipeline.run import Prepared
 
@@ -49,9 +54,12 @@ STATIC_YAWS = 8
 
 
 def static_segment_lengths(cfg: RunConfig, keypoint_set: str | None = None) -> dict[str, dict]:
-    """The segment lengths of `cfg.subject.static` (see the module docstring) -> {segment: {length_m,
-    spread_m, samples, template_m}}. InputError naming the static trial when it cannot be read, holds nobody,
-    holds another keypoint set than `keypoint_set` (the main trial's; None: any) or too little to measure."""
+    """The segment lengths of `cfg.subject.static` (see the module docstring) -> {segment: {length_m (the length
+    used), measured_m (as measured), spread_m (half the interquartile range of the samples), samples (frames x
+    sides), template_m (the height's), stature_scale (the common factor from measured to used)}}.
+
+    InputError naming the static trial when it cannot be read, holds nobody, holds another keypoint set than
+    `keypoint_set` (the main trial's; None: any) or too little to measure."""
     from ptrack.body.subject import SEGMENTS, segment_lengths
     from ptrack.estimators import ESTIMATORS
     from ptrack.estimators.lengths import vertical_segment_lengths
@@ -85,24 +93,56 @@ def static_segment_lengths(cfg: RunConfig, keypoint_set: str | None = None) -> d
     est = ESTIMATORS["frame"](prep.problem, scfg, gen)
     segments = {n: (a, b) for n, (a, b, _) in SEGMENTS.items() if n in STATIC_SEGMENTS}
     measured = vertical_segment_lengths(prep.problem, est, prep.footage.landmarks, segments)
+    if not measured:
+        raise InputError(f"subject.static {path}: no segment is seen in enough frames to measure")
     template = segment_lengths(prep.full)
     lo, hi = PRIOR_RANGE
-    out = {}
-    for name, (length, spread, samples) in measured.items():
-        held = min(max(length, lo * template[name]), hi * template[name])
-        if held != length:
+    held = {}
+    for name, (length, _, _) in measured.items():
+        held[name] = min(max(length, lo * template[name]), hi * template[name])
+        if held[name] != length:
             log.warning(
                 "subject.static: the %s measures %.3f m, %.0f%% of the template's %.3f m; held at %.3f m",
                 name,
                 length,
                 100 * length / template[name],
                 template[name],
-                held,
+                held[name],
             )
-        out[name] = {"length_m": held, "spread_m": spread, "samples": samples, "template_m": template[name]}
+    k = stature_scale(prep.problem.skeleton, prep.footage.height_m, held)
+    out = {}
+    for name, (length, spread, samples) in measured.items():
+        out[name] = {
+            "length_m": k * held[name],
+            "measured_m": length,
+            "spread_m": spread,
+            "samples": samples,
+            "template_m": template[name],
+            "stature_scale": k,
+        }
     if not out:
         raise InputError(f"subject.static {path}: no segment is seen in enough frames to measure")
     return out
+
+
+def stature(skeleton: Skeleton) -> float:
+    """The rest pose's standing height: the highest joint above the lowest, metres."""
+    y = skeleton.forward_kinematics(torch.zeros(skeleton.num_dofs, dtype=torch.float64))[:, 1]
+    return float(y.max() - y.min())
+
+
+def stature_scale(skeleton: Skeleton, height_m: float, lengths: dict[str, float], steps: int = 3) -> float:
+    """The factor k that gives `skeleton` (the template scaled to `height_m`), with the segments of `lengths`
+    at k times those lengths (`rescale_segments`), the template's stature: the proportions from the static
+    trial, the size from the height. A few fixed-point steps (the measured segments stand nearly upright, so
+    the stature changes by about their summed change)."""
+    from ptrack.body.subject import rescale_segments
+
+    want, total, k = stature(skeleton), sum(lengths.values()), 1.0
+    for _ in range(steps):
+        got = stature(rescale_segments(skeleton, height_m, {n: k * v for n, v in lengths.items()}))
+        k *= 1.0 + (want - got) / (k * total)
+    return k
 
 
 def apply_static(prep: Prepared, cfg: RunConfig) -> Prepared:
