@@ -17,7 +17,9 @@ capture: it reprojects into cam01/cam02 at about 8-12 px (README of the data).
 --video: from the videos (MediaPipe through `ptrack detect`'s detector, the `video` extra) instead of the
 OpenPose files.
 
-Extra key=value arguments are passed to every run (e.g. method=batch). Existing run folders are reused.
+Extra key=value arguments are passed to every run (e.g. method=batch), `{cam}` in them replaced by the camera's
+name (the static trial: `subject.static=../shared/data/pose2sim/static/pose/{cam}_json`). Existing run folders
+are reused.
 """
 
 from __future__ import annotations
@@ -88,7 +90,7 @@ def main() -> None:
                 cmd += [f"observations.file={DATA / 'balancing' / 'pose' / f'{cam}_json'}"]
             cmd += [f"camera.file={DATA / 'Calib_qualisys.toml'}", f"camera.name={cam}"]
             cmd += [f"subject.height_m={HEIGHT_M}", f"observations.fps={FPS}", f"out_dir={out}", "progress=false"]
-            subprocess.run([*cmd, *args.overrides], check=True)
+            subprocess.run([*cmd, *(o.replace("{cam}", cam) for o in args.overrides)], check=True)
         e = errors(out / "result.npz", DATA / "balancing" / "triangulated.trc")
         print(f"| {cam} | {e['mpjpe_mm']:.1f} | {e['pa_mpjpe_mm']:.1f} | {e['frames']} | |")
 

@@ -173,6 +173,50 @@ def test_mmpose_plain_list_and_single_image(tmp_path):
     assert det.keypoint_set == "COCO_17" and det.frames.tolist() == [0]
 
 
+def _mmpose_image_file(folder, image, instances):
+    """One image's predictions as MMPoseInferencer(pred_out_dir=...) writes them for image input
+    (base_mmpose_inferencer.py postprocess: `<image stem>.json` holding split_instances' list, `bbox` as
+    [[x1, y1, x2, y2]] and a `bbox_score`; `[]` for an image without anyone)."""
+    items = []
+    for kp in instances:
+        x, y = kp[:, 0], kp[:, 1]
+        items.append(
+            {
+                "keypoints": kp[:, :2].tolist(),
+                "keypoint_scores": kp[:, 2].tolist(),
+                "bbox": [[float(x.min()), float(y.min()), float(x.max()), float(y.max())]],
+                "bbox_score": 0.98,
+            }
+        )
+    (folder / f"{image}.json").write_text(json.dumps(items, indent=2))
+
+
+def test_mmpose_per_image_folder(tmp_path):
+    folder = tmp_path / "predictions"
+    folder.mkdir()
+    for n in (3, 4, 5, 7):  # frame 6 not written, frame 5 without anyone; a bystander in frame 4
+        people = [] if n == 5 else [person(COCO_17, 10 * n, 0, 300)]
+        if n == 4:
+            people.append(person(COCO_17, 600, 0, 150, score=0.5))
+        _mmpose_image_file(folder, f"frame_{n:06d}", people)
+    (folder / "notes.txt").write_text("not a prediction")
+    det = read_keypoints(folder)
+    assert det.keypoint_set == "COCO_17" and det.frames.tolist() == [3, 4, 5, 7]
+    assert det.present.sum(-1).tolist() == [1, 2, 0, 1]
+    np.testing.assert_allclose(det.people[3, 0], person(COCO_17, 70, 0, 300))
+    assert read_keypoints(folder, format="mmpose").frames.tolist() == [3, 4, 5, 7]
+    with pytest.raises(InputError, match=r"frame_000003.json \(frame 3\): not an OpenPose keypoint file \(a list"):
+        read_keypoints(folder, format="openpose")
+    _openpose_file(folder, "frame_000008.json", [person(COCO_17, 0, 0, 300)])  # one file of another detector
+    with pytest.raises(InputError, match=r"frame_000008\.json \(frame 8\): not MMPose's predictions of one image"):
+        read_keypoints(folder)
+    (folder / "frame_000008.json").unlink()
+    video = [{"frame_id": 0, "instances": []}]  # a video's predictions file does not belong in the folder
+    (folder / "frame_000009.json").write_text(json.dumps(video))
+    with pytest.raises(InputError, match=r"frame_000009\.json \(frame 9\): not one image's MMPose instances"):
+        read_keypoints(folder)
+
+
 # --- MediaPipe, npz -----------------------------------------------------------------------------------
 
 

@@ -13,6 +13,7 @@ the factor dZ / Z (1-3% at 3-5 m).
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import torch
@@ -112,3 +113,67 @@ def segment_length_spread(
         for name, (length, _) in measured.items():
             found.setdefault(name, []).append(length)
     return {n: float(np.std(v, ddof=1)) for n, v in found.items() if len(v) > 1}
+
+
+#: fewest samples (frames x sides) for a segment of a static trial to be measured
+STATIC_MIN_SAMPLES = 3
+
+
+def vertical_segment_lengths(
+    problem: Problem,
+    est: Estimate,
+    landmarks: tuple[str, ...],
+    segments: dict[str, tuple[str, str]],
+    min_samples: int = STATIC_MIN_SAMPLES,
+) -> dict[str, tuple[float, float, int]]:
+    """The lengths of segments in the upright plane that faces the camera: a person standing still, legs and
+    trunk upright (+Y of the model frame), a camera that may look down on them and roll.
+
+    The plane is spanned by the up axis u and the horizontal direction h across the image (the camera's x axis
+    made orthogonal to u). Per frame, the segment's two end keypoints are taken on their camera rays,
+    x_a = alpha r_a and x_b = beta r_b (r = K^-1 (u, v, 1), depth 1), with x_b - x_a = s u + w h: the ray geometry
+    fixes alpha, beta, s and w up to one scale (the null vector of [r_a, u, h, -r_b]), which the mean depth of
+    the two ends in `est` sets, and the length is |(s, w)|. Unlike the 2D length times depth / f, a segment seen
+    shortened by the camera's tilt is measured at its length; what is not seen (a lean towards the camera) is
+    not. The scale, the depth, is the only thing taken from `est`. The median over the frames is the estimate,
+    left and right pooled for the paired segments (as in `segment_lengths_from_2d`).
+
+    -> {segment: (metres, spread metres, samples)} for the segments with at least `min_samples` samples;
+    spread: half the interquartile range of the samples. landmarks: (K,) the landmark of each keypoint of
+    `problem`; segments: {name: (landmark a, landmark b)}, "l_..." landmarks standing for both sides."""
+    obs, kps = problem.observations, problem.keypoints
+    cam = obs.camera
+    with torch.no_grad():
+        z = cam.world_to_camera(est.joints.detach().index_select(-2, kps.index(est.joints.device)))[..., 2]
+    depth = z.double().cpu().numpy()  # (T, K)
+    px = obs.keypoints.detach().double().cpu().numpy()  # (T, K, 2)
+    seen = obs.confidence.detach().cpu().numpy() > 0
+    k_inv = np.linalg.inv(cam.K.detach().double().cpu().numpy())
+    rays = np.concatenate([px, np.ones_like(px[..., :1])], axis=-1) @ k_inv.T  # (T, K, 3), depth 1
+    up = cam.R.detach().double().cpu().numpy()[:, 1]  # the model's +Y in the camera frame
+    across = np.array([1.0, 0.0, 0.0]) - up[0] * up
+    across /= np.linalg.norm(across)  # a camera looking straight down has no such direction: taken as its x
+    pos = {m: k for k, m in enumerate(landmarks)}
+    out: dict[str, tuple[float, float, int]] = {}
+    for name, (a, b) in segments.items():
+        pairs = [(a, b)]
+        if (a.startswith("l_") or b.startswith("l_")) and not (a.startswith("r_") or b.startswith("r_")):
+            pairs.append(tuple("r_" + m[2:] if m.startswith("l_") else m for m in (a, b)))  # type: ignore[arg-type]
+        values = []
+        for pa, pb in pairs:
+            if pa not in pos or pb not in pos:
+                continue
+            i, j = pos[pa], pos[pb]
+            for t in np.flatnonzero(seen[:, i] & seen[:, j] & (depth[:, i] > 0) & (depth[:, j] > 0)):
+                m = np.stack([rays[t, i], up, across, -rays[t, j]], axis=1)  # (3, 4): alpha r_a + s u + w h = beta r_b
+                alpha, s, w, beta = np.linalg.svd(m)[2][-1]
+                if alpha < 0:
+                    alpha, s, w, beta = -alpha, -s, -w, -beta
+                if alpha <= 0 or beta <= 0:  # no such pair of points in front of the camera
+                    continue
+                scale = (depth[t, i] + depth[t, j]) / (alpha + beta)  # rays have depth 1
+                values.append(math.hypot(s, w) * scale)
+        if len(values) >= min_samples:
+            q1, med, q3 = np.quantile(values, [0.25, 0.5, 0.75])
+            out[name] = (float(med), float(q3 - q1) / 2, len(values))
+    return out

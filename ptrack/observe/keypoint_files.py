@@ -19,7 +19,11 @@ landmarks and plain npz arrays, read into one `Detections` record (every person 
   inferencer's ``pred_out_dir``): ``{"meta_info": {...}, "instance_info": [{"frame_id": n,
   "instances": [{"keypoints": [[x, y], ...], "keypoint_scores": [s, ...], "track_id": t?}, ...]}, ...]}``,
   the bare list of such frames, or one image's list of instances (frame 0). ``meta_info.dataset_name``
-  ("coco", "coco_wholebody", "halpe26", "h36m") names the keypoint set when it is not given.
+  ("coco", "coco_wholebody", "halpe26", "h36m") names the keypoint set when it is not given. On images,
+  ``MMPoseInferencer(..., pred_out_dir=DIR)`` writes one ``<image name>.json`` per image, each that image's
+  list of instances (``[]`` when nobody is found; mmpose/apis/inferencers/base_mmpose_inferencer.py,
+  ``postprocess``; the instances as mmpose/structures/utils.py ``split_instances`` makes them, ``bbox`` as
+  ``[[x1, y1, x2, y2]]``): such a folder is read with the frame number from each file name, as OpenPose's.
 - ``mediapipe``: the landmarks ``ptrack detect`` writes (`write_mediapipe_landmarks`, layout below).
 - ``npz``: arrays as lifting research code keeps them: ``keypoints`` (T, K, 2 | 3) or (T, P, K, 2 | 3)
   (or the archive's only array), with the score as the last channel or in ``scores`` / ``confidence``
@@ -27,7 +31,8 @@ landmarks and plain npz arrays, read into one `Detections` record (every person 
   ``keypoint_names`` (K,) str (which name the set when they match one). A ptrack observation npz is read
   this way too.
 
-The format is inferred from the content when not given: a folder -> openpose; an npz with
+The format is inferred from the content when not given: a folder -> openpose when its files are objects,
+mmpose when they are lists (MMPose's per-image predictions); an npz with
 ``world_landmarks`` -> mediapipe, another npz -> npz; a JSON list of entries with ``image_id`` -> coco;
 ``instance_info`` or frames with ``frame_id`` / ``instances`` -> mmpose; an object with ``people`` ->
 openpose. The keypoint set is inferred from the count a person (`ptrack.body.keypoint_sets`, which tells
@@ -228,17 +233,41 @@ def _openpose_frame(data: Any, number: int, where: str) -> _Frame:
 
 
 def _read_openpose(path: Path) -> list[_Frame]:
-    if path.is_file():  # one frame: its number from the name, 0 when the name has none
-        n = int(re.findall(r"\d+", path.stem)[-1]) if re.search(r"\d", path.stem) else 0
-        return [_openpose_frame(_load_json(path), n, str(path))]
+    """One OpenPose JSON file: one frame, its number from the name (0 when the name has none)."""
+    n = int(re.findall(r"\d+", path.stem)[-1]) if re.search(r"\d", path.stem) else 0
+    return [_openpose_frame(_load_json(path), n, str(path))]
+
+
+def _read_folder(path: Path, format: str | None) -> tuple[list[_Frame], str]:
+    """A folder of per-frame JSON files: OpenPose's (an object with ``people``) or MMPose's per-image
+    predictions (a list of instances, ``[]`` for an image without anyone) -> (frames, format). The frame number is
+    the last run of digits in each file name; every file must be of the one format (`format`, or the first
+    file's)."""
     files = sorted(p for p in path.iterdir() if p.suffix.lower() == ".json" and p.is_file())
     if not files:
         raise InputError(f"{path}: no keypoint files (*.json) in the folder")
     frames = []
     for f in files:
         n = _frame_number(f.name, str(f))
-        frames.append(_openpose_frame(_load_json(f), n, f"{f} (frame {n})"))
-    return frames
+        data, where = _load_json(f), f"{f} (frame {n})"
+        kind = "mmpose" if isinstance(data, list) else "openpose"  # not an object: OpenPose's error
+        if format is None:
+            format = kind
+        if kind == "mmpose" and format == "openpose":
+            raise InputError(f"{where}: not an OpenPose keypoint file (a list, as MMPose writes, not an object)")
+        if kind == "openpose" and format == "mmpose":
+            raise InputError(f"{where}: not MMPose's predictions of one image (a list of instances)")
+        if format == "openpose":
+            frames.append(_openpose_frame(data, n, where))
+        elif data and not all(isinstance(d, dict) and "keypoints" in d for d in data):
+            raise InputError(
+                f"{where}: not one image's MMPose instances (a list of objects with keypoints); a video's "
+                f"predictions file is read on its own, not in a folder"
+            )
+        else:
+            frames.append(_mmpose_instances(data, n, where))
+    assert format is not None
+    return frames, format
 
 
 def _read_coco(data: Any, path: Path) -> list[_Frame]:
@@ -642,9 +671,12 @@ def read_keypoints(
             raise InputError(f"unknown keypoint file format {format!r} (known: {', '.join(FORMATS)})")
         format = name
     if path.is_dir():
-        if format not in (None, "openpose"):
-            raise InputError(f"{path}: a folder is read as OpenPose JSON (one file a frame), not {format}")
-        return _from_frames(_read_openpose(path), path, kset, None, fps)
+        if format not in (None, "openpose", "mmpose"):
+            raise InputError(
+                f"{path}: a folder is read as OpenPose JSON or MMPose per-image predictions (one file a frame), "
+                f"not {format}"
+            )
+        return _from_frames(_read_folder(path, format)[0], path, kset, None, fps)
     if path.suffix.lower() == ".npz" or format in ("npz", "mediapipe"):
         if format is None:
             format = "mediapipe" if "world_landmarks" in read_npz(path, "keypoint file") else "npz"

@@ -178,6 +178,11 @@ class SubjectConfig:
     lengths: str = setting(
         "template", "template: the height's proportions; observed: measured in the 2D, then the method run again"
     )
+    static: str | None = setting(
+        None,
+        "keypoint file/folder of a static standing trial, same camera and format: the segment lengths measured "
+        "on it replace the template's (ptrack/pipeline/static.py)",
+    )
 
 
 @dataclass(frozen=True)
@@ -237,6 +242,7 @@ _PATH_KEYS = {
     "observations.correspondence_file",
     "observations.video",
     "camera.file",
+    "subject.static",
     "out_dir",
     "keyframes.file",
     "init_from",
@@ -486,6 +492,10 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         raise InputError(f"config key 'camera.fov_deg' must be in [1, 170] degrees, got {c.fov_deg}")
     if cfg.subject.lengths not in ("observed", "template"):
         raise InputError(f"config key 'subject.lengths' must be observed or template, got {cfg.subject.lengths!r}")
+    if cfg.subject.static and cfg.subject.lengths == "observed":
+        raise InputError(
+            "config keys 'subject.static' and 'subject.lengths: observed' both set the segment lengths: give one"
+        )
     if cfg.subject.height_m is not None:
         from ptrack.body.subject import check_height
 

@@ -690,6 +690,12 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     `execute` computes them (same seed, same result), without writing anything. progress: a progress
     bar on stderr (on a terminal only)."""
     prep = prepare(cfg, work_dir)
+    if cfg.subject.static:  # the segment lengths of a static trial (ptrack.pipeline.static)
+        from ptrack.pipeline.static import apply_static
+
+        if prep.footage is None:
+            raise InputError("config key 'subject.static' needs real footage (observations.file or .video)")
+        prep = apply_static(prep, cfg)
     check_memory(cfg, prep.problem)  # refuse settings that would not fit before the estimator allocates
 
     def run(problem: Problem) -> Estimate:
