@@ -115,8 +115,14 @@ def test_static_trial_sets_the_legs_of_the_main_trial(tmp_path):
     it are within 10% of the lengths in the trial's triangulated TRC and nearer them than the template's (whose
     thigh is 15% long), and the model the main trial is fitted with has them."""
     assert main(_run(tmp_path, "cam02", P2S / "static" / "pose" / "cam02_json")) == 0
-    measured = json.loads((tmp_path / "run" / "metrics.json").read_text())["footage"]["segments_measured"]
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    measured = metrics["footage"]["segments_measured"]
     assert set(measured) == set(MEASURED) and all(v["source"] == "static" for v in measured.values())
+    bones = metrics["bone_lengths"]  # the lengths the model used, with the static trial's spread
+    for name, v in measured.items():
+        assert bones[name]["source"] == "static" and bones[name]["length_m"] == pytest.approx(v["length_m"], rel=1e-6)
+        assert bones[name]["std_m"] == v["spread_m"] and bones[name]["frames"] == v["samples"]
+    assert bones["upper_arm"]["source"] == "template"
     lines = (P2S / "static" / "triangulated.trc").read_text().splitlines()
     names = [n for n in lines[3].split("\t")[2:] if n.strip()]
     trc = np.array([[float(x) for x in r.split("\t")[2 : 2 + 3 * len(names)]] for r in lines[5:] if r.strip()])

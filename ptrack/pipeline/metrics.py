@@ -387,12 +387,17 @@ def bone_lengths_report(lengths: dict[str, float], measured: dict[str, dict] | N
     source, std_m, std_source[, frames]}}. Measured segments (`measured`: {segment: {"frames", "std_m"}}, from
     `subject.lengths: observed`) have source "observed" and the data's spread (std_source "bootstrap": the moving-block
     bootstrap over frames of `ptrack.estimators.lengths.segment_length_spread`, null when it could not be taken);
+    segments from `subject.static` (entries with "source": "static") have source "static", std_m half the
+    interquartile range of the static trial's samples (std_source "static_iqr") and frames its sample count;
     the others keep the template's proportions (source "template") with the prior spread TEMPLATE_LENGTH_SPREAD x
     length (std_source "prior"), which says nothing about the data. lengths: {segment: metres} of the model."""
     out: dict[str, dict] = {}
     for name, length in lengths.items():
         m = (measured or {}).get(name)
-        if m is not None:
+        if m is not None and m.get("source") == "static":  # subject.static: the static trial's samples
+            out[name] = {"length_m": length, "source": "static", "std_m": m["spread_m"], "std_source": "static_iqr"}
+            out[name]["frames"] = m["samples"]
+        elif m is not None:
             out[name] = {"length_m": length, "source": "observed", "std_m": m.get("std_m"), "std_source": "bootstrap"}
             out[name]["frames"] = m["frames"]
         else:
