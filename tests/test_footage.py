@@ -14,6 +14,7 @@ import pytest
 import torch
 from cli_errors import fail
 
+from ptrack.body.keypoint_sets import get_keypoint_set
 from ptrack.body.skeleton import Skeleton
 from ptrack.body.subject import (
     CMU_LANDMARK_JOINTS,
@@ -33,6 +34,22 @@ import synthetic_footage  # noqa: E402
 
 VIDEO_YAML = str(REPO / "configs" / "video.yaml")
 P2S = REPO.parent / "shared" / "data" / "pose2sim"
+
+
+def logged_metrics(rrd: Path) -> dict[str, dict[int, float]]:
+    """The per-frame scalars a run logged under metrics/ in its rerun file: {name: {frame: value}}."""
+    import rerun.chunk
+
+    out: dict[str, dict[int, float]] = {}
+    for chunk in rerun.chunk.RrdReader(rrd).stream().to_chunks():
+        entity = chunk.entity_path.lstrip("/")
+        if chunk.is_static or not entity.startswith("metrics/"):
+            continue
+        batch = chunk.to_record_batch()
+        values = batch.column("Scalars:scalars").to_pylist()
+        frames = batch.column("frame").to_pylist()
+        out.setdefault(entity.removeprefix("metrics/"), {}).update({f: v[0] for f, v in zip(frames, values)})
+    return out
 
 
 def test_scale_to_height_gives_every_segment_its_fraction():
@@ -113,6 +130,27 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
         "right_ankle",
     }
     assert 0 <= metrics["ambiguous_frame_share"] <= 1  # kjs has modes
+    # the same checks frame by frame in the rerun log, on the run's frames
+    logged = logged_metrics(out / "run.rrd")
+    assert set(logged["ambiguous_frame"]) == set(frames.tolist()) and set(logged["ambiguous_frame"].values()) <= {0, 1}
+    assert np.mean(list(logged["ambiguous_frame"].values())) == pytest.approx(metrics["ambiguous_frame_share"])
+    shares = metrics["ambiguous_frame_share_per_limb"].values()
+    assert np.mean(list(logged["ambiguous_limb_share"].values())) == pytest.approx(np.mean(list(shares)))
+    assert logged["person_missing"] == dict.fromkeys(frames.tolist(), 0.0)  # the empty image is not a frame
+    skating = logged["foot_skating_mm_per_frame"]  # the feet's mean step while on the floor
+    assert 3 <= len(skating) < len(frames) and frames[0] not in skating
+    assert all(v >= 0 for v in skating.values())
+    per_foot = [v for v in metrics["foot_skating_mm_per_frame"].values() if v is not None]
+    assert min(per_foot) <= max(skating.values()) and max(per_foot) >= min(skating.values())
+    assert len(logged["jitter_mm_per_frame2"]) == len(frames) - 2
+    # subject.lengths: template: every length is the height's proportion, its spread a stated prior, not the data's
+    lengths = metrics["bone_lengths"]
+    assert set(lengths) == set(SEGMENTS) and metrics["footage"]["segments_measured"] is None
+    for name, (_, _, fraction) in SEGMENTS.items():
+        row = lengths[name]
+        assert (row["source"], row["std_source"]) == ("template", "prior"), name
+        assert row["length_m"] == pytest.approx(fraction * info["height_m"], rel=1e-3), name
+        assert row["std_m"] == pytest.approx(0.05 * row["length_m"]), name
     score = synthetic_footage.score(out / "result.npz", folder / "truth.npz")
     # the frame method from no 3D at all, on a skeleton with other proportions than the template's: a loose
     # bound (a pose with the torso turned by 90 degrees scores over 200 mm); docs/results.md has the numbers
@@ -192,6 +230,83 @@ def test_pose2sim_openpose_folder_in_the_lab_frame(tmp_path, capsys):
     assert np.abs(kp[:, feet, 2].min(1)).max() < 0.1
 
 
+@pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")
+def test_observed_lengths_carry_their_spread_over_the_frames(tmp_path):
+    """subject.lengths: observed on real OpenPose: the measured segments report the length the model used and a
+    bootstrap spread, the segments it cannot measure the template's length and the prior spread."""
+    out = tmp_path / "run"
+    argv = ["run", VIDEO_YAML, f"observations.file={P2S / 'balancing' / 'pose' / 'cam01_json'}", "camera.name=cam01"]
+    argv += [f"camera.file={P2S / 'Calib_qualisys.toml'}", "subject.height_m=1.72", "observations.fps=60"]
+    argv += ["data.stop=6", "kjs.modes=2", "kjs.samples=32"]  # a short, cheap tracking: the lengths' report is tested
+    assert main([*argv, "subject.lengths=observed", f"out_dir={out}", "progress=false"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    lengths, measured = metrics["bone_lengths"], metrics["footage"]["segments_measured"]
+    assert set(measured) == {"thigh", "shank", "upper_arm", "forearm", "trunk"}  # left and right: 12 >= 10 samples
+    for name, row in lengths.items():
+        if name in measured:
+            assert row["source"] == "observed" and row["frames"] == measured[name]["frames"] == 12, name
+            assert row["length_m"] == pytest.approx(measured[name]["length_m"], rel=1e-4), name  # what the model has
+            assert row["std_m"] == measured[name]["std_m"] and 0 < row["std_m"] < 0.1 * row["length_m"], name
+        else:
+            assert (row["source"], row["std_source"]) == ("template", "prior"), name
+            assert row["length_m"] == pytest.approx(SEGMENTS[name][2] * 1.72, rel=1e-4), name
+
+
+@pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")
+def test_two_people_trial_fits_the_person_chosen(tmp_path):
+    """End to end on real OpenPose of the two-people trial (three people tracked, 2-4 detections a frame): by
+    default the largest, most present person, who enters at frame 2 (frames 0 and 1 reported without the person, in
+    metrics.json and frame by frame in the rerun log); by a point in the first frame, the person at the image's left
+    edge. The 2D fitted is the chosen person's: the estimate reprojects within a few tens of pixels of that person's
+    detections, as read from the raw files here, and hundreds of pixels from everyone else's."""
+    src = P2S / "two_people" / "pose" / "cam01_json"
+    argv = ["run", VIDEO_YAML, f"observations.file={src}", f"camera.file={P2S / 'Calib_qualisys.toml'}"]
+    argv += ["camera.name=cam01", "subject.height_m=1.72", "observations.fps=60", "data.stop=6", "progress=false"]
+
+    def detections(frame: int) -> list[np.ndarray]:  # each person's (25, 3) x, y, score in the raw OpenPose file
+        people = json.loads((src / f"cam01.{frame:04d}.json").read_text())["people"]
+        return [np.asarray(p["pose_keypoints_2d"], dtype=float).reshape(-1, 3) for p in people]
+
+    def fitted(out: Path) -> tuple[dict, np.ndarray]:
+        """-> metrics.json, and per frame the median distance (px) from the reprojected keypoints to each person
+        detected in the raw file (NaN for a frame without the chosen person), nearest first: (T, people)."""
+        metrics = json.loads((out / "metrics.json").read_text())
+        with np.load(out / "result.npz") as r:
+            assert [str(n) for n in r["keypoint_names"]] == list(get_keypoint_set("BODY_25B").names)  # file order
+            frames, reproj, observed, conf = (
+                r["frames"],
+                r["keypoints_reprojected"],
+                r["keypoints_observed"],
+                r["confidence"],
+            )
+        rows = []
+        for t, frame in enumerate(frames):
+            people = [k for k in detections(int(frame)) if (k[:, 2] > 0.3).sum() >= 6]
+            dist = [float(np.median(np.linalg.norm(reproj[t] - k[:, :2], axis=-1)[k[:, 2] > 0.3])) for k in people]
+            seen = conf[t] > 0
+            if not seen.any():
+                rows.append([np.nan] * 4)
+                continue
+            nearest = people[int(np.argmin(dist))]  # the observations are its detections (undistorted: a few px)
+            assert np.median(np.linalg.norm(observed[t, seen] - nearest[seen, :2], axis=-1)) < 5.0
+            rows.append(sorted(dist) + [np.nan] * (4 - len(dist)))
+        return metrics, np.asarray(rows)
+
+    default = tmp_path / "default"
+    assert main([*argv, f"out_dir={default}"]) == 0
+    metrics, dist = fitted(default)
+    assert metrics["footage"]["tracks"] == 3 and metrics["footage"]["frames_without_person"] == [0, 1]
+    assert np.isnan(dist[:2]).all() and (dist[2:, 0] < 40).all() and (dist[2:, 1] > 150).all(), dist
+    assert logged_metrics(default / "run.rrd")["person_missing"] == {0: 1.0, 1: 1.0, 2: 0.0, 3: 0.0, 4: 0.0, 5: 0.0}
+
+    by_point = tmp_path / "by_point"
+    assert main([*argv, "observations.person=[60, 700]", f"out_dir={by_point}"]) == 0  # a pixel of frame 0
+    other, dist = fitted(by_point)
+    assert other["footage"]["person_track"] != metrics["footage"]["person_track"]
+    assert other["footage"]["frames_without_person"] == []
+    assert (dist[:, 0] < 40).all() and (dist[:, 1] > 150).all(), dist
+
+
 def test_footage_fixture_copy_runs_from_a_plain_clone(tmp_path):
     """The shipped OpenPose frames (tests/data/keypoints) read without ../shared: three frames, two people."""
     from ptrack.observe.keypoint_files import read_keypoints
@@ -253,3 +368,46 @@ def test_rescale_segments_sets_the_targets_and_moves_the_landmark_joints():
     heel = sk.joint_index("lm_l_heel")
     foot = [sk.joint_index(b) for b in ("lfoot", "rfoot")]
     assert new.lengths[heel] / sk.lengths[heel] == pytest.approx(np.mean(new.lengths[foot] / sk.lengths[foot]))
+
+
+def test_segment_length_spread_is_the_spread_over_other_frames_and_noise():
+    """The bootstrap's std of each measured length on a body turning in front of the camera, with 8 px of 2D noise:
+    the order of the std over independent re-filmings of the same motion (other noise) for a segment that stays in
+    the image plane (thigh, trunk), larger for the upper arm whose measurement depends on which frames are drawn
+    (it turns out of the image plane); seeded, so the same twice."""
+    from ptrack.body.keypoint_sets import COCO_17
+    from ptrack.body.keypoints import landmark_keypoints
+    from ptrack.body.subject import landmark_joints
+    from ptrack.estimators.lengths import segment_length_spread, segment_lengths_from_2d
+    from ptrack.observe.camera import look_at
+    from ptrack.observe.observations import Observations
+    from ptrack.problem import Estimate, Problem
+
+    sk = add_landmark_joints(scale_to_height(Skeleton.from_asf(data_file("10.asf")), 1.7), 1.7)
+    kps = landmark_keypoints(
+        sk, COCO_17.names, COCO_17.landmarks, [str(j) for j in landmark_joints(sk, COCO_17.landmarks)]
+    )
+    T = 60  # 2 s at 30 fps: four 0.5 s blocks
+    q = torch.zeros(T, sk.num_dofs, dtype=torch.float64)
+    q[:, sk.dof_names.index("root.ry")] = torch.linspace(-torch.pi / 2, torch.pi / 2, T)
+    X = sk.forward_kinematics(q)
+    cam = look_at([0.0, 0.0, 0.0], 4.0, 0.0, 0.0, 1000.0, 1280, 720)
+    px = cam.project(X[:, kps.index()]).pixels
+    est = Estimate(q=q, joints=X, cost=torch.zeros(T), terms={})
+    segments = {n: (a, b) for n, (a, b, _) in SEGMENTS.items() if n in ("thigh", "trunk", "upper_arm")}
+
+    def filmed(seed: int) -> Problem:
+        noise = 8.0 * torch.randn(px.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+        obs = Observations(
+            px + noise, torch.ones(T, 17, dtype=torch.float64), torch.arange(T) / 30.0, cam, COCO_17.names
+        )
+        return Problem(skeleton=sk, keypoints=kps, observations=obs)
+
+    refilmed = [segment_lengths_from_2d(filmed(s), est, COCO_17.landmarks, segments) for s in range(100, 200)]
+    across = {n: float(np.std([r[n][0] for r in refilmed], ddof=1)) for n in segments}  # 6-9 mm
+    spreads = [segment_length_spread(filmed(seed), est, COCO_17.landmarks, segments) for seed in range(3)]
+    for seed, spread in enumerate(spreads):
+        for n in ("thigh", "trunk"):  # ratios 0.5-1.4 over seeds 0-5
+            assert across[n] / 3 < spread[n] < 3 * across[n], (seed, n, spread, across)
+        assert spread["upper_arm"] > 2 * across["upper_arm"], (seed, spread, across)  # ratios 3.0-4.1
+    assert segment_length_spread(filmed(0), est, COCO_17.landmarks, segments) == spreads[0]

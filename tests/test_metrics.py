@@ -441,6 +441,7 @@ def test_checks_without_ground_truth():
     from ptrack.pipeline.metrics import (
         ambiguous_limb_frames,
         foot_skating_mm,
+        foot_sliding_steps_mm,
         reprojection_error_per_keypoint,
         second_differences_mm,
     )
@@ -468,6 +469,14 @@ def test_checks_without_ground_truth():
     got = foot_skating_mm(torch.cat([planted, sliding, lifted], 1), up)
     assert float(got[0]) == pytest.approx(0.0) and float(got[1]) == pytest.approx(10.0)
     assert torch.isnan(got[2])  # in contact in frame 0 only: no step on the floor
+    # frame by frame (the rerun log's series): the step into each frame while on the floor, NaN off it
+    steps = foot_sliding_steps_mm(torch.cat([planted, sliding, lifted], 1), up)
+    assert steps.shape == (5, 3)
+    assert steps[:, 0].tolist() == [0.0] * 5 and steps[:, 1].tolist() == pytest.approx([10.0] * 5)
+    assert torch.isnan(steps[:, 2]).all()
+    lift = sliding[:4].clone()
+    lift[3, 0, 1] = 0.3  # the foot leaves the floor in frame 3
+    assert torch.isnan(foot_sliding_steps_mm(lift, up)[:, 0]).tolist() == [False, False, True]
 
     # two modes of one limb (keypoints 0 -> 1) seen by a camera at the origin looking along +z
     R, tt = torch.eye(3), torch.zeros(3)
@@ -477,3 +486,27 @@ def test_checks_without_ground_truth():
     w = torch.tensor([[0.5, 0.5], [0.95, 0.05], [0.0, 1.0]])
     amb = ambiguous_limb_frames(hyp, w, [(0, 1)], R, tt)
     assert amb[:, 0].tolist() == [True, False, False]
+
+
+def test_bone_lengths_report_says_where_each_length_and_its_spread_come_from():
+    from ptrack.pipeline.metrics import TEMPLATE_LENGTH_SPREAD, bone_lengths_report
+
+    lengths = {"thigh": 0.42, "shank": 0.40, "hips": 0.19}
+    template = bone_lengths_report(lengths, None)
+    assert {n: (r["source"], r["std_source"]) for n, r in template.items()} == dict.fromkeys(
+        lengths, ("template", "prior")
+    )
+    assert (
+        template["thigh"]["std_m"] == pytest.approx(TEMPLATE_LENGTH_SPREAD * 0.42) and "frames" not in template["thigh"]
+    )
+    measured = {"thigh": {"length_m": 0.42, "frames": 80, "std_m": 0.003}, "shank": {"length_m": 0.4, "frames": 12}}
+    mixed = bone_lengths_report(lengths, measured)
+    assert mixed["thigh"] == {
+        "length_m": 0.42,
+        "source": "observed",
+        "std_m": 0.003,
+        "std_source": "bootstrap",
+        "frames": 80,
+    }
+    assert mixed["shank"]["std_m"] is None  # measured, but too few resamples for a spread
+    assert mixed["hips"] == template["hips"]

@@ -104,6 +104,10 @@ def _log(full: bool = True) -> RunLog:
             "cost_smooth": np.ones(T),
             "never": np.full(T, np.nan),
             "custom_score": np.arange(T, dtype=float),
+            "jitter_mm_per_frame2": np.r_[np.nan, np.ones(T - 2), np.nan],  # real footage's checks
+            "foot_skating_mm_per_frame": np.r_[np.nan, np.ones(T - 1)],
+            "ambiguous_frame": np.ones(T),
+            "person_missing": np.zeros(T),
         },
         **kw,
     )
@@ -281,6 +285,12 @@ def test_plot_groups_cover_each_scalar_once(full):
     assert groups["hypothesis weights"] == ["world/hypotheses/h0/weight", "world/hypotheses/h1/weight"]
     assert groups["kinematic jumps kept per chain"] == ["jumps/larm", "jumps/rleg"]
     assert groups["other metrics"] == ["metrics/custom_score"]
+    assert groups["jitter (mm/frame²)"] == ["metrics/jitter_mm_per_frame2"]
+    assert groups["foot skating (mm/frame)"] == ["metrics/foot_skating_mm_per_frame"]
+    assert groups["ambiguous limbs, person missing (0/1, share)"] == [
+        "metrics/ambiguous_frame",
+        "metrics/person_missing",
+    ]
     titles = {v["display_name"][0]: v["query"] for v in rec.reachable_views()}
     assert titles["hypothesis costs"] == [f"+ /world/hypotheses/h{n}/cost" for n in range(N)]
 

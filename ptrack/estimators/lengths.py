@@ -12,6 +12,8 @@ the factor dZ / Z (1-3% at 3-5 m).
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 
@@ -61,3 +63,52 @@ def segment_lengths_from_2d(
         if len(values) >= min_frames:
             out[name] = (float(np.quantile(values, quantile)), len(values))
     return out
+
+
+#: `segment_length_spread`'s moving-block bootstrap: blocks of this many seconds (neighbouring frames measure nearly
+#: the same, so resampling single frames would understate the spread), at least this many blocks in the clip (fewer
+#: would draw the same frames in every resample), and this many resamples
+BLOCK_S, MIN_BLOCKS, DRAWS = 0.5, 4, 200
+
+
+def segment_length_spread(
+    problem: Problem,
+    est: Estimate,
+    landmarks: tuple[str, ...],
+    segments: dict[str, tuple[str, str]],
+    quantile: float = QUANTILE,
+    min_frames: int = MIN_FRAMES,
+    block_s: float = BLOCK_S,
+    draws: int = DRAWS,
+    seed: int = 0,
+) -> dict[str, float]:
+    """The standard deviation (metres) of each segment's `segment_lengths_from_2d` over a circular moving-block
+    bootstrap of the sequence's frames (blocks of `block_s` seconds, `draws` resamples, seeded): how much the length
+    would change had other stretches of the same motion been filmed. It is the sampling spread only: a depth error
+    of `est` (the factor dZ / Z of the module docstring) and the quantile's own bias are not in it; on a clip shorter
+    than MIN_BLOCKS blocks the blocks are shorter, and the spread then understated.
+    -> {segment: std}, for the segments measured in at least two resamples."""
+    obs = problem.observations
+    T = obs.keypoints.shape[0]
+    dt = float(torch.diff(obs.times.double()).median()) if T > 1 else 1.0
+    block = max(1, min(round(block_s / dt), T // MIN_BLOCKS))  # a clip too short for such blocks: shorter ones
+    rng = np.random.default_rng(seed)
+    found: dict[str, list[float]] = {}
+    for _ in range(draws):
+        starts = rng.integers(0, T, size=-(-T // block))
+        idx = torch.as_tensor(((starts[:, None] + np.arange(block)) % T).reshape(-1)[:T], device=obs.keypoints.device)
+        confidence = obs.confidence.index_select(0, idx)
+        if not bool((confidence > 0).any()):
+            continue  # only frames without the person drawn
+        sample = dataclasses.replace(obs, keypoints=obs.keypoints.index_select(0, idx), confidence=confidence)
+        measured = segment_lengths_from_2d(
+            dataclasses.replace(problem, observations=sample),
+            est._replace(joints=est.joints.detach().index_select(0, idx.to(est.joints.device))),
+            landmarks,
+            segments,
+            quantile,
+            min_frames,
+        )
+        for name, (length, _) in measured.items():
+            found.setdefault(name, []).append(length)
+    return {n: float(np.std(v, ddof=1)) for n, v in found.items() if len(v) > 1}

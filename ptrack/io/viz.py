@@ -53,7 +53,11 @@ Entity layout (stable: tests and users rely on it):
                                         [if video; `log_video`]
     world/estimate/std                  Points3D at the estimate's joints, radius = that joint's 3D
                                         standard deviation (metres), translucent  [if joint_std]
-    metrics/<name>                      Scalars, one per frame with a finite value
+    metrics/<name>                      Scalars, one per frame with a finite value; real footage adds
+                                        the checks without ground truth: jitter_mm_per_frame2,
+                                        foot_skating_mm_per_frame (the mean horizontal step of the
+                                        foot points on the floor), ambiguous_frame (0/1) and
+                                        ambiguous_limb_share (with hypotheses), person_missing (0/1)
     jumps/<chain>                       Scalars: kinematic-jump leaves kept per frame for each chain
     solver/cost                         Scalars: the objective after each solver iteration, on its
                                         own sequence timeline `iteration` (0 = the start)
@@ -772,6 +776,12 @@ def _metric_plot(name: str) -> str:
     """The plot title a per-frame metric `name` is drawn in (grouped by unit)."""
     if name.startswith("accel"):
         return "accel. error (mm/frame²)"
+    if name.startswith("jitter"):
+        return "jitter (mm/frame²)"
+    if name.startswith("foot_skating"):
+        return "foot skating (mm/frame)"
+    if name.startswith("ambiguous") or name == "person_missing":
+        return "ambiguous limbs, person missing (0/1, share)"
     if name.endswith("_mm"):
         return "joint position error (mm)"
     if name.endswith("_px"):

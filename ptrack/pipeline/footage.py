@@ -79,7 +79,7 @@ class FootageFrame:
     keypoint_set: str
     video: str | None = None
     landmarks: tuple[str, ...] = ()  # (K,) the landmark of each keypoint
-    segments: dict | None = None  # {segment: {length_m, frames}} measured in the 2D (subject.lengths: observed)
+    segments: dict | None = None  # {segment: {length_m, frames, std_m}} measured in the 2D (subject.lengths: observed)
     floor_m: float | None = None  # the floor's height along the model's +Y, when the calibration gives it
 
     def summary(self) -> dict:

@@ -333,12 +333,12 @@ def second_differences_mm(points) -> Tensor:
     return 1000 * (x[2:] - 2 * x[1:-1] + x[:-2]).norm(dim=-1)
 
 
-def foot_skating_mm(feet, up, contact_m: float = 0.05) -> Tensor:
-    """Foot skating: the mean horizontal speed of each foot point in the frames where it is in contact, mm per
-    frame, contact = within `contact_m` of that point's lowest height over the sequence (a foot on the floor
-    should not slide).
+def foot_sliding_steps_mm(feet, up, contact_m: float = 0.05) -> Tensor:
+    """The horizontal step of each foot point from frame t-1 to frame t, mm, where it is in contact in both frames
+    (within `contact_m` of that point's lowest height over the sequence), else NaN: frame by frame, what
+    `foot_skating_mm` averages.
 
-    feet: (T, F, 3) metres; up: (3,) unit vector of the world's up -> (F,), NaN where never in contact."""
+    feet: (T, F, 3) metres; up: (3,) unit vector of the world's up -> (T-1, F), row t-1 the step into frame t."""
     x = torch.as_tensor(feet)
     u = torch.as_tensor(up, dtype=x.dtype)
     h = x @ u  # (T, F)
@@ -346,9 +346,16 @@ def foot_skating_mm(feet, up, contact_m: float = 0.05) -> Tensor:
     step = x[1:] - x[:-1]
     horizontal = (step - (step @ u)[..., None] * u).norm(dim=-1)  # (T-1, F)
     both = contact[1:] & contact[:-1]
-    total = (horizontal * both).sum(0)
-    n = both.sum(0)
-    return torch.where(n > 0, 1000 * total / n.clamp_min(1), torch.full_like(total, float("nan")))
+    return torch.where(both, 1000 * horizontal, torch.full_like(horizontal, float("nan")))
+
+
+def foot_skating_mm(feet, up, contact_m: float = 0.05) -> Tensor:
+    """Foot skating: the mean horizontal speed of each foot point in the frames where it is in contact, mm per
+    frame, contact = within `contact_m` of that point's lowest height over the sequence (a foot on the floor
+    should not slide); the mean over the frames of `foot_sliding_steps_mm`.
+
+    feet: (T, F, 3) metres; up: (3,) unit vector of the world's up -> (F,), NaN where never in contact."""
+    return foot_sliding_steps_mm(feet, up, contact_m).nanmean(0)
 
 
 def ambiguous_limb_frames(hypotheses, weights, limbs: Sequence[tuple[int, int]], R, t, share: float = 0.1) -> Tensor:
@@ -364,3 +371,35 @@ def ambiguous_limb_frames(hypotheses, weights, limbs: Sequence[tuple[int, int]],
     nearer = (z[..., idx[:, 1]] < z[..., idx[:, 0]]).to(X.dtype)  # (T, N, L)
     p = (w[..., None] * nearer).sum(1)
     return (p >= share) & (p <= 1 - share)
+
+
+#: the spread (1 sd, a share of the length) reported for a segment length taken from the height's proportions
+#: (`ptrack.body.subject.SEGMENTS`, Winter 2009 fig. 4.1) rather than measured: an assumed anthropometric prior, not
+#: a measurement of this person. Winter's fractions are means without a spread; adult limb segment lengths vary
+#: between people by about 5% of their mean (coefficient of variation in anthropometric surveys such as ANSUR II:
+#: C. C. Gordon et al., "2012 Anthropometric Survey of U.S. Army Personnel", NATICK/TR-15/007, 2014), and less
+#: among people of one height, so for a given height this is a generous figure.
+TEMPLATE_LENGTH_SPREAD = 0.05
+
+
+def bone_lengths_report(lengths: dict[str, float], measured: dict[str, dict] | None) -> dict[str, dict]:
+    """The segment lengths a run's model has and how well they are known, for metrics.json: {segment: {length_m,
+    source, std_m, std_source[, frames]}}. Measured segments (`measured`: {segment: {"frames", "std_m"}}, from
+    `subject.lengths: observed`) have source "observed" and the data's spread (std_source "bootstrap": the moving-block
+    bootstrap over frames of `ptrack.estimators.lengths.segment_length_spread`, null when it could not be taken);
+    the others keep the template's proportions (source "template") with the prior spread TEMPLATE_LENGTH_SPREAD x
+    length (std_source "prior"), which says nothing about the data. lengths: {segment: metres} of the model."""
+    out: dict[str, dict] = {}
+    for name, length in lengths.items():
+        m = (measured or {}).get(name)
+        if m is not None:
+            out[name] = {"length_m": length, "source": "observed", "std_m": m.get("std_m"), "std_source": "bootstrap"}
+            out[name]["frames"] = m["frames"]
+        else:
+            out[name] = {
+                "length_m": length,
+                "source": "template",
+                "std_m": TEMPLATE_LENGTH_SPREAD * length,
+                "std_source": "prior",
+            }
+    return out

@@ -40,7 +40,7 @@ import torch
 
 from ptrack.body.keypoints import make_keypoints
 from ptrack.body.skeleton import Motion, Skeleton, load_amc
-from ptrack.body.subject import floor_points
+from ptrack.body.subject import floor_points, segment_lengths
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators import ESTIMATORS
 from ptrack.io.export import write_bvh
@@ -474,8 +474,10 @@ def footage_checks(
     keypoint (px), each keypoint's jitter (mean second difference, mm/frame^2) and their means, the skating
     of the feet (horizontal mm/frame while within 5 cm of their lowest height; the model frame is Y up), and
     with hypotheses the share of frames where the modes disagree about some limb's depth order (summed weight
-    between 0.1 and 0.9). est_kp: (T, K, 3) the estimate's keypoints. -> (summary, per-frame series: the
-    jitter, NaN at the two ends, for the rerun log's plots)."""
+    between 0.1 and 0.9). est_kp: (T, K, 3) the estimate's keypoints. -> (summary, per-frame series (T,) for the
+    rerun log's plots: the jitter (NaN at the two ends), the feet's mean sliding step (NaN at frame 0 and where no
+    foot is on the floor), whether some limb is ambiguous (0/1) and the share of the limbs that are, and whether
+    the person is missing (0/1))."""
     assert prep.footage is not None
     prob = prep.problem
     obs, kps = prob.observations, prob.keypoints
@@ -492,16 +494,21 @@ def footage_checks(
     series = {"jitter_mm_per_frame2": np.concatenate([[np.nan], shake.mean(-1).numpy(), [np.nan]])[: len(kp)]}
     feet = [k for k, m in enumerate(prep.footage.landmarks) if m in FOOT_LANDMARKS]
     if feet:
-        skate = M.foot_skating_mm(kp[:, feet], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
-        out["foot_skating_mm_per_frame"] = {names[k]: float(v) for k, v in zip(feet, skate)}
+        steps = M.foot_sliding_steps_mm(kp[:, feet], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+        out["foot_skating_mm_per_frame"] = {names[k]: float(v) for k, v in zip(feet, steps.nanmean(0))}
+        series["foot_skating_mm_per_frame"] = np.concatenate([[np.nan], steps.nanmean(-1).numpy()])  # feet on the floor
     if est.hypotheses is not None and est.hypothesis_weights is not None and kps.limbs:
         hyp = est.hypotheses.detach().index_select(-2, kps.index(est.hypotheses.device)).double().cpu()
         cam = obs.camera.to(device="cpu", dtype=torch.float64)
         ambiguous = M.ambiguous_limb_frames(hyp, est.hypothesis_weights.detach().cpu(), kps.limbs, cam.R, cam.t)
         out["ambiguous_frame_share"] = float(ambiguous.any(-1).double().mean())
+        series["ambiguous_frame"] = ambiguous.any(-1).double().numpy()  # 0/1: some limb's depth order in doubt
+        series["ambiguous_limb_share"] = ambiguous.double().mean(-1).numpy()
         out["ambiguous_frame_share_per_limb"] = {
             f"{names[a]}-{names[b]}": float(v) for (a, b), v in zip(kps.limbs, ambiguous.double().mean(0))
         }
+    series["person_missing"] = np.isin(prep.footage.frames, prep.footage.missing_frames).astype(np.float64)  # 0/1
+    out["bone_lengths"] = M.bone_lengths_report(segment_lengths(prob.skeleton), prep.footage.segments)
     return out, series
 
 
@@ -715,7 +722,7 @@ def rescale_subject(prep: Prepared, est: Estimate) -> Prepared:
     """Real footage, `subject.lengths: observed`: `prep` with its model rescaled to the segments' lengths measured
     in the 2D at the depths of `est` (`ptrack.estimators.lengths`), the footage record holding them."""
     from ptrack.body.subject import SEGMENTS, rescale_segments
-    from ptrack.estimators.lengths import segment_lengths_from_2d
+    from ptrack.estimators.lengths import segment_length_spread, segment_lengths_from_2d
 
     assert prep.footage is not None
     f = prep.footage
@@ -726,7 +733,8 @@ def rescale_subject(prep: Prepared, est: Estimate) -> Prepared:
     sk = rescale_segments(prep.problem.skeleton, f.height_m, {n: v for n, (v, _) in measured.items()})
     problem = dataclasses.replace(prep.problem, skeleton=sk)
     full = dataclasses.replace(prep.full, lengths=sk.lengths)
-    record = {n: {"length_m": v, "frames": k} for n, (v, k) in measured.items()}
+    spread = segment_length_spread(prep.problem, est, f.landmarks, segments)  # how much other frames would change them
+    record = {n: {"length_m": v, "frames": k, "std_m": spread.get(n)} for n, (v, k) in measured.items()}
     log.info("segment lengths from the 2D: %s", ", ".join(f"{n} {v:.3f} m" for n, (v, _) in measured.items()))
     return dataclasses.replace(prep, problem=problem, full=full, footage=dataclasses.replace(f, segments=record))
 
