@@ -74,6 +74,21 @@ class JointKeyframes:
 
 
 @dataclass(frozen=True)
+class Floor:
+    """A known floor plane under the person: height_m along the model frame's +Y (metres), joints (F,) the
+    skeleton's foot points that can touch it, clearance_m how high the lowest of them sits when a foot stands
+    flat (metres)."""
+
+    height_m: float
+    joints: tuple[int, ...]
+    clearance_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.joints:
+            raise InputError("floor: no foot joints to rest on it")
+
+
+@dataclass(frozen=True)
 class Problem:
     """skeleton: the model to estimate (possibly reduced); observations: T frames of K keypoints."""
 
@@ -84,6 +99,8 @@ class Problem:
     joint_keyframes: JointKeyframes | None = None
     # point pairs between consecutive frames (section 4.3 of Urtasun et al.; read by method pca)
     correspondences: Correspondences | None = None
+    # a known floor plane (real footage whose calibration gives the world's up axis; read by kjs and frame)
+    floor: Floor | None = None
 
     def __post_init__(self) -> None:
         if self.observations.num_keypoints != self.keypoints.num_keypoints:

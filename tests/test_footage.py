@@ -122,6 +122,7 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["footage"]["keypoint_set"] == "COCO_17" and metrics["footage"]["tracks"] == 2
     assert metrics["footage"]["camera"].startswith("file ")
+    assert metrics["footage"]["floor_m"] is None  # intrinsics only: no floor known
     per_kp = metrics["reprojection_error_px_per_keypoint"]
     assert set(per_kp) == set(names) and per_kp["nose"] is None  # the face is never observed (score 0)
     assert 0 < metrics["jitter_mm_per_frame2"] < 100 and set(metrics["foot_skating_mm_per_frame"]) == {
@@ -223,6 +224,10 @@ def test_pose2sim_openpose_folder_in_the_lab_frame(tmp_path, capsys):
     ref_c = ref[frames][:, [markers.index(n) for n in common]].mean(1)
     assert np.linalg.norm(est_c - ref_c, axis=-1).max() < 0.3
     assert kp[:, names.index("LShoulder"), 2].mean() > kp[:, names.index("LAnkle"), 2].mean() + 1.0  # Z is up
+    # the calibration gives the floor (Z = 0): a foot rests on it in every frame of this balancing trial
+    assert json.loads((out / "metrics.json").read_text())["footage"]["floor_m"] == 0.0
+    feet = [names.index(n) for n in ("LBigToe", "RBigToe", "LHeel", "RHeel", "LSmallToe", "RSmallToe")]
+    assert np.abs(kp[:, feet, 2].min(1)).max() < 0.1
 
 
 @pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")

@@ -126,6 +126,26 @@ def add_landmark_joints(skeleton: Skeleton, height_m: float) -> Skeleton:
     )
 
 
+#: the ankle joint centre's height above the floor when standing, / height (Winter 2009, fig. 4.1: 0.039 H);
+#: `OFFSET_LANDMARKS` places the heel and little toe from it
+ANKLE_HEIGHT = 0.039
+#: the skeleton's points that touch the floor: CMU's toe ends and the heel and little-toe landmark joints
+FLOOR_POINTS = ("ltoes", "rtoes", "lm_l_heel", "lm_r_heel", "lm_l_small_toe", "lm_r_small_toe")
+
+
+def floor_points(skeleton: Skeleton, height_m: float) -> tuple[tuple[int, ...], float]:
+    """The joints of `FLOOR_POINTS` that `skeleton` has (a CMU ASF skeleton with `add_landmark_joints`) and the
+    height of the lowest of them above the floor when the rest pose stands with its ankles `ANKLE_HEIGHT` *
+    `height_m` above it -> (joint indices (F,), clearance metres). InputError when it has none."""
+    joints = tuple(skeleton.joint_index(n) for n in FLOOR_POINTS if n in skeleton.joint_names)
+    if not joints:
+        raise InputError(f"skeleton {skeleton.name!r} has none of the foot points {', '.join(FLOOR_POINTS)}")
+    rest = skeleton.forward_kinematics(torch.zeros(skeleton.num_dofs, dtype=torch.float64)).numpy()
+    ankles = [skeleton.joint_index(n) for n in ("ltibia", "rtibia") if n in skeleton.joint_names]
+    floor = (rest[ankles, 1].mean() if ankles else rest[list(joints), 1].min()) - ANKLE_HEIGHT * height_m
+    return joints, float(max(rest[list(joints), 1].min() - floor, 0.0))
+
+
 #: height of the neck landmark above the line between the shoulder points, / height (on the Pose2Sim data:
 #: 4-6 cm for a 1.72 m participant)
 NECK_ABOVE_SHOULDERS = 0.025
@@ -193,12 +213,26 @@ def segment_lengths(skeleton: Skeleton) -> dict[str, float]:
     return out
 
 
+def symmetric_lengths(skeleton: Skeleton) -> np.ndarray:
+    """(J,) the bone lengths of `skeleton` with each left bone ("l<name>") and its right counterpart
+    ("r<name>") both at their mean; unpaired bones as they are."""
+    lengths = np.array(skeleton.lengths, dtype=np.float64)
+    names = skeleton.joint_names
+    for j, n in enumerate(names):
+        if n.startswith("l") and "r" + n[1:] in names:
+            k = names.index("r" + n[1:])
+            lengths[j] = lengths[k] = 0.5 * (skeleton.lengths[j] + skeleton.lengths[k])
+    return lengths
+
+
 def scale_to_height(skeleton: Skeleton, height_m: float, targets: Mapping[str, float] | None = None) -> Skeleton:
     """`skeleton` (a CMU ASF model) with its bone lengths set so that every segment of `SEGMENTS` has its
     fraction of `height_m` (or the length `targets` gives it, metres), the root's rest height scaled along.
 
     The bones of a segment (`CMU_SEGMENT_BONES`) share one factor, found by Gauss-Newton on the rest pose's
-    segment lengths (the segments overlap: the trunk's length depends on the hips' bones too)."""
+    segment lengths (the segments overlap: the trunk's length depends on the hips' bones too). Each left bone and
+    its right counterpart ("l..." and "r...") start from their mean length: a template's left/right differences
+    are its own subject's (CMU subject 10's right humerus is 9% longer than the left), not the person's."""
     h = check_height(height_m)
     want = {name: frac * h for name, (_, _, frac) in SEGMENTS.items()}
     want.update(targets or {})
@@ -208,7 +242,7 @@ def scale_to_height(skeleton: Skeleton, height_m: float, targets: Mapping[str, f
         (skeleton.joint_index(CMU_LANDMARK_JOINTS[a]), skeleton.joint_index(CMU_LANDMARK_JOINTS[b]))
         for a, b, _ in SEGMENTS.values()
     ]
-    base = torch.as_tensor(skeleton.lengths, dtype=torch.float64)
+    base = torch.as_tensor(symmetric_lengths(skeleton), dtype=torch.float64)
     target = torch.tensor([want[n] for n in names], dtype=torch.float64)
     q = torch.zeros(skeleton.num_dofs, dtype=torch.float64)
     member = torch.zeros(len(names), skeleton.num_joints, dtype=torch.float64)
@@ -240,7 +274,7 @@ def scale_to_height(skeleton: Skeleton, height_m: float, targets: Mapping[str, f
     if float(r.abs().max()) > 1e-3:
         raise InputError(f"the template skeleton {skeleton.name!r} cannot take the proportions of a {h} m person")
     factor = torch.exp(log_s @ member).numpy()
-    lengths = skeleton.lengths * factor
+    lengths = base.numpy() * factor
     # the root's rest position (ASF: where it is in the rest pose) follows the legs
     legs = float(torch.exp(log_s[[names.index("thigh"), names.index("shank")]]).mean())
     return dataclasses.replace(

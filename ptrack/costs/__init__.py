@@ -16,6 +16,7 @@ centre at (u + 0.5, v + 0.5), as in `Camera` and `render_silhouettes`.
 
 from ptrack.costs.base import CostTerm, PoseEval, cauchy, geman_mcclure, huber, l2, robust_loss, robust_loss_derivative
 from ptrack.costs.collision import SelfIntersection
+from ptrack.costs.floor import FloorContact
 from ptrack.costs.objective import Objective, ObjectiveValue
 from ptrack.costs.silhouette import Silhouette, distance_transform
 from ptrack.costs.terms import (
@@ -30,6 +31,7 @@ from ptrack.costs.terms import (
 
 __all__ = [
     "CostTerm",
+    "FloorContact",
     "HeavyTailedPrior",
     "JointKeyframe",
     "JointLimits",

@@ -19,6 +19,8 @@ class CostsConfig:
     limits_sigma: float = setting(0.02, "scale of the joint-limit barrier, radians")
     smooth_weight: float = setting(1.0, "weight of the temporal prior")
     smooth_sigma: float = setting(0.15, "velocity scale of the temporal prior, radians (or metres) per frame")
+    floor_weight: float = setting(1.0, "weight of the floor contact (real footage with a known floor; 0: off)")
+    floor_sigma_m: float = setting(0.03, "scale of the floor contact: the lowest foot point's height, metres")
     accel_sigma: float | None = setting(
         None, "acceleration scale of the temporal prior, radians (or metres) per frame^2; null = velocity only"
     )

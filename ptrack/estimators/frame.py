@@ -6,7 +6,8 @@ an acceleration term on (q_{t-2}, q_{t-1}, q_t) that favours constant velocity (
 from the constant-velocity prediction instead of q_{t-1}). It is the
 simplest estimator that exercises the whole pipeline; the trackers and the batch solver of later
 issues replace it. The first frame starts from a user 3D keyframe (config `frame.init: keyframe`)
-or from the rest pose placed in front of the camera (`rest`).
+or from the rest pose placed in front of the camera (`rest`). With a known floor (`Problem.floor`) the floor
+contact term (`ptrack.costs.floor`) joins the sum.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from typing import Protocol, cast
 import torch
 from torch import Tensor
 
-from ptrack.costs import JointLimits, PoseEval, Reprojection, Smoothness
+from ptrack.costs import FloorContact, JointLimits, PoseEval, Reprojection, Smoothness
 from ptrack.costs.config import CostsConfig
 from ptrack.errors import InputError
 from ptrack.problem import Estimate, Problem, evaluate_pose, first_keyframe, rest_pose_in_view, root_headings
@@ -82,6 +83,11 @@ def estimate_frames(
         else Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma, sigma_acceleration=cc.accel_sigma)
     )
 
+    fl = problem.floor
+    floor = None
+    if fl is not None and cc.floor_weight > 0:
+        floor = FloorContact(fl.joints, fl.height_m, fl.clearance_m, cc.floor_sigma_m)
+
     if fc.init == "keyframe":
         q0 = first_keyframe(problem, "frame.init", lower, upper)  # kept as given (Problem warns off limits)
         starts = q0[None]
@@ -93,6 +99,8 @@ def estimate_frames(
 
     qs, costs = [], []
     terms: dict[str, list[Tensor]] = {"reprojection": [], "limits": [], "smooth": []}
+    if floor is not None:
+        terms["floor"] = []
     for t in progress(range(obs.num_frames)):
         reproj = Reprojection(
             obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss, scale=cc.robust_scale
@@ -109,6 +117,8 @@ def estimate_frames(
         def energies(q: Tensor) -> dict[str, Tensor]:
             ev = evaluate_pose(sk, camera, problem.keypoints, q)
             e = {"reprojection": reproj.energy(ev), "limits": cc.limits_weight * limits.energy(ev)}
+            if floor is not None:
+                e["floor"] = cc.floor_weight * floor.energy(ev)
             if past:
                 traj = PoseEval(q=torch.stack([*past, q]), joints=ev.joints, pixels=ev.pixels, depth=ev.depth)
                 e["smooth"] = cc.smooth_weight * prior.energy(traj)

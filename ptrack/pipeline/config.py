@@ -121,6 +121,11 @@ class CameraConfig:
     fov_deg: float | None = setting(
         None, "no camera.file: diagonal field of view, degrees; null: focal = image diagonal"
     )
+    floor_m: float | None = setting(
+        0.0,
+        "the floor's height along the calibration world's up axis, metres (used when camera.file has extrinsics "
+        "and the up axis is known); null: no floor",
+    )
 
 
 @dataclass(frozen=True)

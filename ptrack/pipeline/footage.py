@@ -80,6 +80,7 @@ class FootageFrame:
     video: str | None = None
     landmarks: tuple[str, ...] = ()  # (K,) the landmark of each keypoint
     segments: dict | None = None  # {segment: {length_m, frames, std_m}} measured in the 2D (subject.lengths: observed)
+    floor_m: float | None = None  # the floor's height along the model's +Y, when the calibration gives it
 
     def summary(self) -> dict:
         """JSON-ready record for metrics.json."""
@@ -87,6 +88,7 @@ class FootageFrame:
             "segments_measured": self.segments,
             "keypoint_set": self.keypoint_set,
             "camera": self.camera,
+            "floor_m": self.floor_m,
             "height_m": self.height_m,
             "height_given": self.height_given,
             "person_track": self.track_id,
@@ -235,6 +237,10 @@ def prepare_footage(
         log.info("keypoints %s have no place on the skeleton and are not used", ", ".join(dropped))
     cam, K, R, t, width, height_px, what = _camera(cfg, det.image_size, video_size)
     A = model_frame(cam, R, cfg.camera.up)
+    floor_known = cam is not None and cam.has_extrinsics and world_up(cam, cfg.camera.up) is not None
+    floor = cfg.camera.floor_m if floor_known else None
+    if floor is not None and not math.isfinite(floor):
+        raise InputError(f"config key 'camera.floor_m' must be a finite number of metres, got {floor!r}")
     camera = Camera(K=torch.tensor(K), R=torch.tensor(R @ A.T), t=torch.tensor(t), width=width, height=height_px)
     names = tuple(definition.names[k] for k in placed)
     landmarks = tuple(definition.landmarks[k] for k in placed)
@@ -254,6 +260,7 @@ def prepare_footage(
         dropped=dropped,
         keypoint_set=definition.name,
         video=video or det.video,
+        floor_m=floor,
     )
     return skeleton, kps, obs, frame
 

@@ -40,7 +40,7 @@ import torch
 
 from ptrack.body.keypoints import make_keypoints
 from ptrack.body.skeleton import Motion, Skeleton, load_amc
-from ptrack.body.subject import segment_lengths
+from ptrack.body.subject import floor_points, segment_lengths
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators import ESTIMATORS
 from ptrack.io.export import write_bvh
@@ -53,7 +53,7 @@ from ptrack.pipeline.config import RunConfig, check_device, dump_yaml
 from ptrack.pipeline.footage import FootageFrame, keypoints_in_world, prepare_footage
 from ptrack.pipeline.keyframes import ground_truth_keyframes, read_keyframes
 from ptrack.pipeline.memory import check_memory
-from ptrack.problem import Estimate, Problem
+from ptrack.problem import Estimate, Floor, Problem
 
 try:
     import fcntl
@@ -290,8 +290,17 @@ def prepare_real(cfg: RunConfig, work_dir: Path) -> Prepared:
     kc = cfg.keyframes
     if kc.file:
         keyframes, joint_keyframes = read_keyframes(kc.file, model, obs.num_frames, kc.sigma_deg, kc.sigma_m, dtype)
+    floor = None
+    if footage.floor_m is not None:
+        joints, clearance = floor_points(model, footage.height_m)
+        floor = Floor(footage.floor_m, joints, clearance)
     problem = Problem(
-        skeleton=model, keypoints=kps, observations=obs, keyframes=keyframes, joint_keyframes=joint_keyframes
+        skeleton=model,
+        keypoints=kps,
+        observations=obs,
+        keyframes=keyframes,
+        joint_keyframes=joint_keyframes,
+        floor=floor,
     )
     return Prepared(
         full=full,

@@ -14,6 +14,7 @@ from torch import Tensor
 from ptrack.body.pose_prior import pose_prior, smoothing_prior
 from ptrack.costs import (
     CostTerm,
+    FloorContact,
     HeavyTailedPrior,
     JointLimits,
     Objective,
@@ -137,7 +138,8 @@ def _dynamics_sigma(problem: Problem, k, dtype: torch.dtype, device: torch.devic
 def frame_objective(
     s: Setup, t: int | Tensor, mean: Tensor | None, sigma: float | Tensor | None = None, tracking: bool = False
 ) -> Objective:
-    """Robust reprojection on frame t + limits + collision (+ the prior around `mean` (N, D), std `sigma`,
+    """Robust reprojection on frame t + limits + collision (+ the floor contact when the problem has a floor)
+    (+ the prior around `mean` (N, D), std `sigma`,
     by default the dynamics' `kjs.prior_sigma`; + with `tracking`, the CMU pose prior weighted by
     `kjs.pose_prior_weight`). t: one frame for every pose, or (N,) frame indices, one per pose."""
     cc, k = s.cfg.costs, s.cfg.kjs
@@ -163,6 +165,10 @@ def frame_objective(
             terms["prior"] = HeavyTailedPrior(mean, sigma, loss=k.prior_tail, scale=k.prior_tail_scale)
         else:
             terms["prior"] = PosePrior(mean, sigma)
+    floor = s.problem.floor
+    if floor is not None and cc.floor_weight > 0:
+        terms["floor"] = FloorContact(floor.joints, floor.height_m, floor.clearance_m, cc.floor_sigma_m)
+        weights["floor"] = cc.floor_weight
     if tracking and k.pose_prior_weight > 0:
         terms["pose_prior"] = PosePrior(s.prior[0], s.prior_sigma)
         weights["pose_prior"] = k.pose_prior_weight
