@@ -258,7 +258,8 @@ def test_two_people_trial_fits_the_person_chosen(tmp_path):
     default the largest, most present person, who enters at frame 2 (frames 0 and 1 reported without the person, in
     metrics.json and frame by frame in the rerun log); by a point in the first frame, the person at the image's left
     edge. The 2D fitted is the chosen person's: the estimate reprojects within a few tens of pixels of that person's
-    detections, as read from the raw files here, and hundreds of pixels from everyone else's."""
+    detections, as read from the raw files here, and over 100 px from everyone else's (the nearest other person stands
+    130-200 px away in these frames)."""
     src = P2S / "two_people" / "pose" / "cam01_json"
     argv = ["run", VIDEO_YAML, f"observations.file={src}", f"camera.file={P2S / 'Calib_qualisys.toml'}"]
     argv += ["camera.name=cam01", "subject.height_m=1.72", "observations.fps=60", "data.stop=6", "progress=false"]
@@ -296,7 +297,7 @@ def test_two_people_trial_fits_the_person_chosen(tmp_path):
     assert main([*argv, f"out_dir={default}"]) == 0
     metrics, dist = fitted(default)
     assert metrics["footage"]["tracks"] == 3 and metrics["footage"]["frames_without_person"] == [0, 1]
-    assert np.isnan(dist[:2]).all() and (dist[2:, 0] < 40).all() and (dist[2:, 1] > 150).all(), dist
+    assert np.isnan(dist[:2]).all() and (dist[2:, 0] < 40).all() and (dist[2:, 1] > 100).all(), dist
     assert logged_metrics(default / "run.rrd")["person_missing"] == {0: 1.0, 1: 1.0, 2: 0.0, 3: 0.0, 4: 0.0, 5: 0.0}
 
     by_point = tmp_path / "by_point"
@@ -304,7 +305,7 @@ def test_two_people_trial_fits_the_person_chosen(tmp_path):
     other, dist = fitted(by_point)
     assert other["footage"]["person_track"] != metrics["footage"]["person_track"]
     assert other["footage"]["frames_without_person"] == []
-    assert (dist[:, 0] < 40).all() and (dist[:, 1] > 150).all(), dist
+    assert (dist[:, 0] < 40).all() and (dist[:, 1] > 100).all(), dist
 
 
 def test_footage_fixture_copy_runs_from_a_plain_clone(tmp_path):
