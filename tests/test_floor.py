@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -78,7 +80,7 @@ def test_bad_floor_terms_are_input_errors():
         FloorContact(joints=(4,)).residual(_ev(_joints([[0.0, 1.0]])))
 
 
-def test_floor_points_of_the_scaled_template(tmp_path):
+def test_floor_points_of_the_scaled_template():
     height = 1.72
     sk = add_landmark_joints(scale_to_height(Skeleton.from_asf(data_file("10.asf")), height), height)
     joints, clearance = floor_points(sk, height)
@@ -88,42 +90,13 @@ def test_floor_points_of_the_scaled_template(tmp_path):
     assert 0.0 <= clearance <= ANKLE_HEIGHT * height
     assert clearance == pytest.approx(0.009 * height, abs=0.01)
     with pytest.raises(InputError, match="foot points"):
-        floor_points(Skeleton.from_asf(_no_feet(tmp_path)), height)
+        floor_points(_no_feet(), height)
 
 
-def _no_feet(folder):
-    """A one-bone ASF skeleton without feet, written to a file in `folder`."""
-    text = """:version 1.10
-:name nofeet
-:units
-  mass 1.0
-  length 1.0
-  angle deg
-:root
-  order TX TY TZ RX RY RZ
-  axis XYZ
-  position 0 0 0
-  orientation 0 0 0
-:bonedata
-  begin
-    id 1
-    name spine
-    direction 0 1 0
-    length 0.5
-    axis 0 0 0 XYZ
-    dof rx ry rz
-    limits (-180 180)
-           (-180 180)
-           (-180 180)
-  end
-:hierarchy
-  begin
-    root spine
-  end
-"""
-    path = folder / "nofeet.asf"
-    path.write_text(text)
-    return path
+def _no_feet() -> Skeleton:
+    """The CMU template with no foot point: its toes renamed, no landmark joints."""
+    sk = Skeleton.from_asf(data_file("10.asf"))
+    return dataclasses.replace(sk, joint_names=tuple(n.replace("toes", "digits") for n in sk.joint_names))
 
 
 def test_closed_form_jacobian_matches_autograd():

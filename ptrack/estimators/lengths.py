@@ -26,6 +26,26 @@ QUANTILE = 0.9
 MIN_FRAMES = 10
 
 
+def _observed_at_depth(problem: Problem, est: Estimate) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """-> depth (T, K) of each keypoint of `problem` in the camera frame at the poses of `est`, the observed
+    pixels (T, K, 2) and whether each is seen (T, K) bool (a positive depth included)."""
+    obs, kps = problem.observations, problem.keypoints
+    with torch.no_grad():
+        z = obs.camera.world_to_camera(est.joints.detach().index_select(-2, kps.index(est.joints.device)))[..., 2]
+    depth = z.double().cpu().numpy()
+    seen = (obs.confidence.detach().cpu().numpy() > 0) & (depth > 0)
+    return depth, obs.keypoints.detach().double().cpu().numpy(), seen
+
+
+def _sides(a: str, b: str, pos: dict[str, int]) -> list[tuple[int, int]]:
+    """The keypoint index pairs of the segment (a, b): its own and, when "l_..." landmarks stand for both sides,
+    the right side's; only the pairs whose two landmarks are among `pos` {landmark: keypoint index}."""
+    pairs = [(a, b)]
+    if (a.startswith("l_") or b.startswith("l_")) and not (a.startswith("r_") or b.startswith("r_")):
+        pairs.append(("r_" + a[2:] if a.startswith("l_") else a, "r_" + b[2:] if b.startswith("l_") else b))
+    return [(pos[pa], pos[pb]) for pa, pb in pairs if pa in pos and pb in pos]
+
+
 def segment_lengths_from_2d(
     problem: Problem,
     est: Estimate,
@@ -38,26 +58,15 @@ def segment_lengths_from_2d(
     for the segments with at least `min_frames` frames. landmarks: (K,) the landmark of each keypoint of
     `problem`; segments: {name: (landmark a, landmark b)} with left landmarks ("l_...") standing for both
     sides."""
-    obs, kps = problem.observations, problem.keypoints
-    cam = obs.camera
-    with torch.no_grad():
-        z = cam.world_to_camera(est.joints.detach().index_select(-2, kps.index(est.joints.device)))[..., 2]
-    depth = z.double().cpu().numpy()  # (T, K)
-    px = obs.keypoints.detach().double().cpu().numpy()
-    seen = obs.confidence.detach().cpu().numpy() > 0
+    cam = problem.observations.camera
+    depth, px, seen = _observed_at_depth(problem, est)
     focal = float(cam.K[0, 0] + cam.K[1, 1]) / 2
     pos = {m: k for k, m in enumerate(landmarks)}
     out: dict[str, tuple[float, int]] = {}
     for name, (a, b) in segments.items():
-        pairs = [(a, b)]
-        if (a.startswith("l_") or b.startswith("l_")) and not (a.startswith("r_") or b.startswith("r_")):
-            pairs.append(tuple("r_" + m[2:] if m.startswith("l_") else m for m in (a, b)))  # type: ignore[arg-type]
         samples = []
-        for pa, pb in pairs:
-            if pa not in pos or pb not in pos:
-                continue
-            i, j = pos[pa], pos[pb]
-            ok = seen[:, i] & seen[:, j] & (depth[:, i] > 0) & (depth[:, j] > 0)
+        for i, j in _sides(a, b, pos):
+            ok = seen[:, i] & seen[:, j]
             d = np.linalg.norm(px[ok, i] - px[ok, j], axis=-1)
             samples.append(d * (depth[ok, i] + depth[ok, j]) / (2 * focal))
         values = np.concatenate(samples) if samples else np.zeros(0)
@@ -141,13 +150,8 @@ def vertical_segment_lengths(
     -> {segment: (metres, spread metres, samples)} for the segments with at least `min_samples` samples;
     spread: half the interquartile range of the samples. landmarks: (K,) the landmark of each keypoint of
     `problem`; segments: {name: (landmark a, landmark b)}, "l_..." landmarks standing for both sides."""
-    obs, kps = problem.observations, problem.keypoints
-    cam = obs.camera
-    with torch.no_grad():
-        z = cam.world_to_camera(est.joints.detach().index_select(-2, kps.index(est.joints.device)))[..., 2]
-    depth = z.double().cpu().numpy()  # (T, K)
-    px = obs.keypoints.detach().double().cpu().numpy()  # (T, K, 2)
-    seen = obs.confidence.detach().cpu().numpy() > 0
+    cam = problem.observations.camera
+    depth, px, seen = _observed_at_depth(problem, est)
     k_inv = np.linalg.inv(cam.K.detach().double().cpu().numpy())
     rays = np.concatenate([px, np.ones_like(px[..., :1])], axis=-1) @ k_inv.T  # (T, K, 3), depth 1
     up = cam.R.detach().double().cpu().numpy()[:, 1]  # the model's +Y in the camera frame
@@ -156,15 +160,9 @@ def vertical_segment_lengths(
     pos = {m: k for k, m in enumerate(landmarks)}
     out: dict[str, tuple[float, float, int]] = {}
     for name, (a, b) in segments.items():
-        pairs = [(a, b)]
-        if (a.startswith("l_") or b.startswith("l_")) and not (a.startswith("r_") or b.startswith("r_")):
-            pairs.append(tuple("r_" + m[2:] if m.startswith("l_") else m for m in (a, b)))  # type: ignore[arg-type]
         values = []
-        for pa, pb in pairs:
-            if pa not in pos or pb not in pos:
-                continue
-            i, j = pos[pa], pos[pb]
-            for t in np.flatnonzero(seen[:, i] & seen[:, j] & (depth[:, i] > 0) & (depth[:, j] > 0)):
+        for i, j in _sides(a, b, pos):
+            for t in np.flatnonzero(seen[:, i] & seen[:, j]):
                 m = np.stack([rays[t, i], up, across, -rays[t, j]], axis=1)  # (3, 4): alpha r_a + s u + w h = beta r_b
                 alpha, s, w, beta = np.linalg.svd(m)[2][-1]
                 if alpha < 0:
