@@ -25,20 +25,11 @@ import torch
 
 from ptrack.body.keypoint_sets import COCO_17
 from ptrack.body.skeleton import Skeleton, load_amc
-from ptrack.body.subject import add_landmark_joints, landmark_joints
+from ptrack.body.subject import add_landmark_joints, landmark_joints, standing_height
 from ptrack.observe.camera import look_at
 from ptrack.pipeline.metrics import pa_mpjpe
 
 FACE = ("nose", "l_eye", "r_eye", "l_ear", "r_ear")
-
-
-def standing_height(skeleton: Skeleton) -> float:
-    """Head top to the lowest foot point of the rest pose, plus the ankle's height above the sole (~0.039 of it),
-    metres: the height a person would give."""
-    joints = skeleton.forward_kinematics(torch.zeros(skeleton.num_dofs, dtype=torch.float64)).numpy()
-    top = joints[skeleton.joint_index("head"), 1]
-    ankle = min(joints[skeleton.joint_index(j), 1] for j in ("ltibia", "rtibia"))
-    return float((top - ankle) / (1 - 0.039))
 
 
 def make(

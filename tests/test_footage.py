@@ -157,6 +157,34 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
     assert score["pa_mpjpe_mm"] < 150.0, score
 
 
+def test_known_skeleton_keeps_the_asf_bone_lengths(synthetic, tmp_path):
+    """subject.lengths: asf: the model has the bone lengths of data.asf as they are (not the height's proportions),
+    metrics.json says so (source asf, spread 0, given), and without a height the skeleton's standing height is used
+    (the one the footage was made with)."""
+    folder, info = synthetic
+    asf = data_file("10.asf")
+    out = tmp_path / "run"
+    argv = ["run", VIDEO_YAML, f"observations.file={folder / 'keypoints.json'}", f"camera.file={folder / 'camera.yml'}"]
+    argv += ["observations.fps=30", "data.stop=4", "kjs.modes=2", "kjs.samples=32", f"out_dir={out}", "progress=false"]
+    assert main([*argv, "subject.lengths=asf", f"data.asf={asf}", "subject.height_m=null"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    skeleton = Skeleton.from_asf(asf)
+    assert metrics["footage"]["height_m"] == pytest.approx(info["height_m"], rel=1e-9)
+    assert metrics["footage"]["height_given"] is False
+    want, template = segment_lengths(skeleton), segment_lengths(scale_to_height(skeleton, info["height_m"]))
+    assert max(abs(want[n] / template[n] - 1) for n in want) > 0.05  # the template's proportions differ
+    for name, row in metrics["bone_lengths"].items():
+        assert row["length_m"] == pytest.approx(want[name], rel=1e-9), name
+        assert (row["source"], row["std_m"], row["std_source"]) == ("asf", 0.0, "given"), name
+    # every ASF bone of the fitted motion at the file's length: float32 joints some metres from the origin (5 um)
+    with np.load(out / "result.npz") as r:
+        names, joints, parents = [str(n) for n in r["joint_names"]], r["joints"], r["parents"]
+    for j, bone in enumerate(skeleton.joint_names[1:], 1):
+        k = names.index(bone)
+        d = np.linalg.norm(joints[:, k] - joints[:, parents[k]], axis=-1)
+        np.testing.assert_allclose(d, skeleton.lengths[j], rtol=0, atol=5e-6, err_msg=bone)
+
+
 def test_without_a_camera_file_the_focal_is_the_image_diagonal(synthetic, tmp_path):
     out = tmp_path / "run"
     assert (

@@ -129,6 +129,17 @@ def add_landmark_joints(skeleton: Skeleton, height_m: float) -> Skeleton:
 #: the ankle joint centre's height above the floor when standing, / height (Winter 2009, fig. 4.1: 0.039 H);
 #: `OFFSET_LANDMARKS` places the heel and little toe from it
 ANKLE_HEIGHT = 0.039
+
+
+def standing_height(skeleton: Skeleton) -> float:
+    """The height a person with `skeleton`'s bone lengths would give, metres: the head's end above the lower
+    ankle (the tibias' ends) in the rest pose, that being (1 - `ANKLE_HEIGHT`) of the height (Winter 2009)."""
+    joints = skeleton.forward_kinematics(torch.zeros(skeleton.num_dofs, dtype=torch.float64)).numpy()
+    top = joints[skeleton.joint_index("head"), 1]
+    ankle = min(joints[skeleton.joint_index(j), 1] for j in ("ltibia", "rtibia"))
+    return float((top - ankle) / (1 - ANKLE_HEIGHT))
+
+
 #: the skeleton's points that touch the floor: CMU's toe ends and the heel and little-toe landmark joints
 FLOOR_POINTS = ("ltoes", "rtoes", "lm_l_heel", "lm_r_heel", "lm_l_small_toe", "lm_r_small_toe")
 

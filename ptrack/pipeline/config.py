@@ -177,11 +177,15 @@ class ModelConfig:
 
 @dataclass(frozen=True)
 class SubjectConfig:
-    """The person of real footage: the template skeleton (data.asf) scaled to a height."""
+    """The person of real footage: the template skeleton (data.asf) scaled to a height, or as it is (lengths: asf)."""
 
-    height_m: float | None = setting(None, "the person's height, metres; null: 1.70 m, with a warning")
+    height_m: float | None = setting(
+        None, "the person's height, metres; null: 1.70 m, with a warning (lengths asf: the skeleton's standing height)"
+    )
     lengths: str = setting(
-        "template", "template: the height's proportions; observed: measured in the 2D, then the method run again"
+        "template",
+        "template: the height's proportions; observed: measured in the 2D, then the method run again; asf: the bone "
+        "lengths of data.asf as they are (a known skeleton; height_m null: the skeleton's standing height)",
     )
     static: str | None = setting(
         None,
@@ -495,11 +499,12 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         raise InputError(f"config key 'observations.person' must be a track id or [x, y], got {list(o.person)}")
     if c.fov_deg is not None and not 1 <= c.fov_deg <= 170:
         raise InputError(f"config key 'camera.fov_deg' must be in [1, 170] degrees, got {c.fov_deg}")
-    if cfg.subject.lengths not in ("observed", "template"):
-        raise InputError(f"config key 'subject.lengths' must be observed or template, got {cfg.subject.lengths!r}")
-    if cfg.subject.static and cfg.subject.lengths == "observed":
+    if cfg.subject.lengths not in ("observed", "template", "asf"):
+        raise InputError(f"config key 'subject.lengths' must be observed, template or asf, got {cfg.subject.lengths!r}")
+    if cfg.subject.static and cfg.subject.lengths != "template":
         raise InputError(
-            "config keys 'subject.static' and 'subject.lengths: observed' both set the segment lengths: give one"
+            f"config keys 'subject.static' and 'subject.lengths: {cfg.subject.lengths}' both set the segment "
+            "lengths: give one"
         )
     if cfg.subject.height_m is not None:
         from ptrack.body.subject import check_height

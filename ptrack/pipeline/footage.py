@@ -3,8 +3,8 @@
 
 The steps, each owned by its module: read the keypoint file (`observe.keypoint_files`), choose the person
 (`observe.people`), read the camera (`observe.camera_files`; without one, intrinsics from the image size)
-and remove its lens distortion from the keypoints, scale the template skeleton to the person's height and
-place the detector's landmarks on it (`body.subject`).
+and remove its lens distortion from the keypoints, scale the template skeleton to the person's height (or keep
+its bone lengths: `subject.lengths: asf`) and place the detector's landmarks on it (`body.subject`).
 
 Frames of reference. ptrack's estimators work in a Y-up world (the CMU skeleton stands along +Y). The
 model frame is the calibration's world rotated so that its up axis is +Y:
@@ -34,7 +34,13 @@ import torch
 from ptrack.body.keypoint_sets import get_keypoint_set
 from ptrack.body.keypoints import KeypointSet, landmark_keypoints
 from ptrack.body.skeleton import Skeleton
-from ptrack.body.subject import add_landmark_joints, check_height, landmark_joints, scale_to_height
+from ptrack.body.subject import (
+    add_landmark_joints,
+    check_height,
+    landmark_joints,
+    scale_to_height,
+    standing_height,
+)
 from ptrack.errors import InputError
 from ptrack.observe.camera import Camera
 from ptrack.observe.camera_files import (
@@ -81,6 +87,7 @@ class FootageFrame:
     landmarks: tuple[str, ...] = ()  # (K,) the landmark of each keypoint
     segments: dict | None = None  # {segment: {length_m, frames, std_m}} measured in the 2D (subject.lengths: observed)
     floor_m: float | None = None  # the floor's height along the model's +Y, when the calibration gives it
+    lengths: str = "template"  # subject.lengths (asf: the skeleton file's bone lengths)
 
     def summary(self) -> dict:
         """JSON-ready record for metrics.json."""
@@ -221,11 +228,11 @@ def prepare_footage(
         track, frames=track.frames[cut], points=track.points[cut], scores=track.scores[cut], present=track.present[cut]
     )
     definition = get_keypoint_set(track.keypoint_set)
-    given = cfg.subject.height_m is not None
-    height = check_height(cfg.subject.height_m) if given else DEFAULT_HEIGHT_M
-    if not given:
+    given, known = cfg.subject.height_m is not None, cfg.subject.lengths == "asf"  # asf: its bone lengths as they are
+    height = check_height(cfg.subject.height_m) if given else standing_height(template) if known else DEFAULT_HEIGHT_M
+    if not given and not known:
         log.warning("subject.height_m is not given: %.2f m is assumed (the result's scale follows it)", height)
-    skeleton = add_landmark_joints(scale_to_height(template, height), height)
+    skeleton = add_landmark_joints(template if known else scale_to_height(template, height), height)
     joints = landmark_joints(skeleton, definition.landmarks)
     placed = np.array([k for k, j in enumerate(joints) if j is not None], dtype=np.int64)
     dropped = tuple(definition.names[k] for k, j in enumerate(joints) if j is None)
@@ -261,6 +268,7 @@ def prepare_footage(
         keypoint_set=definition.name,
         video=video or det.video,
         floor_m=floor,
+        lengths=cfg.subject.lengths,
     )
     return skeleton, kps, obs, frame
 

@@ -382,7 +382,9 @@ def ambiguous_limb_frames(hypotheses, weights, limbs: Sequence[tuple[int, int]],
 TEMPLATE_LENGTH_SPREAD = 0.05
 
 
-def bone_lengths_report(lengths: dict[str, float], measured: dict[str, dict] | None) -> dict[str, dict]:
+def bone_lengths_report(
+    lengths: dict[str, float], measured: dict[str, dict] | None, given: bool = False
+) -> dict[str, dict]:
     """The segment lengths a run's model has and how well they are known, for metrics.json: {segment: {length_m,
     source, std_m, std_source[, frames]}}. Measured segments (`measured`: {segment: {"frames", "std_m"}}, from
     `subject.lengths: observed`) have source "observed" and the data's spread (std_source "bootstrap": the moving-block
@@ -390,11 +392,14 @@ def bone_lengths_report(lengths: dict[str, float], measured: dict[str, dict] | N
     segments from `subject.static` (entries with "source": "static") have source "static", std_m half the
     interquartile range of the static trial's samples (std_source "static_iqr") and frames its sample count;
     the others keep the template's proportions (source "template") with the prior spread TEMPLATE_LENGTH_SPREAD x
-    length (std_source "prior"), which says nothing about the data. lengths: {segment: metres} of the model."""
+    length (std_source "prior"), which says nothing about the data. given (`subject.lengths: asf`): every segment is
+    the skeleton file's (source "asf", std_m 0, std_source "given"). lengths: {segment: metres} of the model."""
     out: dict[str, dict] = {}
     for name, length in lengths.items():
         m = (measured or {}).get(name)
-        if m is not None and m.get("source") == "static":  # subject.static: the static trial's samples
+        if given:
+            out[name] = {"length_m": length, "source": "asf", "std_m": 0.0, "std_source": "given"}
+        elif m is not None and m.get("source") == "static":  # subject.static: the static trial's samples
             out[name] = {"length_m": length, "source": "static", "std_m": m["spread_m"], "std_source": "static_iqr"}
             out[name]["frames"] = m["samples"]
         elif m is not None:

@@ -508,7 +508,8 @@ def footage_checks(
             f"{names[a]}-{names[b]}": float(v) for (a, b), v in zip(kps.limbs, ambiguous.double().mean(0))
         }
     series["person_missing"] = np.isin(prep.footage.frames, prep.footage.missing_frames).astype(np.float64)  # 0/1
-    out["bone_lengths"] = M.bone_lengths_report(segment_lengths(prob.skeleton), prep.footage.segments)
+    given = prep.footage.lengths == "asf"
+    out["bone_lengths"] = M.bone_lengths_report(segment_lengths(prob.skeleton), prep.footage.segments, given)
     return out, series
 
 
