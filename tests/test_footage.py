@@ -143,17 +143,21 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
     per_foot = [v for v in metrics["foot_skating_mm_per_frame"].values() if v is not None]
     assert min(per_foot) <= max(skating.values()) and max(per_foot) >= min(skating.values())
     assert len(logged["jitter_mm_per_frame2"]) == len(frames) - 2
-    # subject.lengths: template: every length is the height's proportion, its spread a stated prior, not the data's
-    lengths = metrics["bone_lengths"]
-    assert set(lengths) == set(SEGMENTS) and metrics["footage"]["segments_measured"] is None
+    # video.yaml's subject.lengths: observed: the limbs and the trunk measured (the model has those lengths), the
+    # others the height's proportions with a stated prior spread, not the data's
+    lengths, measured = metrics["bone_lengths"], metrics["footage"]["segments_measured"]
+    assert set(lengths) == set(SEGMENTS) and set(measured) == {"thigh", "shank", "upper_arm", "forearm", "trunk"}
     for name, (_, _, fraction) in SEGMENTS.items():
         row = lengths[name]
+        if name in measured:
+            assert row["source"] == "observed" and row["length_m"] == pytest.approx(measured[name]["length_m"]), name
+            continue
         assert (row["source"], row["std_source"]) == ("template", "prior"), name
         assert row["length_m"] == pytest.approx(fraction * info["height_m"], rel=1e-3), name
         assert row["std_m"] == pytest.approx(0.05 * row["length_m"]), name
     score = synthetic_footage.score(out / "result.npz", folder / "truth.npz")
-    # the frame method from no 3D at all, on a skeleton with other proportions than the template's: a loose
-    # bound (a pose with the torso turned by 90 degrees scores over 200 mm); docs/results.md has the numbers
+    # kjs from no 3D at all, on a skeleton with other proportions than the template's: a loose bound (a pose with
+    # the torso turned by 90 degrees scores over 200 mm); docs/results.md has the numbers
     assert score["pa_mpjpe_mm"] < 150.0, score
 
 
@@ -255,7 +259,8 @@ def test_pose2sim_openpose_folder_in_the_lab_frame(tmp_path, capsys):
     # the calibration gives the floor (Z = 0): a foot rests on it in every frame of this balancing trial
     assert json.loads((out / "metrics.json").read_text())["footage"]["floor_m"] == 0.0
     feet = [names.index(n) for n in ("LBigToe", "RBigToe", "LHeel", "RHeel", "LSmallToe", "RSmallToe")]
-    assert np.abs(kp[:, feet, 2].min(1)).max() < 0.1
+    lowest = kp[:, feet, 2].min(1)  # the detector's foot points sit 3-8 cm up in the 4-camera reference
+    assert np.abs(lowest).max() < 0.2 and np.median(lowest) < 0.15  # without the floor: 0.29 m at the median
 
 
 @pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")

@@ -167,6 +167,4 @@ def test_static_trial_errors_are_one_line(tmp_path, capsys):
     fail(capsys, out, _run(tmp_path, "cam01", empty), "subject.static", "no person")
     coco = _openpose_folder(tmp_path / "coco", [person(COCO_17, 500, 300, 1200)])
     fail(capsys, out, _run(tmp_path, "cam01", coco), "subject.static", "COCO_17", "BODY_25B", "same detector")
-    argv = [*_run(tmp_path, "cam01", coco), "subject.lengths=observed"]
-    fail(capsys, out, argv, "subject.static", "subject.lengths")
     fail(capsys, out, [*_run(tmp_path, "cam01", coco), "subject.lengths=asf"], "subject.static", "subject.lengths")

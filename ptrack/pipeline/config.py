@@ -190,7 +190,7 @@ class SubjectConfig:
     static: str | None = setting(
         None,
         "keypoint file/folder of a static standing trial, same camera and format: the segment lengths measured "
-        "on it replace the template's (ptrack/pipeline/static.py)",
+        "on it replace the template's (ptrack/pipeline/static.py); subject.lengths observed is then not measured",
     )
 
 
@@ -501,10 +501,9 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         raise InputError(f"config key 'camera.fov_deg' must be in [1, 170] degrees, got {c.fov_deg}")
     if cfg.subject.lengths not in ("observed", "template", "asf"):
         raise InputError(f"config key 'subject.lengths' must be observed, template or asf, got {cfg.subject.lengths!r}")
-    if cfg.subject.static and cfg.subject.lengths != "template":
+    if cfg.subject.static and cfg.subject.lengths == "asf":
         raise InputError(
-            f"config keys 'subject.static' and 'subject.lengths: {cfg.subject.lengths}' both set the segment "
-            "lengths: give one"
+            "config keys 'subject.static' and 'subject.lengths: asf' both set the segment lengths: give one"
         )
     if cfg.subject.height_m is not None:
         from ptrack.body.subject import check_height

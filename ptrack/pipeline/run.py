@@ -715,7 +715,8 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
         return ESTIMATORS[cfg.method](problem, cfg, gen, progress_display(progress, cfg.method))
 
     est = run(prep.problem)
-    if prep.footage is not None and cfg.subject.lengths == "observed":  # measure the lengths, then run again
+    if prep.footage is not None and cfg.subject.lengths == "observed" and not cfg.subject.static:
+        # measure the lengths, then run again (a static trial's lengths are the better measurement)
         prep = rescale_subject(prep, est)
         est = run(prep.problem)
     return prep, est
