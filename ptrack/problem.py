@@ -18,7 +18,7 @@ from torch import Tensor
 from ptrack.body.keypoints import KeypointSet
 from ptrack.body.limits import outside_limits, wrap_to_limits
 from ptrack.body.skeleton import Skeleton
-from ptrack.costs import PoseEval
+from ptrack.costs import FloorContact, PoseEval
 from ptrack.errors import InputError
 from ptrack.observe.camera import Camera
 from ptrack.observe.correspondences import Correspondences
@@ -86,6 +86,10 @@ class Floor:
     def __post_init__(self) -> None:
         if not self.joints:
             raise InputError("floor: no foot joints to rest on it")
+
+    def term(self, sigma_m: float) -> FloorContact:
+        """The floor contact cost term on this floor, its scale `sigma_m` metres (`costs.floor_sigma_m`)."""
+        return FloorContact(self.joints, self.height_m, self.clearance_m, sigma_m)
 
 
 @dataclass(frozen=True)

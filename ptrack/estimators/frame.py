@@ -19,7 +19,7 @@ from typing import Protocol, cast
 import torch
 from torch import Tensor
 
-from ptrack.costs import FloorContact, JointLimits, PoseEval, Reprojection, Smoothness
+from ptrack.costs import JointLimits, PoseEval, Reprojection, Smoothness
 from ptrack.costs.config import CostsConfig
 from ptrack.errors import InputError
 from ptrack.problem import Estimate, Problem, evaluate_pose, first_keyframe, rest_pose_in_view, root_headings
@@ -83,10 +83,7 @@ def estimate_frames(
         else Smoothness(dt=1.0, sigma_velocity=cc.smooth_sigma, sigma_acceleration=cc.accel_sigma)
     )
 
-    fl = problem.floor
-    floor = None
-    if fl is not None and cc.floor_weight > 0:
-        floor = FloorContact(fl.joints, fl.height_m, fl.clearance_m, cc.floor_sigma_m)
+    floor = problem.floor.term(cc.floor_sigma_m) if problem.floor is not None and cc.floor_weight > 0 else None
 
     if fc.init == "keyframe":
         q0 = first_keyframe(problem, "frame.init", lower, upper)  # kept as given (Problem warns off limits)

@@ -14,7 +14,6 @@ from torch import Tensor
 from ptrack.body.pose_prior import pose_prior, smoothing_prior
 from ptrack.costs import (
     CostTerm,
-    FloorContact,
     HeavyTailedPrior,
     JointLimits,
     Objective,
@@ -167,7 +166,7 @@ def frame_objective(
             terms["prior"] = PosePrior(mean, sigma)
     floor = s.problem.floor
     if floor is not None and cc.floor_weight > 0:
-        terms["floor"] = FloorContact(floor.joints, floor.height_m, floor.clearance_m, cc.floor_sigma_m)
+        terms["floor"] = floor.term(cc.floor_sigma_m)
         weights["floor"] = cc.floor_weight
     if tracking and k.pose_prior_weight > 0:
         terms["pose_prior"] = PosePrior(s.prior[0], s.prior_sigma)
