@@ -729,7 +729,7 @@ MEASURED_SEGMENTS = ("thigh", "shank", "upper_arm", "forearm", "trunk")
 def rescale_subject(prep: Prepared, est: Estimate) -> Prepared:
     """Real footage, `subject.lengths: observed`: `prep` with its model rescaled to the segments' lengths measured
     in the 2D at the depths of `est` (`ptrack.estimators.lengths`), the footage record holding them."""
-    from ptrack.body.subject import SEGMENTS, rescale_segments
+    from ptrack.body.subject import SEGMENTS
     from ptrack.estimators.lengths import segment_length_spread, segment_lengths_from_2d
 
     assert prep.footage is not None
@@ -738,13 +738,27 @@ def rescale_subject(prep: Prepared, est: Estimate) -> Prepared:
     # camera, the head and foot segments rarely
     segments = {n: (a, b) for n, (a, b, _) in SEGMENTS.items() if n in MEASURED_SEGMENTS}
     measured = segment_lengths_from_2d(prep.problem, est, f.landmarks, segments)
-    sk = rescale_segments(prep.problem.skeleton, f.height_m, {n: v for n, (v, _) in measured.items()})
-    problem = dataclasses.replace(prep.problem, skeleton=sk)
-    full = dataclasses.replace(prep.full, lengths=sk.lengths)
     spread = segment_length_spread(prep.problem, est, f.landmarks, segments)  # how much other frames would change them
     record = {n: {"length_m": v, "frames": k, "std_m": spread.get(n)} for n, (v, k) in measured.items()}
     log.info("segment lengths from the 2D: %s", ", ".join(f"{n} {v:.3f} m" for n, (v, _) in measured.items()))
-    return dataclasses.replace(prep, problem=problem, full=full, footage=dataclasses.replace(f, segments=record))
+    return with_segments(prep, record)
+
+
+def with_segments(prep: Prepared, record: dict[str, dict]) -> Prepared:
+    """Real footage: `prep` with its model's segments at the lengths `record` gives ({segment: {"length_m", ...}},
+    the others at their fractions of the height: `ptrack.body.subject.rescale_segments`), the footage record
+    holding `record` (metrics.json `footage.segments_measured`)."""
+    from ptrack.body.subject import rescale_segments
+
+    assert prep.footage is not None
+    lengths = {n: v["length_m"] for n, v in record.items()}
+    sk = rescale_segments(prep.problem.skeleton, prep.footage.height_m, lengths)
+    return dataclasses.replace(
+        prep,
+        problem=dataclasses.replace(prep.problem, skeleton=sk),
+        full=dataclasses.replace(prep.full, lengths=sk.lengths),
+        footage=dataclasses.replace(prep.footage, segments=record),
+    )
 
 
 def execute(cfg: RunConfig, progress: bool | None = None) -> Path:

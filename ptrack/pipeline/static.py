@@ -120,8 +120,6 @@ def static_segment_lengths(cfg: RunConfig, keypoint_set: str | None = None) -> d
             "template_m": template[name],
             "stature_scale": k,
         }
-    if not out:
-        raise InputError(f"subject.static {path}: no segment is seen in enough frames to measure")
     return out
 
 
@@ -148,16 +146,11 @@ def stature_scale(skeleton: Skeleton, height_m: float, lengths: dict[str, float]
 def apply_static(prep: Prepared, cfg: RunConfig) -> Prepared:
     """`prep` (a footage run) with its model's segments at the lengths of the static trial `cfg.subject.static`,
     the footage record holding them (metrics.json `footage.segments_measured`)."""
-    from ptrack.body.subject import rescale_segments
+    from ptrack.pipeline.run import with_segments
 
     assert prep.footage is not None
-    f = prep.footage
-    lengths = static_segment_lengths(cfg, f.keypoint_set)
-    sk = rescale_segments(prep.problem.skeleton, f.height_m, {n: v["length_m"] for n, v in lengths.items()})
-    problem = dataclasses.replace(prep.problem, skeleton=sk)
-    full = dataclasses.replace(prep.full, lengths=sk.lengths)
-    record = {n: {**v, "source": "static"} for n, v in lengths.items()}
+    lengths = static_segment_lengths(cfg, prep.footage.keypoint_set)
     log.info(
         "segment lengths from the static trial: %s", ", ".join(f"{n} {v['length_m']:.3f} m" for n, v in lengths.items())
     )
-    return dataclasses.replace(prep, problem=problem, full=full, footage=dataclasses.replace(f, segments=record))
+    return with_segments(prep, {n: {**v, "source": "static"} for n, v in lengths.items()})
