@@ -238,9 +238,9 @@ def _read_openpose(path: Path) -> list[_Frame]:
     return [_openpose_frame(_load_json(path), n, str(path))]
 
 
-def _read_folder(path: Path, format: str | None) -> tuple[list[_Frame], str]:
+def _read_folder(path: Path, format: str | None) -> list[_Frame]:
     """A folder of per-frame JSON files: OpenPose's (an object with ``people``) or MMPose's per-image
-    predictions (a list of instances, ``[]`` for an image without anyone) -> (frames, format). The frame number is
+    predictions (a list of instances, ``[]`` for an image without anyone) -> frames. The frame number is
     the last run of digits in each file name; every file must be of the one format (`format`, or the first
     file's)."""
     files = sorted(p for p in path.iterdir() if p.suffix.lower() == ".json" and p.is_file())
@@ -266,8 +266,7 @@ def _read_folder(path: Path, format: str | None) -> tuple[list[_Frame], str]:
             )
         else:
             frames.append(_mmpose_instances(data, n, where))
-    assert format is not None
-    return frames, format
+    return frames
 
 
 def _read_coco(data: Any, path: Path) -> list[_Frame]:
@@ -676,7 +675,7 @@ def read_keypoints(
                 f"{path}: a folder is read as OpenPose JSON or MMPose per-image predictions (one file a frame), "
                 f"not {format}"
             )
-        return _from_frames(_read_folder(path, format)[0], path, kset, None, fps)
+        return _from_frames(_read_folder(path, format), path, kset, None, fps)
     if path.suffix.lower() == ".npz" or format in ("npz", "mediapipe"):
         if format is None:
             format = "mediapipe" if "world_landmarks" in read_npz(path, "keypoint file") else "npz"
