@@ -100,6 +100,24 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument(
         "--quiet", action="store_true", help="no progress (bar on a terminal, a line now and then elsewhere)"
     )
+    x = sub.add_parser(
+        "export", help="a run folder as TRC, MOT, C3D, BVH, JSON or CSV for OpenSim, Blender and other tools"
+    )
+    x.add_argument("run_dir", help="a run folder written by `ptrack run`")
+    x.add_argument("--format", required=True, help="the output format (see docs/outputs.md): e.g. trc, bvh")
+    x.add_argument("--out", default=None, help="output folder, or file for one-file formats (default RUN_DIR/export/)")
+    x.add_argument("--up", choices=("y", "z"), default=None, help="the output's up axis (default: the format's own)")
+    x.add_argument("--names", default=None, help="BVH: joint names for a retargeting rig, e.g. mixamo")
+    x.add_argument("--rest", choices=("asf", "tpose"), default="asf", help="BVH rest pose (default: the skeleton's)")
+    x.add_argument(
+        "--opensim", default=None, metavar="MODEL.osim", help="MOT: OpenSim's inverse kinematics on this model"
+    )
+    x.add_argument(
+        "--points",
+        choices=("keypoints", "joints"),
+        default=None,
+        help="TRC/C3D: the input's keypoints (footage runs) or the skeleton's joints (default: keypoints if any)",
+    )
     k = sub.add_parser("config", help="list the config keys: default, type and one line of help each")
     k.add_argument(
         "--list",
@@ -259,6 +277,14 @@ def _main(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             print(out, flush=True)
+        elif args.command == "export":
+            from ptrack.io.exporters import ExportOptions, export_run
+
+            options = ExportOptions(
+                up=args.up, names=args.names, rest=args.rest, opensim=args.opensim, points=args.points
+            )
+            for path in export_run(args.run_dir, args.format, args.out, options):
+                print(path, flush=True)
         elif args.command == "config":
             from ptrack.pipeline.config import config_reference
 

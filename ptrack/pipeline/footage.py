@@ -88,6 +88,8 @@ class FootageFrame:
     segments: dict | None = None  # {segment: {length_m, frames, std_m}} measured in the 2D (subject.lengths: observed)
     floor_m: float | None = None  # the floor's height along the model's +Y, when the calibration gives it
     lengths: str = "template"  # subject.lengths (asf: the skeleton file's bone lengths)
+    fps: float = 30.0  # the input's frames per second (observations.fps, the keypoint file's or the video's)
+    up_known: bool = False  # the world's up axis is known (else the camera's image-up was taken as up)
 
     def summary(self) -> dict:
         """JSON-ready record for metrics.json."""
@@ -96,6 +98,8 @@ class FootageFrame:
             "keypoint_set": self.keypoint_set,
             "camera": self.camera,
             "floor_m": self.floor_m,
+            "fps": self.fps,
+            "up_known": self.up_known,
             "height_m": self.height_m,
             "height_given": self.height_given,
             "person_track": self.track_id,
@@ -269,6 +273,8 @@ def prepare_footage(
         video=video or det.video,
         floor_m=floor,
         lengths=cfg.subject.lengths,
+        fps=float(fps),
+        up_known=floor_known,
     )
     return skeleton, kps, obs, frame
 

@@ -867,7 +867,8 @@ def _duration(seconds: float) -> str:
 
 
 def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[str, np.ndarray]:
-    """The arrays of result.npz: frames (T,) AMC frame numbers; times (T,) s; q (T, D); dof_names (D,); joints (T, J, 3)
+    """The arrays of result.npz: frames (T,) AMC frame numbers; times (T,) s; fps () the exact frame rate
+    (`frame_rate`); q (T, D); dof_names (D,); joints (T, J, 3)
     metres in the mocap world frame (Y up); joint_names (J,) (ASF bone names, "root" first); parents (J,);
     gt_joints (T, J, 3) when there is ground truth; keypoints_observed (T, K, 2), confidence (T, K),
     keypoint_names (K,), keypoints_reprojected (T, K, 2); camera_K/R/t, image_size; cost (T,);
@@ -882,6 +883,7 @@ def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[s
     arrays = {
         "frames": prep.frames.astype(np.int64),
         "times": obs.times.detach().cpu().numpy(),
+        "fps": np.float64(frame_rate(prep)),
         "q": est.q.detach().cpu().numpy(),
         "dof_names": np.asarray(sk.dof_names),
         "joints": joints.cpu().numpy(),
@@ -919,6 +921,17 @@ def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[s
     return arrays
 
 
+def frame_rate(prep: Prepared) -> float:
+    """The run's frames per second, exactly: the clip's (120 / data.stride for CMU), the footage's (observations.fps,
+    the keypoint file's or the video's), else from the observations' times (their median step; 30 for one frame)."""
+    if prep.footage is not None:
+        return prep.footage.fps
+    if prep.motion is not None:
+        return float(prep.motion.fps)
+    times = prep.problem.observations.times.detach().cpu().double().numpy()
+    return float(1.0 / np.median(np.diff(times))) if len(times) > 1 else 30.0
+
+
 def _write_outputs(
     tmp: Path,
     cfg: RunConfig,
@@ -936,9 +949,8 @@ def _write_outputs(
         json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n", encoding="utf-8"
     )
     np.savez_compressed(tmp / "result.npz", **res)  # type: ignore[arg-type]  # numpy's stub: a key could be allow_pickle
-    times = res["times"].astype(np.float64)
-    fps = float(1.0 / np.median(np.diff(times))) if len(times) > 1 else 30.0
-    write_bvh(tmp / "result.bvh", prep.problem.skeleton, est.q, fps)
+    (tmp / "skeleton.urdf").write_text(prep.problem.skeleton.to_urdf(), encoding="utf-8")  # `ptrack export` reads it
+    write_bvh(tmp / "result.bvh", prep.problem.skeleton, est.q, float(res["fps"]))
     prob = prep.problem
     obs = prob.observations
     rlog = RunLog(
