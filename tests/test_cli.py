@@ -65,6 +65,7 @@ def test_run_success(tmp_path, capsys):
         "result.bvh",
         "result.npz",
         "run.rrd",
+        "skeleton.urdf",
     ]
 
 

@@ -25,7 +25,7 @@ ASF = REPO / "ptrack" / "data" / "10.asf"
 AMC = REPO / "ptrack" / "data" / "10_02.amc"
 FAST = ["data.stop=24", "data.stride=4", "frame.iterations=15", "frame.first_iterations=60", "progress=false"]
 QUICK = [*FAST, "frame.iterations=3", "frame.first_iterations=5"]
-OUTPUTS = ["config.yaml", "metrics.json", "result.bvh", "result.npz", "run.rrd"]
+OUTPUTS = ["config.yaml", "metrics.json", "result.bvh", "result.npz", "run.rrd", "skeleton.urdf"]
 
 
 def _cells(line: str) -> list[str]:
