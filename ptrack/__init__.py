@@ -35,6 +35,9 @@ _EXPORTS = {
     "select_person": "ptrack.observe.people",
     "read_camera": "ptrack.observe.camera_files",
     "detect": "ptrack.observe.detector",
+    "load_run": "ptrack.io.run_folder",
+    "export_run": "ptrack.io.exporters",
+    "ExportOptions": "ptrack.io.exporters",
 }
 
 __all__ = sorted(_EXPORTS)
@@ -57,6 +60,8 @@ if TYPE_CHECKING:
     from ptrack.body.kinematics import forward_kinematics
     from ptrack.body.skeleton import Motion, Skeleton, load_amc
     from ptrack.errors import InputError
+    from ptrack.io.exporters import ExportOptions, export_run
+    from ptrack.io.run_folder import load_run
     from ptrack.observe.camera import Camera, camera_for_motion, look_at
     from ptrack.observe.camera_files import read_camera
     from ptrack.observe.detector import detect
