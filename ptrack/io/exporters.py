@@ -44,7 +44,8 @@ class ExportOptions:
             if name not in accepted and getattr(self, name) is not None:
                 raise InputError(f"--{name} does not apply to --format {fmt}")
         if self.up is not None and self.up not in up:
-            raise InputError(f"--format {fmt} is written {'/'.join(a.upper() for a in up)} up: not --up {self.up}")
+            axes = " or ".join(a.upper() for a in up)
+            raise InputError(f"--format {fmt} is written {axes} up only: --up {self.up} is not available for it")
 
 
 Writer = Callable[[RunFolder, Path, ExportOptions], list[Path]]
