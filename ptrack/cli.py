@@ -108,7 +108,7 @@ def _parser() -> argparse.ArgumentParser:
     x.add_argument("--out", default=None, help="output folder, or file for one-file formats (default RUN_DIR/export/)")
     x.add_argument("--up", choices=("y", "z"), default=None, help="the output's up axis (default: the format's own)")
     x.add_argument("--names", default=None, help="BVH: joint names for a retargeting rig, e.g. mixamo")
-    x.add_argument("--rest", choices=("asf", "tpose"), default="asf", help="BVH rest pose (default: the skeleton's)")
+    x.add_argument("--rest", choices=("asf", "tpose"), default=None, help="BVH rest pose (default asf: the skeleton's)")
     x.add_argument(
         "--opensim", default=None, metavar="MODEL.osim", help="MOT: OpenSim's inverse kinematics on this model"
     )

@@ -181,3 +181,15 @@ def test_bvh_at_gimbal_lock_reproduces_fk(clip):
     for joint in ("root", "lfemur", "rhumerus"):
         np.testing.assert_allclose(np.abs(values[:, col[joint] + 1]), 90.0, rtol=0, atol=1e-5, err_msg=joint)
     assert _check_against_fk(sk, q, text) < 1e-6
+
+
+def test_bvh_of_skeleton_whose_joints_are_not_in_hierarchy_order(clip):
+    """A footage run's model has its landmark joints appended last (children of the head and feet): the MOTION
+    lines follow the hierarchy's order, not the joints' (this was 1.35 m off before)."""
+    from ptrack.body.subject import add_landmark_joints
+
+    sk, q = clip
+    model = add_landmark_joints(sk, 1.7)
+    # lm_nose, a child of the head, comes after the arms in the joints' order; in the hierarchy it follows the head
+    assert model.joint_names[sk.num_joints] == "lm_nose" and model.parents[sk.num_joints] == sk.joint_index("head")
+    assert _check_against_fk(model, q, bvh_text(model, q, fps=30.0)) < 1e-6

@@ -27,37 +27,53 @@ from ptrack.io.run_folder import RunFolder, load_run
 class ExportOptions:
     """What a writer may be asked besides the run. up: the output's up axis ("y" or "z"; the format's
     default when None); names: a joint name map for retargeting rigs (e.g. "mixamo"); rest: the BVH rest
-    pose ("asf": the skeleton's own, "tpose"); opensim: an OpenSim model (.osim) to run its inverse
+    pose ("asf": the skeleton's own, the default; "tpose"); opensim: an OpenSim model (.osim) to run its inverse
     kinematics on; points: "keypoints" (a footage run's keypoints under the input's names) or "joints"
     (the skeleton's joints); None: keypoints where the run has them, else joints."""
 
     up: str | None = None
     names: str | None = None
-    rest: str = "asf"
+    rest: str | None = None
     opensim: str | None = None
     points: str | None = None
+
+    def refuse(self, fmt: str, accepted: tuple[str, ...] = (), up: tuple[str, ...] = ("y", "z")) -> None:
+        """InputError when an option that `fmt` does not take is given (`accepted`: those it takes of names,
+        rest, opensim, points; `up`: the up axes it can write)."""
+        for name in ("names", "rest", "opensim", "points"):
+            if name not in accepted and getattr(self, name) is not None:
+                raise InputError(f"--{name} does not apply to --format {fmt}")
+        if self.up is not None and self.up not in up:
+            axes = " or ".join(a.upper() for a in up)
+            raise InputError(f"--format {fmt} is written {axes} up only: --up {self.up} is not available for it")
 
 
 Writer = Callable[[RunFolder, Path, ExportOptions], list[Path]]
 
 
 def _bvh(run: RunFolder, out_dir: Path, options: ExportOptions) -> list[Path]:
-    from ptrack.io.export import write_bvh
+    from ptrack.io.export import export_bvh
 
-    path = out_dir / "result.bvh"
-    write_bvh(path, run.skeleton, _torch(run.arrays["q"]), run.fps)
-    return [path]
+    return export_bvh(run, out_dir, options)
 
 
-def _torch(a):
-    import torch
+def _json(run: RunFolder, out_dir: Path, options: ExportOptions) -> list[Path]:
+    from ptrack.io.json_csv import export_json
 
-    return torch.as_tensor(a, dtype=torch.float64)
+    return export_json(run, out_dir, options)
+
+
+def _csv(run: RunFolder, out_dir: Path, options: ExportOptions) -> list[Path]:
+    from ptrack.io.json_csv import export_csv
+
+    return export_csv(run, out_dir, options)
 
 
 #: format name -> writer
 FORMATS: dict[str, Writer] = {
     "bvh": _bvh,
+    "json": _json,
+    "csv": _csv,
 }
 
 
@@ -75,6 +91,7 @@ def export_run(
     target = Path(out) if out is not None else run.path / "export"
     as_file = target.suffix != "" and not target.is_dir()  # out names the file itself
     out_dir = target.parent if as_file else target
+    created = next((p for p in reversed([out_dir, *out_dir.parents]) if not p.exists()), None)  # removed on error
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -90,5 +107,9 @@ def export_run(
         for src, dst in zip(written, final):
             os.replace(src, dst)
         return final
+    except BaseException:
+        if created is not None:  # the folders this call made go too: nothing is left behind
+            shutil.rmtree(created, ignore_errors=True)
+        raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -950,7 +950,8 @@ def _write_outputs(
     )
     np.savez_compressed(tmp / "result.npz", **res)  # type: ignore[arg-type]  # numpy's stub: a key could be allow_pickle
     (tmp / "skeleton.urdf").write_text(prep.problem.skeleton.to_urdf(), encoding="utf-8")  # `ptrack export` reads it
-    write_bvh(tmp / "result.bvh", prep.problem.skeleton, est.q, float(res["fps"]))
+    floor = prep.footage.floor_m if prep.footage is not None else None  # the BVH's floor at Y = 0 when known
+    write_bvh(tmp / "result.bvh", prep.problem.skeleton, est.q, float(res["fps"]), floor_m=floor)
     prob = prep.problem
     obs = prob.observations
     rlog = RunLog(
