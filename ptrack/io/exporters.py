@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ptrack.errors import InputError
+from ptrack.io import c3d, mot, trc
 from ptrack.io.run_folder import RunFolder, load_run
 
 
@@ -58,6 +59,9 @@ def _torch(a):
 #: format name -> writer
 FORMATS: dict[str, Writer] = {
     "bvh": _bvh,
+    "trc": trc.export_trc,
+    "mot": mot.export_mot,
+    "c3d": c3d.export_c3d,
 }
 
 
@@ -75,6 +79,7 @@ def export_run(
     target = Path(out) if out is not None else run.path / "export"
     as_file = target.suffix != "" and not target.is_dir()  # out names the file itself
     out_dir = target.parent if as_file else target
+    created = next((p for p in reversed((out_dir, *out_dir.parents)) if not p.exists()), None)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -90,5 +95,9 @@ def export_run(
         for src, dst in zip(written, final):
             os.replace(src, dst)
         return final
+    except BaseException:
+        if created is not None:  # the folders this call made, which hold nothing of the user's
+            shutil.rmtree(created, ignore_errors=True)
+        raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
