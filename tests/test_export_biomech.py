@@ -10,6 +10,8 @@ simulated CMU run of the demo clip (every 4th frame: 30 fps). Tests that need a 
 from __future__ import annotations
 
 import importlib.util
+import re
+import shlex
 import sys
 from pathlib import Path
 
@@ -70,8 +72,6 @@ def test_pose2sim_names_of_each_keypoint_set():
 
 def _model_markers() -> list[str]:
     text = pose2sim("balancing/opensim_model_scaled.osim").read_text()
-    import re
-
     return re.findall(r'<Marker name="([^"]+)"', text)
 
 
@@ -89,8 +89,9 @@ def test_trc_of_footage_keypoints_has_pose2sim_marker_names(footage_run):
 @needs("opensim")
 @pytest.mark.parametrize("up", ["y", "z"])
 def test_trc_read_by_opensim(footage_run, tmp_path, up):
-    """OpenSim's TRC reader gets the rate, names, units, times (input frame / fps) and values (1e-5 m) of the
-    run's keypoints, Y up (the model frame) or Z up (the calibration's world: result.npz's `keypoints`)."""
+    """OpenSim's TRC reader (TimeSeriesTableVec3 of a .trc path reads it with TRCFileAdapter) gets the rate,
+    names, units, times (input frame / fps) and values (1e-5 m) of the run's keypoints, Y up (the model
+    frame) or Z up (the calibration's world: result.npz's `keypoints`)."""
     opensim = import_opensim()
 
     (path,) = export_run(footage_run, "trc", tmp_path / "o.trc", ExportOptions(up=up))
@@ -262,3 +263,22 @@ def test_missing_packages_are_one_line_errors(footage_run, tmp_path, capsys, mon
     fail(capsys, out, ["export", str(footage_run), "--format", "c3d", "--out", str(out)], "ptrack[export]", "ezc3d")
     argv = ["export", str(footage_run), "--format", "mot", "--opensim", "m.osim", "--out", str(out)]
     fail(capsys, out, argv, "ptrack[export]", "opensim")
+
+
+@needs("opensim")
+@needs("ezc3d")
+def test_readme_export_block_runs_as_written(footage_run, capsys):
+    """The README's "### Export" commands, with the run folder and the shipped scaled model filled in, write
+    their files into RUN_DIR/export/."""
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    section = text[text.index("\n### Export\n") :]
+    block = re.search(r"```bash\n(.*?)```", section, flags=re.S).group(1)
+    model = pose2sim("balancing/opensim_model_scaled.osim")
+    commands = [shlex.split(line.split("#")[0]) for line in block.splitlines() if line.strip()]
+    assert len(commands) >= 3
+    for argv in commands:
+        assert argv[0] == "ptrack"
+        args = [str(footage_run) if a == "RUN_DIR" else str(model) if a == "MODEL.osim" else a for a in argv[1:]]
+        assert main(args) == 0, capsys.readouterr().err
+    names = sorted(p.name for p in (footage_run / "export").iterdir())
+    assert names == ["result.c3d", "result.mot", "result.trc"]
