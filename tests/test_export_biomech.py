@@ -233,14 +233,13 @@ def _first_rows(trc: Path, n: int, out: Path) -> Path:
     return out
 
 
-def test_trc_of_a_run_without_keypoints_is_an_error(cmu_run, tmp_path, capsys):
-    fail(
-        capsys,
-        tmp_path / "o",
-        ["export", str(cmu_run), "--format", "trc", "--points", "keypoints", "--out", str(tmp_path / "o")],
-        "no keypoints",
-        "--points joints",
-    )
+def test_options_a_format_cannot_honour_are_errors(cmu_run, tmp_path, capsys):
+    """TRC keypoints of a run without keypoints, MOT with Z up, --opensim with another format."""
+    out = tmp_path / "o"
+    base = ["export", str(cmu_run), "--out", str(out)]
+    fail(capsys, out, [*base, "--format", "trc", "--points", "keypoints"], "no keypoints", "--points joints")
+    fail(capsys, out, [*base, "--format", "mot", "--up", "z"], "--up z", "MOT")
+    fail(capsys, out, [*base, "--format", "trc", "--opensim", "m.osim"], "--opensim", "mot")
 
 
 @needs("opensim")

@@ -6,6 +6,7 @@
     nRows=100
     nColumns=63
     inDegrees=yes
+    ptrack joint angles: rotations in degrees, the root translation in metres ... (Y up), 60 frames per second
     endheader
     time  root.tx  root.ty ...     (tab separated)
     0     0.012    0.954   ...
@@ -25,10 +26,14 @@ import numpy as np
 from ptrack.errors import InputError
 from ptrack.io.markers import frame_times, markers
 from ptrack.io.run_folder import RunFolder
+from ptrack.io.trc import rate_text, write_trc
 
 
-def write_mot(path: Path, names: list[str], times: np.ndarray, values: np.ndarray, in_degrees: bool) -> None:
-    """Write an OpenSim motion file. names: (C,) column names; times: (T,) seconds; values: (T, C)."""
+def write_mot(
+    path: Path, names: list[str], times: np.ndarray, values: np.ndarray, in_degrees: bool, note: str = ""
+) -> None:
+    """Write an OpenSim motion file. names: (C,) column names; times: (T,) seconds; values: (T, C); note: a
+    free line of the header (OpenSim's readers skip what is not key=value), e.g. the units and axes."""
     T, C = values.shape
     lines = [
         path.stem,
@@ -36,6 +41,7 @@ def write_mot(path: Path, names: list[str], times: np.ndarray, values: np.ndarra
         f"nRows={T}",
         f"nColumns={C + 1}",
         f"inDegrees={'yes' if in_degrees else 'no'}",
+        *([note] if note else []),
         "endheader",
         "\t".join(["time", *names]),
     ]
@@ -60,10 +66,13 @@ def export_mot(run: RunFolder, out_dir: Path, options) -> list[Path]:
     path = out_dir / "result.mot"
     if options.opensim is None:
         names, values = ptrack_angles(run)
-        write_mot(path, names, frame_times(run), values, in_degrees=True)
+        note = (
+            f"ptrack joint angles: rotations in degrees, the root translation in metres along the model frame"
+            f" (Y up), {rate_text(run.fps)} frames per second"
+        )
+        write_mot(path, names, frame_times(run), values, in_degrees=True, note=note)
         return [path]
     from ptrack.io.opensim_ik import inverse_kinematics
-    from ptrack.io.trc import write_trc
 
     trc = out_dir / "ik_markers.trc"
     write_trc(trc, markers(run, options.points, "y"))
