@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ptrack.errors import InputError
+from ptrack.io import c3d, mot, trc
 from ptrack.io.run_folder import RunFolder, load_run
 
 
@@ -74,6 +75,9 @@ FORMATS: dict[str, Writer] = {
     "bvh": _bvh,
     "json": _json,
     "csv": _csv,
+    "trc": trc.export_trc,
+    "mot": mot.export_mot,
+    "c3d": c3d.export_c3d,
 }
 
 
