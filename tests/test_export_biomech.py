@@ -280,4 +280,4 @@ def test_readme_export_block_runs_as_written(footage_run, capsys):
         args = [str(footage_run) if a == "RUN_DIR" else str(model) if a == "MODEL.osim" else a for a in argv[1:]]
         assert main(args) == 0, capsys.readouterr().err
     names = sorted(p.name for p in (footage_run / "export").iterdir())
-    assert names == ["result.c3d", "result.mot", "result.trc"]
+    assert names == ["result.bvh", "result.c3d", "result.json", "result.mot", "result.trc"]
