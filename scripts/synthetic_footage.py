@@ -107,12 +107,15 @@ def main() -> None:
 
 
 def score(result: Path, truth: Path, names: tuple[str, ...] | None = None) -> dict[str, float]:
-    """A run's result.npz against truth.npz over the keypoints `names` (default: COCO-17's 12 body points):
-    {mpjpe_mm (the mid-hip aligned), pa_mpjpe_mm, frames}."""
+    """A run's result.npz against truth.npz over the keypoints `names` (default: COCO-17's 12 body points), both in
+    the camera's frame turned Y-up (whatever frame the run reported in): {mpjpe_mm (the mid-hip aligned),
+    pa_mpjpe_mm, frames}."""
     names = names or COCO_17.names[5:]
     with np.load(result) as r, np.load(truth) as t:
         rn, tn = [str(n) for n in r["keypoint_names"]], [str(n) for n in t["keypoint_names"]]
-        est = r["keypoints"][:, [rn.index(n) for n in names]]
+        # the run's keypoints in the truth's frame, the camera's turned Y-up: world -> model -> camera -> turned
+        model = r["keypoints"][:, [rn.index(n) for n in names]] @ r["world_from_model"]
+        est = (model @ r["camera_R"].T.astype(np.float64) + r["camera_t"]) * np.array([1.0, -1.0, -1.0])
         ref = t["keypoints"][r["frames"]][:, [tn.index(n) for n in names]]
     hips = [names.index(n) for n in ("left_hip", "right_hip")]
     rel = (est - est[:, hips].mean(1, keepdims=True)) - (ref - ref[:, hips].mean(1, keepdims=True))

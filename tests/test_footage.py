@@ -18,6 +18,7 @@ from ptrack.body.keypoint_sets import get_keypoint_set
 from ptrack.body.skeleton import Skeleton
 from ptrack.body.subject import (
     CMU_LANDMARK_JOINTS,
+    FLOOR_POINTS,
     SEGMENTS,
     add_landmark_joints,
     rescale_segments,
@@ -122,7 +123,15 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["footage"]["keypoint_set"] == "COCO_17" and metrics["footage"]["tracks"] == 2
     assert metrics["footage"]["camera"].startswith("file ")
-    assert metrics["footage"]["floor_m"] is None  # intrinsics only: no floor known
+    # intrinsics only: up and the floor from the person's feet (a kick in place: its height, not its tilt, which stays
+    # near the camera's image-up; the camera looks 5 degrees down), the second pass's lowest foot points on it
+    footage = metrics["footage"]
+    assert footage["up"] == "person" and footage["ground"]["tilt_deg"] < 10 and footage["ground"]["contacts"] >= 10
+    with np.load(out / "result.npz") as r:
+        joint_names, joints = [str(n) for n in r["joint_names"]], r["joints"]
+    feet = [joint_names.index(n) for n in FLOOR_POINTS if n in joint_names]
+    low = joints[:, feet, 1].min(-1) - footage["floor_m"]
+    assert np.median(low) == pytest.approx(0.0, abs=0.05)  # the clearance (a centimetre or two) and the 2D's noise
     per_kp = metrics["reprojection_error_px_per_keypoint"]
     assert set(per_kp) == set(names) and per_kp["nose"] is None  # the face is never observed (score 0)
     assert 0 < metrics["jitter_mm_per_frame2"] < 100 and set(metrics["foot_skating_mm_per_frame"]) == {

@@ -71,12 +71,13 @@ def focal_source(run: RunFolder) -> tuple[str, str]:
 
 def _frame(run: RunFolder) -> str:
     if run.is_footage:
-        known = (run.metrics.get("footage") or {}).get("up_known")
-        return (
-            "footage: the calibration's world turned so that its up axis is +Y"
-            if known
-            else "footage without a known up axis: the camera's frame turned so that image-up is +Y"
-        )
+        footage = run.metrics.get("footage") or {}
+        up = footage.get("up", "calibration" if footage.get("up_known") else "image")  # up_known: older runs
+        world = "the calibration's world" if footage.get("extrinsics", up == "calibration") else "the camera's frame"
+        return {
+            "calibration": "footage: the calibration's world turned so that its up axis is +Y",
+            "person": f"footage: {world} turned so that the normal of the floor fitted to the feet is +Y",
+        }.get(up, f"footage without a known up axis: {world} turned so that the camera's image-up is +Y")
     return "CMU mocap world (Y up, the capture floor at Y = 0)"
 
 

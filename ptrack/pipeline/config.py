@@ -126,6 +126,11 @@ class CameraConfig:
         "the floor's height along the calibration world's up axis, metres (used when camera.file has extrinsics "
         "and the up axis is known); null: no floor",
     )
+    floor_from_person: bool = setting(
+        True,
+        "when the camera does not say where up is: the floor (its tilt where the feet span it, and its height) "
+        "fitted to a first pass's feet, and the run made again on it (results then Y up along the floor's normal)",
+    )
 
 
 @dataclass(frozen=True)

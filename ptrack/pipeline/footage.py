@@ -89,7 +89,11 @@ class FootageFrame:
     floor_m: float | None = None  # the floor's height along the model's +Y, when the calibration gives it
     lengths: str = "template"  # subject.lengths (asf: the skeleton file's bone lengths)
     fps: float = 30.0  # the input's frames per second (observations.fps, the keypoint file's or the video's)
-    up_known: bool = False  # the world's up axis is known (else the camera's image-up was taken as up)
+    extrinsics: bool = False  # the camera file placed the camera in its world (else the world is the camera's frame)
+    # where up came from: "calibration" (the camera file's world), "person" (the floor under the feet,
+    # `ptrack.estimators.ground`), "image" (the camera's image-up, taken as level)
+    up: str = "image"
+    ground: dict | None = None  # up "person": the floor fit's tilt_deg, contacts, spread_m
 
     def summary(self) -> dict:
         """JSON-ready record for metrics.json."""
@@ -99,7 +103,8 @@ class FootageFrame:
             "camera": self.camera,
             "floor_m": self.floor_m,
             "fps": self.fps,
-            "up_known": self.up_known,
+            "up": self.up,
+            "ground": self.ground,
             "height_m": self.height_m,
             "height_given": self.height_given,
             "person_track": self.track_id,
@@ -274,7 +279,8 @@ def prepare_footage(
         floor_m=floor,
         lengths=cfg.subject.lengths,
         fps=float(fps),
-        up_known=floor_known,
+        extrinsics=cam is not None and cam.has_extrinsics,
+        up="calibration" if floor_known else "image",
     )
     return skeleton, kps, obs, frame
 

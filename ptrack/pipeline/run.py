@@ -715,11 +715,66 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
         return ESTIMATORS[cfg.method](problem, cfg, gen, progress_display(progress, cfg.method))
 
     est = run(prep.problem)
-    if prep.footage is not None and cfg.subject.lengths == "observed" and not cfg.subject.static:
+    if prep.footage is None:
+        return prep, est
+    again = False
+    if cfg.subject.lengths == "observed" and not cfg.subject.static:
         # measure the lengths, then run again (a static trial's lengths are the better measurement)
-        prep = rescale_subject(prep, est)
+        prep, again = rescale_subject(prep, est), True
+    if prep.problem.floor is None and cfg.camera.floor_m is not None and cfg.camera.floor_from_person:
+        leveled = level_to_person(prep, est)  # the floor under the first pass's feet, then run again on it
+        prep, again = leveled or prep, again or leveled is not None
+    if again:
         est = run(prep.problem)
     return prep, est
+
+
+def level_to_person(prep: Prepared, est: Estimate) -> Prepared | None:
+    """Real footage whose camera does not give the up axis: `prep` turned so that +Y is the normal of the floor
+    fitted to the feet of `est` (`ptrack.estimators.ground`), with that floor (`Problem.floor`), or None when the
+    feet do not show it. The model frame turns by G (the smallest rotation taking the normal to +Y): the camera's
+    R becomes R G^T; a calibration world keeps its own frame (world_from_model W G^T), a camera without
+    extrinsics reports the turned frame itself (world_from_model = I)."""
+    from ptrack.body.subject import floor_points
+    from ptrack.estimators.ground import floor_from_feet
+    from ptrack.pipeline.footage import axis_to_y
+
+    f = prep.footage
+    assert f is not None
+    prob = prep.problem
+    joints, clearance = floor_points(prob.skeleton, f.height_m)
+    feet = est.joints.detach().double().cpu().numpy()[:, list(joints)]
+    seen = prep.visible.numpy().any(-1) if prep.visible is not None else np.ones(len(feet), dtype=bool)
+    fit = floor_from_feet(feet[seen], np.array([0.0, 1.0, 0.0]), clearance)
+    if fit is None:
+        log.info("the floor could not be fitted to the feet: the camera's image-up stays up, no floor")
+        return None
+    G = axis_to_y(fit.normal)
+    log.info(
+        "floor from the person: tilted %.1f degrees from the camera's image-up, %.2f m along it (%d frames on it, "
+        "spread %.2f x %.2f m)",
+        fit.tilt_deg,
+        fit.height_m,
+        fit.contacts,
+        *fit.spread_m,
+    )
+    cam = prob.observations.camera
+    Gt = torch.as_tensor(G.T, dtype=cam.R.dtype, device=cam.R.device)
+    camera = dataclasses.replace(cam, R=cam.R @ Gt)
+    ground = {"tilt_deg": fit.tilt_deg, "contacts": fit.contacts, "spread_m": [float(v) for v in fit.spread_m]}
+    footage = dataclasses.replace(
+        f,
+        floor_m=fit.height_m,
+        world_from_model=f.world_from_model @ G.T if f.extrinsics else f.world_from_model,
+        up="person",
+        ground=ground,
+    )
+    problem = dataclasses.replace(
+        prob,
+        observations=dataclasses.replace(prob.observations, camera=camera),
+        floor=Floor(fit.height_m, joints, clearance),
+    )
+    return dataclasses.replace(prep, problem=problem, footage=footage)
 
 
 #: the segments `subject.lengths: observed` measures in the 2D
