@@ -240,10 +240,10 @@ class Ray:
             check_reachable(address)
         try:
             if address:
-                ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+                ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
             else:
                 ray.init(
-                    num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING
+                    num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR
                 )
         except (ConnectionError, RuntimeError, ValueError) as e:
             ray.shutdown()
