@@ -238,6 +238,7 @@ class Ray:
         ray = import_ray()
         if address and address != "auto" and not address.startswith("ray://"):
             check_reachable(address)
+        handlers = _python_handlers()
         try:
             if address:
                 ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
@@ -249,12 +250,19 @@ class Ray:
             ray.shutdown()
             where = f"at {address}" if address else "(a local runtime)"
             raise InputError(f"cannot start or join the Ray cluster {where}: {one_line(e)}") from None
+        finally:
+            _restore(handlers)
         self.ray = ray
 
     def map(self, items: Sequence[Item], run: RunFn, report: ReportFn, progress: bool | None = False) -> None:
         ray = self.ray
         task = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
         refs = {task.remote(run, item): i for i, item in enumerate(items)}
+        raised: list[BaseException] = []  # what this process's signal handlers raised (Ray's wait swallows it)
+        handlers = _python_handlers()
+        for signum, handler in handlers.items():
+            if callable(handler):
+                signal.signal(signum, _recording(handler, raised))
         try:
             while refs:
                 done, _ = ray.wait(list(refs), num_returns=1)
@@ -266,13 +274,52 @@ class Ray:
                         outcome = f"Ray task failed: {_first_line(e)}"
                         _remove_partial(items[i])
                     report(i, outcome)
-        except BaseException:
+        except BaseException:  # Ctrl-C, SIGTERM: stop the tasks, a local runtime, and remove what they left
             for ref in refs:
                 ray.cancel(ref, force=True)
+            ray.shutdown()
+            for i in refs.values():
+                _remove_partial(items[i])
+            if raised and sys.exc_info()[1] is not raised[0]:
+                raise raised[0] from None  # the command line's Terminated, not Ray's KeyboardInterrupt
             raise
+        finally:
+            _restore(handlers)
 
     def close(self) -> None:
         self.ray.shutdown()
+
+
+def _python_handlers() -> dict[int, Any]:
+    """This process's Python handlers of SIGINT, SIGTERM and SIGHUP (the main thread's to set)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    wanted = [getattr(signal, s) for s in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, s)]
+    return {int(s): signal.getsignal(s) for s in wanted}
+
+
+def _restore(handlers: dict[int, Any]) -> None:
+    """Put `handlers` back: ray.init installs its own for SIGTERM (it aborts the process, leaving the runtime and
+    the half-written folders), where the command line's raises `Terminated` and cleans up."""
+    for signum, handler in handlers.items():
+        if handler is not None:
+            signal.signal(signum, handler)
+
+
+def _recording(handler: Callable, raised: list[BaseException]) -> Callable:
+    """`handler`, keeping in `raised` what it raises: Ray's wait turns an exception raised by a signal handler
+    into a plain KeyboardInterrupt (the command line tells SIGTERM from Ctrl-C by its exception)."""
+
+    def record(signum: int, frame: Any) -> None:
+        try:
+            handler(signum, frame)
+        except BaseException as e:
+            raised.append(e)
+            raise
+
+    return record
 
 
 def _first_line(e: BaseException) -> str:
