@@ -54,7 +54,7 @@ log = logging.getLogger(__name__)
 #: a run's outcome: its metrics.json (a dict), or the one-line message of what stopped it
 Outcome = dict | str
 EXECUTORS = ("local", "ray")
-RAY_CONNECT_S = 5.0  # how long to wait for a Ray cluster's address to answer before calling it unreachable
+RAY_CONNECT_S = 3.0  # how long to wait for a Ray cluster's address to answer before calling it unreachable
 
 
 @dataclass(frozen=True)
@@ -241,7 +241,8 @@ class Ray:
         handlers = _python_handlers()
         try:
             if address:
-                ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
+                with _quiet_stderr(), _env(RAY_gcs_server_port_wait_time_s=str(int(RAY_CONNECT_S))):
+                    ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
             else:
                 ray.init(
                     num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR
@@ -288,6 +289,39 @@ class Ray:
 
     def close(self) -> None:
         self.ray.shutdown()
+
+
+@contextmanager
+def _env(**values: str) -> Iterator[None]:
+    """Environment variables set inside the block, unless the user set them (then theirs stay)."""
+    added = [k for k in values if k not in os.environ]
+    os.environ.update({k: values[k] for k in added})
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
+
+
+@contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """File descriptor 2 into a temporary file inside the block, its text then logged at DEBUG: Ray's C++ client
+    writes a warning a second while it looks for a cluster (the error that follows says it in one line)."""
+    import tempfile
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            text = tmp.read().decode(errors="replace").strip()
+            if text:
+                log.debug("Ray: %s", text)
 
 
 def _python_handlers() -> dict[int, Any]:
