@@ -142,9 +142,8 @@ def main() -> None:
     print(f"load average before: {os.getloadavg()[0]:.2f}")
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        clips = [
-            ln.split("#")[0].strip() for ln in DEV.read_text().splitlines() if ln.split("#")[0].strip()
-        ][: args.clips]
+        listed = [ln.split("#")[0].strip() for ln in DEV.read_text().splitlines()]
+        clips = [c for c in listed if c][: args.clips]
         listing = root / "clips.txt"
         listing.write_text("".join(f"{(DEV.parent / c).resolve()}\n" for c in clips))
         over = [*CHEAP, f"data.stop={args.stop}"]
@@ -172,13 +171,14 @@ def main() -> None:
         print(f"\n(b) {args.items} items of 10 frames (10_02, one seed each)")
         for executor, workers in executors:
             out = root / f"b-{executor}"
-            seconds, peak, summary = run(str(manifest), out, over, workers, executor)
+            seconds, peak, _ = run(str(manifest), out, over, workers, executor)
             per_item = seconds * workers / args.items
             own = run_seconds(out) / args.items
             print(
                 f"{executor} --workers {workers}: {args.items / seconds:.2f} items/s ({seconds:.1f} s), "
                 f"{per_item:.2f} s of a worker per item of which the run's own {own:.2f} s "
-                f"(the rest, {per_item - own:.2f} s: loading, metrics, writing the folder, the engine); peak memory {peak / 2**20:.0f} MiB"
+                f"(the rest, {per_item - own:.2f} s: loading, metrics, writing the folder, the engine); "
+                f"peak memory {peak / 2**20:.0f} MiB"
             )
     print(f"\nload average after: {os.getloadavg()[0]:.2f}")
 

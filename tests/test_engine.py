@@ -147,7 +147,11 @@ def test_resume_skips_complete_runs_and_redoes_half_written_ones(tmp_path):
     summary = batch(EVAL, str(clips / "*.amc"), out, QUICK, workers=1, resume=True)
     assert (summary.done, summary.skipped, summary.failed) == (2, 1, 0)
     assert (out / "10_02" / "metrics.json").stat().st_mtime_ns == done  # not run again
-    assert [(r["name"], r["state"]) for r in _status(out)] == [("10_02", "skipped"), ("10_03", "done"), ("10_04", "done")]
+    assert [(r["name"], r["state"]) for r in _status(out)] == [
+        ("10_02", "skipped"),
+        ("10_03", "done"),
+        ("10_04", "done"),
+    ]
     for name in ("10_03", "10_04"):
         assert (out / name / "result.npz").is_file()
     assert not partial.exists()
@@ -191,7 +195,9 @@ def test_ray_local_runtime_gives_the_serial_numbers(tmp_path):
     clips = _clips(tmp_path / "clips")
     one, ray = tmp_path / "one", tmp_path / "ray"
     batch(EVAL, str(clips / "*.amc"), one, [*QUICK, "data.start=50", "data.stop=74"], workers=1)
-    summary = batch(EVAL, str(clips / "*.amc"), ray, [*QUICK, "data.start=50", "data.stop=74"], workers=2, executor="ray")
+    summary = batch(
+        EVAL, str(clips / "*.amc"), ray, [*QUICK, "data.start=50", "data.stop=74"], workers=2, executor="ray"
+    )
     assert (summary.done, summary.failed) == (2, 0)
     _close(_metrics(one), _metrics(ray))
     assert all((ray / n / "result.npz").is_file() for n in ("10_02", "10_03"))
@@ -235,7 +241,10 @@ def test_executor_ray_without_ray_installed(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
     clips = _clips(tmp_path / "clips")
     out = tmp_path / "out"
-    assert main(["batch", str(EVAL), *QUICK, "--inputs", str(clips / "*.amc"), "--out", str(out), "--executor", "ray"]) == 2
+    assert (
+        main(["batch", str(EVAL), *QUICK, "--inputs", str(clips / "*.amc"), "--out", str(out), "--executor", "ray"])
+        == 2
+    )
     assert capsys.readouterr().err == 'ptrack: error: --executor ray needs Ray: pip install -e ".[ray]"\n'
     assert not out.exists()
 
@@ -275,6 +284,6 @@ def test_progress_lines_count_done_failed_and_left(caplog):
         bar.finished("b", failed=True)
         bar.close()
     assert [r.getMessage() for r in caplog.records] == [
-        "item 1 of 4 done: a, 3 left, about 30 s left",
-        "item 2 of 4 failed: b, 1 failed, 2 left, about 20 s left",
+        "item 1 of 4 done: a, 3 left, about 00:30 left",
+        "item 2 of 4 failed: b, 1 failed, 2 left, about 00:20 left",
     ]

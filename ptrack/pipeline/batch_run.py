@@ -193,7 +193,9 @@ def parse_sets(specs: Sequence[str]) -> list[tuple[str, ...]]:
 
 def _split_top(text: str) -> list[str]:
     """Split at commas outside brackets and quotes."""
-    parts, depth, quote, cur = [], 0, "", []
+    parts: list[str] = []
+    cur: list[str] = []
+    depth, quote = 0, ""
     for ch in text:
         if quote:
             quote = "" if ch == quote else quote

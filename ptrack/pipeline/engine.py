@@ -41,7 +41,7 @@ import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
@@ -89,7 +89,7 @@ def run_item(item: Item, progress: bool | None = False) -> Outcome:
         return json.loads((done / "metrics.json").read_text(encoding="utf-8"))
     except (InputError, EstimationError, OSError) as e:
         return one_line(e)
-    except Exception as e:  # noqa: BLE001  # the item fails, the sweep goes on
+    except Exception as e:  # the item fails, the sweep goes on
         log.error("%s: unexpected %s", item.name, type(e).__name__, exc_info=True)
         return f"{type(e).__name__}: {one_line(e)}"
 
@@ -190,10 +190,8 @@ class _Worker:
         return f"exit status {code}"
 
     def stop(self) -> None:
-        try:
+        with suppress(OSError):
             self.conn.send(None)
-        except OSError:
-            pass
         self.process.join(timeout=10)
         if self.process.is_alive():
             self.process.terminate()
@@ -244,9 +242,7 @@ class Ray:
                 with _quiet_stderr(), _env(RAY_gcs_server_port_wait_time_s=str(int(RAY_CONNECT_S))):
                     ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
             else:
-                ray.init(
-                    num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR
-                )
+                ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
         except (ConnectionError, RuntimeError, ValueError) as e:
             ray.shutdown()
             where = f"at {address}" if address else "(a local runtime)"
@@ -474,14 +470,15 @@ class Progress:
             self.bar = tqdm(total=total, desc=f"{unit}s", unit=unit)
 
     def _left(self) -> str:
-        """", 1 failed, 7 left, about 3 min left" (the failures only if any, the time once an item is done)."""
-        from ptrack.pipeline.run import _duration
+        """The end of a line: ", 1 failed, 7 left, about 03:20 left" (the failures only if any, the time once an
+        item is done)."""
+        from tqdm import tqdm
 
         parts = [f"{self.failed} failed"] if self.failed else []
         left = self.total - self.count
         parts.append(f"{left} left")
         if self.count and left:
-            parts.append(f"about {_duration(left * (self.clock() - self.start) / self.count)} left")
+            parts.append(f"about {tqdm.format_interval(left * (self.clock() - self.start) / self.count)} left")
         return ", " + ", ".join(parts)
 
     def started(self, i: int, name: str) -> None:

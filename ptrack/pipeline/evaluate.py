@@ -11,9 +11,10 @@ each clip's row is then the mean over its seeds, a second table gives each seed'
 {seed: metrics}}}.
 
 The runs are items of the batch engine (`ptrack.pipeline.engine`, which `ptrack batch` shares): with
-`jobs` > 1 (`--jobs N`) that many runs go at once, each in a worker process on one intra-op thread. Every run is seeded by its own config and the trackers and `method: batch` run on one thread either
-way, so their results are those of the runs made one after another (`frame` and `pca` use torch's threads
-when run in this process: their sums may round differently).
+`jobs` > 1 (`--jobs N`) that many runs go at once, each in a worker process on one intra-op thread. Every
+run is seeded by its own config and the trackers and `method: batch` run on one thread either way, so their
+results are those of the runs made one after another (`frame` and `pca` use torch's threads when run in
+this process: their sums may round differently).
 """
 
 from __future__ import annotations
