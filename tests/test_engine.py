@@ -287,3 +287,34 @@ def test_progress_lines_count_done_failed_and_left(caplog):
         "item 1 of 4 done: a, 3 left, about 00:30 left",
         "item 2 of 4 failed: b, 1 failed, 2 left, about 00:20 left",
     ]
+
+
+def test_real_keypoint_inputs_from_a_manifest(tmp_path):
+    """Keypoint folders (observations.file) with per-row camera and subject settings from a manifest, one of them
+    a corrupt keypoint file: the folder runs, the corrupt file is a failed row naming it."""
+    from keypoint_fixtures import SHIPPED_FRAMES
+
+    shutil.copytree(SHIPPED_FRAMES, tmp_path / "take01")
+    (tmp_path / "take02.json").write_text("{not json")
+    manifest = tmp_path / "takes.csv"
+    manifest.write_text(
+        "input,subject.height_m,camera.width,camera.height\ntake01,1.75,1920,1080\ntake02.json,1.6,1920,1080\n"
+    )
+    over = ["method=frame", "observations.fps=30", "subject.lengths=template", "progress=false"]
+    over += ["frame.iterations=3", "frame.first_iterations=5"]
+    summary = batch(REPO / "configs" / "video.yaml", str(manifest), tmp_path / "out", over, workers=1)
+    assert (summary.done, summary.failed) == (1, 1)
+    status = _status(tmp_path / "out")
+    assert [(r["name"], r["state"]) for r in status] == [("take01", "done"), ("take02", "failed")]
+    assert "take02.json" in status[1]["error"]
+    cfg = (tmp_path / "out" / "take01" / "config.yaml").read_text()
+    assert "height_m: 1.75" in cfg and f"file: {tmp_path / 'take01'}" in cfg
+
+
+def test_input_kinds(tmp_path):
+    from ptrack.pipeline.batch_run import input_overrides
+
+    assert input_overrides(tmp_path / "a.MP4") == (f"observations.video={tmp_path / 'a.MP4'}",)
+    assert input_overrides(tmp_path / "pose") == (f"observations.file={tmp_path / 'pose'}",)
+    clips = _clips(tmp_path / "clips")
+    assert input_overrides(clips / "10_02.amc") == (f"data.amc={clips / '10_02.amc'}", f"data.asf={clips / '10.asf'}")
