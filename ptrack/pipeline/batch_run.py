@@ -16,7 +16,8 @@ Output, in `--out`:
                              unique with -2, -3, ...); with --set, under one folder per setting,
                              `<key>=<value>[+<key>=<value>...]/<name>/`
     status.csv               every item: name, input, setting, state (pending, done, failed, skipped), seconds
-                             (the estimation's), error, run_dir; rewritten atomically as each item finishes
+                             (the item's wall time, load and writing included), error, run_dir; rewritten
+                             atomically as each item finishes
     results.md               per setting, a table of the inputs' metrics (failed rows with their error) and the
                              counts of done, skipped and failed items
     results.json             {"counts": {...}, "settings": {setting: {name: metrics or error}}} (setting "" without
@@ -36,6 +37,7 @@ import io
 import itertools
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -334,7 +336,7 @@ def batch(
             run_dir = Path(item.run_dir)
             if resume and is_complete(run_dir):
                 outcomes[i] = json.loads((run_dir / "metrics.json").read_text(encoding="utf-8"))
-                _mark(status[i], "skipped", outcomes[i])
+                _mark(status[i], "skipped", outcomes[i], math.nan)
             else:
                 if run_dir.exists():  # half-written (files missing): redone
                     log.info("%s is incomplete: running it again", run_dir)
@@ -345,10 +347,10 @@ def batch(
         if resume and len(todo) < len(items) and show:
             log.info("resuming %s: %d of %d items complete, skipped", out_dir, len(items) - len(todo), len(items))
 
-        def finished(k: int, outcome: Outcome) -> None:
+        def finished(k: int, outcome: Outcome, seconds: float) -> None:
             i = todo[k]
             outcomes[i] = outcome
-            _mark(status[i], "failed" if isinstance(outcome, str) else "done", outcome)
+            _mark(status[i], "failed" if isinstance(outcome, str) else "done", outcome, seconds)
             write_atomic(status_path, status_csv(status))
 
         bar = Progress(show, len(todo), "item", log)
@@ -359,14 +361,12 @@ def batch(
     return _summary(out_dir, settings, names, configs, outcomes, status)
 
 
-def _mark(row: dict, state: str, outcome: Outcome | None) -> None:
+def _mark(row: dict, state: str, outcome: Outcome | None, seconds: float) -> None:
+    """A status row's state, seconds (the item's wall time where it ran, load and writing included; empty when
+    not measured) and error."""
     row["state"] = state
-    if isinstance(outcome, dict):
-        row["seconds"] = f"{outcome.get('seconds', float('nan')):.1f}"
-        row["error"] = ""
-    elif isinstance(outcome, str):
-        row["seconds"] = ""
-        row["error"] = outcome
+    row["seconds"] = "" if math.isnan(seconds) else f"{seconds:.1f}"
+    row["error"] = outcome if isinstance(outcome, str) else ""
 
 
 def _summary(

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import multiprocessing
 import os
 import signal
@@ -97,8 +98,15 @@ def run_item(item: Item, progress: bool | None = False) -> Outcome:
 #: the per-item function an executor calls: (item, progress) -> outcome (a module-level function: it is sent
 #: by name to worker processes and Ray tasks)
 RunFn = Callable[[Item, "bool | None"], Outcome]
-#: called in this process as each item finishes: (index, outcome)
-ReportFn = Callable[[int, Outcome], None]
+#: called in this process as each item finishes: (index, outcome, seconds the item took where it ran)
+ReportFn = Callable[[int, Outcome, float], None]
+
+
+def timed(run: RunFn, item: Item, progress: bool | None) -> tuple[Outcome, float]:
+    """(run(item, progress), its wall seconds)."""
+    t0 = time.perf_counter()
+    outcome = run(item, progress)
+    return outcome, time.perf_counter() - t0
 
 
 # ---------------------------------------------------------------- executors
@@ -111,7 +119,7 @@ class Serial:
 
     def map(self, items: Sequence[Item], run: RunFn, report: ReportFn, progress: bool | None = False) -> None:
         for i, item in enumerate(items):
-            report(i, run(item, progress))
+            report(i, *timed(run, item, progress))
 
 
 class Local:
@@ -125,23 +133,28 @@ class Local:
     def map(self, items: Sequence[Item], run: RunFn, report: ReportFn, progress: bool | None = False) -> None:
         pending = deque(range(len(items)))
         busy: dict[_Worker, int] = {}
+        sent: dict[int, float] = {}  # when each item went to its worker
         try:
             while pending or busy:
                 while pending and len(busy) < self.workers:
                     worker = self.idle.pop() if self.idle else _Worker(self.ctx, run)
                     i = pending.popleft()
                     busy[worker] = i  # before sending: an interruption now stops it too
+                    sent[i] = time.perf_counter()
                     worker.conn.send((i, items[i]))
                 ready = set(wait([w.conn for w in busy] + [w.process.sentinel for w in busy]))
                 for worker in [w for w in busy if w.conn in ready or w.process.sentinel in ready]:
                     i = busy.pop(worker)
-                    outcome = worker.outcome()
-                    if outcome is None:  # it died inside the item
-                        outcome = f"worker process died ({worker.death()}) while running it"
+                    answer = worker.answer()
+                    if answer is None:  # it died inside the item
+                        answer = (
+                            f"worker process died ({worker.death()}) while running it",
+                            time.perf_counter() - sent[i],
+                        )
                         _remove_partial(items[i])
                     else:
                         self.idle.append(worker)
-                    report(i, outcome)
+                    report(i, *answer)
         except BaseException:
             for worker in [*busy, *self.idle]:
                 worker.process.terminate()
@@ -169,12 +182,12 @@ class _Worker:
         self.process.start()
         theirs.close()
 
-    def outcome(self) -> Outcome | None:
-        """The answer to the item it was sent, or None when it died first."""
+    def answer(self) -> tuple[Outcome, float] | None:
+        """(outcome, seconds) of the item it was sent, or None when it died first."""
         try:
             if self.conn.poll():
-                _, outcome = self.conn.recv()
-                return outcome
+                _, answer = self.conn.recv()
+                return answer
         except (EOFError, OSError):
             pass
         return None
@@ -216,7 +229,7 @@ def _worker_main(conn: Connection, run: RunFn) -> None:
         if task is None:
             return
         i, item = task
-        conn.send((i, run(item, False)))
+        conn.send((i, timed(run, item, False)))
 
 
 def _remove_partial(item: Item) -> None:
@@ -266,11 +279,11 @@ class Ray:
                 for ref in done:
                     i = refs.pop(ref)
                     try:
-                        outcome = ray.get(ref)
+                        outcome, seconds = ray.get(ref)
                     except ray.exceptions.RayError as e:  # its worker died (killed, out of memory), ...
-                        outcome = f"Ray task failed: {_first_line(e)}"
+                        outcome, seconds = f"Ray task failed: {_first_line(e)}", math.nan
                         _remove_partial(items[i])
-                    report(i, outcome)
+                    report(i, outcome, seconds)
         except BaseException:  # Ctrl-C, SIGTERM: stop the tasks, a local runtime, and remove what they left
             for ref in refs:
                 ray.cancel(ref, force=True)
@@ -358,12 +371,12 @@ def _first_line(e: BaseException) -> str:
     return (lines[0] if lines else type(e).__name__)[:300]
 
 
-def _ray_task(run: RunFn, item: Item) -> Outcome:
-    """A Ray task: the item on one intra-op thread."""
+def _ray_task(run: RunFn, item: Item) -> tuple[Outcome, float]:
+    """A Ray task: the item on one intra-op thread -> (outcome, seconds)."""
     import torch
 
     torch.set_num_threads(1)
-    return run(item, False)
+    return timed(run, item, False)
 
 
 def import_ray() -> Any:
@@ -427,18 +440,18 @@ def run_items(
     through it). run_progress: each run's own progress (serial executor only)."""
     outcomes: list[Outcome] = ["not run"] * len(items)
 
-    def finished(i: int, outcome: Outcome) -> None:
+    def finished(i: int, outcome: Outcome, seconds: float) -> None:
         outcomes[i] = outcome
         if isinstance(outcome, str):
             progress.log.warning("%s failed: %s", items[i].name, outcome)
         if report is not None:
-            report(i, outcome)
+            report(i, outcome, seconds)
         progress.finished(items[i].name, isinstance(outcome, str), line=not isinstance(executor, Serial))
 
     if isinstance(executor, Serial):
 
-        def started(i: int, outcome: Outcome) -> None:
-            finished(i, outcome)
+        def started(i: int, outcome: Outcome, seconds: float) -> None:
+            finished(i, outcome, seconds)
             if i + 1 < len(items):
                 progress.started(i + 1, items[i + 1].name)
 
