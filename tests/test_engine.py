@@ -178,14 +178,21 @@ def _dies_on_10_03(item: Item, progress: bool | None) -> dict | str:
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="SIGKILL is POSIX")
-def test_a_worker_killed_inside_an_item_costs_that_item_only(tmp_path):
+@pytest.mark.parametrize("executor", ["local", "ray"])
+def test_a_worker_killed_inside_an_item_costs_that_item_only(tmp_path, executor):
+    if executor == "ray":
+        ray = pytest.importorskip("ray", reason="the ray extra is not installed")
+        ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # Ray's workers cannot import this file
     clips = _clips(tmp_path / "clips", ("10_02", "10_03", "10_04"))
     out = tmp_path / "out"
-    summary = batch(EVAL, str(clips / "*.amc"), out, QUICK, workers=2, progress=False, run=_dies_on_10_03)
+    summary = batch(
+        EVAL, str(clips / "*.amc"), out, QUICK, workers=2, executor=executor, progress=False, run=_dies_on_10_03
+    )
     assert (summary.done, summary.failed) == (2, 1)
     status = {r["name"]: r for r in _status(out)}
     assert status["10_03"]["state"] == "failed"
-    assert status["10_03"]["error"].startswith("worker process died (killed by SIGKILL")
+    died = "worker process died (killed by SIGKILL" if executor == "local" else "Ray task failed: "
+    assert status["10_03"]["error"].startswith(died), status["10_03"]["error"]
     assert status["10_02"]["state"] == status["10_04"]["state"] == "done"
     assert sorted(p.name for p in out.iterdir()) == ["10_02", "10_04", "results.json", "results.md", "status.csv"]
 
