@@ -1,6 +1,6 @@
 """Benchmark: the batch engine (`ptrack batch`) serial, in local worker processes and on a local Ray runtime.
 
-    python scripts/bench_batch_engine.py [--workers 2] [--stop 120] [--clips 8] [--items 100] [--no-ray]
+    python scripts/bench_batch_engine.py [--workers 2] [--stop 240] [--clips 8] [--items 60] [--no-ray]
 
 (a) The dev clips (configs/clips/dev.txt, the first `--clips`) under configs/eval_frame.yaml, AMC frames 0..`--stop`:
     serial (`--workers 1`, in this process), `--workers N` and `--executor ray` (a local runtime of N CPUs). Printed:
@@ -132,9 +132,9 @@ def run_seconds(out: Path) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--workers", type=int, default=2, help="local workers, and the local Ray runtime's CPUs")
-    ap.add_argument("--stop", type=int, default=120, help="(a): AMC frames 0..stop of each dev clip (120: 30 frames)")
+    ap.add_argument("--stop", type=int, default=240, help="(a): AMC frames 0..stop of each dev clip (240: 60 frames)")
     ap.add_argument("--clips", type=int, default=8, help="(a): the first this many dev clips")
-    ap.add_argument("--items", type=int, default=100, help="(b): items of 10 frames each (the issue's figure: 1000)")
+    ap.add_argument("--items", type=int, default=60, help="(b): items of 10 frames each (the issue's figure: 1000)")
     ap.add_argument("--no-ray", action="store_true", help="leave Ray out")
     args = ap.parse_args()
     executors = [("local", args.workers)] + ([] if args.no_ray else [("ray", args.workers)])
