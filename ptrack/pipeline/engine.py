@@ -137,7 +137,7 @@ class Local:
         try:
             while pending or busy:
                 while pending and len(busy) < self.workers:
-                    worker = self.idle.pop() if self.idle else _Worker(self.ctx, run)
+                    worker = self._idle_worker() or _Worker(self.ctx, run)
                     i = pending.popleft()
                     busy[worker] = i  # before sending: an interruption now stops it too
                     sent[i] = time.perf_counter()
@@ -165,6 +165,16 @@ class Local:
             for i in busy.values():
                 _remove_partial(items[i])
             raise
+
+    def _idle_worker(self) -> _Worker | None:
+        """An idle worker still alive (one that died between items is let go), or None."""
+        while self.idle:
+            worker = self.idle.pop()
+            if worker.process.is_alive():
+                return worker
+            worker.process.join()
+            worker.conn.close()
+        return None
 
     def close(self) -> None:
         """Let the idle workers end (those still busy were stopped by `map`)."""
