@@ -63,6 +63,29 @@ def _parser() -> argparse.ArgumentParser:
     )
     e.add_argument("--quiet", action="store_true", help="no progress (bar on a terminal, one line per clip elsewhere)")
     e.add_argument("--json", action="store_true", help="print results.json on stdout instead of the table's path")
+    b = sub.add_parser("batch", help="run a config over many inputs (keypoint files, videos), resumable, local or Ray")
+    b.add_argument("config", help="YAML run config, e.g. configs/video.yaml")
+    b.add_argument("overrides", nargs="*", help="dotted.key=value overrides applied to every input")
+    b.add_argument(
+        "--inputs",
+        required=True,
+        help="a comma-separated list, a .txt list, a glob ('videos/*.mp4') or a CSV manifest (an `input` column, "
+        "other columns config keys overriding per row)",
+    )
+    b.add_argument("--out", required=True, help="output folder: one run folder per input, status.csv, results.md")
+    b.add_argument("--workers", type=int, default=None, help="runs at once (default: the number of cores)")
+    b.add_argument("--executor", default="local", help="local (worker processes, default) or ray")
+    b.add_argument("--ray-address", default=None, help="with --executor ray: auto or HOST:PORT (default: a local Ray)")
+    b.add_argument("--resume", action="store_true", help="continue --out: skip the complete runs, redo the others")
+    b.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=V1,V2",
+        help="run every value (repeatable: the cross product), each setting in its own sub-folder",
+    )
+    b.add_argument("--quiet", action="store_true", help="no progress (bar on a terminal, one line per item elsewhere)")
+    b.add_argument("--json", action="store_true", help="print results.json on stdout instead of the table's path")
     c = sub.add_parser("compare", help="two evaluations seed by seed: means, differences with their spread, wins")
     c.add_argument("a", help="a `ptrack evaluate` folder (or its results.json)")
     c.add_argument("b", help="another, on the same clips and seeds")
@@ -230,6 +253,25 @@ def _main(args: argparse.Namespace) -> int:
             )
             json_path = table.with_name("results.json")
             print(json_path.read_text() if args.json else table, end="" if args.json else "\n", flush=True)
+        elif args.command == "batch":
+            from ptrack.pipeline.batch_run import batch
+
+            logging.getLogger("ptrack.pipeline.batch_run").setLevel(logging.INFO)  # its one line per item
+            summary = batch(
+                args.config,
+                args.inputs,
+                args.out,
+                args.overrides,
+                workers=args.workers,
+                executor=args.executor,
+                ray_address=args.ray_address,
+                resume=args.resume,
+                sets=args.set,
+                progress=False if args.quiet else None,
+            )
+            json_path = summary.table.with_name("results.json")
+            print(json_path.read_text() if args.json else summary.table, end="" if args.json else "\n", flush=True)
+            return 1 if summary.failed else 0
         elif args.command == "compare":
             from ptrack.pipeline.compare import as_json, compare, load_runs, markdown
 

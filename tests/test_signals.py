@@ -286,3 +286,34 @@ def test_an_ignored_hangup_stays_ignored_and_handlers_are_restored(monkeypatch):
         assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN and signal.getsignal(signal.SIGTERM) is old_term
     finally:
         signal.signal(signal.SIGHUP, old_hup)
+
+
+@pytest.mark.parametrize("executor", ["local", "ray"])
+def test_sigterm_stops_every_batch_worker(tmp_path, executor):
+    """`kill PID` of `ptrack batch --workers 2` (local worker processes, or a local Ray runtime) while items run:
+    status 143, every process it started ends (Ray's too), nothing half-written is left, and status.csv still
+    lists every item (the finished ones done, the others pending)."""
+    if executor == "ray":
+        pytest.importorskip("ray", reason="the ray extra is not installed")
+    clips = tmp_path / "clips"
+    clips.mkdir()
+    (clips / "10.asf").write_bytes((REPO / "ptrack" / "data" / "10.asf").read_bytes())
+    for k in range(6):
+        (clips / f"10_0{k}.amc").write_bytes(AMC.read_bytes())
+    out, log = tmp_path / "out", tmp_path / "stderr.txt"
+    args = ["batch", str(EVAL), *QUICK, "--inputs", str(clips / "*.amc"), "--out", str(out), "--workers", "2"]
+    proc = _start([*args, "--executor", executor], log)
+    children: dict[int, str] = {}
+    try:
+        _wait_for("worker inside a run", lambda: any(out.glob(".*.partial")), proc, log)
+        children = _descendants(proc.pid)
+        assert len(children) >= 2  # the two workers (and with Ray its runtime's processes)
+        _terminated(proc, log)
+        assert _all_gone(children) == []
+        assert _hidden(out) == []
+        states = [line.split(",")[3] for line in (out / "status.csv").read_text().splitlines()[1:]]
+        assert len(states) == 6 and set(states) <= {"done", "pending"} and "pending" in states
+        assert not (out / "results.md").exists()
+    finally:
+        proc.kill()
+        _kill_left(children)

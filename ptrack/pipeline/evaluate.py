@@ -10,10 +10,11 @@ each clip's row is then the mean over its seeds, a second table gives each seed'
 (the spread a single seed hides), and results.json holds {"clips": {clip: mean}, "runs": {clip:
 {seed: metrics}}}.
 
-With `jobs` > 1 (`--jobs N`) that many runs go at once, each in its own worker process on one intra-op
-thread. Every run is seeded by its own config and the trackers and `method: batch` run on one thread either
-way, so their results are those of the runs made one after another (`frame` and `pca` use torch's threads
-when run in this process: their sums may round differently).
+The runs are items of the batch engine (`ptrack.pipeline.engine`, which `ptrack batch` shares): with
+`jobs` > 1 (`--jobs N`) that many runs go at once, each in a worker process on one intra-op thread. Every
+run is seeded by its own config and the trackers and `method: batch` run on one thread either way, so their
+results are those of the runs made one after another (`frame` and `pca` use torch's threads when run in
+this process: their sums may round differently).
 """
 
 from __future__ import annotations
@@ -21,17 +22,16 @@ from __future__ import annotations
 import json
 import logging
 import math
-import multiprocessing
-import sys
 from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
 
 from ptrack.body.acclaim import parse_clips, skeleton_beside
-from ptrack.errors import EstimationError, InputError, log_to_stderr
+from ptrack.errors import InputError
 from ptrack.pipeline.compare import is_number
 from ptrack.pipeline.config import load_config, parse_override
-from ptrack.pipeline.run import execute, json_safe, remove_partial
+from ptrack.pipeline.engine import Item, Progress, check_workers, open_executor, run_items
+from ptrack.pipeline.run import json_safe
 
 log = logging.getLogger(__name__)
 
@@ -103,8 +103,7 @@ def evaluate(
     twice = sorted({x for x in stems if stems.count(x) > 1})
     if twice:  # each clip's runs go to <out>/<clip name>/
         raise InputError(f"--clips names {', '.join(twice)} more than once (clips are told apart by file name)")
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
-        raise InputError(f"--jobs must be a whole number >= 1, got {jobs!r}")
+    check_workers(jobs, "--jobs")
     base = load_config(config, overrides)  # validates the config once, before any run
     if seeds is not None:
         if not seeds:
@@ -119,23 +118,19 @@ def evaluate(
     show = base.progress if progress is None else progress
     unit = "clip" if seeds is None else "run"
 
-    def overrides_of(amc: Path, seed: int | None) -> list[str]:
+    def item(amc: Path, seed: int | None) -> Item:
         run_dir = out_dir / amc.stem if seed is None else out_dir / amc.stem / f"seed-{seed}"
         seed_over = [] if seed is None else [f"seed={seed}"]
-        return [*overrides, *seed_over, f"data.amc={amc}", f"data.asf={asf_for(amc)}", f"out_dir={run_dir.resolve()}"]
+        over = (*overrides, *seed_over, f"data.amc={amc}", f"data.asf={asf_for(amc)}")
+        return Item(_name(amc, seed), str(config), over, str(run_dir.resolve()))
 
-    tasks = [(str(config), overrides_of(amc, seed)) for amc, seed in jobs_list]
-    names = [_name(amc, seed) for amc, seed in jobs_list]
-    bar = _Progress(show, len(jobs_list), unit)
-    if jobs == 1:
-        outcomes = []
-        for i, (task, name) in enumerate(zip(tasks, names)):
-            bar.started(i, name)
-            outcomes.append(_reported(name, run_one(*task, progress)))
-            bar.done()
-    else:
-        outcomes = _in_workers(jobs, tasks, names, bar, out_dir)
-    bar.close()
+    items = [item(amc, seed) for amc, seed in jobs_list]
+    bar = Progress(show, len(items), unit, log)
+    try:
+        with open_executor("local", jobs) as executor:
+            outcomes = run_items(items, executor, bar, run_progress=progress)
+    finally:
+        bar.close()
     for (amc, seed), outcome in zip(jobs_list, outcomes):
         runs[amc.stem][seed] = outcome
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -166,106 +161,8 @@ def evaluate(
     return table
 
 
-def run_one(config: str, overrides: list[str], progress: bool | None) -> dict | str:
-    """One run of an evaluation: its metrics.json, or the message of the user error or estimation failure
-    that stopped it (any other exception propagates)."""
-    try:
-        done = execute(load_config(config, overrides), progress=progress)
-        return json.loads((done / "metrics.json").read_text())
-    except (InputError, EstimationError) as e:
-        return str(e)
-
-
-def _in_workers(
-    jobs: int, tasks: list[tuple[str, list[str]]], names: list[str], bar: _Progress, out_dir: Path
-) -> list[dict | str]:
-    """`run_one(config, overrides)` of every task in `jobs` worker processes at once -> the outcomes in the
-    order of the tasks, reported as each finishes. On Ctrl-C (the workers ignore it), SIGTERM (raised as an
-    exception by the command line) or a bug in a run the workers are stopped and waited for (none writes
-    after this returns), and what a run killed while writing its folder left in `out_dir` removed: the runs
-    that finished keep their folders, as when the runs go one after another."""
-    before = set(multiprocessing.active_children())
-    pool = None
-    outcomes: list[dict | str] = ["not run"] * len(tasks)
-    try:
-        pool = multiprocessing.get_context("spawn").Pool(min(jobs, len(tasks)), initializer=_worker)
-        for i, outcome in pool.imap_unordered(_numbered_run, list(enumerate(tasks))):
-            outcomes[i] = _reported(names[i], outcome)
-            bar.finished(names[i])
-        pool.close()
-        pool.join()
-    except BaseException:
-        if pool is not None:
-            pool.terminate()
-            pool.join()
-        for worker in set(multiprocessing.active_children()) - before:  # a pool stopped while being made
-            worker.terminate()
-            worker.join()
-        remove_partial(out_dir)
-        raise
-    return outcomes
-
-
-def _numbered_run(item: tuple[int, tuple[str, list[str]]]) -> tuple[int, dict | str]:
-    """A worker's task: (i, (config, overrides)) -> (i, `run_one`'s outcome)."""
-    i, (config, overrides) = item
-    return i, run_one(config, overrides, False)
-
-
-def _reported(name: str, outcome: dict | str) -> dict | str:
-    """A run's outcome, logged as a warning when it is a failure: a clip that does not fit the config (too
-    short, ...) or that the estimator failed on is reported, not fatal."""
-    if isinstance(outcome, str):
-        log.warning("%s failed: %s", name, outcome)
-    return outcome
-
-
-def _worker() -> None:
-    """A worker process of `evaluate(jobs > 1)`: one intra-op thread (the runs share the cores), the command
-    line's message format, and Ctrl-C left to the parent (which stops the workers)."""
-    import signal
-
-    import torch
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    torch.set_num_threads(1)
-    log_to_stderr()
-
-
 def _name(amc: Path, seed: int | None) -> str:
     return amc.stem if seed is None else f"{amc.stem} seed {seed}"
-
-
-class _Progress:
-    """An evaluation's progress: a bar on a terminal, else one log line per run (started, or with several
-    at once, finished); nothing when not shown."""
-
-    def __init__(self, show: bool, total: int, unit: str) -> None:
-        self.total, self.unit, self.count = total, unit, 0
-        self.lines = show and not sys.stderr.isatty()
-        self.tqdm = None
-        if show and not self.lines:
-            from tqdm.auto import tqdm
-
-            self.tqdm = tqdm(total=total, desc=f"{unit}s", unit=unit)
-
-    def started(self, i: int, name: str) -> None:
-        if self.lines:
-            log.info("%s %d of %d: %s", self.unit, i + 1, self.total, name)
-
-    def done(self) -> None:
-        if self.tqdm is not None:
-            self.tqdm.update()
-
-    def finished(self, name: str) -> None:
-        self.count += 1
-        if self.lines:
-            log.info("%s %d of %d done: %s", self.unit, self.count, self.total, name)
-        self.done()
-
-    def close(self) -> None:
-        if self.tqdm is not None:
-            self.tqdm.close()
 
 
 def seed_mean(runs: list[dict | str], count: bool = True) -> dict | str:
