@@ -218,6 +218,7 @@ class RunConfig:
     device: str = setting("cpu", "where the estimators compute: cpu, cuda, cuda:N, mps")
     dtype: str = setting("float32", "precision of the estimators: float32 or float64")
     progress: bool = setting(True, "progress bar on a terminal, a progress line every 20 s elsewhere")
+    plots: bool = setting(True, "write plots/ (PNG pictures of the run) in the run folder, results.png in evaluate's")
     data: DataConfig = field(default_factory=DataConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     observations: ObservationsConfig = field(default_factory=ObservationsConfig)

@@ -9,6 +9,7 @@
     result.npz    frames, q, joints, joint_names, ... (see `result_arrays`)
     result.bvh    the estimated motion for animation tools (ptrack.io.export)
     run.rrd       rerun recording (ptrack.io.viz)
+    plots/        PNG pictures of the run (ptrack.io.plots; config key `plots`)
 
 The folder is assembled in a hidden sibling `.NAME.partial` and renamed into place at the end, so a
 failed run leaves nothing half-written at `out_dir`. That sibling is also the run's claim on `out_dir`,
@@ -966,6 +967,18 @@ def _write_outputs(
         **_video(prep),
     )
     write_recording(tmp / "run.rrd", rlog)
+    if cfg.plots:
+        write_run_plots(tmp / "plots", res, series)
+
+
+def write_run_plots(folder: Path, res: dict[str, np.ndarray], series: dict[str, np.ndarray]) -> None:
+    """The run's pictures (`ptrack.io.plots`) in `folder`; a failure is a warning, never the run's."""
+    try:
+        from ptrack.io.plots import write_plots
+
+        write_plots(folder, res, series)
+    except Exception as e:
+        log.warning("plots not written: %s: %s", type(e).__name__, e)
 
 
 def _video(prep: Prepared) -> dict:
