@@ -22,8 +22,9 @@ import math
 import re
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any, Union
 
 import yaml
@@ -391,11 +392,13 @@ def _resolve_paths(value: str | list, base: Path) -> str | list:
 
 def load_config(
     path: str | Path | None = None,
-    overrides: list[str] | tuple[str, ...] = (),
+    overrides: list[str] | tuple[str, ...] | Mapping[str, Any] = (),
     cwd: str | Path | None = None,
     run: bool = True,
 ) -> RunConfig:
-    """Read a YAML run config (or only defaults when `path` is None) and apply overrides.
+    """Read a YAML run config (or only defaults when `path` is None) and apply overrides: `dotted.key=value`
+    strings as the command line gives them (the value read as YAML), or from Python a mapping {dotted.key: value}
+    of values as they are (a path may be a `Path`; relative paths are read from `cwd` either way).
 
     run=False (`ptrack fit-motion`) does not require the data of a run (data.asf, data.amc)."""
     raw: dict = {}
@@ -428,8 +431,10 @@ def load_config(
                 _set_dotted(raw, key, _resolve_paths(v, p.resolve().parent))
     raw.setdefault("name", name)
     over_keys = set()
-    for text in overrides:
-        key, value = parse_override(text)
+    pairs = overrides.items() if isinstance(overrides, Mapping) else map(parse_override, overrides)
+    for key, value in pairs:
+        if isinstance(value, PurePath):
+            value = str(value)
         if key in _PATH_KEYS and isinstance(value, str) and value:
             value = str((base / value).resolve())
         if key in _PATH_LIST_KEYS and isinstance(value, (str, list)):
