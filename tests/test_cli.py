@@ -62,6 +62,7 @@ def test_run_success(tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == [
         "config.yaml",
         "metrics.json",
+        "plots",
         "result.bvh",
         "result.npz",
         "run.rrd",

@@ -408,3 +408,27 @@ def test_amc_override_without_a_skeleton_beside_it_keeps_the_config_one(tmp_path
         f"data.amc is {tmp_path / '10_02.amc'} but no skeleton is beside it: keeping data.asf {ASF} "
         "(set data.asf to choose)"
     ]
+
+
+def test_overrides_as_a_mapping_of_values(tmp_path, monkeypatch):
+    """From Python: {dotted.key: value} as the values are (no YAML reading: "01" stays a string, a path with ": "
+    stays a path), a Path for a path key, relative paths from the working directory; types still checked."""
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config(
+        DEMO,
+        {
+            "camera.name": "01",
+            "observations.file": Path("a b: c.json"),
+            "seed": 3,
+            "model.freeze": ["*toes"],
+            "keyframes.sigma_deg": 2,
+        },
+    )
+    assert cfg.camera.name == "01" and cfg.seed == 3 and cfg.model.freeze == ("*toes",)
+    assert cfg.observations.file == str(tmp_path / "a b: c.json")
+    assert cfg.keyframes.sigma_deg == 2
+    assert load_config(DEMO, {"seed": 3}) == load_config(DEMO, ["seed=3"])
+    with pytest.raises(InputError, match=r"config key 'camera\.name' must be a string, got 1"):
+        load_config(DEMO, {"camera.name": 1})
+    with pytest.raises(InputError, match=r"unknown config key 'camera\.nam'"):
+        load_config(DEMO, {"camera.nam": "x"})

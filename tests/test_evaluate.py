@@ -25,7 +25,7 @@ ASF = REPO / "ptrack" / "data" / "10.asf"
 AMC = REPO / "ptrack" / "data" / "10_02.amc"
 FAST = ["data.stop=24", "data.stride=4", "frame.iterations=15", "frame.first_iterations=60", "progress=false"]
 QUICK = [*FAST, "frame.iterations=3", "frame.first_iterations=5"]
-OUTPUTS = ["config.yaml", "metrics.json", "result.bvh", "result.npz", "run.rrd", "skeleton.urdf"]
+OUTPUTS = ["config.yaml", "metrics.json", "plots", "result.bvh", "result.npz", "run.rrd", "skeleton.urdf"]
 
 
 def _cells(line: str) -> list[str]:
@@ -77,7 +77,7 @@ def test_two_clips(tmp_path, cmu_file):
         assert sorted(p.name for p in (out / r[0]).iterdir()) == OUTPUTS
     mean = (results["10_02"]["mpjpe_mm"] + results["64_01"]["mpjpe_mm"]) / 2
     assert body[2][col] == f"{mean:.1f}"
-    assert sorted(p.name for p in out.iterdir()) == ["10_02", "64_01", "results.json", "results.md"]
+    assert sorted(p.name for p in out.iterdir()) == ["10_02", "64_01", "results.json", "results.md", "results.png"]
 
 
 def test_clip_list_file_with_relative_paths(tmp_path, capsys):
@@ -110,7 +110,8 @@ def test_clip_too_short_is_reported_and_others_run(tmp_path):
     results = json.loads((out / "results.json").read_text())
     assert isinstance(results["10_99"], str) and "data.start" in results["10_99"]
     assert results["10_02"]["frames"] == 6
-    assert sorted(p.name for p in out.iterdir()) == ["10_02", "results.json", "results.md"]  # no folder, no .partial
+    # no folder, no .partial
+    assert sorted(p.name for p in out.iterdir()) == ["10_02", "results.json", "results.md", "results.png"]
 
 
 def test_progress_false_in_config_is_respected(tmp_path, capsys):
@@ -231,7 +232,7 @@ def test_estimator_failure_is_reported_per_clip(tmp_path, monkeypatch):
     rows = _table(evaluate(EVAL, f"{AMC},{other}", QUICK, out=out).read_text())[2:]
     assert [r[0] for r in rows] == ["10_02", "10_77", "**mean (1 clips)**"]
     assert rows[1][1].startswith("failed:") and "nonfinite_frames=1" in rows[1][1]
-    assert sorted(p.name for p in out.iterdir()) == ["10_02", "results.json", "results.md"]
+    assert sorted(p.name for p in out.iterdir()) == ["10_02", "results.json", "results.md", "results.png"]
 
 
 def test_markdown_table_shows_the_visible_fraction():
@@ -253,7 +254,7 @@ def test_seeds_run_every_clip_once_per_seed(tmp_path, capsys):
         main(["evaluate", str(EVAL), *QUICK, "--clips", str(AMC), "--seeds", "0-1", "--out", str(out), "--quiet"]) == 0
     )
     assert capsys.readouterr().out == f"{out / 'results.md'}\n"
-    assert sorted(p.name for p in out.iterdir()) == ["10_02", "results.json", "results.md"]
+    assert sorted(p.name for p in out.iterdir()) == ["10_02", "results.json", "results.md", "results.png"]
     assert sorted(p.name for p in (out / "10_02").iterdir()) == ["seed-0", "seed-1"]
     runs = [json.loads((out / "10_02" / f"seed-{s}" / "metrics.json").read_text()) for s in (0, 1)]
     for s in (0, 1):

@@ -1,5 +1,5 @@
 """Tests for ptrack.pipeline.run: `execute(cfg)` on the bundled CMU clip writes exactly config.yaml, metrics.json,
-result.npz, result.bvh and run.rrd, atomically; `prepare` makes silhouettes or reads an observation file."""
+result.npz, result.bvh, run.rrd and plots/, atomically; `prepare` makes silhouettes or reads an observation file."""
 
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ FAST = ["data.stop=48", "data.stride=4", "frame.iterations=15", "frame.first_ite
 QUICK = [*FAST, "frame.iterations=3", "frame.first_iterations=5"]  # for runs whose accuracy is not checked
 T = 12
 FREEZE = ["*fingers", "*thumb", "*hand", "*toes"]
-OUTPUTS = ["config.yaml", "metrics.json", "result.bvh", "result.npz", "run.rrd"]
+OUTPUTS = ["config.yaml", "metrics.json", "plots", "result.bvh", "result.npz", "run.rrd"]
 METRIC_KEYS = (
     "seconds",
     "frames",
@@ -79,7 +79,7 @@ def result(run_dir):
         return {k: f[k] for k in f.files}
 
 
-def test_writes_exactly_the_four_outputs(run_dir):
+def test_writes_exactly_the_outputs(run_dir):
     assert sorted(os.listdir(run_dir)) == OUTPUTS
     assert _leftovers(run_dir.parent) == [run_dir.name]  # no hidden .partial sibling left
 

@@ -22,8 +22,9 @@ import math
 import re
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any, Union
 
 import yaml
@@ -223,6 +224,7 @@ class RunConfig:
     device: str = setting("cpu", "where the estimators compute: cpu, cuda, cuda:N, mps")
     dtype: str = setting("float32", "precision of the estimators: float32 or float64")
     progress: bool = setting(True, "progress bar on a terminal, a progress line every 20 s elsewhere")
+    plots: bool = setting(True, "write plots/ (PNG pictures of the run) in the run folder, results.png in evaluate's")
     data: DataConfig = field(default_factory=DataConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     observations: ObservationsConfig = field(default_factory=ObservationsConfig)
@@ -395,11 +397,13 @@ def _resolve_paths(value: str | list, base: Path) -> str | list:
 
 def load_config(
     path: str | Path | None = None,
-    overrides: list[str] | tuple[str, ...] = (),
+    overrides: list[str] | tuple[str, ...] | Mapping[str, Any] = (),
     cwd: str | Path | None = None,
     run: bool = True,
 ) -> RunConfig:
-    """Read a YAML run config (or only defaults when `path` is None) and apply overrides.
+    """Read a YAML run config (or only defaults when `path` is None) and apply overrides: `dotted.key=value`
+    strings as the command line gives them (the value read as YAML), or from Python a mapping {dotted.key: value}
+    of values as they are (a path may be a `Path`; relative paths are read from `cwd` either way).
 
     run=False (`ptrack fit-motion`) does not require the data of a run (data.asf, data.amc)."""
     raw: dict = {}
@@ -432,8 +436,10 @@ def load_config(
                 _set_dotted(raw, key, _resolve_paths(v, p.resolve().parent))
     raw.setdefault("name", name)
     over_keys = set()
-    for text in overrides:
-        key, value = parse_override(text)
+    pairs = overrides.items() if isinstance(overrides, Mapping) else map(parse_override, overrides)
+    for key, value in pairs:
+        if isinstance(value, PurePath):
+            value = str(value)
         if key in _PATH_KEYS and isinstance(value, str) and value:
             value = str((base / value).resolve())
         if key in _PATH_LIST_KEYS and isinstance(value, (str, list)):

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import statistics
 from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
@@ -158,7 +159,26 @@ def evaluate(
     (out_dir / "results.json").write_text(
         json.dumps(json_safe(results), indent=2, allow_nan=False) + "\n", encoding="utf-8"
     )
+    if base.plots:
+        spread = None if seeds is None else {clip: seed_spread(list(runs[clip].values())) for clip in runs}
+        write_bar_chart(out_dir / "results.png", rows, f"config {base.name}, method {base.method}", spread)
     return table
+
+
+def seed_spread(runs: list[dict | str], key: str = "mpjpe_mm") -> float:
+    """The standard deviation of `key` over the runs (seeds) that have it; 0 with fewer than two."""
+    vals = [m[key] for m in runs if isinstance(m, dict) and is_number(m.get(key))]
+    return statistics.stdev(vals) if len(vals) > 1 else 0.0
+
+
+def write_bar_chart(path: Path, rows: list[tuple[str, dict | str]], title: str, spread: dict | None) -> None:
+    """results.png: the table's MPJPE per clip (`ptrack.io.plots.evaluation_figure`); a failure is a warning."""
+    try:
+        from ptrack.io.plots import evaluation_figure, save
+
+        save(evaluation_figure(rows, title, spread), path)
+    except Exception as e:
+        log.warning("%s not written: %s: %s", path.name, type(e).__name__, e)
 
 
 def _name(amc: Path, seed: int | None) -> str:

@@ -9,6 +9,7 @@
     result.npz    frames, q, joints, joint_names, ... (see `result_arrays`)
     result.bvh    the estimated motion for animation tools (ptrack.io.export)
     run.rrd       rerun recording (ptrack.io.viz)
+    plots/        PNG pictures of the run (ptrack.io.plots; config key `plots`)
 
 The folder is assembled in a hidden sibling `.NAME.partial` and renamed into place at the end, so a
 failed run leaves nothing half-written at `out_dir`. That sibling is also the run's claim on `out_dir`,
@@ -34,6 +35,7 @@ from collections.abc import Callable, Iterable, Sized
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -54,6 +56,9 @@ from ptrack.pipeline.footage import FootageFrame, keypoints_in_world, prepare_fo
 from ptrack.pipeline.keyframes import ground_truth_keyframes, read_keyframes
 from ptrack.pipeline.memory import check_memory
 from ptrack.problem import Estimate, Floor, Problem
+
+if TYPE_CHECKING:
+    from ptrack.io.viz import RunLog  # imports rerun: on first use only
 
 try:
     import fcntl
@@ -921,7 +926,7 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
-def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[str, np.ndarray]:
+def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor | None = None) -> dict[str, np.ndarray]:
     """The arrays of result.npz: frames (T,) AMC frame numbers; times (T,) s; fps () the exact frame rate
     (`frame_rate`); q (T, D); dof_names (D,); joints (T, J, 3)
     metres in the mocap world frame (Y up); joint_names (J,) (ASF bone names, "root" first); parents (J,);
@@ -930,7 +935,10 @@ def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> dict[s
     hypotheses (T, N, J, 3), hypothesis_weights (T, N), hypothesis_costs (T, N) where the method has them;
     hypothesis_directions (T, N, J, 3) (each hypothesis's principal covariance direction as joint displacements),
     jump_chains (C,) and jump_counts (T, C) (kinematic-jump leaves kept per chain and frame) from the trackers;
-    joint_std (T, J) metres and solver_cost (I+1,) (objective per solver iteration) from `method: batch`."""
+    joint_std (T, J) metres and solver_cost (I+1,) (objective per solver iteration) from `method: batch`.
+    reproj: `reprojected_keypoints(prep, est)` when already computed."""
+    if reproj is None:
+        reproj = reprojected_keypoints(prep, est)
     prob = prep.problem
     obs, sk = prob.observations, prob.skeleton
     cam = obs.camera
@@ -997,7 +1005,7 @@ def _write_outputs(
     series: dict[str, np.ndarray],
 ) -> None:
     """Write the run's files into `tmp` (the run's claim, `claim_out_dir`)."""
-    from ptrack.io.viz import RunLog, write_recording
+    from ptrack.io.viz import write_recording
 
     (tmp / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
     (tmp / "metrics.json").write_text(
@@ -1007,9 +1015,36 @@ def _write_outputs(
     (tmp / "skeleton.urdf").write_text(prep.problem.skeleton.to_urdf(), encoding="utf-8")  # `ptrack export` reads it
     floor = prep.footage.floor_m if prep.footage is not None else None  # the BVH's floor at Y = 0 when known
     write_bvh(tmp / "result.bvh", prep.problem.skeleton, est.q, float(res["fps"]), floor_m=floor)
+    write_recording(tmp / "run.rrd", _run_log(prep, res, series))
+    if cfg.plots:
+        write_run_plots(tmp / "plots", res, series)
+
+
+def write_run_plots(folder: Path, res: dict[str, np.ndarray], series: dict[str, np.ndarray]) -> None:
+    """The run's pictures (`ptrack.io.plots`) in `folder`; a failure is a warning, never the run's."""
+    try:
+        from ptrack.io.plots import write_plots
+
+        write_plots(folder, res, series)
+    except Exception as e:
+        log.warning("plots not written: %s: %s", type(e).__name__, e)
+
+
+def recording(prep: Prepared, est: Estimate) -> RunLog:
+    """The rerun log of `est` (`estimate`'s), as a run's run.rrd holds it: `ptrack.io.viz.write_recording(path,
+    recording(prep, est))` writes it, `rerun path` shows it."""
+    reproj = reprojected_keypoints(prep, est)
+    _, series = compute_metrics(prep, est, reproj)
+    return _run_log(prep, result_arrays(prep, est, reproj), series)
+
+
+def _run_log(prep: Prepared, res: dict[str, np.ndarray], series: dict[str, np.ndarray]) -> RunLog:
+    """The rerun log of a run from its result arrays (`result_arrays`) and per-frame metrics (`compute_metrics`)."""
+    from ptrack.io.viz import RunLog
+
     prob = prep.problem
     obs = prob.observations
-    rlog = RunLog(
+    return RunLog(
         joint_names=prob.skeleton.joint_names,
         parents=prob.skeleton.parents,
         frames=prep.frames,
@@ -1033,7 +1068,6 @@ def _write_outputs(
         solver_cost=res.get("solver_cost"),
         **_video(prep),
     )
-    write_recording(tmp / "run.rrd", rlog)
 
 
 def _video(prep: Prepared) -> dict:
