@@ -1,8 +1,11 @@
 """Benchmark: the batch engine (`ptrack batch`) serial, in local worker processes and on a local Ray runtime.
 
     python scripts/bench_batch_engine.py [--workers 2] [--stop 240] [--clips 8] [--items 60] [--no-ray]
+        [--config configs/eval_kjs.yaml]
 
-(a) The dev clips (configs/clips/dev.txt, the first `--clips`) under configs/eval_frame.yaml, AMC frames 0..`--stop`:
+(a) The dev clips (configs/clips/dev.txt, the first `--clips`) under configs/eval_frame.yaml with few iterations,
+    AMC frames 0..`--stop` (short items: a few seconds each), or under `--config` at its own settings (e.g. the
+    trackers' dev evaluation, configs/eval_kjs.yaml, which runs on one thread in every executor):
     serial (`--workers 1`, in this process), `--workers N` and `--executor ray` (a local runtime of N CPUs). Printed:
     each wall time, the ratios written like `1.9x` (serial time / other time), whether the tables agree (the
     results.md text without its seconds column, and every metric to float32 rounding), and Ray's extra time per
@@ -82,11 +85,13 @@ def tree_rss(root: int) -> int:
     return total
 
 
-def run(inputs: str, out: Path, overrides: list[str], workers: int, executor: str) -> tuple[float, int, BatchSummary]:
-    """One batch: -> (wall seconds, peak bytes of the process tree, summary)."""
+def run(
+    inputs: str, out: Path, overrides: list[str], workers: int, executor: str, config: Path = CONFIG
+) -> tuple[float, int, BatchSummary]:
+    """One batch of `config`: -> (wall seconds, peak bytes of the process tree, summary)."""
     with PeakMemory() as mem:
         t0 = time.perf_counter()
-        summary = batch(CONFIG, inputs, out, overrides, workers=workers, executor=executor, progress=False)
+        summary = batch(config, inputs, out, overrides, workers=workers, executor=executor, progress=False)
         seconds = time.perf_counter() - t0
     if summary.failed:
         raise SystemExit(f"{summary.failed} items failed in {out}: see {out / 'status.csv'}")
@@ -132,6 +137,13 @@ def run_seconds(out: Path) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--workers", type=int, default=2, help="local workers, and the local Ray runtime's CPUs")
+    ap.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="(a): this config at its own settings (e.g. configs/eval_kjs.yaml, the dev evaluation of the trackers) "
+        "instead of eval_frame.yaml with few iterations to data.stop=--stop",
+    )
     ap.add_argument("--stop", type=int, default=240, help="(a): AMC frames 0..stop of each dev clip (240: 60 frames)")
     ap.add_argument("--clips", type=int, default=8, help="(a): the first this many dev clips")
     ap.add_argument("--items", type=int, default=60, help="(b): items of 10 frames each (the issue's figure: 1000)")
@@ -146,14 +158,15 @@ def main() -> None:
         clips = [c for c in listed if c][: args.clips]
         listing = root / "clips.txt"
         listing.write_text("".join(f"{(DEV.parent / c).resolve()}\n" for c in clips))
-        over = [*CHEAP, f"data.stop={args.stop}"]
-        print(f"\n(a) {len(clips)} dev clips, {CONFIG.name}, data.stop={args.stop}")
-        serial, _, _ = run(str(listing), root / "a-serial", over, 1, "local")
+        config = args.config.resolve() if args.config else CONFIG
+        over = ["progress=false"] if args.config else [*CHEAP, f"data.stop={args.stop}"]
+        print(f"\n(a) {len(clips)} dev clips, {config.name}, {' '.join(over)}")
+        serial, _, _ = run(str(listing), root / "a-serial", over, 1, "local", config)
         print(f"serial: {serial:.1f} s")
         times = {}
         for executor, workers in executors:
             out = root / f"a-{executor}"
-            times[executor], _, _ = run(str(listing), out, over, workers, executor)
+            times[executor], _, _ = run(str(listing), out, over, workers, executor, config)
             same = untimed_table(out) == untimed_table(root / "a-serial") and agree(
                 metrics(out), metrics(root / "a-serial")
             )

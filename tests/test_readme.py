@@ -3,6 +3,7 @@ what `ptrack run` writes for the same config."""
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -58,7 +59,7 @@ def test_python_api_blocks_run(monkeypatch, cmu_dir, repo_copy, tmp_path):
     if not (repo_copy.parent / "shared" / "data" / "pose2sim").exists():
         pytest.skip("the Pose2Sim data is not at ../shared/data/pose2sim")
     blocks = _python_blocks("### Python API")
-    assert len(blocks) == 6
+    assert len(blocks) == 7
     real = ptrack.load_config
 
     def light(path=None, overrides=(), **kw):
@@ -99,6 +100,12 @@ def test_python_api_blocks_run(monkeypatch, cmu_dir, repo_copy, tmp_path):
     assert space["golf"].q.ndim == 2 and torch.isfinite(space["golf"].q).all()
     kps = space["footage_res"]["keypoints"]
     assert kps.shape == (20, 25, 3) and np.isfinite(kps).any()
+
+    # exporting: the files where the block says, read back
+    run_dir = space["run_dir"]
+    assert space["bvh"] == [run_dir / "export" / "result.bvh"] and "mixamorig:Hips" in space["bvh"][0].read_text()
+    assert space["trc"] == [Path("logs/guide-kjs.trc")] and space["trc"][0].read_text().startswith("PathFileType")
+    assert json.loads(space["table"][0].read_text())["schema_version"]
 
     # reading and replaying
     assert space["knee"].shape == (t,)
