@@ -146,7 +146,7 @@ def main() -> None:
     )
     ap.add_argument("--stop", type=int, default=240, help="(a): AMC frames 0..stop of each dev clip (240: 60 frames)")
     ap.add_argument("--clips", type=int, default=8, help="(a): the first this many dev clips")
-    ap.add_argument("--items", type=int, default=60, help="(b): items of 10 frames each (the issue's figure: 1000)")
+    ap.add_argument("--items", type=int, default=60, help="(b): items of 10 frames each (the issue's: 1000; 0: none)")
     ap.add_argument("--no-ray", action="store_true", help="leave Ray out")
     args = ap.parse_args()
     executors = [("local", args.workers)] + ([] if args.no_ray else [("ray", args.workers)])
@@ -178,21 +178,22 @@ def main() -> None:
             extra = (times["ray"] - times["local"]) / len(clips)
             print(f"Ray's extra time per item against the local workers: {extra:+.2f} s")
 
-        manifest = root / "items.csv"
-        manifest.write_text("input,seed\n" + "".join(f"{CLIP},{k}\n" for k in range(args.items)))
-        over = [*CHEAP, "data.stop=40", "data.stride=4"]  # 10 frames
-        print(f"\n(b) {args.items} items of 10 frames (10_02, one seed each)")
-        for executor, workers in executors:
-            out = root / f"b-{executor}"
-            seconds, peak, _ = run(str(manifest), out, over, workers, executor)
-            per_item = seconds * workers / args.items
-            own = run_seconds(out) / args.items
-            print(
-                f"{executor} --workers {workers}: {args.items / seconds:.2f} items/s ({seconds:.1f} s), "
-                f"{per_item:.2f} s of a worker per item of which the run's own {own:.2f} s "
-                f"(the rest, {per_item - own:.2f} s: loading, metrics, writing the folder, the engine); "
-                f"peak memory {peak / 2**20:.0f} MiB"
-            )
+        if args.items > 0:  # (b)
+            manifest = root / "items.csv"
+            manifest.write_text("input,seed\n" + "".join(f"{CLIP},{k}\n" for k in range(args.items)))
+            over = [*CHEAP, "data.stop=40", "data.stride=4"]  # 10 frames
+            print(f"\n(b) {args.items} items of 10 frames (10_02, one seed each)")
+            for executor, workers in executors:
+                out = root / f"b-{executor}"
+                seconds, peak, _ = run(str(manifest), out, over, workers, executor)
+                per_item = seconds * workers / args.items
+                own = run_seconds(out) / args.items
+                print(
+                    f"{executor} --workers {workers}: {args.items / seconds:.2f} items/s ({seconds:.1f} s), "
+                    f"{per_item:.2f} s of a worker per item of which the run's own {own:.2f} s "
+                    f"(the rest, {per_item - own:.2f} s: loading, metrics, writing the folder, the engine); "
+                    f"peak memory {peak / 2**20:.0f} MiB"
+                )
     print(f"\nload average after: {os.getloadavg()[0]:.2f}")
 
 
