@@ -18,7 +18,7 @@ import pytest
 from ptrack.cli import main
 from ptrack.errors import InputError
 from ptrack.pipeline.batch_run import batch, item_names, parse_sets
-from ptrack.pipeline.engine import Item, Progress, run_item
+from ptrack.pipeline.engine import Item, Local, Progress, run_item
 
 REPO = Path(__file__).resolve().parents[1]
 EVAL = REPO / "configs" / "eval_frame.yaml"
@@ -195,6 +195,24 @@ def test_a_worker_killed_inside_an_item_costs_that_item_only(tmp_path, executor)
     assert status["10_03"]["error"].startswith(died), status["10_03"]["error"]
     assert status["10_02"]["state"] == status["10_04"]["state"] == "done"
     assert sorted(p.name for p in out.iterdir()) == ["10_02", "10_04", "results.json", "results.md", "status.csv"]
+
+
+def _pid(item: Item, progress: bool | None) -> dict:
+    """A worker's per-item function: the process it ran in."""
+    return {"pid": os.getpid()}
+
+
+def test_a_local_worker_is_replaced_after_recycle_after_items(tmp_path):
+    """What runs leave in a process stays bounded: a worker takes `recycle_after` items, then a fresh one."""
+    items = [Item(f"i{k}", "unused.yaml", (), str(tmp_path / f"i{k}")) for k in range(5)]
+    seen: dict[int, int] = {}
+    pool = Local(1, recycle_after=2)
+    try:
+        pool.map(items, _pid, lambda i, outcome, seconds: seen.__setitem__(i, outcome["pid"]))
+    finally:
+        pool.close()
+    pids = [seen[k] for k in range(5)]
+    assert pids[0] == pids[1] and pids[2] == pids[3] and len({pids[0], pids[2], pids[4]}) == 3
 
 
 def test_ray_local_runtime_gives_the_serial_numbers(tmp_path):

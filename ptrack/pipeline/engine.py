@@ -16,7 +16,8 @@ at the end (the tables).
 Executors:
 - serial (`workers=1`, local): one item after another in this process.
 - local (`workers=N`): N worker processes (spawn), each on one torch intra-op thread, fed one item at a time by
-  this process (a supervised pool: each worker pays torch's import once, not once per item). A worker that
+  this process (a supervised pool: each worker pays torch's import once, not once per item, and is replaced
+  by a fresh process after `RECYCLE_AFTER` items, which bounds its memory). A worker that
   dies (killed, out of memory) costs only its item, a failed row "worker process died (...)", and is replaced;
   what it left half-written is removed.
 - ray: one Ray task per item (one CPU, no retry) on the cluster at `address` ("auto", "HOST:PORT") or on a
@@ -55,6 +56,9 @@ log = logging.getLogger(__name__)
 #: a run's outcome: its metrics.json (a dict), or the one-line message of what stopped it
 Outcome = dict | str
 EXECUTORS = ("local", "ray")
+#: items a local worker runs before a fresh process takes its place: what runs leave behind in a process stays
+#: bounded (the rerun SDK keeps about 1.2 MB per recording written, measured on 10-frame runs: 1 GB in 1,000 items)
+RECYCLE_AFTER = 100
 RAY_CONNECT_S = 3.0  # how long to wait for a Ray cluster's address to answer before calling it unreachable
 
 
@@ -125,8 +129,8 @@ class Serial:
 class Local:
     """A supervised pool of `workers` spawned processes, one item at a time each (module docstring)."""
 
-    def __init__(self, workers: int) -> None:
-        self.workers = workers
+    def __init__(self, workers: int, recycle_after: int = RECYCLE_AFTER) -> None:
+        self.workers, self.recycle_after = workers, recycle_after
         self.ctx = multiprocessing.get_context("spawn")
         self.idle: list[_Worker] = []
 
@@ -153,7 +157,11 @@ class Local:
                         )
                         _remove_partial(items[i])
                     else:
-                        self.idle.append(worker)
+                        worker.done += 1
+                        if worker.done >= self.recycle_after:
+                            worker.stop()  # a fresh process takes the next item
+                        else:
+                            self.idle.append(worker)
                     report(i, *answer)
         except BaseException:
             for worker in [*busy, *self.idle]:
@@ -187,6 +195,7 @@ class _Worker:
     """A worker process of `Local` and the pipe it takes items on and answers through."""
 
     def __init__(self, ctx: Any, run: RunFn) -> None:
+        self.done = 0  # items answered
         self.conn, theirs = ctx.Pipe()
         self.process = ctx.Process(target=_worker_main, args=(theirs, run), daemon=True)
         self.process.start()
