@@ -23,7 +23,8 @@ Executors:
 - ray: one Ray task per item (one CPU, no retry) on the cluster at `address` ("auto", "HOST:PORT") or on a
   local Ray runtime of `workers` CPUs. The task calls the same `run_item`, so on a cluster the run folders land
   in the output path as the node sees it: a path shared by every node. Leaving (the end, Ctrl-C, SIGTERM)
-  shuts Ray down (`ray.shutdown`), which ends a local runtime's processes.
+  shuts Ray down (`ray.shutdown`), which ends a local runtime's processes. Ray too replaces a worker process
+  after `RECYCLE_AFTER` tasks (`max_calls`).
 
 An item's failure (a user error in its input, an estimator failure, a worker that died, a bug met on one
 input) is its outcome, a one-line message; the sweep goes on. Ctrl-C or SIGTERM (raised as an exception by
@@ -285,7 +286,7 @@ class Ray:
 
     def map(self, items: Sequence[Item], run: RunFn, report: ReportFn, progress: bool | None = False) -> None:
         ray = self.ray
-        task = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
+        task = ray.remote(num_cpus=1, max_retries=0, max_calls=RECYCLE_AFTER)(_ray_task)  # fresh workers too
         refs = {task.remote(run, item): i for i, item in enumerate(items)}
         raised: list[BaseException] = []  # what this process's signal handlers raised (Ray's wait swallows it)
         handlers = _python_handlers()
