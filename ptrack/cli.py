@@ -45,8 +45,8 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument(
         "--clips",
         required=True,
-        help="AMC files: a comma-separated list, or a text file with one path per line "
-        "(relative to that file); each clip's ASF is the .asf in the AMC's folder",
+        help="AMC files: a comma-separated list, a text file with one path per line (relative to that file) or a "
+        "glob ('cmu/subjects/*/*_01.amc'); each clip's ASF is the .asf in the AMC's folder",
     )
     e.add_argument(
         "--seeds",

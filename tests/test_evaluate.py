@@ -168,6 +168,10 @@ def test_parse_clips(tmp_path):
         parse_clips("m/10_02.amc,m/10.asf", cwd=tmp_path)
     with pytest.raises(FileNotFoundError, match=r"gone\.amc"):
         parse_clips("gone.amc", cwd=tmp_path)
+    assert parse_clips("m/*.amc", cwd=tmp_path) == [a, b]  # a glob: its matches, sorted
+    assert parse_clips(str(tmp_path / "**" / "10_0[3].amc")) == [b]
+    with pytest.raises(InputError, match="matches no file"):
+        parse_clips("m/*_99.amc", cwd=tmp_path)
 
 
 def test_shipped_clip_lists(cmu_dir):

@@ -14,6 +14,7 @@ motion model (`ptrack.motion`) and the evaluation harness (`ptrack.pipeline.eval
 
 from __future__ import annotations
 
+import glob
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -388,11 +389,15 @@ def skeleton_beside(amc: str | Path) -> Path | None:
 
 
 def parse_clips(spec: str, cwd: Path | None = None) -> list[Path]:
-    """AMC paths from a comma-separated list or a text file (one path per line, `#` comments,
-    relative to the file's folder)."""
+    """AMC paths from a comma-separated list, a text file (one path per line, `#` comments, relative to the file's
+    folder) or a glob (`cmu/subjects/*/*_0[1-3].amc`, `**` allowed; sorted)."""
     cwd = Path(cwd or Path.cwd())
     p = cwd / spec
-    if p.is_file() and p.suffix.lower() not in (".amc", ".asf"):
+    if not p.exists() and glob.has_magic(spec):
+        paths = [Path(m).resolve() for m in sorted(glob.glob(str(p), recursive=True))]
+        if not paths:
+            raise InputError(f"--clips {spec!r} matches no file")
+    elif p.is_file() and p.suffix.lower() not in (".amc", ".asf"):
         base = p.resolve().parent
         items = [ln.split("#", 1)[0].strip() for ln in p.read_text(encoding="utf-8").splitlines()]
         paths = [(base / it).resolve() for it in items if it]
