@@ -33,7 +33,7 @@ FAST = ["data.stop=48", "data.stride=4", "frame.iterations=15", "frame.first_ite
 QUICK = [*FAST, "frame.iterations=3", "frame.first_iterations=5"]  # for runs whose accuracy is not checked
 T = 12
 FREEZE = ["*fingers", "*thumb", "*hand", "*toes"]
-OUTPUTS = ["config.yaml", "metrics.json", "plots", "result.bvh", "result.npz", "run.rrd"]
+OUTPUTS = ["config.yaml", "metrics.json", "plots", "result.bvh", "result.npz", "run.rrd", "skeleton.urdf"]
 METRIC_KEYS = (
     "seconds",
     "frames",

@@ -35,7 +35,7 @@ AMC = REPO / "ptrack" / "data" / "10_02.amc"
 FAST = ["data.stop=48", "data.stride=4", "frame.iterations=15", "frame.first_iterations=60", "progress=false"]
 QUICK = [*FAST, "frame.iterations=3", "frame.first_iterations=5"]
 LONG = ["progress=false", "frame.iterations=400", "frame.first_iterations=400"]  # minutes: killed before it ends
-OUTPUTS = ["config.yaml", "metrics.json", "plots", "result.bvh", "result.npz", "run.rrd"]
+OUTPUTS = ["config.yaml", "metrics.json", "plots", "result.bvh", "result.npz", "run.rrd", "skeleton.urdf"]
 WAIT_S = 300  # for a process to reach a state (slow, shared machines); never an assertion on speed
 
 
