@@ -81,10 +81,18 @@ def _frame(run: RunFolder) -> str:
     return "CMU mocap world (Y up, the capture floor at Y = 0)"
 
 
+def _version() -> str:
+    """ptrack's installed version (from its package metadata: `ptrack.__version__` lives in a higher layer)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("ptrack")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def result_document(run: RunFolder) -> dict:
     """The result.json object of `run` (see `SCHEMA_FILE` and docs/export_bvh_json_csv.md)."""
-    from ptrack import __version__
-
     a = run.arrays
     sk = run.skeleton
     angular = sk.angular_dofs()
@@ -101,7 +109,7 @@ def result_document(run: RunFolder) -> dict:
     return {
         "schema": "ptrack.result",
         "schema_version": SCHEMA_VERSION,
-        "generator": f"ptrack {__version__}",
+        "generator": f"ptrack {_version()}",
         "method": run.method,
         "units": {"length": "m", "angle": "rad", "time": "s", "image": "px"},
         "coordinates": {
