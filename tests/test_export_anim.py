@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bvh_text import assert_bvh_close
 from cli_errors import fail
 
 from ptrack.cli import main
@@ -126,21 +127,7 @@ def test_footage_bvh_frame_time_and_the_run_bvh_equal_the_export(footage_run, tm
     (path,) = export_run(footage_run, "bvh", tmp_path)
     assert "\nFrame Time: 0.0166666667\n" in path.read_text()
     # the run's own BVH is the default export (its model from memory, the export's from skeleton.urdf: to rounding)
-    ours, runs = path.read_text().split(), (footage_run / "result.bvh").read_text().split()
-    assert len(ours) == len(runs)
-    words = [(a, b) for a, b in zip(ours, runs) if not _number(a)]
-    assert all(a == b for a, b in words)
-    np.testing.assert_allclose(
-        [float(a) for a in ours if _number(a)], [float(b) for b in runs if _number(b)], atol=1e-5
-    )
-
-
-def _number(word: str) -> bool:
-    try:
-        float(word)
-    except ValueError:
-        return False
-    return True
+    assert_bvh_close(path.read_text(), (footage_run / "result.bvh").read_text(), atol=1e-5)
 
 
 def _rest_points(path: Path) -> dict[str, np.ndarray]:
