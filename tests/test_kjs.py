@@ -319,6 +319,10 @@ def test_run_writes_hypotheses(tmp_path):
     assert main(["run", str(KJS_YAML), "data.stop=16", f"out_dir={out}", "--quiet"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["method"] == "kjs" and m["best_of_k_mpjpe_mm"] <= m["mpjpe_mm"] + 1e-6
+    # the probabilities' metrics (issue 41): the heaviest mode is no better than the best of K, shares in [0, 1]
+    assert m["heaviest_mpjpe_mm"] >= m["best_of_k_mpjpe_mm"] - 1e-6
+    assert 0 <= m["heaviest_is_best_share"] <= 1 and 0 <= m["depth_order_brier"] <= 1
+    assert 0 <= m["depth_order_in_modes"] <= 1
 
 
 def test_tree_init_when_every_flip_is_pruned(cmu_file):

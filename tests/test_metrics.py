@@ -510,3 +510,24 @@ def test_bone_lengths_report_says_where_each_length_and_its_spread_come_from():
     }
     assert mixed["shank"]["std_m"] is None  # measured, but too few resamples for a spread
     assert mixed["hips"] == template["hips"]
+
+
+def test_depth_order_scores_and_heaviest_mode_on_two_modes():
+    """Brier score of a limb's depth-order probability, whether a mode holds the true order, and the heaviest mode,
+    on hand-made modes of one limb (keypoints 0 -> 1) seen by a camera at the origin looking along +z."""
+    from ptrack.pipeline.metrics import depth_order_scores, heaviest_mode
+
+    R, tt = torch.eye(3), torch.zeros(3)
+    near = torch.tensor([[0.0, 0.0, 3.0], [0.0, 0.3, 2.8]])  # end nearer the camera
+    far = torch.tensor([[0.0, 0.0, 3.0], [0.0, 0.3, 3.2]])
+    flat = torch.tensor([[0.0, 0.0, 3.0], [0.0, 0.3, 3.01]])  # within 2 cm of the image plane
+    hyp = torch.stack([near, far])[None].repeat(4, 1, 1, 1)  # (T=4, N=2, K=2, 3)
+    w = torch.tensor([[0.5, 0.5], [0.9, 0.1], [1.0, 0.0], [0.3, 0.7]])
+    gt = torch.stack([near, near, far, flat])  # the truth: near, near, far (only in a weight-0 mode), undefined
+    s = depth_order_scores(hyp, w, gt, [(0, 1)], R, tt)
+    assert s.brier[:3, 0].tolist() == pytest.approx([0.25, 0.01, 1.0])
+    assert s.in_modes[:3, 0].tolist() == [1.0, 1.0, 0.0]  # frame 2: the far mode has weight 0
+    assert torch.isnan(s.brier[3, 0]) and torch.isnan(s.in_modes[3, 0])
+    assert torch.equal(heaviest_mode(hyp, w), torch.stack([near, near, near, far]))
+    with pytest.raises(InputError, match="weights"):
+        depth_order_scores(hyp, w[:, :1], gt, [(0, 1)], R, tt)

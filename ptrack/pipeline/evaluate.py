@@ -50,6 +50,10 @@ COLUMNS = (
     ("joint_limit_violation_fraction", "limit viol.", "{:.3f}"),
     ("gt_joint_limit_violation_fraction", "GT limit viol.", "{:.3f}"),
     ("best_of_k_mpjpe_mm", "best-of-K mm", "{:.1f}"),
+    ("heaviest_mpjpe_mm", "heaviest mm", "{:.1f}"),
+    ("heaviest_is_best_share", "heaviest≈best", "{:.2f}"),
+    ("depth_order_brier", "order Brier", "{:.3f}"),
+    ("depth_order_in_modes", "order in modes", "{:.3f}"),
     ("seconds", "seconds", "{:.1f}"),
     ("seeds", "seeds", "{:d}"),  # with several seeds: how many ran (the row is their mean)
 )

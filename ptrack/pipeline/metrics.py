@@ -358,19 +358,79 @@ def foot_skating_mm(feet, up, contact_m: float = 0.05) -> Tensor:
     return foot_sliding_steps_mm(feet, up, contact_m).nanmean(0)
 
 
+def depth_order_probability(hypotheses, weights, limbs: Sequence[tuple[int, int]], R, t) -> Tensor:
+    """Each limb's probability of pointing towards the camera under a weighted mixture: in each frame, the summed
+    weight of the hypotheses that put the limb's end nearer the camera than its start (z of x_cam = R x + t).
+
+    hypotheses: (T, N, J, 3) metres; weights (T, N) summing to 1 (0: padding); limbs L (start, end) joint index
+    pairs; R (3, 3), t (3,) world -> camera -> (T, L) in [0, 1]."""
+    X = torch.as_tensor(hypotheses)
+    w = torch.as_tensor(weights, dtype=X.dtype, device=X.device)
+    z = (X @ torch.as_tensor(R, dtype=X.dtype, device=X.device).T + torch.as_tensor(t, dtype=X.dtype, device=X.device))[
+        ..., 2
+    ]  # (T, N, J)
+    idx = torch.as_tensor(list(limbs), dtype=torch.long, device=X.device).reshape(-1, 2)
+    nearer = (z[..., idx[:, 1]] < z[..., idx[:, 0]]).to(X.dtype)  # (T, N, L)
+    return (w[..., None] * nearer).sum(1)
+
+
 def ambiguous_limb_frames(hypotheses, weights, limbs: Sequence[tuple[int, int]], R, t, share: float = 0.1) -> Tensor:
     """Whether the modes disagree about a limb's depth order: in each frame and limb, the summed weight of the
-    modes that put the limb's end nearer the camera than its start lies in [share, 1 - share].
+    modes that put the limb's end nearer the camera than its start (`depth_order_probability`) lies in
+    [share, 1 - share].
 
     hypotheses: (T, N, K, 3) keypoints; weights (T, N) summing to 1; limbs (L,) keypoint index pairs; R (3, 3),
     t (3,) world -> camera -> (T, L) bool."""
-    X = torch.as_tensor(hypotheses)
-    w = torch.as_tensor(weights, dtype=X.dtype)
-    z = (X @ torch.as_tensor(R, dtype=X.dtype).T + torch.as_tensor(t, dtype=X.dtype))[..., 2]  # (T, N, K)
-    idx = torch.as_tensor(list(limbs), dtype=torch.long).reshape(-1, 2)
-    nearer = (z[..., idx[:, 1]] < z[..., idx[:, 0]]).to(X.dtype)  # (T, N, L)
-    p = (w[..., None] * nearer).sum(1)
+    p = depth_order_probability(hypotheses, weights, limbs, R, t)
     return (p >= share) & (p <= 1 - share)
+
+
+class DepthOrderScores(NamedTuple):
+    """How well a mixture's weights state each limb's depth order, per frame and limb (T, L), NaN where the
+    limb lies within the margin of the image plane in the truth: `brier` (p - truth)^2, p the summed weight of
+    the modes that put the limb's end nearer the camera (`depth_order_probability`), truth 1 where it is;
+    `in_modes` 1 where some mode of positive weight has the true order, else 0."""
+
+    brier: Tensor
+    in_modes: Tensor
+
+
+def depth_order_scores(
+    hypotheses, weights, gt, limbs: Sequence[tuple[int, int]], R, t, min_depth_diff: float = 0.02
+) -> DepthOrderScores:
+    """`DepthOrderScores` of a mixture against the truth. hypotheses (T, N, J, 3) and gt (T, J, 3) metres, weights
+    (T, N) summing to 1 (0: padding), limbs L (start, end) joint pairs, R (3, 3), t (3,) world -> camera; limb-frames
+    whose true depth difference is under `min_depth_diff` metres are NaN (as in `limb_flip_errors`)."""
+    X, g = as_float_tensor(hypotheses, "hypotheses"), as_float_tensor(gt, "gt")
+    w = torch.as_tensor(weights, dtype=X.dtype, device=X.device)
+    if X.ndim != 4 or g.shape != X.shape[:1] + X.shape[2:] or w.shape != X.shape[:2]:
+        raise InputError(
+            f"hypotheses (T, N, J, 3), weights (T, N) and gt (T, J, 3) expected, got {tuple(X.shape)}, "
+            f"{tuple(w.shape)} and {tuple(g.shape)}"
+        )
+    p = depth_order_probability(X, w, limbs, R, t)  # (T, L)
+    one = torch.ones_like(w)
+    per_mode = torch.stack(
+        [depth_order_probability(X[:, n : n + 1], one[:, n : n + 1], limbs, R, t) for n in range(X.shape[1])], 1
+    )
+    truth = depth_order_probability(g[:, None], one[:, :1], limbs, R, t)  # (T, L) 0/1
+    R_, t_ = _camera(R, t, g)
+    idx = torch.as_tensor(list(limbs), dtype=torch.long, device=X.device).reshape(-1, 2)
+    z = g @ R_[2] + t_[2]
+    undefined = ~((z[..., idx[:, 1]] - z[..., idx[:, 0]]).abs() >= min_depth_diff)
+    agrees = (per_mode == truth[:, None]) & (w[..., None] > 0)  # (T, N, L)
+    nan = torch.full_like(p, float("nan"))
+    return DepthOrderScores(
+        brier=torch.where(undefined, nan, (p - truth).square()),
+        in_modes=torch.where(undefined, nan, agrees.any(1).to(p.dtype)),
+    )
+
+
+def heaviest_mode(hypotheses, weights) -> Tensor:
+    """Each frame's heaviest hypothesis: hypotheses (T, N, J, 3), weights (T, N) -> (T, J, 3)."""
+    X = torch.as_tensor(hypotheses)
+    pick = torch.as_tensor(weights, device=X.device).argmax(-1)
+    return X[torch.arange(X.shape[0], device=X.device), pick]
 
 
 #: the spread (1 sd, a share of the length) reported for a segment length taken from the height's proportions

@@ -448,7 +448,13 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
             }
             series["flip_error_rate"] = flips.nanmean(-1).double().cpu().numpy()
         if est.hypotheses is not None:
-            put("best_of_k_mpjpe_mm", M.best_of_k_mpjpe(est.hypotheses.index_select(-2, idx), gt_kp, root=root))
+            hyp_kp = est.hypotheses.detach().index_select(-2, idx)
+            put("best_of_k_mpjpe_mm", M.best_of_k_mpjpe(hyp_kp, gt_kp, root=root))
+            if est.hypothesis_weights is not None:
+                checks, series["heaviest_mpjpe_mm"] = mixture_checks(
+                    hyp_kp, est.hypothesis_weights.detach(), gt_kp, root, kps.limbs, cam
+                )
+                summary.update(checks)
     if prep.footage is not None:
         checks, per_frame = footage_checks(prep, est, est_kp, reproj)
         summary.update(checks)
@@ -466,6 +472,35 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
     for k, v in est.terms.items():
         series[f"cost_{k}"] = v.detach().double().cpu().numpy()
     return summary, series
+
+
+#: the heaviest mode counts as the best one in a frame when its MPJPE is within this of the best mode's (mm)
+HEAVIEST_BEST_MM = 10.0
+
+
+def mixture_checks(
+    hyp_kp: torch.Tensor, weights: torch.Tensor, gt_kp: torch.Tensor, root: int, limbs, cam
+) -> tuple[dict, np.ndarray]:
+    """How much the trackers' weights say (issue 41): the heaviest mode's MPJPE (`heaviest_mpjpe_mm`), the share of
+    frames where it is within `HEAVIEST_BEST_MM` of the best mode (`heaviest_is_best_share`), and over the limb-frames
+    whose true depth difference exceeds 2 cm the Brier score of each limb's depth-order probability
+    (`depth_order_brier`: the summed weight of the modes that put the limb's end nearer the camera, against the
+    truth) and the share where some mode holds the true order (`depth_order_in_modes`). hyp_kp (T, N, K, 3),
+    weights (T, N), gt_kp (T, K, 3); limbs keypoint index pairs. -> (summary, the heaviest mode's MPJPE per frame
+    (T,))."""
+    heavy = M.mpjpe(M.heaviest_mode(hyp_kp, weights), gt_kp, root=root)
+    each = M.mpjpe(hyp_kp, gt_kp[:, None].expand_as(hyp_kp), root=root)  # (T, N)
+    best = torch.where(weights > 0, each, torch.full_like(each, math.inf)).amin(-1)
+    out: dict = {
+        "heaviest_mpjpe_mm": float(heavy.mean()),
+        "heaviest_is_best_share": float((heavy <= best + HEAVIEST_BEST_MM).to(heavy.dtype).mean()),
+    }
+    if limbs:
+        scores = M.depth_order_scores(hyp_kp, weights, gt_kp, limbs, cam.R.to(gt_kp), cam.t.to(gt_kp))
+        brier, found = scores.brier.nanmean(), scores.in_modes.nanmean()
+        out["depth_order_brier"] = float(brier) if torch.isfinite(brier) else None
+        out["depth_order_in_modes"] = float(found) if torch.isfinite(found) else None
+    return out, heavy.double().cpu().numpy()
 
 
 #: foot landmarks whose skating `footage_checks` measures
