@@ -3,12 +3,20 @@
 from __future__ import annotations
 
 import itertools
+import math
 
 import pytest
 import torch
 
 from ptrack.errors import InputError
-from ptrack.hypotheses.mixture import distinct_minima, nearest, posterior_weights, viterbi, viterbi_with_cost
+from ptrack.hypotheses.mixture import (
+    distinct_minima,
+    forward_backward,
+    nearest,
+    posterior_weights,
+    viterbi,
+    viterbi_with_cost,
+)
 
 
 def test_distinct_minima_suppresses_duplicates_and_orders_by_cost():
@@ -58,6 +66,34 @@ def test_viterbi_matches_brute_force():
     assert viterbi(unary, q, sigma).tolist() == list(best)
     path, cost = viterbi_with_cost(unary, q, sigma)
     assert path.tolist() == list(best) and float(cost) == pytest.approx(total(best), rel=1e-12)
+
+
+def test_forward_backward_matches_brute_force_marginals():
+    """Each hypothesis's posterior is the summed exp(-energy) of every path through it (energy: viterbi's), over
+    all paths; a non-finite unary entry gets 0; a frame with nothing finite counts as one without evidence."""
+    gen = torch.Generator().manual_seed(1)
+    T, K, D = 4, 3, 2
+    unary = torch.rand(T, K, generator=gen, dtype=torch.float64) * 3
+    unary[2, 1] = math.inf
+    q = torch.randn(T, K, D, generator=gen, dtype=torch.float64)
+    sigma = 0.7
+    want = torch.zeros(T, K, dtype=torch.float64)
+    for path in itertools.product(range(K), repeat=T):
+        energy = sum(unary[t, k] for t, k in enumerate(path)) + sum(
+            0.5 * (q[t, path[t]] - q[t - 1, path[t - 1]]).square().sum() / sigma**2 for t in range(1, T)
+        )
+        for t, k in enumerate(path):
+            want[t, k] += torch.exp(-energy)
+    want /= want.sum(-1, keepdim=True)
+    got = forward_backward(unary, q, sigma)
+    assert torch.allclose(got, want, atol=1e-12) and float(got[2, 1]) == 0.0
+    # with a tight prior the whole chain follows the smooth track, however the single frames vote
+    track = torch.tensor([[[0.0], [5.0]], [[0.1], [5.0]], [[0.2], [5.1]]], dtype=torch.float64)
+    votes = torch.tensor([[0.0, 0.1], [0.5, 0.0], [0.0, 0.05]], dtype=torch.float64)
+    assert (forward_backward(votes, track, 0.5)[:, 1] > 0.5).all()
+    assert forward_backward(votes, track, 100.0).argmax(-1).tolist() == [0, 1, 0]
+    blank = torch.full((3, 2), math.inf, dtype=torch.float64)
+    assert torch.allclose(forward_backward(blank, track, 0.5), forward_backward(torch.zeros_like(blank), track, 0.5))
 
 
 def test_viterbi_avoids_non_finite_and_prefers_smooth_paths():

@@ -8,6 +8,7 @@ sampling covariance). Everything here is pure and batched over candidates; no ra
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -78,6 +79,33 @@ def nearest(q: Tensor, centres: Tensor) -> Tensor:
     return torch.cdist(q, centres).argmin(-1)
 
 
+def forward_backward(unary: Tensor, q: Tensor, sigma: float) -> Tensor:
+    """Posterior marginals of every hypothesis of a (T, K) lattice under the chain whose energy `viterbi`
+    minimises: p(k_0 .. k_T-1) ∝ exp(-sum_t unary[t, k_t] - 0.5 * sum_t |q[t, k_t] - q[t-1, k_t-1]|^2 / sigma^2),
+    summed over every path through each hypothesis (forward-backward in log space). Non-finite unary entries get
+    probability 0 (a frame with nothing finite is taken as one without evidence: unary 0). The Viterbi path is
+    this chain's MAP path. unary: (T, K); q: (T, K, D) -> (T, K), each row summing to 1."""
+    _check_lattice(unary, q)
+    logu = torch.where(torch.isfinite(unary), -unary, torch.full_like(unary, -math.inf))
+    logu = torch.where(torch.isfinite(logu).any(-1, keepdim=True), logu, torch.zeros_like(logu))
+    T = logu.shape[0]
+    pair = [-0.5 * torch.cdist(q[t - 1], q[t]).square() / sigma**2 for t in range(1, T)]  # (K_prev, K) each
+    alpha = [logu[0]]
+    for t in range(1, T):
+        alpha.append(logu[t] + torch.logsumexp(alpha[-1][:, None] + pair[t - 1], 0))
+    beta = [torch.zeros_like(logu[0])]
+    for t in range(T - 1, 0, -1):
+        beta.append(torch.logsumexp(pair[t - 1] + (logu[t] + beta[-1])[None, :], 1))
+    return torch.softmax(torch.stack(alpha) + torch.stack(beta[::-1]), -1)
+
+
+def _check_lattice(unary: Tensor, q: Tensor) -> None:
+    if unary.ndim != 2 or q.shape[:2] != unary.shape:
+        raise InputError(
+            f"viterbi: unary (T, K) and q (T, K, D) expected, got {tuple(unary.shape)} and {tuple(q.shape)}"
+        )
+
+
 def viterbi(unary: Tensor, q: Tensor, sigma: float) -> Tensor:
     """The best path through a (T, K) lattice of hypotheses.
 
@@ -92,10 +120,7 @@ def viterbi(unary: Tensor, q: Tensor, sigma: float) -> Tensor:
 def viterbi_with_cost(unary: Tensor, q: Tensor, sigma: float) -> tuple[Tensor, Tensor]:
     """`viterbi` and the minimised sum along its path: unary (T, K), q (T, K, D) -> path (T,) int64,
     cost () (a huge finite number where the path has to take a non-finite unary entry)."""
-    if unary.ndim != 2 or q.shape[:2] != unary.shape:
-        raise InputError(
-            f"viterbi: unary (T, K) and q (T, K, D) expected, got {tuple(unary.shape)} and {tuple(q.shape)}"
-        )
+    _check_lattice(unary, q)
     big = torch.finfo(unary.dtype).max / 4
     u = torch.where(torch.isfinite(unary), unary, torch.full_like(unary, big))
     T = u.shape[0]

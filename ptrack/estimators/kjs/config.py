@@ -35,7 +35,10 @@ class KjsMethodConfig:
     distinct_deg: float = setting(3.0, "with distinct_mm 0: minima closer than this in every dof are one")
     even_share: float = setting(0.5, "share of the diffusion samples split equally over the modes (the rest by weight)")
     temperature: float = setting(1.0, "weights ∝ prior * exp(-cost / temperature)")
-    weight_memory: float = setting(0.5, "a new mode's weight ∝ parent's weight ** weight_memory * exp(-cost / T)")
+    weight_memory: float = setting(0.5, "reweight memory: a new mode's prior is its parent's weight ** weight_memory")
+    reweight: str = setting(
+        "memory", "a new mode's prior: mixture (the predicted mixture at it, the paper's) or memory (its parent's)"
+    )
     prior_sigma: float = setting(0.05, "the dynamics' velocity std, radians (or metres) per frame, where no table")
     dynamics: str | None = setting(
         "cmu-train", "per-dof velocity std table: cmu-train, cmu (dev clips) or null (prior_sigma for all)"
@@ -65,6 +68,12 @@ class KjsMethodConfig:
     smooth_link_m: float = setting(0.1, "smoother: neighbours within this mean joint distance (metres) are linked")
     recombine: bool = setting(True, "one more hypothesis per frame: each chain's reading by its own Viterbi pass")
     recombine_sigma_m: float = setting(0.15, "recombine: velocity std on the chain's joints, metres per frame")
+    weights: str = setting(
+        "filter", "hypothesis weights: posterior (forward-backward over the final modes) or filter (the passes')"
+    )
+    path: str = setting(
+        "forward", "best trajectory: forward (Viterbi of the forward pass's modes) or map (of the final modes)"
+    )
 
 
 class KjsRunConfig(Protocol):
@@ -129,6 +138,9 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
         ("init", ("keyframe", "tree")),
         ("backward_pass", ("tree", "always", "never")),
         ("viterbi_space", ("joints", "dofs")),
+        ("weights", ("posterior", "filter")),
+        ("reweight", ("mixture", "memory")),
+        ("path", ("forward", "map")),
         ("prior_tail", ("gaussian", *(n for n in ROBUST_LOSSES if n != "l2"))),
     ):
         if getattr(kc, key) not in allowed:

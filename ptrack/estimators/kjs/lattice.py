@@ -13,7 +13,7 @@ from torch import Tensor
 
 from ptrack.body.limits import wrapped_difference
 from ptrack.estimators.kjs.model import Setup, distinct_poses, frame_evidence, mode_cholesky, polish_rows
-from ptrack.hypotheses.mixture import Modes, viterbi_with_cost
+from ptrack.hypotheses.mixture import Modes, forward_backward, viterbi_with_cost
 
 
 def _pad(modes: Modes, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -53,10 +53,11 @@ def make_lattice(s: Setup, per_frame: list[Modes]) -> tuple[Tensor, Tensor, Tens
         return hq, hw, hc, hl, s.problem.skeleton.forward_kinematics(hq)
 
 
-def best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor, Tensor]:
-    """Viterbi through the lattice q (T, K, D), weights (T, K), joints (T, K, J, 3): each mode's own frame
-    cost (`frame_evidence`) plus a velocity prior between consecutive choices (`kjs.viterbi_space`); padding
-    (weight 0) is never chosen. -> mode index per frame (T,), and the path's cost ()."""
+def chain_terms(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor, Tensor, float]:
+    """The lattice's chain model, shared by the best trajectory (`best_path`) and the mode posterior
+    (`mode_posterior`): q (T, K, D), weights (T, K) (0: padding), joints (T, K, J, 3) -> unary (T, K), each mode's
+    own frame cost (`frame_evidence`; padding inf), the features (T, K, F) of the velocity prior between
+    consecutive modes (`kjs.viterbi_space`) and its std per frame."""
     k = s.cfg.kjs
     T, K, D = hq.shape
     rows = torch.arange(T, device=hq.device).repeat_interleave(K)  # every mode with its own frame's 2D
@@ -66,7 +67,22 @@ def best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor,
             feats, sigma = (joints - joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
         else:
             feats, sigma = hq, k.viterbi_sigma
-        return viterbi_with_cost(torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma)
+        return torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma
+
+
+def best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor, Tensor]:
+    """Viterbi through the lattice q (T, K, D), weights (T, K), joints (T, K, J, 3): each mode's own frame
+    cost (`frame_evidence`) plus a velocity prior between consecutive choices (`kjs.viterbi_space`); padding
+    (weight 0) is never chosen. -> mode index per frame (T,), and the path's cost ()."""
+    return viterbi_with_cost(*chain_terms(s, hq, hw, joints))
+
+
+def mode_posterior(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> Tensor:
+    """Every mode's posterior probability given the whole clip, under the chain model `best_path` maximises
+    (`chain_terms`; forward-backward, `ptrack.hypotheses.mixture.forward_backward`): q (T, K, D), weights
+    (T, K) (0: padding, which stays 0), joints (T, K, J, 3) -> (T, K), each frame summing to 1."""
+    with torch.no_grad():
+        return forward_backward(*chain_terms(s, hq, hw, joints))
 
 
 # ---------------------------------------------------------------- which pass leads after a tree start

@@ -25,7 +25,7 @@ from ptrack.errors import InputError
 from ptrack.estimators.kjs.config import KjsRunConfig
 from ptrack.hypotheses.ik import ChainIK, ClosedFormUnavailable, ik_plan
 from ptrack.hypotheses.jumps import Chain, check_independent, default_chains
-from ptrack.hypotheses.mixture import Modes, distinct_minima, posterior_weights
+from ptrack.hypotheses.mixture import Modes, distinct_minima
 from ptrack.hypotheses.samplers import scaled_covariance
 from ptrack.optim.jacobians import objective_linearization
 from ptrack.optim.solvers import lbfgs, levenberg_marquardt
@@ -213,12 +213,13 @@ def mode_cholesky(s: Setup, hessian: Tensor) -> Tensor:
 # ---------------------------------------------------------------- distinct minima, their weights, the modes
 
 
-def select_modes(s: Setup, q: Tensor, cost: Tensor, prior_weight: Tensor, count: int) -> tuple[Tensor, Tensor]:
-    """Distinct minima among polished hypotheses, the `count` heaviest first: -> indices (M,) and their
-    normalised weights (M,). prior_weight (N,): what each inherits from the mode it came from (that mode's
-    weight to the power `kjs.weight_memory`)."""
+def select_modes(s: Setup, q: Tensor, cost: Tensor, log_prior: Tensor, count: int) -> tuple[Tensor, Tensor]:
+    """Distinct minima among polished hypotheses (N), the `count` heaviest first: -> indices (M,) and their
+    normalised weights (M,) ∝ exp(log_prior - cost / `kjs.temperature`). log_prior (N,): each hypothesis's prior
+    weight, logarithm (`prior_weights`)."""
     keep = distinct_poses(s, q, cost)
-    w = posterior_weights(cost[keep] - cost[keep].min(), prior_weight[keep], s.cfg.kjs.temperature)
+    logw = log_prior[keep] - (cost[keep] - cost[keep].min()) / s.cfg.kjs.temperature
+    w = torch.softmax(torch.where(torch.isfinite(logw), logw, torch.full_like(logw, -math.inf)), 0)
     order = torch.argsort(w, descending=True)[:count]
     return keep[order], w[order] / w[order].sum()
 

@@ -108,9 +108,9 @@ def first_modes(s: Setup, strategy: Strategy, t: int = 0) -> Modes:
         # "most promising" by the frame's own cost (`frame_evidence`), not with the start prior: flip combinations
         # that reproject alike differ mostly in that prior, which is per dof around real people's mean pose
         # and so would drop a raised arm (49_18) before it is ever refined; the K kept below still weigh it
-        best, _ = select_modes(s, q, frame_evidence(s, t, q), torch.ones_like(cost), 4 * k.modes)
+        best, _ = select_modes(s, q, frame_evidence(s, t, q), torch.zeros_like(cost), 4 * k.modes)
         q, cost, hessian = polish(s, t, q[best], mean[best], 20, sigma)
-    keep, w = select_modes(s, q, cost, torch.ones_like(cost), k.modes)
+    keep, w = select_modes(s, q, cost, torch.zeros_like(cost), k.modes)
     if keep.numel() == 0:
         raise EstimationError(f"method {strategy.name!r}: no start pose with a finite cost on frame {t}")
     return make_modes(s, q[keep], cost[keep], hessian[keep], w, q[keep])

@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ptrack.costs import HeavyTailedPrior, PoseEval, PosePrior
 from ptrack.estimators.kjs.model import Setup, Strategy, distinct_poses, make_modes, polish, select_modes
 from ptrack.hypotheses.ik import chain_ik
 from ptrack.hypotheses.jumps import interpretation_tree, joint_observations
@@ -143,6 +144,32 @@ def merge_mixtures(s: Setup, forward: Modes, backward: Modes, lead: int) -> Mode
     return Modes(both.q[keep], weight / weight.sum(), both.cost[keep], both.chol[keep], both.velocity[keep])
 
 
+# ---------------------------------------------------------------- the prior weight of a new minimum
+
+
+def prior_weights(s: Setup, q: Tensor, parent: Tensor, weight: Tensor, predicted: Tensor, sigma: Tensor) -> Tensor:
+    """The log prior weight of each new minimum q (N, D) of frame t, whose polishing cost holds the dynamics
+    around its parent mode's prediction (parent (N,) into the previous modes' weight (K,), predicted (K, D) and
+    dynamics std sigma (K, D)) -> (N,).
+
+    `kjs.reweight: mixture` (Sminchisescu & Triggs 2003, sec. 3): the prior is the predicted mixture
+    sum_j w_j p_j(q), p_j the dynamics' density around mode j's prediction (the heavy-tailed prior of the
+    polishing, normalised as a Gaussian of std sigma_j); its parent's own term is already in the cost, so it is
+    taken back out here, and the weight prior x likelihood follows in `select_modes`. `memory`: the parent's
+    weight to the power `kjs.weight_memory` (the dynamics counted once, around the parent)."""
+    k = s.cfg.kjs
+    if k.reweight == "memory":
+        return k.weight_memory * torch.log(weight.clamp_min(torch.finfo(weight.dtype).tiny))[parent]
+    term = HeavyTailedPrior(predicted, sigma, loss=k.prior_tail, scale=k.prior_tail_scale)
+    if k.prior_tail == "gaussian":
+        term = PosePrior(predicted, sigma)
+    empty = q.new_zeros(q.shape[0], 1, 0, 3)
+    energy = term.energy(PoseEval(q[:, None, :], empty, empty[..., :2], empty[..., 0]))  # (N, K)
+    log_density = torch.log(weight.clamp_min(torch.finfo(weight.dtype).tiny)) - energy - torch.log(sigma).sum(-1)
+    own = energy.gather(1, parent[:, None])[:, 0]  # the parent's dynamics, already in the polishing cost
+    return torch.logsumexp(log_density, 1) + own
+
+
 # ---------------------------------------------------------------- one tracking step
 
 
@@ -177,11 +204,11 @@ def track_step(
     sigma = torch.sqrt(s.dynamics_sigma**2 + (k.motion_scale * modes.velocity) ** 2)  # (K, D)
     # polish everything briefly, then the most promising distinct minima to convergence
     q, cost, _ = polish(s, t, q, predicted[parent], k.polish_iterations, sigma[parent], tracking=True)
-    prior = modes.weight**k.weight_memory  # (K,) how much of the past evidence each mode carries forward
-    best, _ = select_modes(s, q, cost, prior[parent], 4 * k.modes)
+    best, _ = select_modes(s, q, cost, prior_weights(s, q, parent, modes.weight, predicted, sigma), 4 * k.modes)
     q, parent = q[best], parent[best]
     q, cost, hessian = polish(s, t, q, predicted[parent], k.refine_iterations, sigma[parent], tracking=True)
-    keep, w = select_modes(s, q, cost, prior[parent], 4 * k.modes if orders else k.modes)
+    log_prior = prior_weights(s, q, parent, modes.weight, predicted, sigma)
+    keep, w = select_modes(s, q, cost, log_prior, 4 * k.modes if orders else k.modes)
     if orders and keep.numel():
         pick = torch.argsort(_orders_first(s, q[keep], torch.arange(keep.numel(), device=keep.device)))[: k.modes]
         keep, w = keep[pick], w[pick] / w[pick].sum()

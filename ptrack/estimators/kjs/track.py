@@ -13,6 +13,7 @@ from ptrack.estimators.kjs.lattice import (
     best_path,
     lead_pass,
     make_lattice,
+    mode_posterior,
     principal_directions,
     recombine,
     smooth_lattice,
@@ -106,6 +107,10 @@ def _track(
     if k.recombine:  # each chain's reading chosen on its own, on the best trajectory's pose (`recombine`); after
         # the smoother, so that the best trajectory is the same with it and without
         hq, hw, hc, hl, hyp_joints = recombine(s, hq, hw, hc, hl, hyp_joints, path)
+    if k.path == "map":  # the MAP path of the final lattice, under the model of `mode_posterior`
+        path, _ = best_path(s, hq, hw, hyp_joints)
+    if k.weights == "posterior":  # each mode's probability given the whole clip (`mode_posterior`)
+        hw = mode_posterior(s, hq, hw, hyp_joints)
     with torch.no_grad():
         frames = torch.arange(hq.shape[0], device=hq.device)
         joints = hyp_joints[frames, path]
