@@ -689,3 +689,50 @@ def test_keypoint_set_without_limbs_runs():
     assert not prep.problem.keypoints.limbs
     assert est.hypotheses is not None and bool(torch.isfinite(est.joints).all())
     assert torch.allclose(est.hypothesis_weights.sum(-1), torch.ones(()).to(est.hypothesis_weights), atol=1e-6)
+
+
+def test_mode_posterior_and_map_path():
+    """kjs.weights posterior and kjs.path map come after the tracking: the same hypotheses as the filter's weights
+    and forward path, every frame's posterior weights sum to 1, and the MAP path takes one hypothesis per frame."""
+    _, est = _run("data.stop=60", "kjs.weights=posterior", "kjs.path=map")
+    _, fwd = _run("data.stop=60", "kjs.weights=filter", "kjs.path=forward")
+    assert torch.equal(fwd.hypotheses, est.hypotheses)
+    w = est.hypothesis_weights
+    torch.testing.assert_close(w.sum(-1), torch.ones(w.shape[0]), atol=1e-5, rtol=0)
+    assert (w >= 0).all() and not torch.allclose(w, fwd.hypothesis_weights)
+    d = (est.hypotheses - est.joints[:, None]).norm(dim=-1).amax(-1).amin(-1)
+    assert float(d.max()) < 1e-5
+
+
+def test_mixture_prior_weight_is_the_predicted_mixture():
+    """kjs.reweight mixture: a new minimum's log prior, with its parent's dynamics term (already in its polishing
+    cost) added back, is log sum_j w_j p_j(q), p_j the dynamics' density around mode j's prediction; so a minimum
+    at the heavy mode's prediction gets the larger prior whichever mode it came from. memory: the parent's weight
+    to the power kjs.weight_memory."""
+    from ptrack.costs import HeavyTailedPrior, PoseEval
+    from ptrack.estimators.kjs.step import prior_weights
+
+    cfg = load_config(KJS_YAML, [*EXACT, "data.stop=12", "kjs.reweight=mixture"])
+    problem = prepare(cfg).problem
+    s = make_setup(problem, cfg, KJS)
+    D = problem.skeleton.num_dofs
+    gen = torch.Generator().manual_seed(0)
+    predicted = torch.randn(2, D, generator=gen) * 0.3
+    sigma = torch.full((2, D), 0.05)
+    sigma[1] *= 2
+    weight = torch.tensor([0.8, 0.2])
+    q = torch.stack([predicted[0], predicted[0], predicted[1], predicted[1]]) + 0.01
+    parent = torch.tensor([0, 1, 0, 1])
+    got = prior_weights(s, q, parent, weight, predicted, sigma)
+    ev = PoseEval(q, q.new_zeros(4, 0, 3), q.new_zeros(4, 0, 2), q.new_zeros(4, 0))
+    k = cfg.kjs
+    energy = torch.stack(
+        [HeavyTailedPrior(predicted[j], sigma[j], k.prior_tail, k.prior_tail_scale).energy(ev) for j in (0, 1)], 1
+    )
+    want = torch.logsumexp(weight.log() - energy - sigma.log().sum(-1), 1)
+    torch.testing.assert_close(got - energy[torch.arange(4), parent], want, rtol=1e-5, atol=1e-4)
+    assert float(want[0]) > float(want[2])  # at the heavy mode's prediction (std 0.05) vs the light one's (0.1)
+    memory = make_setup(problem, dataclasses.replace(cfg, kjs=dataclasses.replace(cfg.kjs, reweight="memory")), KJS)
+    torch.testing.assert_close(
+        prior_weights(memory, q, parent, weight, predicted, sigma), cfg.kjs.weight_memory * weight.log()[parent]
+    )

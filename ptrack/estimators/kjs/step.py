@@ -160,9 +160,11 @@ def prior_weights(s: Setup, q: Tensor, parent: Tensor, weight: Tensor, predicted
     k = s.cfg.kjs
     if k.reweight == "memory":
         return k.weight_memory * torch.log(weight.clamp_min(torch.finfo(weight.dtype).tiny))[parent]
-    term = HeavyTailedPrior(predicted, sigma, loss=k.prior_tail, scale=k.prior_tail_scale)
-    if k.prior_tail == "gaussian":
-        term = PosePrior(predicted, sigma)
+    term: HeavyTailedPrior | PosePrior = (
+        PosePrior(predicted, sigma)
+        if k.prior_tail == "gaussian"
+        else HeavyTailedPrior(predicted, sigma, loss=k.prior_tail, scale=k.prior_tail_scale)
+    )
     empty = q.new_zeros(q.shape[0], 1, 0, 3)
     energy = term.energy(PoseEval(q[:, None, :], empty, empty[..., :2], empty[..., 0]))  # (N, K)
     log_density = torch.log(weight.clamp_min(torch.finfo(weight.dtype).tiny)) - energy - torch.log(sigma).sum(-1)
