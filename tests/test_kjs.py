@@ -15,7 +15,7 @@ import torch
 from ptrack.cli import main
 from ptrack.estimators import ESTIMATORS
 from ptrack.estimators.kjs import KJS, track
-from ptrack.estimators.kjs.lattice import recombine, smooth_lattice
+from ptrack.estimators.kjs.lattice import Lattice, recombine, smooth_lattice
 from ptrack.estimators.kjs.model import make_setup
 from ptrack.estimators.kjs.step import _allocate, _chain_votes
 from ptrack.pipeline import metrics as M
@@ -608,7 +608,8 @@ def test_smoothing_moves_only_linked_hypotheses(kjs_run):
     hw = torch.tensor([[1.0, 0.0], [0.5, 0.5], [1.0, 0.0]])  # the turned body is padding on frames 10 and 12
     hc = torch.zeros(3, 2)
     hl = torch.zeros(3, 2, sk.num_dofs, sk.num_dofs)
-    sq, sc, sl, sj = smooth_lattice(s, hq, hw, hc, hl, sk.forward_kinematics(hq))
+    sq, sw, sc, sl, sj = smooth_lattice(s, Lattice(hq, hw, hc, hl, sk.forward_kinematics(hq)))
+    assert torch.equal(sw, hw)
     assert torch.equal(sq[:, 1], hq[:, 1]) and torch.equal(sc[:, 1], hc[:, 1])  # unlinked, padding
     thigh = sk.dof_names.index("lfemur.rx")
     assert abs(float(sq[1, 0, thigh] - q[1, thigh])) < 0.5 * 0.3  # drawn back towards its neighbours
@@ -635,7 +636,7 @@ def test_recombination_joins_the_right_reading_of_each_chain(kjs_run):
     hc = torch.zeros(6, 4)
     hl = torch.zeros(6, 4, sk.num_dofs, sk.num_dofs)
     path = torch.zeros(6, dtype=torch.long)
-    rq, rw, rc, rl, rj = recombine(s, hq, hw, hc, hl, sk.forward_kinematics(hq), path)
+    rq, rw, rc, rl, rj = recombine(s, Lattice(hq, hw, hc, hl, sk.forward_kinematics(hq)), path)
     idx = prep.problem.keypoints.index()
     gt = prep.gt_joints[:6].to(rj).index_select(-2, idx)
     err = M.mpjpe(rj.index_select(-2, idx), gt[:, None].expand(-1, 4, -1, -1), root=0)  # (6, 4)

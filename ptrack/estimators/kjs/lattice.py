@@ -7,6 +7,7 @@ Shapes: T frames, K modes (`kjs.modes`), D dofs, J joints, C chains."""
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -44,21 +45,32 @@ def principal_directions(sk, q: Tensor, chol: Tensor, scale: float) -> Tensor:
     return sk.forward_kinematics(q + dq) - sk.forward_kinematics(q)
 
 
-def make_lattice(s: Setup, per_frame: list[Modes]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Each frame's modes padded to K -> q (T, K, D), weights (T, K), costs (T, K), covariance factors
-    (T, K, D, D) and joint positions (T, K, J, 3)."""
+class Lattice(NamedTuple):
+    """Every frame's K modes: q (T, K, D), weight (T, K) (each frame's summing to 1; 0: padding, a copy of the
+    frame's first mode), cost (T, K) (the tracking cost), chol (T, K, D, D) (covariance factors) and joints
+    (T, K, J, 3) (the forward kinematics of q)."""
+
+    q: Tensor
+    weight: Tensor
+    cost: Tensor
+    chol: Tensor
+    joints: Tensor
+
+
+def make_lattice(s: Setup, per_frame: list[Modes]) -> Lattice:
+    """Each frame's modes (T of them) padded to K, with their joints."""
     padded = [_pad(m, s.cfg.kjs.modes) for m in per_frame]
     hq, hw, hc, hl = (torch.stack(x) for x in zip(*padded))
     with torch.no_grad():
-        return hq, hw, hc, hl, s.problem.skeleton.forward_kinematics(hq)
+        return Lattice(hq, hw, hc, hl, s.problem.skeleton.forward_kinematics(hq))
 
 
-def chain_terms(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor, Tensor, float]:
+def chain_terms(s: Setup, lat: Lattice) -> tuple[Tensor, Tensor, float]:
     """The lattice's chain model, shared by the best trajectory (`best_path`) and the mode posterior
-    (`mode_posterior`): q (T, K, D), weights (T, K) (0: padding), joints (T, K, J, 3) -> unary (T, K), each mode's
-    own frame cost (`frame_evidence`; padding inf), the features (T, K, F) of the velocity prior between
-    consecutive modes (`kjs.viterbi_space`) and its std per frame."""
+    (`mode_posterior`) -> unary (T, K), each mode's own frame cost (`frame_evidence`; padding inf), the features
+    (T, K, F) of the velocity prior between consecutive modes (`kjs.viterbi_space`) and its std per frame."""
     k = s.cfg.kjs
+    hq, hw, joints = lat.q, lat.weight, lat.joints
     T, K, D = hq.shape
     rows = torch.arange(T, device=hq.device).repeat_interleave(K)  # every mode with its own frame's 2D
     unary = frame_evidence(s, rows, hq.reshape(-1, D), joints.flatten(0, 1)).reshape(T, K)
@@ -70,19 +82,19 @@ def chain_terms(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tenso
         return torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma
 
 
-def best_path(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> tuple[Tensor, Tensor]:
-    """Viterbi through the lattice q (T, K, D), weights (T, K), joints (T, K, J, 3): each mode's own frame
-    cost (`frame_evidence`) plus a velocity prior between consecutive choices (`kjs.viterbi_space`); padding
-    (weight 0) is never chosen. -> mode index per frame (T,), and the path's cost ()."""
-    return viterbi_with_cost(*chain_terms(s, hq, hw, joints))
+def best_path(s: Setup, lat: Lattice) -> tuple[Tensor, Tensor]:
+    """Viterbi through the lattice: each mode's own frame cost (`frame_evidence`) plus a velocity prior between
+    consecutive choices (`kjs.viterbi_space`); padding (weight 0) is never chosen. -> mode index per frame (T,),
+    and the path's cost ()."""
+    return viterbi_with_cost(*chain_terms(s, lat))
 
 
-def mode_posterior(s: Setup, hq: Tensor, hw: Tensor, joints: Tensor) -> Tensor:
+def mode_posterior(s: Setup, lat: Lattice) -> Tensor:
     """Every mode's posterior probability given the whole clip, under the chain model `best_path` maximises
-    (`chain_terms`; forward-backward, `ptrack.hypotheses.mixture.forward_backward`): q (T, K, D), weights
-    (T, K) (0: padding, which stays 0), joints (T, K, J, 3) -> (T, K), each frame summing to 1."""
+    (`chain_terms`; forward-backward, `ptrack.hypotheses.mixture.forward_backward`) -> (T, K), each frame summing
+    to 1, padding 0."""
     with torch.no_grad():
-        return forward_backward(*chain_terms(s, hq, hw, joints))
+        return forward_backward(*chain_terms(s, lat))
 
 
 # ---------------------------------------------------------------- which pass leads after a tree start
@@ -124,8 +136,9 @@ def lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: li
     hips = _hips(s)
     if hips is None:
         return False, path
-    bq, bw, _, _, bj = make_lattice(s, backward)
-    back_path, back_cost = best_path(s, bq, bw, bj)
+    back = make_lattice(s, backward)
+    back_path, back_cost = best_path(s, back)
+    bj = back.joints
     frames = torch.arange(path.shape[0], device=path.device)
     apart = _heading(joints[frames, path], hips) - _heading(bj[frames, back_path], hips)
     apart = torch.remainder(apart + math.pi, 2 * math.pi) - math.pi
@@ -142,9 +155,7 @@ def lead_pass(s: Setup, path: Tensor, cost: Tensor, joints: Tensor, backward: li
 GRAFT_ITERATIONS, RECOMBINED_ITERATIONS = 3, 5
 
 
-def recombine(
-    s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor, joints: Tensor, path: Tensor
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def recombine(s: Setup, lat: Lattice, path: Tensor) -> Lattice:
     """One more hypothesis per frame: the best trajectory's pose with each chain's reading chosen on its own.
 
     The modes hold the chains' readings (which way each limb points in depth) in combinations: one mode
@@ -159,14 +170,14 @@ def recombine(
     polished, replace frame t's padding or its lightest mode other than the best trajectory's, with that
     slot's weight (the lightest weight for padding), unless they are a mode already (`distinct_poses`). The
     best trajectory keeps its modes. Without chains (css and ss after a keyframe start) or with K = 1 nothing
-    changes. hq (T, K, D), hw (T, K) (0: padding), hc (T, K), hl (T, K, D, D), joints (T, K, J, 3), path (T,)
-    -> hq, hw, hc, hl, joints."""
+    changes. path (T,): the best trajectory's mode per frame."""
     k = s.cfg.kjs
+    hq, hw, hc, hl, joints = lat
     sk = s.problem.skeleton
     T, K, D = hq.shape
     C = len(s.chains)
     if C == 0 or K < 2:
-        return hq, hw, hc, hl, joints
+        return lat
     frames = torch.arange(T, device=hq.device)
     lead = hq[frames, path]  # (T, D)
     graft = torch.where(s.chain_dofs[None, :, None], hq[:, None], lead[:, None, None]).reshape(-1, D)  # (T C K, D)
@@ -179,7 +190,7 @@ def recombine(
     choice = torch.stack([viterbi_with_cost(cost_tck[:, c], feats_tck[:, c], k.recombine_sigma_m)[0] for c in range(C)])
     new = (choice != path[None]).any(0)  # (T,): some chain takes another mode's reading
     if not bool(new.any()):
-        return hq, hw, hc, hl, joints
+        return lat
     picked = hq[frames[:, None], choice.T]  # (T, C, D)
     q = lead
     for c in range(C):
@@ -203,7 +214,7 @@ def recombine(
         if not bool(real[slot]):  # padding (weight 0) takes the lightest mode's weight
             hw[t, slot] = hw[t][real].min()
             hw[t] = hw[t] / hw[t].sum()
-    return hq, hw, hc, hl, joints
+    return Lattice(hq, hw, hc, hl, joints)
 
 
 # ---------------------------------------------------------------- the smoother
@@ -214,9 +225,7 @@ def recombine(
 SMOOTH_ITERATIONS = 5
 
 
-def smooth_lattice(
-    s: Setup, hq: Tensor, hw: Tensor, hc: Tensor, hl: Tensor, joints: Tensor
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def smooth_lattice(s: Setup, lat: Lattice) -> Lattice:
     """`kjs.smooth_sweeps` sweeps of a smoother over the finished hypothesis lattice. Each tracked mode holds
     the evidence of its own frame and, through the dynamics, of the frames before (a filter): its depth
     jitters from frame to frame wherever the 2D leaves it loose. In a sweep each hypothesis of frame t is
@@ -225,10 +234,10 @@ def smooth_lattice(
     and polished again on frame t's objective with the tracking prior around the mean of its linked
     neighbours, std `kjs.smooth_scale` times the dynamics' (times sqrt 2 with one neighbour). A
     hypothesis with no linked neighbour, and padding, keep their pose. Each sweep uses the poses of the
-    sweep before (Jacobi). hq (T, K, D), hw (T, K) weights (0: padding), hc (T, K) costs, hl (T, K, D, D)
-    covariance factors, joints (T, K, J, 3) their forward kinematics -> hq, hc, hl, joints (the smoothed
-    poses, their objective, covariance and joints)."""
+    sweep before (Jacobi). -> the lattice with the smoothed poses, their objective, covariance and joints (the
+    weights as they were)."""
     k = s.cfg.kjs
+    hq, hw, hc, hl, joints = lat
     sk = s.problem.skeleton
     T, K, D = hq.shape
     base = torch.as_tensor(s.dynamics_sigma, dtype=hq.dtype, device=hq.device).expand(D) * k.smooth_scale
@@ -256,4 +265,4 @@ def smooth_lattice(
         hq[move], hc[move], hl[move] = q, cost, mode_cholesky(s, hessian)
         with torch.no_grad():
             joints = sk.forward_kinematics(hq)
-    return hq, hc, hl, joints
+    return Lattice(hq, hw, hc, hl, joints)

@@ -91,26 +91,26 @@ def _track(
         passes[back].append((modes, counts.to(modes.q.device)))
     forward = [m for m, _ in passes[0]]
     jumps = [c for _, c in passes[0]]
-    hq, hw, hc, hl, hyp_joints = make_lattice(s, forward)
-    path, cost = best_path(s, hq, hw, hyp_joints)
+    lat = make_lattice(s, forward)
+    path, cost = best_path(s, lat)
     if backward:  # the hypotheses of both passes, the best trajectory's mode first in each frame (`merge_mixtures`)
         lead, other = forward, [m for m, _ in reversed(passes[1])]
         if k.init == "tree":
-            swap, path = lead_pass(s, path, cost, hyp_joints, other)
+            swap, path = lead_pass(s, path, cost, lat.joints, other)
             lead, other = (other, lead) if swap else (lead, other)
-        merged = [merge_mixtures(s, a, b, int(p)) for a, b, p in zip(lead, other, path)]
-        hq, hw, hc, hl, hyp_joints = make_lattice(s, merged)
+        lat = make_lattice(s, [merge_mixtures(s, a, b, int(p)) for a, b, p in zip(lead, other, path)])
         path = torch.zeros_like(path)
         jumps = [a + b for a, (_, b) in zip(jumps, reversed(passes[1]))]
     if k.smooth_sweeps > 0:  # every frame's hypotheses smoothed in time (`smooth_lattice`); the choice of mode kept
-        hq, hc, hl, hyp_joints = smooth_lattice(s, hq, hw, hc, hl, hyp_joints)
+        lat = smooth_lattice(s, lat)
     if k.recombine:  # each chain's reading chosen on its own, on the best trajectory's pose (`recombine`); after
         # the smoother, so that the best trajectory is the same with it and without
-        hq, hw, hc, hl, hyp_joints = recombine(s, hq, hw, hc, hl, hyp_joints, path)
+        lat = recombine(s, lat, path)
     if k.path == "map":  # the MAP path of the final lattice, under the model of `mode_posterior`
-        path, _ = best_path(s, hq, hw, hyp_joints)
+        path, _ = best_path(s, lat)
+    hq, hw, hc, hl, hyp_joints = lat
     if k.weights == "posterior":  # each mode's probability given the whole clip (`mode_posterior`)
-        hw = mode_posterior(s, hq, hw, hyp_joints)
+        hw = mode_posterior(s, lat)
     with torch.no_grad():
         frames = torch.arange(hq.shape[0], device=hq.device)
         joints = hyp_joints[frames, path]
