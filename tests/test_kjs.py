@@ -257,7 +257,7 @@ def test_allocation_splits_an_even_share_over_the_modes():
         ("kjs.init=guess", "kjs.init"),
         ("kjs.even_share=1.5", "kjs.even_share"),
         ("kjs.weight_memory=-0.5", "kjs.weight_memory"),
-        ("kjs.viterbi_space=angles", "kjs.viterbi_space"),
+        ("kjs.weights=prior", "kjs.weights"),
         ("kjs.viterbi_sigma_m=0", "kjs.viterbi_sigma_m"),
         ("kjs.dynamics=walk", "kjs.dynamics"),
         ("kjs.dynamics_floor=-0.1", "kjs.dynamics_floor"),

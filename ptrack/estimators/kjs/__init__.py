@@ -38,8 +38,7 @@ trees), the 4K of lowest frame-0 cost without the start prior refined, and the K
 kept. A frame with no observed keypoint is carried by the dynamics. The output's `hypotheses` are the
 K modes of each frame; `q`/`joints` are the best trajectory through them by Viterbi: each mode's own
 frame cost (data, limits, collision, pose prior; `frame_evidence`) plus a velocity prior between
-consecutive choices, on the joints' positions relative to the root (`kjs.viterbi_space: joints`, std
-`kjs.viterbi_sigma_m` per frame) or on the dofs (`dofs`, `kjs.viterbi_sigma`).
+consecutive choices, on the joints' positions relative to the root (std `kjs.viterbi_sigma_m` per frame).
 
 A second pass runs backwards in time from the forward pass's last modes (`kjs.backward_pass: always`;
 `tree`: after a tree start only). After a tree start it also starts from a tree start on the last frame

@@ -30,7 +30,6 @@ class KjsMethodConfig:
     polisher: str = setting("lm", "local optimiser of every hypothesis: lm (Levenberg-Marquardt) or lbfgs")
     polish_iterations: int = setting(4, "Levenberg-Marquardt iterations of every hypothesis")
     refine_iterations: int = setting(10, "further iterations of the 4K most promising distinct minima")
-    momentum: float = setting(0.0, "share of a mode's last velocity in its prediction (0: constant position)")
     distinct_mm: float = setting(0.0, "minima whose joints are all closer (mm) are one; 0: compare dofs (distinct_deg)")
     distinct_deg: float = setting(3.0, "with distinct_mm 0: minima closer than this in every dof are one")
     even_share: float = setting(0.5, "share of the diffusion samples split equally over the modes (the rest by weight)")
@@ -54,9 +53,9 @@ class KjsMethodConfig:
     collision_weight: float = setting(1.0, "weight of the body non-self-intersection term")
     floor_deg: float = setting(0.5, "smallest sampling std per dof (unobservable directions), degrees")
     ceiling_deg: float = setting(30.0, "largest sampling std per dof, degrees")
-    viterbi_space: str = setting("joints", "best trajectory's velocity prior: on joints relative to the root, or dofs")
-    viterbi_sigma_m: float = setting(0.05, "viterbi_space joints: velocity std, metres per frame and coordinate")
-    viterbi_sigma: float = setting(0.05, "viterbi_space dofs: velocity std, radians per frame")
+    viterbi_sigma_m: float = setting(
+        0.05, "the lattice's velocity prior on the joints relative to the root: std, metres per frame and coordinate"
+    )
     init: str = setting("keyframe", "keyframe: frame 0's 3D pose given; tree: rest pose fitted in view + every flip")
     start_prior_scale: float = setting(1.5, "init tree: the CMU pose prior's spread is scaled by this")
     rest_sigma: float = setting(1.0, "init tree: std around 0 of the angles the pose prior does not name, radians")
@@ -101,7 +100,6 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
         "prior_sigma",
         "floor_deg",
         "ceiling_deg",
-        "viterbi_sigma",
         "viterbi_sigma_m",
         "rest_sigma",
         "start_prior_scale",
@@ -128,7 +126,7 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
     for key in ("motion_scale", "pose_prior_weight", "distinct_mm", "smooth_sweeps"):
         if getattr(kc, key) < 0:
             raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")
-    for key in ("momentum", "even_share", "weight_memory"):
+    for key in ("even_share", "weight_memory"):
         if not 0 <= getattr(kc, key) <= 1:
             raise InputError(f"config key 'kjs.{key}' must be in [0, 1], got {getattr(kc, key)}")
     for key, allowed in (
@@ -137,7 +135,6 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
         ("polisher", ("lm", "lbfgs")),
         ("init", ("keyframe", "tree")),
         ("backward_pass", ("tree", "always", "never")),
-        ("viterbi_space", ("joints", "dofs")),
         ("weights", ("posterior", "filter")),
         ("reweight", ("mixture", "memory")),
         ("path", ("forward", "map")),

@@ -68,23 +68,21 @@ def make_lattice(s: Setup, per_frame: list[Modes]) -> Lattice:
 def chain_terms(s: Setup, lat: Lattice) -> tuple[Tensor, Tensor, float]:
     """The lattice's chain model, shared by the best trajectory (`best_path`) and the mode posterior
     (`mode_posterior`) -> unary (T, K), each mode's own frame cost (`frame_evidence`; padding inf), the features
-    (T, K, F) of the velocity prior between consecutive modes (`kjs.viterbi_space`) and its std per frame."""
+    (T, K, F) of the velocity prior between consecutive modes (every joint relative to the root: the body's motion
+    in metres) and its std per frame (`kjs.viterbi_sigma_m`)."""
     k = s.cfg.kjs
     hq, hw, joints = lat.q, lat.weight, lat.joints
     T, K, D = hq.shape
     rows = torch.arange(T, device=hq.device).repeat_interleave(K)  # every mode with its own frame's 2D
     unary = frame_evidence(s, rows, hq.reshape(-1, D), joints.flatten(0, 1)).reshape(T, K)
     with torch.no_grad():
-        if k.viterbi_space == "joints":  # the body's motion in metres: every joint relative to the root
-            feats, sigma = (joints - joints[..., :1, :]).flatten(-2), k.viterbi_sigma_m
-        else:
-            feats, sigma = hq, k.viterbi_sigma
-        return torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, sigma
+        feats = (joints - joints[..., :1, :]).flatten(-2)
+        return torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, k.viterbi_sigma_m
 
 
 def best_path(s: Setup, lat: Lattice) -> tuple[Tensor, Tensor]:
     """Viterbi through the lattice: each mode's own frame cost (`frame_evidence`) plus a velocity prior between
-    consecutive choices (`kjs.viterbi_space`); padding (weight 0) is never chosen. -> mode index per frame (T,),
+    consecutive choices (`kjs.viterbi_sigma_m`); padding (weight 0) is never chosen. -> mode index per frame (T,),
     and the path's cost ()."""
     return viterbi_with_cost(*chain_terms(s, lat))
 

@@ -183,7 +183,7 @@ def track_step(
     (`_orders_first`), else the K heaviest."""
     k = s.cfg.kjs
     obs = s.problem.observations
-    predicted = modes.q + k.momentum * modes.velocity  # (K, D): the dynamics' prediction of each mode
+    predicted = modes.q  # (K, D): the dynamics' prediction of each mode (constant position)
     counts = torch.zeros(len(s.chains), dtype=torch.long, device=predicted.device)
     if not bool((obs.confidence[t] > 0).any()):  # nothing seen: the dynamics carry the modes
         return modes._replace(q=predicted), counts
