@@ -515,7 +515,7 @@ def test_bone_lengths_report_says_where_each_length_and_its_spread_come_from():
 def test_depth_order_scores_and_heaviest_mode_on_two_modes():
     """Brier score of a limb's depth-order probability, whether a mode holds the true order, and the heaviest mode,
     on hand-made modes of one limb (keypoints 0 -> 1) seen by a camera at the origin looking along +z."""
-    from ptrack.pipeline.metrics import depth_order_scores, heaviest_mode
+    from ptrack.pipeline.metrics import depth_order_scores, distinct_modes, heaviest_mode
 
     R, tt = torch.eye(3), torch.zeros(3)
     near = torch.tensor([[0.0, 0.0, 3.0], [0.0, 0.3, 2.8]])  # end nearer the camera
@@ -529,5 +529,9 @@ def test_depth_order_scores_and_heaviest_mode_on_two_modes():
     assert s.in_modes[:3, 0].tolist() == [1.0, 1.0, 0.0]  # frame 2: the far mode has weight 0
     assert torch.isnan(s.brier[3, 0]) and torch.isnan(s.in_modes[3, 0])
     assert torch.equal(heaviest_mode(hyp, w), torch.stack([near, near, near, far]))
+    # readings 5 cm apart: near and far (40 cm apart in depth) are two, a copy 1 cm off is not a third; padding none
+    copy = near + torch.tensor([0.0, 0.0, 0.01])
+    three = torch.stack([near, far, copy])[None].repeat(2, 1, 1, 1)
+    assert distinct_modes(three, torch.tensor([[0.5, 0.3, 0.2], [1.0, 0.0, 0.0]])).tolist() == [2, 1]
     with pytest.raises(InputError, match="weights"):
         depth_order_scores(hyp, w[:, :1], gt, [(0, 1)], R, tt)

@@ -54,6 +54,7 @@ COLUMNS = (
     ("heaviest_is_best_share", "heaviest≈best", "{:.2f}"),
     ("depth_order_brier", "order Brier", "{:.3f}"),
     ("depth_order_in_modes", "order in modes", "{:.3f}"),
+    ("distinct_modes_5cm", "modes 5 cm apart", "{:.1f}"),
     ("seconds", "seconds", "{:.1f}"),
     ("seeds", "seeds", "{:d}"),  # with several seeds: how many ran (the row is their mean)
 )

@@ -23,6 +23,7 @@ from torch import Tensor
 from ptrack.body.limits import limited_dofs, outside_limits
 from ptrack.checks import as_float_tensor
 from ptrack.errors import InputError
+from ptrack.hypotheses.mixture import distinct_minima
 
 M_TO_MM = 1000.0
 
@@ -424,6 +425,18 @@ def depth_order_scores(
         brier=torch.where(undefined, nan, (p - truth).square()),
         in_modes=torch.where(undefined, nan, agrees.any(1).to(p.dtype)),
     )
+
+
+def distinct_modes(hypotheses, weights, min_distance: float = 0.05) -> Tensor:
+    """How many different readings a mixture holds per frame: its modes of positive weight, taken heaviest first,
+    that differ from every one taken before by `min_distance` metres or more in some joint coordinate (root
+    included; the greedy suppression of `ptrack.hypotheses.mixture.distinct_minima`). hypotheses (T, N, J, 3),
+    weights (T, N) -> (T,) counts."""
+    X = torch.as_tensor(hypotheses)
+    w = torch.as_tensor(weights, device=X.device)
+    rank = torch.where(w > 0, -w, torch.full_like(w, math.inf)).to(X.dtype)  # padding (weight 0) never counts
+    counts = [distinct_minima(x.flatten(-2), r, min_distance).numel() for x, r in zip(X, rank)]
+    return torch.tensor(counts, dtype=torch.long)
 
 
 def heaviest_mode(hypotheses, weights) -> Tensor:

@@ -455,6 +455,9 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
                     hyp_kp, est.hypothesis_weights.detach(), gt_kp, root, kps.limbs, cam
                 )
                 summary.update(checks)
+    if est.hypotheses is not None and est.hypothesis_weights is not None:  # how many readings the modes hold
+        distinct = M.distinct_modes(est.hypotheses.detach().cpu(), est.hypothesis_weights.detach().cpu())
+        summary["distinct_modes_5cm"] = float(distinct.double().mean())
     if prep.footage is not None:
         checks, per_frame = footage_checks(prep, est, est_kp, reproj)
         summary.update(checks)
