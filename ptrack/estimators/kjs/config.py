@@ -36,7 +36,7 @@ class KjsMethodConfig:
     temperature: float = setting(1.0, "weights ∝ prior * exp(-cost / temperature)")
     weight_memory: float = setting(0.5, "reweight memory: a new mode's prior is its parent's weight ** weight_memory")
     reweight: str = setting(
-        "memory", "a new mode's prior: mixture (the predicted mixture at it, the paper's) or memory (its parent's)"
+        "mixture", "a new mode's prior: mixture (the predicted mixture at it, the paper's) or memory (its parent's)"
     )
     prior_sigma: float = setting(0.05, "the dynamics' velocity std, radians (or metres) per frame, where no table")
     dynamics: str | None = setting(
@@ -68,10 +68,10 @@ class KjsMethodConfig:
     recombine: bool = setting(True, "one more hypothesis per frame: each chain's reading by its own Viterbi pass")
     recombine_sigma_m: float = setting(0.15, "recombine: velocity std on the chain's joints, metres per frame")
     weights: str = setting(
-        "filter", "hypothesis weights: posterior (forward-backward over the final modes) or filter (the passes')"
+        "posterior", "hypothesis weights: posterior (forward-backward over the final modes) or filter (the passes')"
     )
     path: str = setting(
-        "forward", "best trajectory: forward (Viterbi of the forward pass's modes) or map (of the final modes)"
+        "map", "best trajectory: map (the MAP path of the final modes) or forward (Viterbi of the forward pass's)"
     )
 
 

@@ -13,7 +13,14 @@ import torch
 from torch import Tensor
 
 from ptrack.body.limits import wrapped_difference
-from ptrack.estimators.kjs.model import Setup, distinct_poses, frame_evidence, mode_cholesky, polish_rows
+from ptrack.estimators.kjs.model import (
+    Setup,
+    distinct_poses,
+    frame_evidence,
+    keyframe_cost,
+    mode_cholesky,
+    polish_rows,
+)
 from ptrack.hypotheses.mixture import Modes, forward_backward, viterbi_with_cost
 
 
@@ -67,7 +74,8 @@ def make_lattice(s: Setup, per_frame: list[Modes]) -> Lattice:
 
 def chain_terms(s: Setup, lat: Lattice) -> tuple[Tensor, Tensor, float]:
     """The lattice's chain model, shared by the best trajectory (`best_path`) and the mode posterior
-    (`mode_posterior`) -> unary (T, K), each mode's own frame cost (`frame_evidence`; padding inf), the features
+    (`mode_posterior`) -> unary (T, K), each mode's own frame cost (`frame_evidence`; padding inf; on frame 0 after
+    a keyframe start also its distance from the keyframe, `keyframe_cost`, the start's own prior), the features
     (T, K, F) of the velocity prior between consecutive modes (every joint relative to the root: the body's motion
     in metres) and its std per frame (`kjs.viterbi_sigma_m`)."""
     k = s.cfg.kjs
@@ -76,6 +84,7 @@ def chain_terms(s: Setup, lat: Lattice) -> tuple[Tensor, Tensor, float]:
     rows = torch.arange(T, device=hq.device).repeat_interleave(K)  # every mode with its own frame's 2D
     unary = frame_evidence(s, rows, hq.reshape(-1, D), joints.flatten(0, 1)).reshape(T, K)
     with torch.no_grad():
+        unary = torch.cat([unary[:1] + keyframe_cost(s, hq[0]), unary[1:]])
         feats = (joints - joints[..., :1, :]).flatten(-2)
         return torch.where(hw > 0, unary, torch.full_like(unary, math.inf)), feats, k.viterbi_sigma_m
 
@@ -90,9 +99,11 @@ def best_path(s: Setup, lat: Lattice) -> tuple[Tensor, Tensor]:
 def mode_posterior(s: Setup, lat: Lattice) -> Tensor:
     """Every mode's posterior probability given the whole clip, under the chain model `best_path` maximises
     (`chain_terms`; forward-backward, `ptrack.hypotheses.mixture.forward_backward`) -> (T, K), each frame summing
-    to 1, padding 0."""
+    to 1, padding 0; a mode's probability never underflows to 0 (at least the dtype's smallest normal number),
+    so that weight 0 still means padding to the stages after."""
     with torch.no_grad():
-        return forward_backward(*chain_terms(s, lat))
+        post = forward_backward(*chain_terms(s, lat))
+        return torch.where(lat.weight > 0, post.clamp_min(torch.finfo(post.dtype).tiny), torch.zeros_like(post))
 
 
 # ---------------------------------------------------------------- which pass leads after a tree start

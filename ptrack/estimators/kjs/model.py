@@ -29,7 +29,7 @@ from ptrack.hypotheses.mixture import Modes, distinct_minima
 from ptrack.hypotheses.samplers import scaled_covariance
 from ptrack.optim.jacobians import objective_linearization
 from ptrack.optim.solvers import lbfgs, levenberg_marquardt
-from ptrack.problem import Problem, pose_eval_from_joints
+from ptrack.problem import Problem, first_keyframe, pose_eval_from_joints
 
 
 @dataclass(frozen=True)
@@ -254,6 +254,20 @@ def frame_evidence(s: Setup, t: int | Tensor, q: Tensor, joints: Tensor | None =
         joints = sk.forward_kinematics(q) if joints is None else joints
         ev = pose_eval_from_joints(prob.observations.camera, prob.keypoints, q, joints)
         return frame_objective(s, t, None, tracking=True)(ev).total
+
+
+#: the std (radians, metres) of the prior that holds frame 0's modes to the user's keyframe (`kjs.init: keyframe`):
+#: the 3D pose is their word
+KEYFRAME_SIGMA = 0.01
+
+
+def keyframe_cost(s: Setup, q: Tensor) -> Tensor:
+    """How far poses q (N, D) of frame 0 lie from the user's keyframe, as the start's prior holds them (std
+    `KEYFRAME_SIGMA`; `ptrack.problem.first_keyframe`) -> (N,); zeros after a tree start (no 3D input)."""
+    if s.cfg.kjs.init != "keyframe":
+        return q.new_zeros(q.shape[0])
+    key = first_keyframe(s.problem, "kjs.init", s.lower, s.upper)
+    return 0.5 * ((q - key) / KEYFRAME_SIGMA).square().sum(-1)
 
 
 #: poses of many frames polished in one batched call (`polish_rows`): one call per

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from ptrack.errors import EstimationError
 from ptrack.estimators.kjs.model import (
+    KEYFRAME_SIGMA,
     Setup,
     Strategy,
     frame_evidence,
@@ -98,9 +99,9 @@ def _init_tree(s: Setup, t: int = 0) -> Tensor:
 def first_modes(s: Setup, strategy: Strategy, t: int = 0) -> Modes:
     """The modes of a start: frame 0's keyframe (`kjs.init: keyframe`), or a tree start on frame t."""
     k = s.cfg.kjs
-    if k.init == "keyframe":  # the user's 3D pose, held by a tight prior (0.01 rad / m): it is their word
+    if k.init == "keyframe":  # the user's 3D pose, held by a tight prior (`KEYFRAME_SIGMA`): it is their word
         q = _init_keyframe(s)
-        q, cost, hessian = polish(s, 0, q, q, 20, 0.01)
+        q, cost, hessian = polish(s, 0, q, q, 20, KEYFRAME_SIGMA)
     else:
         q = _init_tree(s, t)  # many candidates: polish all briefly, the 4K most promising to convergence
         mean, sigma = _start_prior(s, q)

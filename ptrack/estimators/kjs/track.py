@@ -108,9 +108,9 @@ def _track(
         lat = recombine(s, lat, path)
     if k.path == "map":  # the MAP path of the final lattice, under the model of `mode_posterior`
         path, _ = best_path(s, lat)
-    hq, hw, hc, hl, hyp_joints = lat
     if k.weights == "posterior":  # each mode's probability given the whole clip (`mode_posterior`)
-        hw = mode_posterior(s, lat)
+        lat = lat._replace(weight=mode_posterior(s, lat))
+    hq, hw, hc, hl, hyp_joints = lat
     with torch.no_grad():
         frames = torch.arange(hq.shape[0], device=hq.device)
         joints = hyp_joints[frames, path]
