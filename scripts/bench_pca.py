@@ -29,7 +29,7 @@ sys.path.insert(0, str(REPO))
 
 from _bench import machine_line  # noqa: E402
 
-from ptrack.body.acclaim import parse_clips  # noqa: E402
+from ptrack.clips import parse_clips  # noqa: E402
 from ptrack.estimators import ESTIMATORS  # noqa: E402
 from ptrack.motion.motion_model import fit_motion_model, read_clips, save_motion_model  # noqa: E402
 from ptrack.pipeline.config import load_config  # noqa: E402

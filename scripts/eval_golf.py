@@ -41,9 +41,9 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
-from ptrack.body.acclaim import parse_clips  # noqa: E402
 from ptrack.body.keypoints import make_keypoints  # noqa: E402
 from ptrack.body.skeleton import Skeleton, load_amc  # noqa: E402
+from ptrack.clips import parse_clips  # noqa: E402
 from ptrack.motion.key_postures import detect_key_postures  # noqa: E402
 from ptrack.motion.motion_model import fit_motion_model, read_clips, save_motion_model  # noqa: E402
 from ptrack.pipeline import metrics as M  # noqa: E402
