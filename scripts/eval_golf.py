@@ -142,7 +142,7 @@ def swing_end(swing: Path, stride: int) -> int:
 
 def span_metrics(folder: Path, stop: int | None, start: int = 0) -> dict:
     """MPJPE, PA-MPJPE (17 keypoints, pelvis-aligned) and flip rate over frames [start, stop] of a run (stop None:
-    to the last frame; start negative: counted from the end)."""
+    to the last frame)."""
     end = None if stop is None else stop + 1
     with np.load(folder / "result.npz") as z:
         est = torch.from_numpy(z["joints"][start:end]).double()
@@ -257,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
                 m = json.loads((folder / "metrics.json").read_text())
                 per_seed["whole"].append({**span_metrics(folder, None), "fps": m["fps"]})
                 per_seed["span"].append(span_metrics(folder, stop))
-                per_seed["last"].append(span_metrics(folder, None, start=-(-m["frames"] // 6)))
+                per_seed["last"].append(span_metrics(folder, None, start=m["frames"] - -(-m["frames"] // 6)))
                 fps[v].append(m["fps"])
             for name, rows in (("whole", whole), ("span", span), ("last", last)):
                 rows.setdefault(swing.stem, {})[v] = {

@@ -70,9 +70,9 @@ def estimate_frames(
     progress: Callable[[Iterable], Iterable] = lambda x: x,
 ) -> Estimate:
     """Per-frame L-BFGS fits (see module docstring). Deterministic: uses no randomness. Runs on one intra-op
-    thread (`ptrack.threads.one_thread`): each frame's L-BFGS is a loop of small ops (one pose), which
-    multithreaded BLAS does not speed up and which, on a machine whose cores other jobs hold, waits on its
-    spinning threads (`scripts/bench_pca.py` times both)."""
+    thread (`ptrack.threads.one_thread`), as every method does: each frame's L-BFGS is a loop of small ops (one
+    pose). `scripts/bench_pca.py --threads` measured no gain here on a loaded 2-core machine (30 frames: 3.35 s
+    on one thread, 3.05 s on torch's default 2, runs overlapping), where `method: pca` gained 8-11x."""
     with one_thread():
         return _fit_frames(problem, cfg, progress)
 

@@ -40,7 +40,8 @@ def estimate_pca(
     """Track the whole sequence with the PCA motion model (`ptrack.estimators.pca`). Deterministic. Runs on one
     intra-op thread (`ptrack.threads.one_thread`): a window's solve is small (m + 7 f parameters, f frames'
     FK), which multithreaded BLAS does not speed up and which, on a machine whose cores other jobs hold, waits
-    on its spinning threads (`scripts/bench_pca.py` times both).
+    on its spinning threads: `scripts/bench_pca.py --threads` measured the swing 11.4x faster on one thread than
+    on torch's default 2 (2 shared cores, load 10).
 
     after: `pca.after_swing` value -> `(problem, cfg, q_before, progress) -> Estimate`, the estimator that tracks
     the frames after the swing's end (a `Problem` of those frames) from the swing's last pose q_before (D,)
