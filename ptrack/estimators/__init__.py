@@ -29,10 +29,13 @@ estimate_batch = partial(batch.estimate_batch, per_frame=estimate_frames)
 def batch_after(problem: Problem, cfg, q_before: Tensor, progress: Callable[[Iterable], Iterable]) -> Estimate:
     """The MAP trajectory of `problem` continuing a pose q_before (D,) of the frame before its first: q_before is
     its frame 0's keyframe (the `keyframes:` section's prior stds), which also starts the per-frame fits it
-    starts from. No uncertainty (the run reports none for a pca run). Deterministic."""
+    starts from. No uncertainty (the run reports none for a pca run), one pose per observed frame, no
+    `init_from` (a whole run's trajectory, not these frames'); q_before is its only keyframe (pca reads no 3D
+    keyframe, nor does what it hands on). Deterministic."""
     kf = Keyframes(torch.zeros(1, dtype=torch.long, device=q_before.device), q_before.detach()[None])
     tail = dataclasses.replace(problem, keyframes=kf, joint_keyframes=None)
-    quiet = dataclasses.replace(cfg, batch=dataclasses.replace(cfg.batch, uncertainty=False, init="frame"))
+    batch_cfg = dataclasses.replace(cfg.batch, uncertainty=False, init="frame", upsample=1)
+    quiet = dataclasses.replace(cfg, batch=batch_cfg, init_from=None)
     run = dataclasses.replace(quiet, frame=dataclasses.replace(cfg.frame, init="keyframe"))
     return estimate_batch(tail, run, torch.Generator(device=q_before.device), progress)
 
