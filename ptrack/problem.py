@@ -122,6 +122,46 @@ class Problem:
             self.correspondences.check_frames(self.observations.num_frames)
 
 
+def later_frames(problem: Problem, start: int) -> Problem:
+    """The same problem over its frames [start, T): observations (and silhouettes) from `start` on, keyframes and
+    joint keyframes of those frames renumbered from 0; correspondences are left out (their pairs reach back to
+    frame start - 1). For an estimator that hands the rest of a sequence to another (`method: pca` after the
+    swing)."""
+    obs = problem.observations
+    if not 0 < start < obs.num_frames:
+        raise ValueError(f"later_frames: start {start} must be in (0, {obs.num_frames})")
+    sliced = Observations(
+        obs.keypoints[start:],
+        obs.confidence[start:],
+        obs.times[start:],
+        obs.camera,
+        obs.keypoint_names,
+        obs.masks[start:] if obs.masks is not None else None,
+    )
+    kf = problem.keyframes
+    if kf is not None:
+        keep = kf.frames >= start
+        kf = (
+            None
+            if not bool(keep.any())
+            else Keyframes(
+                kf.frames[keep] - start,
+                kf.q[keep],
+                kf.mask[keep] if kf.mask is not None else None,
+                kf.sigma[keep] if kf.sigma is not None else None,
+            )
+        )
+    jk = problem.joint_keyframes
+    if jk is not None:
+        keep = jk.frames >= start
+        jk = (
+            None
+            if not bool(keep.any())
+            else JointKeyframes(jk.frames[keep] - start, jk.joints[keep], jk.mask[keep], jk.sigma[keep])
+        )
+    return Problem(problem.skeleton, problem.keypoints, sliced, kf, jk, None, problem.floor)
+
+
 def first_keyframe(problem: Problem, key: str, lower: Tensor, upper: Tensor) -> Tensor:
     """The user's 3D pose of frame 0 as the start of a tracker whose config key `key` asked for it,
     its angles written in the limits' 2 pi window (the same pose; never clamped). -> (D,) in lower's
@@ -214,6 +254,20 @@ def warn_keyframes_outside_limits(skeleton: Skeleton, keyframes: Keyframes, tol:
     return broken
 
 
+class MotionFit(NamedTuple):
+    """What a motion-model tracker (`method: pca`) found besides the poses, for T frames, m PCA weights, P key
+    postures: weights (T, m) the PCA weights of each frame (of its last window); time (T,) each frame's
+    normalised time in [0, 1]; key_frames (P,) int64 the key postures' frames found in the 2D; key_names (P,);
+    modelled (T,) bool, True where the motion model gives the pose (the swing), False where the frames after the
+    swing were handed to another estimator (their weights and time are the swing's last)."""
+
+    weights: Tensor
+    time: Tensor
+    key_frames: Tensor
+    key_names: tuple[str, ...]
+    modelled: Tensor
+
+
 class Estimate(NamedTuple):
     """An estimator's result for T frames (J joints, D dofs, N hypotheses).
 
@@ -234,6 +288,7 @@ class Estimate(NamedTuple):
     # (T, N, J, 3) metres: each hypothesis's principal covariance direction as joint displacements (trackers)
     hypothesis_directions: Tensor | None = None
     jumps: dict[str, Tensor] | None = None  # {chain: (T,) kinematic-jump leaves kept per frame} (kjs)
+    motion: MotionFit | None = None  # a motion-model tracker's weights, timing and key postures (pca)
 
 
 def evaluate_pose(

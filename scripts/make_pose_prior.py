@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from make_limits import load_clips
 
-from ptrack.body.acclaim import parse_clips
+from ptrack.clips import parse_clips
 
 ROOT = Path(__file__).resolve().parents[1]
 

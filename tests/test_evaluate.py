@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from ptrack.body.acclaim import parse_clips
 from ptrack.cli import main
+from ptrack.clips import parse_clips
 from ptrack.errors import InputError
 from ptrack.pipeline.evaluate import COLUMNS, asf_for, evaluate, markdown_table, parse_seeds, seed_mean
 from ptrack.pipeline.run import remove_partial

@@ -284,3 +284,52 @@ def test_keyframe_outside_limits_warns(cmu_file, caplog):
     with caplog.at_level("WARNING", logger="ptrack.problem"):
         _golf(cmu_file)  # the default data-derived limits hold the truth
     assert "outside the joint limits" not in caplog.text
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_runs_on_one_thread(monkeypatch):
+    """`method: frame` runs torch on one intra-op thread (issue 42: ~10x slower on default threads on a busy
+    machine), and gives the caller's count back after."""
+    import ptrack.estimators.frame as F
+
+    prep, cfg = _prep()
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        raise _Stop
+
+    monkeypatch.setattr(F, "JointLimits", spy)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        for run in (lambda: _run(prep, cfg), lambda: F.frames_after(prep.problem, cfg, prep.gt_q[0])):
+            with pytest.raises(_Stop):
+                run()
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [1, 1]
+
+
+def test_frames_after_continues_a_pose():
+    """The per-frame fits from a given pose of the frame before (how pca hands on the frames after a swing):
+    frames 4.. of the clip from the true pose of frame 3, whatever frame.init says, against frame.init: rest."""
+    from ptrack.estimators.frame import frames_after
+    from ptrack.problem import later_frames
+
+    prep, cfg = _prep()
+    tail = later_frames(prep.problem, 4)
+    rest = dataclasses.replace(cfg, frame=dataclasses.replace(cfg.frame, init="rest"))
+    est = frames_after(tail, rest, prep.gt_q[3])
+    assert est.q.shape == (T - 4, prep.problem.skeleton.num_dofs)
+    idx = prep.problem.keypoints.index()
+    gt = prep.gt_joints[4:].to(est.joints)
+    mpjpe = M.mpjpe(est.joints.index_select(-2, idx), gt.index_select(-2, idx), root=0)
+    assert float(mpjpe.mean()) < MPJPE_MAX_MM, float(mpjpe.mean())
+    cold = estimate_frames(tail, rest, torch.Generator().manual_seed(0))  # from the rest pose: no pose given
+    cold_mpjpe = M.mpjpe(cold.joints.index_select(-2, idx), gt.index_select(-2, idx), root=0)
+    assert float(cold_mpjpe.mean()) > 2 * float(mpjpe.mean())

@@ -20,7 +20,10 @@ PKG = Path(__file__).resolve().parents[1] / "ptrack"
 
 #: lowest first; a module belongs to the layer of the longest prefix naming it (a module or a package)
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
-    ("utilities", ("ptrack.errors", "ptrack.checks", "ptrack.package_data", "ptrack.threads", "ptrack.settings")),
+    (
+        "utilities",
+        ("ptrack.errors", "ptrack.checks", "ptrack.package_data", "ptrack.threads", "ptrack.settings", "ptrack.clips"),
+    ),
     ("body", ("ptrack.body",)),
     ("observe", ("ptrack.observe",)),
     ("costs", ("ptrack.costs",)),

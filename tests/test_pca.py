@@ -151,6 +151,7 @@ def test_heldout_swing_tracked_under_40mm(cmu_file, heldout_model, tmp_path, cap
         ("pca.silhouette_weight=-0.5", "pca.silhouette_weight"),
         ("pca.joints=[l_knee,elbow]", "pca.joints"),
         ("pca.timing_sigma=0", "pca.timing_sigma"),
+        ("pca.after_swing=walk", "pca.after_swing"),
     ],
 )
 def test_bad_pca_values(tmp_path, capsys, override, key):
@@ -238,3 +239,85 @@ def test_heldout_swing_with_correspondences_under_40mm(cmu_file, heldout_model, 
     assert metrics["mpjpe_mm"] < 40, metrics["mpjpe_mm"]
     with np.load(out / "result.npz") as z:
         assert z["frames"].shape[0] == metrics["frames"]
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_runs_on_one_thread(cmu_file, heldout_model, monkeypatch):
+    """`method: pca` runs torch on one intra-op thread (issue 42: ~10x slower on default threads on a busy
+    machine), and gives the caller's count back after."""
+    import ptrack.estimators.pca.track as track
+    from ptrack.estimators import ESTIMATORS
+
+    cfg, prep, _ = _setup(cmu_file, heldout_model, "data.stop=80")
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        raise _Stop
+
+    monkeypatch.setattr(track, "make_setup", spy)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        with pytest.raises(_Stop):
+            ESTIMATORS["pca"](prep.problem, cfg, torch.Generator())
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [1]
+
+
+@pytest.fixture(scope="module")
+def model_wo_06(cmu_file, tmp_path_factory) -> Path:
+    """A motion model of the 6 dev swings other than 64_06, the swing whose clip runs 1.7 s past the
+    follow-through."""
+    clips = read_clips([cmu_file(f"64_{c}.amc") for c in SWINGS if c != "06"])
+    cfg = load_config(GOLF, ["pca.iterations=0"])
+    return save_motion_model(fit_motion_model(clips, cfg.motion), tmp_path_factory.mktemp("model") / "golf_wo06.npz")
+
+
+def _errors(folder: Path) -> np.ndarray:
+    """Per-frame MPJPE (mm, the 17 keypoints, root-aligned) of a run folder."""
+    from ptrack.body.keypoints import make_keypoints
+    from ptrack.body.skeleton import Skeleton
+    from ptrack.pipeline import metrics as M
+
+    with np.load(folder / "result.npz") as z:
+        est, gt = torch.from_numpy(z["joints"]).double(), torch.from_numpy(z["gt_joints"]).double()
+    idx = make_keypoints(Skeleton.from_asf(load_config(folder / "config.yaml").data.asf)).index()
+    return M.mpjpe(est[:, idx], gt[:, idx], root=0).numpy()
+
+
+def test_whole_clip_after_the_swing(cmu_file, model_wo_06, tmp_path, capsys):
+    """Issue 42 item 7: a held-out clip that goes on after the follow-through (64_06, 1.7 s) is tracked as a
+    whole: the frames after the swing's end (its last key posture in the 2D) are handed to the MAP trajectory
+    from the swing's last pose (`pca.after_swing: batch`). Measured (seed 0): 20.8 mm over the clip, 28.3 over
+    its last sixth; holding the swing's last pose (`hold`, before): 79.4 and 218. The run writes the PCA
+    weights, the normalised time and the key postures."""
+    base = [f"data.amc={cmu_file('64_06.amc')}", f"data.asf={cmu_file('64.asf')}", f"motion.model_file={model_wo_06}"]
+    out = tmp_path / "run"
+    rc = main(["run", str(GOLF), *base, "seed=0", "progress=false", "plots=false", f"out_dir={out}"])
+    assert rc == 0, capsys.readouterr().err
+    err = _errors(out)
+    t = len(err)
+    last = err[t - -(-t // 6) :]
+    assert t > 120 and err.mean() < 40 and last.mean() < 60, (err.mean(), last.mean())
+    with np.load(out / "result.npz") as z:
+        weights, time, modelled = z["pca_weights"], z["pca_time"], z["pca_modelled"]
+        keys, names = z["key_posture_frames"], z["key_posture_names"].tolist()
+    assert names == ["start", "top", "hit", "end"] and np.all(np.diff(keys) > 0)
+    assert weights.shape == (t, 4) and time.shape == (t,) and modelled.dtype == bool
+    assert modelled.tolist() == [f <= keys[-1] for f in range(t)]  # the model tracks up to the swing's end
+    assert np.all((time >= 0) & (time <= 1)) and np.all(np.diff(time) >= -1e-12)  # time runs forward
+    assert time[keys[-1]] > 0.9 and np.all(weights[keys[-1] :] == weights[keys[-1]])
+    assert np.any(weights != 0)
+    held = tmp_path / "hold"
+    rc = main(["run", str(GOLF), *base, "pca.after_swing=hold", "progress=false", "plots=false", f"out_dir={held}"])
+    assert rc == 0, capsys.readouterr().err
+    err_hold = _errors(held)
+    assert err_hold[t - -(-t // 6) :].mean() > 2 * last.mean()  # what the hand-on fixed
+    # the swing itself is the same but its last window's frames (f = 3: those a later window refits in `hold`)
+    np.testing.assert_allclose(err_hold[: keys[-1] - 1], err[: keys[-1] - 1], atol=1e-3)

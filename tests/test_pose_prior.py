@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from ptrack.body.acclaim import parse_clips
 from ptrack.body.pose_prior import SMOOTHING_TABLES, pose_prior, pose_prior_path, read_pose_prior, smoothing_prior
 from ptrack.body.skeleton import Skeleton, load_amc
+from ptrack.clips import parse_clips
 from ptrack.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]

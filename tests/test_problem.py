@@ -64,3 +64,31 @@ def test_problem_and_keyframe_validation(setup):
     other = make_keypoints(sk, {"pelvis": "root", "head": "head"})
     with pytest.raises(InputError, match="keypoints"):
         Problem(sk, other, obs)
+
+
+def test_later_frames(setup):
+    """A problem's frames from `start` on: observations and masks sliced, keyframes renumbered (earlier ones
+    dropped), correspondences left out."""
+    from ptrack.problem import JointKeyframes, later_frames
+
+    sk, q_all, _cam, kps, obs = setup
+    t = obs.num_frames
+    q = q_all[[0, t - 1]].to(obs.keypoints)
+    kf = Keyframes(torch.tensor([0, t - 1]), q, sigma=torch.full_like(q, 0.1))
+    jk = JointKeyframes(
+        torch.tensor([1]),
+        torch.zeros(1, sk.num_joints, 3),
+        torch.ones(1, sk.num_joints, dtype=torch.bool),
+        torch.tensor([0.02]),
+    )
+    full = Problem(sk, kps, obs, kf, jk)
+    tail = later_frames(full, 2)
+    assert tail.observations.num_frames == t - 2
+    assert torch.equal(tail.observations.keypoints, obs.keypoints[2:])
+    assert torch.equal(tail.observations.times, obs.times[2:])
+    assert tail.keyframes is not None and tail.keyframes.frames.tolist() == [t - 3]
+    assert tail.keyframes.sigma is not None and tail.keyframes.sigma.shape == (1, sk.num_dofs)
+    assert tail.joint_keyframes is None  # its only frame (1) is before the start
+    assert tail.correspondences is None
+    with pytest.raises(ValueError, match="start"):
+        later_frames(full, t)

@@ -13,7 +13,7 @@ import rerun.chunk
 import torch
 
 from ptrack.errors import InputError
-from ptrack.io.viz import RunLog, log_video, open_viewer, write_recording
+from ptrack.io.viz import RunLog, log_video, open_viewer, plot_groups, write_recording
 from ptrack.observe.camera import Camera
 
 T, J, N = 5, 4, 3
@@ -331,6 +331,35 @@ def test_global_recording_untouched(tmp_path):
     before = rr.get_global_data_recording()
     write_recording(tmp_path / "g.rrd", _run_log(full=False))
     assert rr.get_global_data_recording() is before
+
+
+def test_motion_model_time_weights_and_key_postures(tmp_path):
+    """The golf tracker's own output (method pca): normalised time and PCA weights as scalars in their own plots,
+    the key postures as text at their frames."""
+    weights = np.linspace(-1.0, 1.0, T * 2).reshape(T, 2)
+    time = np.linspace(0.0, 1.0, T)
+    log = dataclasses.replace(
+        _run_log(full=False), motion_weights=weights, motion_time=time, key_postures={"top": 1, "end": T - 1}
+    )
+    path = tmp_path / "pca.rrd"
+    write_recording(path, log)
+    rec = Rec(path)
+    np.testing.assert_allclose([r["Scalars:scalars"][0] for r in rec.temporal["pca/time"]], time)
+    for i in range(2):
+        got = [r["Scalars:scalars"][0] for r in rec.temporal[f"pca/weights/alpha{i}"]]
+        np.testing.assert_allclose(got, weights[:, i])
+    rows = rec.temporal["pca/key_postures"]
+    assert [(r["frame"], r["TextLog:text"][0]) for r in rows] == [
+        (int(log.frames[1]), "key posture top"),
+        (int(log.frames[T - 1]), "key posture end"),
+    ]
+    groups = dict(plot_groups(log))
+    assert groups["motion model: normalised time"] == ["pca/time"]
+    assert groups["motion model: PCA weights"] == ["pca/weights/alpha0", "pca/weights/alpha1"]
+    with pytest.raises(InputError, match="motion_weights"):
+        dataclasses.replace(log, motion_weights=np.ones((T + 1, 2)))
+    with pytest.raises(InputError, match="key_postures"):
+        dataclasses.replace(log, key_postures={"top": T})
 
 
 @pytest.mark.parametrize(

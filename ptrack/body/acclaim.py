@@ -8,13 +8,12 @@ file and line.
 Units are left as in the file (ASF lengths in file units, angles in degrees); the `:units` section
 is returned so the caller can convert (CMU: `length 0.45` means 1 unit = 1/0.45 inch = 0.056444 m).
 
-Clip files: `skeleton_beside` (the .asf of an .amc) and `parse_clips` (a clip list), shared by the
-motion model (`ptrack.motion`) and the evaluation harness (`ptrack.pipeline.evaluate`).
+Clip files: `skeleton_beside` (the .asf of an .amc), shared by the motion model (`ptrack.motion`) and the
+evaluation harness (`ptrack.pipeline.evaluate`); clip lists are `ptrack.clips`.
 """
 
 from __future__ import annotations
 
-import glob
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -386,28 +385,3 @@ def skeleton_beside(amc: str | Path) -> Path | None:
         return cand
     found = sorted(amc.parent.glob("*.asf"))
     return found[0] if len(found) == 1 else None
-
-
-def parse_clips(spec: str, cwd: Path | None = None) -> list[Path]:
-    """AMC paths from a comma-separated list, a text file (one path per line, `#` comments, relative to the file's
-    folder) or a glob (`cmu/subjects/*/*_0[1-3].amc`, `**` allowed; sorted)."""
-    cwd = Path(cwd or Path.cwd())
-    p = cwd / spec
-    if not p.exists() and glob.has_magic(spec):
-        paths = [Path(m).resolve() for m in sorted(glob.glob(str(p), recursive=True))]
-        if not paths:
-            raise InputError(f"--clips {spec!r} matches no file")
-    elif p.is_file() and p.suffix.lower() not in (".amc", ".asf"):
-        base = p.resolve().parent
-        items = [ln.split("#", 1)[0].strip() for ln in p.read_text(encoding="utf-8").splitlines()]
-        paths = [(base / it).resolve() for it in items if it]
-    else:
-        paths = [(cwd / it.strip()).resolve() for it in spec.split(",") if it.strip()]
-    if not paths:
-        raise InputError(f"--clips {spec!r} names no clip")
-    for path in paths:
-        if not path.exists():
-            raise FileNotFoundError(f"clip not found: {path}")
-        if path.suffix.lower() != ".amc":
-            raise InputError(f"clip {path} is not an .amc file")
-    return paths

@@ -24,6 +24,7 @@ from ptrack.costs.config import CostsConfig
 from ptrack.errors import InputError
 from ptrack.problem import Estimate, Problem, evaluate_pose, first_keyframe, rest_pose_in_view, root_headings
 from ptrack.settings import setting
+from ptrack.threads import one_thread
 
 
 @dataclass(frozen=True)
@@ -68,7 +69,34 @@ def estimate_frames(
     generator: torch.Generator,
     progress: Callable[[Iterable], Iterable] = lambda x: x,
 ) -> Estimate:
-    """Per-frame L-BFGS fits (see module docstring). Deterministic: uses no randomness."""
+    """Per-frame L-BFGS fits (see module docstring). Deterministic: uses no randomness. Runs on one intra-op
+    thread (`ptrack.threads.one_thread`), as every method does: each frame's L-BFGS is a loop of small ops (one
+    pose). `scripts/bench_pca.py --threads` measured no gain here on a loaded 2-core machine (30 frames: 3.35 s
+    on one thread, 3.05 s on torch's default 2, runs overlapping), where `method: pca` gained 8-11x."""
+    with one_thread():
+        return _fit_frames(problem, cfg, progress)
+
+
+def frames_after(
+    problem: Problem,
+    cfg: FrameRunConfig,
+    q_before: Tensor,
+    progress: Callable[[Iterable], Iterable] = lambda x: x,
+) -> Estimate:
+    """Per-frame fits of every frame of `problem` continuing a pose q_before (D,) of the frame before its first:
+    the first frame is fitted from q_before with the velocity prior on (q_before, q), as a 3D keyframe is with
+    `frame.init: keyframe`, whatever `frame.init` says. Another estimator hands the rest of a sequence on with it
+    (`method: pca` after the swing; composed in `ptrack.estimators`). Deterministic; one intra-op thread."""
+    with one_thread():
+        return _fit_frames(problem, cfg, progress, q_before)
+
+
+def _fit_frames(
+    problem: Problem,
+    cfg: FrameRunConfig,
+    progress: Callable[[Iterable], Iterable],
+    q_before: Tensor | None = None,
+) -> Estimate:
     fc, cc = cfg.frame, cfg.costs
     obs = problem.observations
     sk = problem.skeleton
@@ -85,7 +113,11 @@ def estimate_frames(
 
     floor = problem.floor.term(cc.floor_sigma_m) if problem.floor is not None and cc.floor_weight > 0 else None
 
-    if fc.init == "keyframe":
+    from_pose = q_before is not None or fc.init == "keyframe"  # frame 0 continues a given pose
+    if q_before is not None:
+        q0 = q_before.detach().to(dtype=dtype, device=device)
+        starts = q0[None]
+    elif fc.init == "keyframe":
         q0 = first_keyframe(problem, "frame.init", lower, upper)  # kept as given (Problem warns off limits)
         starts = q0[None]
     else:
@@ -103,7 +135,7 @@ def estimate_frames(
             obs.keypoints[t], obs.confidence[t], sigma_px=cc.sigma_px, loss=cc.loss, scale=cc.robust_scale
         )
         # frame 0 with a keyframe: the velocity term on (keyframe, q) acts as the keyframe prior
-        past = history[-2:] if t > 0 or fc.init != "keyframe" else [q_prev]
+        past = history[-2:] if t > 0 or not from_pose else [q_prev]
         if cc.accel_sigma is None:
             past = past[-1:]
         anchor = q_prev.detach()

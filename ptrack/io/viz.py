@@ -59,6 +59,10 @@ Entity layout (stable: tests and users rely on it):
                                         foot points on the floor), ambiguous_frame (0/1) and
                                         ambiguous_limb_share (with hypotheses), person_missing (0/1)
     jumps/<chain>                       Scalars: kinematic-jump leaves kept per frame for each chain
+    pca/time                            Scalars: the motion model's normalised time per frame  [if motion_time]
+    pca/weights/alpha<i>                Scalars: the i-th PCA weight per frame  [if motion_weights]
+    pca/key_postures                    TextLog at each key posture's frame: its name (`start`, `top`,
+                                        ...)  [if key_postures]
     solver/cost                         Scalars: the objective after each solver iteration, on its
                                         own sequence timeline `iteration` (0 = the start)
                                         [if solver_cost]
@@ -147,6 +151,8 @@ class RunLog:
     hypotheses: (T, N, J, 3) or None; hypothesis_weights, hypothesis_costs: (T, N) or None;
     hypothesis_directions: (T, N, J, 3) metres or None.
     jumps: chain name -> (T,) kinematic-jump leaves kept per frame.
+    motion_weights: (T, m) a motion model's PCA weights per frame, or None; motion_time: (T,) its normalised time;
+    key_postures: key posture name -> index (0..T-1) of its frame (method pca).
     scalars: name -> (T,) per-frame values, NaN = no value that frame.
     masks: (T, H, W) bool silhouettes with H, W the camera's height, width, or None.
     joint_std: (T, J) metres, per-joint 3D standard deviation of the estimate, or None.
@@ -175,6 +181,9 @@ class RunLog:
     hypothesis_costs: np.ndarray | None = None
     hypothesis_directions: np.ndarray | None = None
     jumps: Mapping[str, np.ndarray] = field(default_factory=dict)
+    motion_weights: np.ndarray | None = None
+    motion_time: np.ndarray | None = None
+    key_postures: Mapping[str, int] = field(default_factory=dict)
     scalars: Mapping[str, np.ndarray] = field(default_factory=dict)
     masks: np.ndarray | None = None
     joint_std: np.ndarray | None = None
@@ -199,6 +208,8 @@ class RunLog:
             "joint_std",
             "solver_cost",
             "video_frames",
+            "motion_weights",
+            "motion_time",
         ):
             value = getattr(self, name)
             if value is not None:
@@ -210,6 +221,7 @@ class RunLog:
             object.__setattr__(self, "keypoint_joints", tuple(int(j) for j in self.keypoint_joints))
         object.__setattr__(self, "scalars", {str(k): _as_numpy(v) for k, v in self.scalars.items()})
         object.__setattr__(self, "jumps", {str(k): _as_numpy(v) for k, v in self.jumps.items()})
+        object.__setattr__(self, "key_postures", {str(k): int(v) for k, v in self.key_postures.items()})
         if self.video is not None:
             object.__setattr__(self, "video", str(self.video))
         self._validate()
@@ -247,6 +259,13 @@ class RunLog:
             raise InputError("RunLog.hypothesis_weights/costs/directions given without RunLog.hypotheses")
         for name, values in self.jumps.items():
             _check_shape(f"jumps[{name!r}]", values, (T,))
+        if self.motion_weights is not None:
+            _check_shape("motion_weights", self.motion_weights, (T, None))
+        if self.motion_time is not None:
+            _check_shape("motion_time", self.motion_time, (T,))
+        for name, index in self.key_postures.items():
+            if not 0 <= index < T:
+                raise InputError(f"RunLog.key_postures[{name!r}] = {index} is not a frame index in 0..{T - 1}")
         for name, values in self.scalars.items():
             if not name:
                 raise InputError("RunLog.scalars has an empty metric name")
@@ -319,6 +338,7 @@ def write_recording(path: str | Path, log: RunLog) -> None:
             _log_scalar(rec, f"metrics/{name}", values, log)
         for name, values in log.jumps.items():
             _log_scalar(rec, f"jumps/{name}", values.astype(np.float64), log)
+        _log_motion(rec, log)
         if log.solver_cost is not None:
             cost = log.solver_cost.astype(np.float64)
             rec.send_columns(
@@ -814,6 +834,14 @@ def plot_groups(log: RunLog) -> list[tuple[str, list[str]]]:
             groups["hypothesis costs"] = [f"world/hypotheses/h{n}/cost" for n in range(N) if _has_values(costs[:, n])]
     if log.jumps:
         groups["kinematic jumps kept per chain"] = [f"jumps/{name}" for name in log.jumps]
+    if log.motion_time is not None and _has_values(log.motion_time):
+        groups["motion model: normalised time"] = ["pca/time"]
+    if log.motion_weights is not None:
+        alphas = [
+            f"pca/weights/alpha{i}" for i in range(log.motion_weights.shape[1]) if _has_values(log.motion_weights[:, i])
+        ]
+        if alphas:
+            groups["motion model: PCA weights"] = alphas
     if log.solver_cost is not None:
         groups["solver cost (timeline: iteration)"] = ["solver/cost"]
     return list(groups.items())
@@ -886,6 +914,21 @@ def blueprint(log: RunLog) -> rrb.Blueprint:
         rrb.TimePanel(timeline="time", state="collapsed"),
         auto_views=False,
     )
+
+
+def _log_motion(rec: rr.RecordingStream, log: RunLog) -> None:
+    """A motion model's normalised time, PCA weights and key postures (`pca/...`), where the log has them."""
+    if log.motion_time is not None:
+        _log_scalar(rec, "pca/time", log.motion_time, log)
+    if log.motion_weights is not None:
+        for i in range(log.motion_weights.shape[1]):
+            _log_scalar(rec, f"pca/weights/alpha{i}", log.motion_weights[:, i], log)
+    for name, index in log.key_postures.items():
+        rec.set_time("frame", sequence=int(log.frames[index]))
+        rec.set_time("time", duration=float(log.times[index]))
+        rec.log("pca/key_postures", rr.TextLog(f"key posture {name}"))
+    if log.key_postures:
+        rec.reset_time()
 
 
 def _log_scalar(rec: rr.RecordingStream, entity: str, values: np.ndarray, log: RunLog) -> None:

@@ -39,9 +39,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ptrack.body.acclaim import parse_clips, skeleton_beside
+from ptrack.body.acclaim import skeleton_beside
 from ptrack.body.rotations import matrix_to_euler_np
 from ptrack.body.skeleton import Skeleton
+from ptrack.clips import parse_clips
 from ptrack.errors import InputError
 from ptrack.motion.key_postures import detect_key_postures
 
@@ -235,7 +236,7 @@ def clip_paths(spec: Sequence[str]) -> list[Path]:
     if len(spec) == 1 and not spec[0].lower().endswith(".amc"):
         if not Path(spec[0]).is_file():
             raise FileNotFoundError(f"config key 'motion.clips': clip list not found: {spec[0]}")
-        return parse_clips(spec[0])
+        return parse_clips(spec[0], what="config key 'motion.clips'")
     return [Path(s) for s in spec]
 
 

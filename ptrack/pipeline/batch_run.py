@@ -3,12 +3,12 @@ cross product of `--set` values, through the batch engine (`ptrack.pipeline.engi
 
     batch(config, inputs, overrides, out, workers, executor, ray_address, resume, sets) -> BatchSummary
 
-Inputs (`--inputs`): a comma-separated list, a text file listing one per line (`.txt`, `#` comments, relative to
-the file), a glob (`videos/*.mp4`, `**` allowed), or a CSV manifest (`.csv`) with an `input` column (relative to
-the manifest) and optional columns named by config keys (`camera.name`, `subject.height_m`) whose cells
-override the config for their row, parsed as command-line overrides are (an empty cell: no override). A video
-(.mp4, .mov, ...) sets observations.video, an .amc file data.amc and its subject's ASF (as `ptrack evaluate`),
-anything else observations.file.
+Inputs (`--inputs`): a comma-separated list, a text file listing one per line (`.txt`, `#` comments, relative to the
+file), a glob (`videos/*.mp4`, `**` allowed) (these three: `ptrack.clips.list_paths`), or a CSV manifest (`.csv`) with
+an `input` column (relative to the manifest) and optional columns named by config keys (`camera.name`,
+`subject.height_m`) whose cells override the config for their row, parsed as command-line overrides are (an empty
+cell: no override). A video (.mp4, .mov, ...) sets observations.video, an .amc file data.amc and its subject's ASF (as
+`ptrack evaluate`), anything else observations.file.
 
 Output, in `--out`:
 
@@ -32,7 +32,6 @@ complete (config.yaml, metrics.json, result.npz) is skipped, a half-written one 
 from __future__ import annotations
 
 import csv
-import glob
 import io
 import itertools
 import json
@@ -47,6 +46,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ptrack.body.acclaim import skeleton_beside
+from ptrack.clips import list_paths
 from ptrack.errors import InputError
 from ptrack.pipeline.config import RunConfig, config_reference, load_config, parse_override
 from ptrack.pipeline.engine import (
@@ -101,23 +101,7 @@ def parse_inputs(spec: str, cwd: Path | None = None) -> list[Input]:
     p = cwd / spec
     if p.is_file() and p.suffix.lower() == ".csv":
         return read_manifest(p)
-    if p.is_file() and p.suffix.lower() in LIST_SUFFIXES:
-        lines = [ln.split("#", 1)[0].strip() for ln in p.read_text(encoding="utf-8").splitlines()]
-        paths = [(p.resolve().parent / ln).resolve() for ln in lines if ln]
-        if not paths:
-            raise InputError(f"--inputs {spec!r}: the list names no input")
-    elif glob.has_magic(spec):
-        matched = sorted(glob.glob(str(cwd / spec), recursive=True))
-        if not matched:
-            raise InputError(f"--inputs {spec!r} matches no file or folder")
-        paths = [Path(m).resolve() for m in matched]
-    else:
-        paths = [(cwd / s.strip()).resolve() for s in spec.split(",") if s.strip()]
-        if not paths:
-            raise InputError(f"--inputs {spec!r} names no input")
-    for path in paths:
-        if not path.exists():
-            raise FileNotFoundError(f"input not found: {path}")
+    paths = list_paths(spec, "--inputs", "input", cwd, is_list=lambda f: f.suffix.lower() in LIST_SUFFIXES)
     return [Input(path) for path in paths]
 
 

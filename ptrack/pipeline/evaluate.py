@@ -27,7 +27,8 @@ from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
 
-from ptrack.body.acclaim import parse_clips, skeleton_beside
+from ptrack.body.acclaim import skeleton_beside
+from ptrack.clips import parse_clips
 from ptrack.errors import InputError
 from ptrack.pipeline.compare import is_number
 from ptrack.pipeline.config import load_config, parse_override

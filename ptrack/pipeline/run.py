@@ -973,6 +973,8 @@ def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor | None = N
     hypotheses (T, N, J, 3), hypothesis_weights (T, N), hypothesis_costs (T, N) where the method has them;
     hypothesis_directions (T, N, J, 3) (each hypothesis's principal covariance direction as joint displacements),
     jump_chains (C,) and jump_counts (T, C) (kinematic-jump leaves kept per chain and frame) from the trackers;
+    pca_weights (T, m), pca_time (T,), pca_modelled (T,) bool, key_posture_frames (P,) (indices into the run's
+    frames) and key_posture_names (P,) from `method: pca`;
     joint_std (T, J) metres and solver_cost (I+1,) (objective per solver iteration) from `method: batch`.
     reproj: `reprojected_keypoints(prep, est)` when already computed."""
     if reproj is None:
@@ -1019,6 +1021,12 @@ def result_arrays(prep: Prepared, est: Estimate, reproj: torch.Tensor | None = N
     if est.jumps:
         arrays["jump_chains"] = np.asarray(list(est.jumps))
         arrays["jump_counts"] = torch.stack(list(est.jumps.values()), dim=-1).cpu().numpy()
+    if est.motion is not None:
+        arrays["pca_weights"] = est.motion.weights.detach().cpu().numpy()
+        arrays["pca_time"] = est.motion.time.detach().cpu().numpy()
+        arrays["pca_modelled"] = est.motion.modelled.detach().cpu().numpy().astype(bool)
+        arrays["key_posture_frames"] = est.motion.key_frames.detach().cpu().numpy().astype(np.int64)
+        arrays["key_posture_names"] = np.asarray(est.motion.key_names)
     return arrays
 
 
@@ -1100,6 +1108,11 @@ def _run_log(prep: Prepared, res: dict[str, np.ndarray], series: dict[str, np.nd
         hypothesis_costs=res.get("hypothesis_costs"),
         hypothesis_directions=res.get("hypothesis_directions"),
         jumps=dict(zip(res["jump_chains"].tolist(), res["jump_counts"].T)) if "jump_chains" in res else {},
+        motion_weights=res.get("pca_weights"),
+        motion_time=res.get("pca_time"),
+        key_postures=dict(zip(res["key_posture_names"].tolist(), res["key_posture_frames"].tolist()))
+        if "key_posture_names" in res
+        else {},
         scalars=series,
         masks=obs.masks.cpu().numpy() if obs.masks is not None else None,
         joint_std=res.get("joint_std"),

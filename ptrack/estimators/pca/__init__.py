@@ -51,6 +51,13 @@ its 2D size gives, each fitted rigidly (root only) to the first frame's tracked 
 the best fit is kept. `pca.iterations: 0` returns that start itself: the mean motion with the initial
 timing, the root held where the first frame put it (the paper's fig. 8).
 
+After the swing: the windows track the frames up to the swing's end, its last key posture found in the 2D (the
+end of the follow-through, where the model's time reaches 1); a clip that goes on shows motion no training swing
+has, and its frames are handed on from the swing's last pose to the estimator `pca.after_swing` names (`batch`:
+the MAP trajectory with that pose as a keyframe; `frame`: per-frame fits; `ptrack.estimators` passes them in as
+`after`), or with `hold` the model's last pose is held and the root tracked. The estimate carries the weights,
+the time of every frame and the key postures (`ptrack.problem.MotionFit`).
+
 The model is read from `motion.model_file` (default ~/.cache/ptrack/motion/<config name>.npz); when no
 file is there it is fitted from `motion.clips` (`ptrack fit-motion` does the same) and saved there.
 

@@ -11,6 +11,9 @@ from ptrack.errors import InputError
 from ptrack.motion.config import MotionConfig
 from ptrack.settings import setting
 
+#: what tracks the frames after the swing (`pca.after_swing`)
+AFTER_SWING = ("batch", "frame", "hold")
+
 
 @dataclass(frozen=True)
 class PcaMethodConfig:
@@ -44,6 +47,12 @@ class PcaMethodConfig:
     alpha_bound: float = setting(3.0, "|alpha_i| at most this many training stds (a box in the solver)")
     init_yaws: int = setting(8, "headings of the first frame's root placement tried (section 5.1)")
     key_smooth_s: float = setting(0.05, "Gaussian smoothing (std, s) of the 2D wrist track before the key postures")
+    after_swing: str = setting(
+        "batch",
+        "frames after the swing's end (its last key posture in the 2D), from the swing's last pose: batch = the MAP "
+        "trajectory (batch: section) with that pose a keyframe; frame = per-frame fits (frame: section); hold = the "
+        "model's last pose held, the root tracked",
+    )
 
 
 class PcaRunConfig(Protocol):
@@ -86,6 +95,8 @@ def validate_pca(p: PcaMethodConfig, keypoints: dict[str, str] | None = None, na
             raise InputError(f"config key 'pca.{key}' must be >= 0, got {getattr(p, key)}")
     if p.timing_sigma is not None and not p.timing_sigma > 0:
         raise InputError(f"config key 'pca.timing_sigma' must be positive or null, got {p.timing_sigma}")
+    if p.after_swing not in AFTER_SWING:
+        raise InputError(f"config key 'pca.after_swing' must be one of {', '.join(AFTER_SWING)}, got {p.after_swing!r}")
     if p.key_smooth_s < 0:
         raise InputError(f"config key 'pca.key_smooth_s' must be >= 0, got {p.key_smooth_s}")
     for key in ("silhouette_sigma_m", "root_sigma_m", "root_sigma_deg", "time_sigma", "alpha_sigma", "alpha_bound"):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import cast
 
 import torch
@@ -24,7 +24,8 @@ from ptrack.estimators.pca.window import (
     window_silhouette,
 )
 from ptrack.optim.solvers import levenberg_marquardt
-from ptrack.problem import Estimate, Problem
+from ptrack.problem import Estimate, MotionFit, Problem, later_frames
+from ptrack.threads import one_thread
 
 log = logging.getLogger(__name__)
 
@@ -34,17 +35,46 @@ def estimate_pca(
     cfg: PcaRunConfig,
     generator: torch.Generator,
     progress: Callable[[Iterable], Iterable] = lambda x: x,
+    after: Mapping[str, Callable[..., Estimate]] | None = None,
 ) -> Estimate:
-    """Track the whole sequence with the PCA motion model (`ptrack.estimators.pca`). Deterministic."""
+    """Track the whole sequence with the PCA motion model (`ptrack.estimators.pca`). Deterministic. Runs on one
+    intra-op thread (`ptrack.threads.one_thread`): a window's solve is small (m + 7 f parameters, f frames'
+    FK), which multithreaded BLAS does not speed up and which, on a machine whose cores other jobs hold, waits
+    on its spinning threads: `scripts/bench_pca.py --threads` measured the swing 11.4x faster on one thread than
+    on torch's default 2 (2 shared cores, load 10).
+
+    after: `pca.after_swing` value -> `(problem, cfg, q_before, progress) -> Estimate`, the estimator that tracks
+    the frames after the swing's end (a `Problem` of those frames) from the swing's last pose q_before (D,)
+    (`ptrack.estimators` passes `frame`: the per-frame fits, and `batch`: the MAP trajectory with q_before as a
+    keyframe). The swing ends at its last key posture found in the 2D (the end of the follow-through): the
+    model's time stops at 1 there, and a clip that goes on (the golfer lowers the club, turns, walks) shows
+    motion no training swing has. With `pca.after_swing: hold`, or no such estimator given, the model's last
+    pose is held over those frames and only the root is tracked."""
+    with one_thread():
+        return _track(problem, cfg, progress, after)
+
+
+def _track(
+    problem: Problem,
+    cfg: PcaRunConfig,
+    progress: Callable[[Iterable], Iterable],
+    after: Mapping[str, Callable[..., Estimate]] | None,
+) -> Estimate:
     s = make_setup(problem, cfg)
     p = cfg.pca
     obs = problem.observations
     sk = problem.skeleton
     dtype, device = obs.keypoints.dtype, obs.keypoints.device
     t_count, m = obs.num_frames, s.m
-    f = min(p.window, t_count)
     keys, mu_init = initial_timing(s)
     log.info("pca: key postures at frames %s", keys.tolist())
+    wanted = p.after_swing != "hold" and p.iterations > 0
+    hand_on = (after or {}).get(p.after_swing) if wanted else None
+    if wanted and hand_on is None:
+        log.warning("pca: no estimator %r given for pca.after_swing; the swing's last pose is held", p.after_swing)
+    # frames [0, swing) are the swing's, tracked by the model's windows; the rest is handed on (or held)
+    swing = min(int(keys[-1]) + 1, t_count) if hand_on is not None else t_count
+    f = min(p.window, swing)
     rot0, trans0 = place_root(s, mu_init[0])
     alpha = torch.zeros(t_count, m, dtype=dtype, device=device)  # per frame: the weights of its last window
     mu = mu_init.clone()
@@ -54,9 +84,9 @@ def estimate_pca(
         a_prev = torch.zeros(m, dtype=dtype, device=device)
         lo, hi = window_bounds(s, f, mu)
         step = min(p.step, f)
-        starts = list(range(0, t_count - f + 1, step))
-        if starts[-1] != t_count - f:
-            starts.append(t_count - f)
+        starts = list(range(0, swing - f + 1, step))
+        if starts[-1] != swing - f:
+            starts.append(swing - f)
         known = 0  # frames [0, known) have been in a window
         for start in progress(starts):
             frames = torch.arange(start, start + f, device=device)
@@ -90,6 +120,13 @@ def estimate_pca(
             trans[frames] = g[:, :3]
             rot[frames] = orthonormal(rotation_exp(g[:, 3:])[0] @ rot_hat)
     q = poses_of(s, alpha, mu, rot, trans)
+    modelled = torch.arange(t_count, device=device) < swing
+    if swing < t_count:
+        assert hand_on is not None  # swing < t_count
+        log.info("pca: the swing ends at frame %d; frames %d-%d by %s", swing - 1, swing, t_count - 1, p.after_swing)
+        alpha[swing:], mu[swing:] = alpha[swing - 1], mu[swing - 1]
+        rest = hand_on(later_frames(problem, swing), cfg, q[swing - 1], progress)
+        q = torch.cat([q[:swing], rest.q.to(q)])
     with torch.no_grad():
         joints = sk.forward_kinematics(q)
         # per frame, the observation terms of the final poses (the prediction terms belong to windows)
@@ -110,4 +147,5 @@ def estimate_pca(
             assert r_c is not None  # s.corr is set
             rho = robust_loss(cfg.costs.loss)(r_c.square().sum(-1), cfg.costs.robust_scale)
             terms["correspondence"] = 0.5 * p.correspondence_weight * rho.sum(-1)
-    return Estimate(q=q.detach(), joints=joints, cost=cast(Tensor, sum(terms.values())), terms=terms)
+    fit = MotionFit(alpha.detach(), mu.detach(), keys.to(torch.int64), tuple(s.model.key_names), modelled)
+    return Estimate(q=q.detach(), joints=joints, cost=cast(Tensor, sum(terms.values())), terms=terms, motion=fit)
