@@ -8,7 +8,10 @@ gives the same leaves and the same modes: `--check`, and tests/test_jump_stages.
 leaves (leaf 0, the sample itself, is not counted as a jump leaf):
 
   grown      flipped leaves of the interpretation trees: each jumped sample x (2^n - 1)
-  tree       unique (no link lost its second solution) and feasible (every ray meets its sphere)
+  repeat     not unique: a flipped link had one solution: its end unobserved (a missing keypoint), else a ray
+             missing its sphere (the sample's parent joint too far off the ray: `missed`), else tangent
+  infeasible unique, but an unflipped link's ray misses its sphere
+  tree       unique and feasible
   ik         closed-form IK lands the chain joints on the tree's positions (`exact`)
   limits     within the joint limits (prune keeps only these; project clamps the others and keeps them)
   kept       what `_jump` returns
@@ -54,7 +57,10 @@ ROOT = Path(__file__).resolve().parents[1]
 CMU = ROOT.parent / "shared" / "data" / "cmu" / "subjects"
 #: held-out clips (configs/clips/heldout_batch.txt): a walk, a jump, a kick
 CLIPS = ("35_01", "118_01", "135_04")
-JUMP_STAGES = ("jumped", "grown", "tree", "ik", "limits", "projected", "kept")
+JUMP_STAGES = (
+    *("jumped", "grown", "repeat", "unobserved", "missed", "infeasible"),
+    *("tree", "ik", "limits", "projected", "kept"),
+)
 #: where a hypothesis of a step came from
 ORIGINS = ("mode", "diffusion", "jump")
 
@@ -114,6 +120,13 @@ def counted_jump(
         in_tree = flipped & tree.unique & ~tree.infeasible.any(-1)
         c.jump["jumped"] += rows.numel()
         c.jump["grown"] += int(flipped.sum())
+        c.jump["repeat"] += int((flipped & ~tree.unique).sum())
+        # repeats because a flipped link's end was not observed (a missing keypoint: it cannot flip)
+        bits = torch.arange(keep.shape[1], device=q.device)[:, None] >> torch.arange(chain.num_links, device=q.device)
+        unseen = ((bits & 1).bool()[None] & ~tree.observed[:, None, :]).any(-1)  # (S', L)
+        c.jump["unobserved"] += int((flipped & ~tree.unique & unseen).sum())
+        c.jump["missed"] += int((flipped & ~tree.unique & ~unseen & tree.infeasible.any(-1)).sum())
+        c.jump["infeasible"] += int((flipped & tree.unique & tree.infeasible.any(-1)).sum())
         c.jump["tree"] += int(in_tree.sum())
         c.jump["ik"] += int((in_tree & ik.exact).sum())
         c.jump["limits"] += int((in_tree & ik.exact & ik.in_limits).sum())
@@ -247,8 +260,10 @@ def check_jump(s: Setup, t: int, modes: Modes, gen: torch.Generator) -> None:
 def table(results: dict[str, Counts]) -> str:
     """Markdown: one row per limits mode."""
     head = (
-        "| limits_mode | steps | samples jumped | leaves grown | tree (unique, feasible) | IK exact | within limits "
-        "| projected | kept by _jump | within budget | distinct minima (all) "
+        "| limits_mode | steps | samples jumped | leaves grown "
+        "| repeats: unobserved / ray missed / tangent | infeasible "
+        "| tree (unique, feasible) | IK exact | within limits "
+        "| projected | kept by _jump | within budget | hypotheses polished | distinct minima (all) "
         "| pre-selection 4K: jump / diffusion / mode "
         "| K modes: jump / diffusion / mode | heaviest mode a jump leaf | frames with a jump-leaf mode "
         "| mode nearest truth: jump / diffusion / mode |"
@@ -266,8 +281,11 @@ def table(results: dict[str, Counts]) -> str:
 
         mk = sum(st["modes"].values())
         lines.append(
-            f"| {mode} | {c.steps} | {per(j['jumped'])} | {per(j['grown'])} | {per(j['tree'])} | {per(j['ik'])} "
+            f"| {mode} | {c.steps} | {per(j['jumped'])} | {per(j['grown'])} "
+            f"| {per(j['unobserved'])} / {per(j['missed'])} / {per(j['repeat'] - j['unobserved'] - j['missed'])} "
+            f"| {per(j['infeasible'])} | {per(j['tree'])} | {per(j['ik'])} "
             f"| {per(j['limits'])} | {per(j['projected'])} | {per(j['kept'])} | {per(st['budget']['jump'])} "
+            f"| {per(sum(st['budget'].values()))} "
             f"| {per(c.distinct)} | {trio(st['presel'])} | {trio(st['modes'])} "
             f"| {st['heaviest']['jump'] / n:.0%} | {c.frames_with_jump_mode / n:.0%} "
             f"| {c.best['jump'] / n:.0%} / {c.best['diffusion'] / n:.0%} / {c.best['mode'] / n:.0%} |"

@@ -84,7 +84,9 @@ def test_jump_stages_counts_are_sane_and_match_the_tracker(cmu_file):
         j = c.jump
         assert c.steps == 2
         assert j["grown"] == 3 * j["jumped"] > 0  # 2-link chains: 3 flipped leaves per jumped sample
-        assert j["grown"] >= j["tree"] >= j["ik"] >= j["limits"]
+        assert j["grown"] == j["repeat"] + j["infeasible"] + j["tree"]  # every flipped leaf in one class
+        assert j["repeat"] >= j["unobserved"] + j["missed"]
+        assert j["tree"] >= j["ik"] >= j["limits"]
         assert j["kept"] == (j["limits"] if mode == "prune" else j["ik"])
         assert j["projected"] == (0 if mode == "prune" else j["ik"] - j["limits"])
         assert c.stage["budget"]["jump"] <= j["kept"]
