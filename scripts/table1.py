@@ -230,6 +230,9 @@ def run_methods(s: Study, samples: int, distinct_deg: float, gen: torch.Generato
         else:
             q_raw = s.proposal(kind, scale, tail, samples, gen)
             label, note = f"{kind} {'Gaussian' if tail == 'gaussian' else 'Cauchy'} {scale}", ""
+        if q_raw.shape[0] == 0:  # every leaf pruned (the noise can make a ray miss its sphere: infeasible)
+            q_raw = s.q0[None]
+            note += "; none kept: the row shows the start alone"
         c_raw = s.cost(q_raw)
         q_opt, info = s.polish(q_raw, s.iterations)
         st = s.stats(q_raw, q_opt, c_raw, info.cost, distinct_deg)
