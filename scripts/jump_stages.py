@@ -153,7 +153,7 @@ def counted_step(
     c = Counts(steps=1)
     k = s.cfg.kjs
     obs = s.problem.observations
-    predicted = modes.q + k.momentum * modes.velocity
+    predicted = modes.q  # the dynamics' prediction: constant position
     counts = torch.zeros(len(s.chains), dtype=torch.long, device=predicted.device)
     if not bool((obs.confidence[t] > 0).any()):
         return modes._replace(q=predicted), counts, c
@@ -247,7 +247,7 @@ def run_clip(
 def check_jump(s: Setup, t: int, modes: Modes, gen: torch.Generator) -> None:
     """`counted_jump` against `_jump` on frame t's diffusion samples, from the same generator state."""
     k = s.cfg.kjs
-    centres = modes._replace(q=modes.q + k.momentum * modes.velocity)
+    centres = modes  # constant position: the prediction is the mode itself
     q, parent = _diffuse(s, centres, 32, KJS, gen)
     state = gen.get_state()
     a = _jump(s, t, q, parent, centres, gen, k.jumps_per_sample)
