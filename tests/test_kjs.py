@@ -395,8 +395,10 @@ def test_a_mode_that_lost_out_earlier_survives(cmu_file):
     evidence multiplied into the weights (`kjs.weight_memory` 1) the modes on the true branch of the right
     arm fell to weight ~0 while the two branches reprojected alike; at frame 61 they were pruned, though on
     frame 60 one of them was the cheapest mode, and the arm stayed flipped in depth for the rest of the
-    clip: 0.32 of the frames (best trajectory 29.1 mm). With the default 0.5 (measured): no frame, 15.3 mm
-    (14.0 with the smoother, 2026-11-25)."""
+    clip: 0.32 of the frames (best trajectory 29.1 mm). With 0.5: no frame, 15.3 mm (14.0 with the smoother,
+    2026-11-25). With the MAP path of the final modes (`kjs.path: map`) and `kjs.reweight: memory` the path took
+    the flipped arm on 0.5 of the frames (38.1 mm); with the paper's re-weighting (`mixture`, the default since
+    2026-11-29): no frame, 11.6 mm."""
     cfg = _balance_1px(cmu_file, "seed=3")
     prep = prepare(cfg)
     est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(cfg.seed + 1))  # as `ptrack run`
