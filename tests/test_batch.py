@@ -73,9 +73,118 @@ def test_missing_keypoints_and_dropped_frames():
 
 
 def test_joint_limits_hold_at_the_solution():
-    _, prep, est = solve("observations.noise_px=4")
+    _, prep, est = solve("observations.noise_px=4", "batch.hard_limits=true")
     lower, upper = prep.problem.skeleton.limits(dtype=est.q.dtype)
     assert bool(((est.q >= lower - 1e-6) & (est.q <= upper + 1e-6)).all())
+
+
+def test_soft_limits_act_and_hard_limits_hold():
+    """The joint-limit barrier (DiFranco et al. eq. 2) acts without the box (`batch.hard_limits: false`):
+    on limits narrowed so that the data pull a knee past them, the solution leaves the box by less than
+    it does with no limits, and the barrier's energy is positive; with the box every iterate stays inside
+    and the barrier is 0 (the term the issue found dead)."""
+    import dataclasses
+
+    from ptrack.estimators.batch import solve_trajectory
+
+    over = ["observations.noise_px=0", "observations.missing=0", "batch.iterations=8", "batch.hard_limits=false"]
+    cfg = load_config(BATCH, [*SHORT, *over])
+    prep = prepare(cfg)
+    obj = trajectory_objective(prep.problem, cfg, torch.float64, torch.device("cpu"))
+    assert not obj.hard_limits
+    assert all(bool(torch.isinf(b).all()) for b in obj.box())
+    i = prep.problem.skeleton.dof_names.index("rtibia.rx")
+    gt = prep.gt_q.double()
+    lower, upper = obj.lower.clone(), obj.upper.clone()
+    upper[i] = float(gt[:, i].min()) - 0.2  # the truth bends the knee 0.2 rad past it on every frame
+    start = torch.minimum(torch.maximum(gt, lower), upper)[None]
+
+    def violation(o):
+        q, _ = solve_trajectory(o, start, cfg.batch)
+        over = float((q[0, :, i] - upper[i]).clamp(min=0).max())
+        return over, float(batch.evaluate(o, q, with_jacobian=False).terms["limits"].sum()), q
+
+    soft = dataclasses.replace(obj, lower=lower, upper=upper, hard_limits=False)
+    none = dataclasses.replace(soft, lower=torch.full_like(lower, -math.inf), upper=torch.full_like(upper, math.inf))
+    hard = dataclasses.replace(soft, hard_limits=True)
+    over_soft, energy_soft, _ = violation(soft)
+    over_none, _, _ = violation(none)
+    over_hard, energy_hard, q_hard = violation(hard)
+    assert over_none > 0.15  # unconstrained, the knee follows the data and the keyframes (measured 0.244 rad)
+    assert 0 < over_soft < 0.5 * over_none and energy_soft > 0  # the barrier pulls it back (0.054 rad)
+    assert over_hard == 0.0 and energy_hard == 0.0
+    assert bool(((q_hard >= lower - 1e-12) & (q_hard <= upper + 1e-12)).all())
+    g = batch.evaluate(soft, start + 0.3).g  # past the bound the barrier's gradient is there and is autograd's
+    x = (start + 0.3).requires_grad_()
+    (want,) = torch.autograd.grad(sum(v.sum() for v in batch.evaluate(soft, x, with_jacobian=False).terms.values()), x)
+    torch.testing.assert_close(g, want, rtol=1e-9, atol=1e-7)
+
+
+@pytest.mark.parametrize("setting, held", [("all", "xyz"), ("vertical", "y"), ("none", "")])
+def test_root_velocity_prior_lets_a_constant_velocity_root_pass(setting, held):
+    """`batch.root_velocity`: the velocity prior holds only the root translations it names (y up), so a
+    root walking at a constant 1.4 m/s along the ground costs no more smoothing energy than a root at
+    rest under `vertical` and `none`, and more under `all`; the acceleration prior is the same in all."""
+    cfg = load_config(BATCH, [*SHORT, f"batch.root_velocity={setting}"])
+    prep = prepare(cfg)
+    sk = prep.problem.skeleton
+    obj = trajectory_objective(prep.problem, cfg, torch.float64, torch.device("cpu"))
+    (n1, a1), (n2, a2) = obj.smooth
+    assert (n1, n2) == (1, 2)
+    tx, ty, tz = sk.translation_dof.tolist()
+    assert [bool(a1[d] > 0) for d in (tx, ty, tz)] == [c in held for c in "xyz"]
+    assert bool((a2[[tx, ty, tz]] > 0).all())
+    rest = prep.gt_q.double().clone()
+    rest[:, [tx, ty, tz]] = rest[0, [tx, ty, tz]]
+    walk = rest.clone()
+    t = prep.problem.observations.times.double() - float(prep.problem.observations.times[0])
+    walk[:, tx] += 1.0 * t
+    walk[:, tz] += 1.0 * t
+    e_rest, e_walk = (float(batch.robust_smoothing(obj, x[None], derivatives=False)[0].sum()) for x in (rest, walk))
+    if setting == "all":
+        assert e_walk > e_rest + 1.0
+    else:
+        assert e_walk == pytest.approx(e_rest, rel=1e-9, abs=1e-9)
+    if setting == "vertical":
+        climb = rest.clone()
+        climb[:, ty] += 1.0 * t
+        assert float(batch.robust_smoothing(obj, climb[None], derivatives=False)[0].sum()) > e_rest + 1.0
+
+
+def test_bad_root_velocity_setting():
+    with pytest.raises(InputError, match=r"batch\.root_velocity"):
+        load_config(BATCH, [*SHORT, "batch.root_velocity=sideways"])
+
+
+def test_reprojection_blocks_are_the_gauss_newton_of_the_residual():
+    """`evaluate`'s per-frame blocks J_t^T W J_t of the reprojection (assembled from `Reprojection.jacobian`
+    on d pixels / d X and the joint Jacobians) equal those from the autograd Jacobian of the whitened
+    residual with the IRLS weights rho'(s) of each keypoint (no limits; frames without keyframes)."""
+    from ptrack.problem import evaluate_pose
+
+    cfg = load_config(BATCH, [*SHORT, "data.stop=24"])  # 6 frames, a keyframe at frame 0 only
+    prep = prepare(cfg)
+    obj = trajectory_objective(prep.problem, cfg, torch.float64, torch.device("cpu"), limits=False)
+    p = prep.problem
+    cam = p.observations.camera.to(dtype=torch.float64)
+    noise = torch.randn(prep.gt_q.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    q = prep.gt_q.double() + 0.05 * noise
+    t_len, d = q.shape
+    rp = obj.reprojection
+
+    def residual(x):
+        return rp.residual(evaluate_pose(p.skeleton, cam, p.keypoints, x.reshape(t_len, d)))
+
+    r = residual(q.flatten())
+    jac = torch.autograd.functional.jacobian(residual, q.flatten())  # (T K 2, T D)
+    k = r.numel() // (2 * t_len)
+    w = robust_loss_derivative(rp.loss)(r.reshape(t_len, k, 2).square().sum(-1), rp.scale)  # (T, K)
+    h = batch.evaluate(obj, q[None]).h[0]
+    assert obj.kf_frames.tolist() == [0]
+    for t in range(1, t_len):
+        jt = jac[t * 2 * k : (t + 1) * 2 * k, t * d : (t + 1) * d]  # (2K, D)
+        want = jt.T @ (w[t].repeat_interleave(2)[:, None] * jt)
+        torch.testing.assert_close(h[t], want, rtol=1e-9, atol=1e-9)
 
 
 def test_partial_angle_and_joint_keyframes(tmp_path):

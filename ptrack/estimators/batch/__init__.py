@@ -12,7 +12,9 @@ with a_1 = 1 / (dt sigma_velocity), a_2 = 1 / (dt^2 sigma_acceleration) per dof:
 (`batch.prior: cmu`) each CMU dof's own scale, the RMS velocity and acceleration of real motion
 (`ptrack/data/cmu_smoothing.json`, fitted to the dev clips by `scripts/make_smoothing_prior.py`: a
 knee accelerates at ~27 rad/s^2, the head at ~7), else `batch.velocity_sigma` / `accel_sigma` for
-angles and `*_sigma_m` for the root position. rho is `batch.smooth_loss` at `batch.smooth_scale`
+angles and `*_sigma_m` for the root position; the root translations' velocity term holds only those
+`batch.root_velocity` names (`all`; `vertical`: a constant walking velocity on the ground costs
+nothing, only its changes do). rho is `batch.smooth_loss` at `batch.smooth_scale`
 prior std (default Cauchy at 2: quadratic for the motion the prior expects, logarithmic for faster
 motion, so a run's legs are not pulled flat; l2 is the paper's Gaussian). Missing keypoints
 (confidence 0) and frames without any 2D add nothing: the dynamics fill them, which is how
@@ -22,7 +24,9 @@ FK pass batched over all frames); the smoothing prior is linear in Q and couples
 itself, so it adds a band of diagonal couplings (block-pentadiagonal with an acceleration term;
 constant for l2, else D_n^T diag(w a_n^2) D_n with the IRLS weights w = rho' of the residuals at the
 current Q). `ptrack.optim.solvers.banded_levenberg_marquardt` solves it with `ptrack.optim.banded` (never a
-dense (T*D)^2 matrix) inside the joint-limit box.
+dense (T*D)^2 matrix). The joint limits are the paper's barrier, 1/2 |(violation) / costs.limits_sigma|^2
+times costs.limits_weight, on each limited angle's nearest turn; with `batch.hard_limits` the solver also keeps
+every iterate inside the limit box, and the barrier is then 0 throughout.
 
 Uncertainty: the diagonal blocks of the inverse Gauss-Newton Hessian at the solution (the banded
 recursion of `ptrack.optim.banded.marginal_blocks`) are the per-frame marginal covariances of the pose;

@@ -9,6 +9,13 @@ from ptrack.costs.base import ROBUST_LOSSES
 from ptrack.errors import InputError
 from ptrack.settings import setting
 
+#: `batch.root_velocity`: the root translations (x, y, z; y up) the velocity prior holds, by setting
+ROOT_VELOCITY: dict[str, tuple[bool, bool, bool]] = {
+    "all": (True, True, True),
+    "vertical": (False, True, False),
+    "none": (False, False, False),
+}
+
 
 @dataclass(frozen=True)
 class BatchMethodConfig:
@@ -21,6 +28,11 @@ class BatchMethodConfig:
     accel_sigma: float | None = setting(8.0, "acceleration smoothing std of the angles, rad/s^2; null drops the term")
     velocity_sigma_m: float | None = setting(1.0, "velocity smoothing std of the root position, m/s; null: none")
     accel_sigma_m: float | None = setting(2.0, "acceleration smoothing std of the root position, m/s^2; null: none")
+    root_velocity: str = setting(
+        "all",
+        "root translations the velocity prior pulls to rest: all (x, y, z), vertical (y: a walker's constant "
+        "ground-plane velocity costs nothing, the acceleration prior still acts) or none",
+    )
     prior: str | None = setting("cmu", "per-dof smoothing scales replacing the sigmas: cmu (real motion) or null")
     smooth_loss: str = setting("cauchy", "the smoothing residuals' loss: l2, huber, cauchy, geman_mcclure")
     smooth_scale: float = setting(2.0, "the smoothing loss's scale, in prior standard deviations")
@@ -30,6 +42,11 @@ class BatchMethodConfig:
         "branches", "joint_std in result.npz: branches (true), laplace (faster, overconfident), false = none"
     )
     flip_restarts: int = setting(3, "rounds of restarts from the limbs' depth-flip branches (0: none)")
+    hard_limits: bool = setting(
+        True,
+        "also keep every iterate inside the joint-limit box (false: the soft barrier costs.limits_* alone, "
+        "the paper's eq. 2)",
+    )
 
 
 def validate_batch(b: BatchMethodConfig) -> None:
@@ -49,6 +66,10 @@ def validate_batch(b: BatchMethodConfig) -> None:
         )
     if not b.smooth_scale > 0:
         raise InputError(f"config key 'batch.smooth_scale' must be positive, got {b.smooth_scale}")
+    if b.root_velocity not in ROOT_VELOCITY:
+        raise InputError(
+            f"config key 'batch.root_velocity' must be one of {', '.join(ROOT_VELOCITY)}, got {b.root_velocity!r}"
+        )
     if b.init not in ("frame", "keyframes"):
         raise InputError(f"config key 'batch.init' must be 'frame' or 'keyframes', got {b.init!r}")
     if isinstance(b.flip_restarts, bool) or not isinstance(b.flip_restarts, int) or b.flip_restarts < 0:

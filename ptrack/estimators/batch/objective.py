@@ -18,6 +18,7 @@ from ptrack.body.pose_prior import smoothing_prior
 from ptrack.costs import PoseEval, Reprojection, robust_loss, robust_loss_derivative
 from ptrack.costs.base import PoseJacobian
 from ptrack.errors import InputError
+from ptrack.estimators.batch.config import ROOT_VELOCITY
 from ptrack.estimators.batch.smoothing import band_matvec, robust_smoothing, smoothing_band
 from ptrack.optim.banded import numpy_path
 from ptrack.optim.jacobians import joint_jacobian, joint_jacobian_product
@@ -33,7 +34,9 @@ class Trajectory:
     `ptrack.estimators.batch`. Built by `trajectory_objective`.
 
     reprojection: `Reprojection` on observed (T, K, 2); lower, upper (D,) joint limits; limits_scale
-    sqrt(weight) / sigma; smooth: ((n, a_n (D,)), ...) difference order and per-dof weight;
+    sqrt(weight) / sigma of their barrier (eq. 2); hard_limits: whether the solver also keeps every
+    iterate inside [lower, upper] (`box`; then the barrier is 0 throughout); smooth: ((n, a_n (D,)),
+    ...) difference order and per-dof weight;
     band (T, W+1, D) the smoothing Hessian (band[t, k] = its (t, t-k) diagonal block's diagonal);
     kf_frames (F,), kf_target (F, D), kf_weight (F, D) = 1/sigma (0 where not given), angular (D,)
     bool; jk_frames (G,), jk_target (G, J, 3), jk_weight (G, J) = 1/sigma (0 where not given),
@@ -57,6 +60,14 @@ class Trajectory:
     jk_joints: tuple[int, ...]
     smooth_loss: str = "l2"
     smooth_scale: float = 1.0
+    hard_limits: bool = True
+
+    def box(self) -> tuple[Tensor, Tensor]:
+        """The solver's bounds (D,), (D,): the joint limits with `hard_limits`, else none (+-inf: the
+        barrier alone keeps the trajectory near its limits)."""
+        if self.hard_limits:
+            return self.lower, self.upper
+        return torch.full_like(self.lower, -math.inf), torch.full_like(self.upper, math.inf)
 
     def smooth_rho(self) -> Callable[[Tensor], Tensor] | None:
         """The smoothing residuals' robust loss on their squares (in prior std units), None for l2."""
@@ -89,11 +100,15 @@ def trajectory_objective(
     angular = torch.as_tensor(sk.angular_dofs(), device=device)
 
     table = smoothing_prior(bc.prior)
+    # the root translations without a velocity prior (`batch.root_velocity`): their constant velocity is free
+    unheld = {i for i, held in zip(sk.translation_dof.tolist(), ROOT_VELOCITY[bc.root_velocity]) if i >= 0 and not held}
 
     def weights(sigma_angle: float | None, sigma_m: float | None, n: int, per_dof: dict) -> Tensor | None:
         if sigma_angle is None and sigma_m is None:
             return None
         sigma = [(sigma_m if is_t else sigma_angle) for is_t in trans.tolist()]
+        if n == 1:
+            sigma = [None if i in unheld else s for i, s in enumerate(sigma)]
         # the prior's scale replaces the scalar of the dofs it names, in the terms that are on
         sigma = [per_dof.get(name, s) if s is not None else None for name, s in zip(sk.dof_names, sigma)]
         return torch.tensor([0.0 if s is None else 1.0 / (dt**n * s) for s in sigma], dtype=dtype, device=device)
@@ -157,6 +172,7 @@ def trajectory_objective(
         tuple(torch.nonzero((jk_weight != 0).any(0)).flatten().tolist()),
         bc.smooth_loss,
         bc.smooth_scale,
+        bc.hard_limits,
     )
 
 
@@ -213,7 +229,10 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
     r = rp.residual(ev).unflatten(-1, (t_len, k, 2))  # (B, T, K, 2)
     s = r.square().sum(-1)
     terms = {"reprojection": 0.5 * robust_loss(rp.loss)(s, rp.scale).sum(-1)}
-    lim = (torch.clamp(q - obj.lower, max=0.0) + torch.clamp(q - obj.upper, min=0.0)) * obj.limits_scale
+    # the barrier on each limited angle's nearest turn (an unboxed solve may carry it past +-pi; the
+    # shift is constant, so the derivatives are q's)
+    qw = wrap_to_limits(q, obj.lower, obj.upper, obj.angular)
+    lim = (torch.clamp(qw - obj.lower, max=0.0) + torch.clamp(qw - obj.upper, min=0.0)) * obj.limits_scale
     terms["limits"] = 0.5 * lim.square().sum(-1)
     # the smoothing's derivatives only where used: l2's gradient and band come from the fixed band
     robust = with_jacobian and obj.smooth_loss != "l2"
@@ -229,9 +248,14 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
     # J_t^T W J_t of the reprojection: per keypoint, the residual's 2 x 3 derivative w.r.t. its joint
     # (`Reprojection.jacobian` on d pixels / d X) times sqrt(W), times that joint's geometric Jacobian
     # (`joint_jacobian_product`: from the keypoints' joints' (joint, ancestor slot) pairs, 2 values
-    # each, never the (K, 3, D) rows)
+    # each, never the (K, 3, D) rows). The chain rule's first factor: Reprojection's residual depends on
+    # the pixels alone and its `jacobian` reads `jac.pixels` only, here d pixels / d X (its "D" the 3
+    # coordinates of each keypoint's own joint); the joints and depth slots have no meaning for these
+    # per-keypoint variables and get empty tensors, so that a term reading them fails instead of
+    # computing with something else
     root_w = robust_loss_derivative(rp.loss)(s, rp.scale).sqrt()[..., None]  # (B, T, K, 1) sqrt IRLS weights
-    jp = rp.jacobian(ev, PoseJacobian(ev.joints, dpix, ev.depth)).unflatten(-2, (t_len, k, 2))  # (B, T, K, 2, 3)
+    unread = dpix.new_empty(0)
+    jp = rp.jacobian(ev, PoseJacobian(unread, dpix, unread)).unflatten(-2, (t_len, k, 2))  # (B, T, K, 2, 3)
     jp = jp * root_w[..., None]
     rw = (r * root_w).flatten(-2)[..., None]  # (B, T, 2K, 1)
     h = q.new_empty(b_len, t_len, _d, _d)
@@ -247,7 +271,7 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
         torch.matmul(jw.mT, rw[:, part], out=g[:, part, :, None])
 
     per_parts(normal_equations, fk)
-    outside = ((q < obj.lower) | (q > obj.upper)).to(q.dtype)
+    outside = ((qw < obj.lower) | (qw > obj.upper)).to(q.dtype)
     diag = outside * obj.limits_scale**2
     g = g + lim * obj.limits_scale
     kf_w2 = obj.kf_weight.square()

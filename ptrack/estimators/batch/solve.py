@@ -1,5 +1,6 @@
 """The batch solve: the whole objective's Gauss-Newton linearisation on its block-banded normal equations, and
-Levenberg-Marquardt over the trajectory inside the joint-limit box (`ptrack.optim.solvers`)."""
+Levenberg-Marquardt over the trajectory (inside the joint-limit box with `batch.hard_limits`;
+`ptrack.optim.solvers`)."""
 
 from __future__ import annotations
 
@@ -35,13 +36,15 @@ def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
 def solve_trajectory(
     obj: Trajectory, start: Tensor, bc: BatchMethodConfig, callback: Callable[[int, Tensor, Tensor], None] | None = None
 ) -> tuple[Tensor, BandedLMInfo]:
-    """The whole objective's Levenberg-Marquardt from start (B, T, D) inside the joint-limit box, with
-    the `batch.*` settings bc (iterations, tol, damping) -> q (B, T, D), `BandedLMInfo`."""
+    """The whole objective's Levenberg-Marquardt from start (B, T, D), inside the joint-limit box where
+    `obj.hard_limits` (`Trajectory.box`), with the `batch.*` settings bc (iterations, tol, damping)
+    -> q (B, T, D), `BandedLMInfo`."""
+    lower, upper = obj.box()
     return banded_levenberg_marquardt(
         linearization(obj),
         start,
-        obj.lower,
-        obj.upper,
+        lower,
+        upper,
         max_iter=bc.iterations,
         tol=bc.tol,
         gtol=bc.tol * 1e-2,
