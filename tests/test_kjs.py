@@ -396,17 +396,19 @@ def test_a_mode_that_lost_out_earlier_survives(cmu_file):
     arm fell to weight ~0 while the two branches reprojected alike; at frame 61 they were pruned, though on
     frame 60 one of them was the cheapest mode, and the arm stayed flipped in depth for the rest of the
     clip: 0.32 of the frames (best trajectory 29.1 mm). With 0.5: no frame, 15.3 mm (14.0 with the smoother,
-    2026-11-25). With the MAP path of the final modes (`kjs.path: map`) and `kjs.reweight: memory` the path took
-    the flipped arm on 0.5 of the frames (38.1 mm); with the paper's re-weighting (`mixture`, the default since
-    2026-11-29): no frame, 11.6 mm."""
-    cfg = _balance_1px(cmu_file, "seed=3")
-    prep = prepare(cfg)
-    est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(cfg.seed + 1))  # as `ptrack run`
-    rates = compute_metrics(prep, est, reprojected_keypoints(prep, est))[0]["flip_error_rate_per_limb"]
-    arm = max(rates["r_shoulder-r_elbow"], rates["r_elbow-r_wrist"])
-    assert arm < 0.1, f"right arm flipped in {arm:.2f} of the frames"
-    traj, _ = _errors(prep, est)
-    assert traj < 22.0, f"best trajectory {traj:.1f} mm"
+    2026-11-25): the forward pass's path (`kjs.path: forward`) is asserted. The MAP path of the final modes (the
+    default `kjs.path: map`) takes the flipped arm on 0.5 of the frames here (38.1 mm: the lattice holds both
+    readings from frame 1 to 47 and the sum of small differences of the frame costs chooses the wrong one); with
+    the paper's re-weighting (`kjs.reweight: mixture`) it does not (11.6 mm), which is asserted too."""
+    for extra in ("kjs.path=forward", "kjs.reweight=mixture"):
+        cfg = _balance_1px(cmu_file, "seed=3", extra)
+        prep = prepare(cfg)
+        est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(cfg.seed + 1))  # as `ptrack run`
+        rates = compute_metrics(prep, est, reprojected_keypoints(prep, est))[0]["flip_error_rate_per_limb"]
+        arm = max(rates["r_shoulder-r_elbow"], rates["r_elbow-r_wrist"])
+        assert arm < 0.1, f"{extra}: right arm flipped in {arm:.2f} of the frames"
+        traj, _ = _errors(prep, est)
+        assert traj < 22.0, f"{extra}: best trajectory {traj:.1f} mm"
 
 
 def test_orders_first_ranks_each_depth_order_before_repeats(kjs_run):
@@ -479,8 +481,8 @@ def test_backward_pass_carries_a_limb_across_the_image_plane(cmu_file):
     clip's bounding box, so another view) 25 -> 30, 21.8 -> 19.9 mm and 25 -> 30, 20.9 -> 18.1 mm. On 21 frames seed
     3 alone loses the true side forward (3 of 6 frames, natively and under default); one seed's best-of-K may get
     worse by a few tenths of a mm with both passes (seed 2: 26.8 -> 27.2 here, 27.0 -> 19.6 under default).
-    With `kjs.reweight: mixture` (the default since 2026-11-29, which keeps fewer light modes) 26 -> 27 of 30, so the
-    mechanism is asserted under `memory`, as it was measured.
+    With `kjs.reweight: mixture` (the paper's re-weighting, which keeps fewer light modes) 26 -> 27 of 30; the
+    mechanism is asserted under `memory`, the default, as it was measured.
     Asserted: 28 of the 30 frames with both passes, more than forward only, mean best-of-K lower by 1 mm. Without
     the smoother, so that the best trajectories can be compared: the best trajectory is the forward pass's, bit for
     bit (both runs' forward passes are the same computation in one process; measured bit-equal for every seed
@@ -492,7 +494,7 @@ def test_backward_pass_carries_a_limb_across_the_image_plane(cmu_file):
         for backward in ("tree", "always"):  # after a keyframe start "tree" means the forward pass alone
             overrides = [f"kjs.backward_pass={backward}", f"seed={seed}", "kjs.smooth_sweeps=0", "data.stop=84"]
             overrides.append("kjs.path=forward")  # the forward pass's best trajectory, to compare it bit for bit
-            overrides.append("kjs.reweight=memory")  # as measured; the default (mixture) below
+            overrides.append("kjs.reweight=memory")  # as measured (the default); mixture in the docstring
             cfg = _clip_1px(cmu_file, "02_01.amc", *overrides)
             prep = prepare(cfg)
             est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(seed + 1))  # as `ptrack run`
@@ -518,8 +520,8 @@ def test_backward_pass_keeps_a_light_depth_order(cmu_file):
     without `_orders_first` 6/11/11, 18.7/17.2/13.5; the forward pass alone (`kjs.backward_pass` never)
     4/11/11, 21.3/18.0/14.6. Asserted: 27 of the 33 frames, mean best-of-K under 20 mm. Only seed 0 needs
     the backward pass here, so this fails on the forward pass alone but by one frame; that `_orders_first`
-    keeps the light order is asserted exactly by the two tests of it below. Measured with `kjs.reweight: memory`;
-    with the default `mixture` (2026-11-29, this Xeon) 8/6/10 frames, 17.4/20.2/15.1 mm, against 7/6/8 and
+    keeps the light order is asserted exactly by the two tests of it below. Measured with `kjs.reweight: memory`
+    (the default); with `mixture` (2026-11-29, this Xeon) 8/6/10 frames, 17.4/20.2/15.1 mm, against 7/6/8 and
     19.7/21.3/17.3 for the forward pass alone: the paper's re-weighting keeps fewer light modes here, and the
     held-out clips' truth-in-modes is the same under both (docs/results.md)."""
     found, best = [], []
@@ -671,8 +673,8 @@ def test_recombination_after_a_tree_start(cmu_file):
     evaluate` runs it), `kjs.recombine` on against off from the same passes: the best-of-K error falls, and
     with `kjs.path: forward` the best trajectory is the same (the recombined pose replaces a light mode after the
     smoother).
-    Measured 49.1 -> 39.8 mm best-of-K (on seeds 0-4 it falls on every seed), with `kjs.reweight: memory`; with the
-    default `mixture` this seed's modes differ and the recombination finds little (51.3 -> 50.9 mm)."""
+    Measured 49.1 -> 39.8 mm best-of-K (on seeds 0-4 it falls on every seed), with `kjs.reweight: memory`; with
+    `mixture` this seed's modes differ and the recombination finds little (51.3 -> 50.9 mm)."""
     got = {}
     for on in ("true", "false"):
         cfg = _clip(

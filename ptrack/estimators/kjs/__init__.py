@@ -43,9 +43,10 @@ frame's modes, with each mode's own frame cost as its emission (data, limits, co
 `frame_evidence`, a negative log-likelihood) and a Gaussian velocity prior between consecutive modes' joints
 relative to the root (std `kjs.viterbi_sigma_m` per frame) as its transition. `hypothesis_weights` are each
 mode's posterior probability given the whole clip under that chain (forward-backward, `mode_posterior`;
-`kjs.weights: posterior`), and `q`/`joints` its MAP path (Viterbi, `best_path`; `kjs.path: map`). On the
-held-out clips this took the best trajectory from 33.5 to 29.8 mm and the share of frames whose heaviest mode is
-within 10 mm of the best one from 0.70 to 0.87 (docs/results.md). `kjs.weights: filter` reports the passes' own
+`kjs.weights: posterior`), and `q`/`joints` its MAP path (Viterbi, `best_path`; `kjs.path: map`); after a
+keyframe start frame 0's emission also holds the keyframe's prior (`keyframe_cost`). On the held-out clips this
+took the best trajectory from 33.5 to 29.3 mm and the share of frames whose heaviest mode is within 10 mm of the
+best one from 0.70 to 0.86 (docs/results.md). `kjs.weights: filter` reports the passes' own
 weights and `kjs.path: forward` the Viterbi path of the forward pass's modes, as before.
 
 Inside the passes a new minimum's weight is its prior times exp(-cost / `kjs.temperature`). With

@@ -36,7 +36,7 @@ class KjsMethodConfig:
     temperature: float = setting(1.0, "weights ∝ prior * exp(-cost / temperature)")
     weight_memory: float = setting(0.5, "reweight memory: a new mode's prior is its parent's weight ** weight_memory")
     reweight: str = setting(
-        "mixture", "a new mode's prior: mixture (the predicted mixture at it, the paper's) or memory (its parent's)"
+        "memory", "a new mode's prior: memory (its parent's weight ** weight_memory) or mixture (the paper's)"
     )
     prior_sigma: float = setting(0.05, "the dynamics' velocity std, radians (or metres) per frame, where no table")
     dynamics: str | None = setting(
