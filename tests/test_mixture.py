@@ -38,7 +38,7 @@ def test_distinct_minima_skips_non_finite():
 
 
 def test_posterior_weights():
-    w = posterior_weights(torch.tensor([0.0, 1.0, 1.0]), torch.tensor([1.0, 1.0, 0.0]))
+    w = posterior_weights(torch.tensor([0.0, 1.0, 1.0]), torch.tensor([1.0, 1.0, 0.0]).log())
     assert torch.isclose(w.sum(), torch.tensor(1.0))
     assert torch.isclose(w[0] / w[1], torch.exp(torch.tensor(1.0)))
     assert w[2] < 1e-20

@@ -68,10 +68,11 @@ def distinct_minima(q: Tensor, cost: Tensor, min_distance: float, limit: int | N
     return order[keep]
 
 
-def posterior_weights(cost: Tensor, prior_weight: Tensor, temperature: float = 1.0) -> Tensor:
-    """Normalised weights w_i ∝ prior_weight_i * exp(-cost_i / temperature). (M,), (M,) -> (M,)."""
-    logw = torch.log(prior_weight.clamp_min(torch.finfo(cost.dtype).tiny)) - cost / temperature
-    return torch.softmax(logw, dim=0)
+def posterior_weights(cost: Tensor, log_prior: Tensor, temperature: float = 1.0) -> Tensor:
+    """Normalised weights w_i ∝ exp(log_prior_i) * exp(-cost_i / temperature), 0 where that is not finite (a
+    NaN cost, a prior of weight 0). (M,), (M,) log prior weights -> (M,)."""
+    logw = log_prior - cost / temperature
+    return torch.softmax(torch.where(torch.isfinite(logw), logw, torch.full_like(logw, -math.inf)), dim=0)
 
 
 def nearest(q: Tensor, centres: Tensor) -> Tensor:

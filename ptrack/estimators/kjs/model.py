@@ -25,7 +25,7 @@ from ptrack.errors import InputError
 from ptrack.estimators.kjs.config import KjsRunConfig
 from ptrack.hypotheses.ik import ChainIK, ClosedFormUnavailable, ik_plan
 from ptrack.hypotheses.jumps import Chain, check_independent, default_chains
-from ptrack.hypotheses.mixture import Modes, distinct_minima
+from ptrack.hypotheses.mixture import Modes, distinct_minima, posterior_weights
 from ptrack.hypotheses.samplers import scaled_covariance
 from ptrack.optim.jacobians import objective_linearization
 from ptrack.optim.solvers import lbfgs, levenberg_marquardt
@@ -218,8 +218,7 @@ def select_modes(s: Setup, q: Tensor, cost: Tensor, log_prior: Tensor, count: in
     normalised weights (M,) ∝ exp(log_prior - cost / `kjs.temperature`). log_prior (N,): each hypothesis's prior
     weight, logarithm (`prior_weights`)."""
     keep = distinct_poses(s, q, cost)
-    logw = log_prior[keep] - (cost[keep] - cost[keep].min()) / s.cfg.kjs.temperature
-    w = torch.softmax(torch.where(torch.isfinite(logw), logw, torch.full_like(logw, -math.inf)), 0)
+    w = posterior_weights(cost[keep] - cost[keep].min(), log_prior[keep], s.cfg.kjs.temperature)
     order = torch.argsort(w, descending=True)[:count]
     return keep[order], w[order] / w[order].sum()
 
