@@ -42,7 +42,7 @@ trajectory come from one model of the whole lattice (`lattice.chain_terms`): a c
 frame's modes, with each mode's own frame cost as its emission (data, limits, collision, pose prior;
 `frame_evidence`, a negative log-likelihood) and a Gaussian velocity prior between consecutive modes' joints
 relative to the root (std `kjs.viterbi_sigma_m` per frame) as its transition. `hypothesis_weights` are each
-mode's posterior probability given the whole clip under that chain (forward-backward, `mode_posterior`;
+mode's posterior probability given the whole clip under that chain (forward-backward, `decode`;
 `kjs.weights: posterior`), and `q`/`joints` its MAP path (Viterbi, `best_path`; `kjs.path: map`); after a
 keyframe start frame 0's emission also holds the keyframe's prior (`keyframe_cost`). On the held-out clips this
 took the best trajectory from 33.5 to 29.3 mm and the share of frames whose heaviest mode is within 10 mm of the

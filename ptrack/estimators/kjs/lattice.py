@@ -74,7 +74,7 @@ def make_lattice(s: Setup, per_frame: list[Modes]) -> Lattice:
 
 def chain_terms(s: Setup, lat: Lattice) -> tuple[Tensor, Tensor, float]:
     """The lattice's chain model, shared by the best trajectory (`best_path`) and the mode posterior
-    (`mode_posterior`) -> unary (T, K), each mode's own frame cost (`frame_evidence`; padding inf; on frame 0 after
+    (`decode`) -> unary (T, K), each mode's own frame cost (`frame_evidence`; padding inf; on frame 0 after
     a keyframe start also its distance from the keyframe, `keyframe_cost`, the start's own prior), the features
     (T, K, F) of the velocity prior between consecutive modes (every joint relative to the root: the body's motion
     in metres) and its std per frame (`kjs.viterbi_sigma_m`)."""
@@ -96,14 +96,17 @@ def best_path(s: Setup, lat: Lattice) -> tuple[Tensor, Tensor]:
     return viterbi_with_cost(*chain_terms(s, lat))
 
 
-def mode_posterior(s: Setup, lat: Lattice) -> Tensor:
-    """Every mode's posterior probability given the whole clip, under the chain model `best_path` maximises
-    (`chain_terms`; forward-backward, `ptrack.hypotheses.mixture.forward_backward`) -> (T, K), each frame summing
-    to 1, padding 0; a mode's probability never underflows to 0 (at least the dtype's smallest normal number),
-    so that weight 0 still means padding to the stages after."""
+def decode(s: Setup, lat: Lattice) -> tuple[Tensor, Tensor]:
+    """The chain model's answers on the lattice, its terms (`chain_terms`: every mode's frame cost) computed once:
+    -> the MAP path (T,) (`best_path`'s) and every mode's posterior probability given the whole clip (T, K)
+    (forward-backward, `ptrack.hypotheses.mixture.forward_backward`), each frame summing to 1, padding 0; a
+    mode's probability never underflows to 0 (at least the dtype's smallest normal number), so that weight 0
+    still means padding to the stages after."""
+    terms = chain_terms(s, lat)
     with torch.no_grad():
-        post = forward_backward(*chain_terms(s, lat))
-        return torch.where(lat.weight > 0, post.clamp_min(torch.finfo(post.dtype).tiny), torch.zeros_like(post))
+        post = forward_backward(*terms)
+        post = torch.where(lat.weight > 0, post.clamp_min(torch.finfo(post.dtype).tiny), torch.zeros_like(post))
+    return viterbi_with_cost(*terms)[0], post
 
 
 # ---------------------------------------------------------------- which pass leads after a tree start

@@ -11,9 +11,9 @@ from torch import Tensor
 from ptrack.estimators.kjs.config import KjsRunConfig
 from ptrack.estimators.kjs.lattice import (
     best_path,
+    decode,
     lead_pass,
     make_lattice,
-    mode_posterior,
     principal_directions,
     recombine,
     smooth_lattice,
@@ -106,10 +106,12 @@ def _track(
     if k.recombine:  # each chain's reading chosen on its own, on the best trajectory's pose (`recombine`); after
         # the smoother, so that the best trajectory is the same with it and without
         lat = recombine(s, lat, path)
-    if k.path == "map":  # the MAP path of the final lattice, under the model of `mode_posterior`
-        path, _ = best_path(s, lat)
-    if k.weights == "posterior":  # each mode's probability given the whole clip (`mode_posterior`)
-        lat = lat._replace(weight=mode_posterior(s, lat))
+    if k.path == "map" or k.weights == "posterior":  # the chain model on the final lattice (`decode`)
+        map_path, posterior = decode(s, lat)
+        if k.path == "map":  # its MAP path
+            path = map_path
+        if k.weights == "posterior":  # each mode's probability given the whole clip
+            lat = lat._replace(weight=posterior)
     hq, hw, hc, hl, hyp_joints = lat
     with torch.no_grad():
         frames = torch.arange(hq.shape[0], device=hq.device)
