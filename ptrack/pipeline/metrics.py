@@ -175,6 +175,14 @@ def accel_error(pred, gt, root: int | None = None) -> Tensor:
     return _mean_joint_distance_mm(second_diff(pred), second_diff(gt))
 
 
+def _limb_depth_differences(x: Tensor, pairs: Tensor, R, t) -> Tensor:
+    """Each limb's depth(end) - depth(start) in the camera frame (z of x_cam = R x + t): x (..., J, 3), pairs (L, 2)
+    joint indices, R (3, 3), t (3,) -> (..., L); negative where the end is nearer the camera."""
+    R, t = _camera(R, t, x)
+    depth = x @ R[2] + t[2]
+    return depth[..., pairs[:, 1]] - depth[..., pairs[:, 0]]
+
+
 def limb_flip_errors(pred, gt, limbs: Sequence[tuple[int, int]], R, t, min_depth_diff: float = 0.02) -> Tensor:
     """Per-frame, per-limb depth-order flips (the monocular forwards/backwards ambiguity).
 
@@ -201,11 +209,7 @@ def limb_flip_errors(pred, gt, limbs: Sequence[tuple[int, int]], R, t, min_depth
     if pairs.numel() and (pairs.min() < -num_joints or pairs.max() >= num_joints):
         raise InputError(f"limbs index a joint out of range for {num_joints} joints: {pairs.tolist()}")
 
-    def depth_diff(x: Tensor) -> Tensor:  # (..., J, 3) -> (..., L)
-        depth = x @ R[2] + t[2]
-        return depth[..., pairs[:, 1]] - depth[..., pairs[:, 0]]
-
-    d_pred, d_gt = depth_diff(pred), depth_diff(gt)
+    d_pred, d_gt = _limb_depth_differences(pred, pairs, R, t), _limb_depth_differences(gt, pairs, R, t)
     flipped = (torch.sign(d_pred) != torch.sign(d_gt)).to(pred.dtype)
     undefined = ~(d_gt.abs() >= min_depth_diff) | torch.isnan(d_pred)
     return torch.where(undefined, torch.full_like(flipped, float("nan")), flipped)
@@ -367,11 +371,8 @@ def depth_order_probability(hypotheses, weights, limbs: Sequence[tuple[int, int]
     pairs; R (3, 3), t (3,) world -> camera -> (T, L) in [0, 1]."""
     X = torch.as_tensor(hypotheses)
     w = torch.as_tensor(weights, dtype=X.dtype, device=X.device)
-    z = (X @ torch.as_tensor(R, dtype=X.dtype, device=X.device).T + torch.as_tensor(t, dtype=X.dtype, device=X.device))[
-        ..., 2
-    ]  # (T, N, J)
     idx = torch.as_tensor(list(limbs), dtype=torch.long, device=X.device).reshape(-1, 2)
-    nearer = (z[..., idx[:, 1]] < z[..., idx[:, 0]]).to(X.dtype)  # (T, N, L)
+    nearer = (_limb_depth_differences(X, idx, R, t) < 0).to(X.dtype)  # (T, N, L)
     return (w[..., None] * nearer).sum(1)
 
 
@@ -409,16 +410,12 @@ def depth_order_scores(
             f"hypotheses (T, N, J, 3), weights (T, N) and gt (T, J, 3) expected, got {tuple(X.shape)}, "
             f"{tuple(w.shape)} and {tuple(g.shape)}"
         )
-    p = depth_order_probability(X, w, limbs, R, t)  # (T, L)
-    one = torch.ones_like(w)
-    per_mode = torch.stack(
-        [depth_order_probability(X[:, n : n + 1], one[:, n : n + 1], limbs, R, t) for n in range(X.shape[1])], 1
-    )
-    truth = depth_order_probability(g[:, None], one[:, :1], limbs, R, t)  # (T, L) 0/1
-    R_, t_ = _camera(R, t, g)
     idx = torch.as_tensor(list(limbs), dtype=torch.long, device=X.device).reshape(-1, 2)
-    z = g @ R_[2] + t_[2]
-    undefined = ~((z[..., idx[:, 1]] - z[..., idx[:, 0]]).abs() >= min_depth_diff)
+    per_mode = (_limb_depth_differences(X, idx, R, t) < 0).to(X.dtype)  # (T, N, L) 1: the end nearer
+    d_gt = _limb_depth_differences(g, idx, R, t)  # (T, L)
+    truth = (d_gt < 0).to(X.dtype)
+    p = (w[..., None] * per_mode).sum(1)  # (T, L): `depth_order_probability`
+    undefined = ~(d_gt.abs() >= min_depth_diff)
     agrees = (per_mode == truth[:, None]) & (w[..., None] > 0)  # (T, N, L)
     nan = torch.full_like(p, float("nan"))
     return DepthOrderScores(
