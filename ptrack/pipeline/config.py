@@ -319,6 +319,18 @@ def _check_type(key: str, value: Any, tp: Any) -> Any:
     raise TypeError(f"unsupported config annotation {tp!r} for {key}")
 
 
+#: keys that older configs may still hold -> what took their place (the error names it)
+RETIRED_KEYS: dict[str, str] = {
+    "kjs.smooth_sweeps": "kjs.stages (name smooth once per sweep, e.g. [smooth, recombine, decode])",
+    "kjs.recombine": "kjs.stages (name recombine in it, e.g. [smooth, recombine, decode])",
+    "kjs.weights": "kjs.stages (decode last: posterior weights; without it the passes' weights)",
+    "kjs.path": "kjs.stages (decode last: the MAP path; without it the forward pass's Viterbi path)",
+    "kjs.momentum": "nothing: it was removed on 2026-11-29 (measured worse)",
+    "kjs.viterbi_space": "kjs.viterbi_sigma_m (the chain model's velocity prior is on the joints)",
+    "kjs.viterbi_sigma": "kjs.viterbi_sigma_m (the chain model's velocity prior is on the joints)",
+}
+
+
 def _build(cls, raw: dict, prefix: str = ""):
     if not isinstance(raw, dict):
         raise InputError(f"config section {prefix.rstrip('.') or '(top level)'!r} must be a mapping, got {raw!r}")
@@ -327,6 +339,8 @@ def _build(cls, raw: dict, prefix: str = ""):
     unknown = sorted(set(raw) - names)
     if unknown:
         key = prefix + str(unknown[0])
+        if key in RETIRED_KEYS:
+            raise InputError(f"config key {key!r} is retired; use {RETIRED_KEYS[key]}")
         raise InputError(f"unknown config key {key!r} (known keys here: {', '.join(sorted(names))})")
     kwargs = {}
     for f in dataclasses.fields(cls):
