@@ -42,6 +42,11 @@ class BatchMethodConfig:
         "branches", "joint_std in result.npz: branches (true), laplace (faster, overconfident), false = none"
     )
     flip_restarts: int = setting(3, "rounds of restarts from the limbs' depth-flip branches (0: none)")
+    branch_iterations: int = setting(
+        10,
+        "Levenberg-Marquardt iterations of each flip branch's re-solve (restarts, branches; the branch a "
+        "restart takes is then solved with batch.iterations); 0: the rigid flips",
+    )
     hard_limits: bool = setting(
         True,
         "also keep every iterate inside the joint-limit box (false: the soft barrier costs.limits_* alone, "
@@ -72,6 +77,8 @@ def validate_batch(b: BatchMethodConfig) -> None:
         )
     if b.init not in ("frame", "keyframes"):
         raise InputError(f"config key 'batch.init' must be 'frame' or 'keyframes', got {b.init!r}")
+    if isinstance(b.branch_iterations, bool) or not isinstance(b.branch_iterations, int) or b.branch_iterations < 0:
+        raise InputError(f"config key 'batch.branch_iterations' must be an integer >= 0, got {b.branch_iterations!r}")
     if isinstance(b.flip_restarts, bool) or not isinstance(b.flip_restarts, int) or b.flip_restarts < 0:
         raise InputError(f"config key 'batch.flip_restarts' must be an integer >= 0, got {b.flip_restarts!r}")
     if isinstance(b.uncertainty, str) and b.uncertainty not in ("laplace", "branches"):
