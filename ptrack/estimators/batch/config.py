@@ -39,7 +39,14 @@ class BatchMethodConfig:
     upsample: int = setting(1, "reconstruct N frames per observed frame (data.stride must be divisible by N)")
     init: str = setting("frame", "start: frame (per-frame fits, frame.* settings) or keyframes (interpolated)")
     uncertainty: bool | str = setting(
-        "branches", "joint_std in result.npz: branches (true), laplace (faster, overconfident), false = none"
+        "branches",
+        "joint_std in result.npz: branches (true: Laplace + the limbs' flip branches), laplace (the Laplace "
+        "approximation alone: worse calibrated where a limb's depth is ambiguous), false = none",
+    )
+    std_calibration: bool = setting(
+        True,
+        "scale joint_std by the calibration of its batch.uncertainty mode fitted on the dev clips "
+        "(ptrack/data/batch_std_calibration.json); false: the raw std (overconfident: ~0.78 within 2 std)",
     )
     flip_restarts: int = setting(3, "rounds of restarts from the limbs' depth-flip branches (0: none)")
     branch_iterations: int = setting(

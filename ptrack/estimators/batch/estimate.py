@@ -15,7 +15,7 @@ from ptrack.body.limits import wrap_to_limits
 from ptrack.estimators.batch.objective import evaluate, trajectory_objective
 from ptrack.estimators.batch.solve import solve_trajectory
 from ptrack.estimators.batch.start import has_full_keyframe, interpolate_keyframes, load_init, warp_to_keyframes
-from ptrack.estimators.batch.uncertainty import flip_posterior, joint_std, lower_branch
+from ptrack.estimators.batch.uncertainty import calibrate_std, flip_posterior, joint_std, lower_branch, std_calibration
 from ptrack.hypotheses.branches import BranchPosterior
 from ptrack.optim.solvers import BandedLMInfo
 from ptrack.problem import Estimate, Problem
@@ -117,6 +117,8 @@ def _estimate(
             if mode == "branches" and branches is None:
                 branches = flip_posterior(obj, q, bc, warm)
             std = joint_std(obj, q, info.hessian, branches if mode == "branches" else None)[0]
+            if bc.std_calibration:
+                std = calibrate_std(std, std_calibration(mode))
     terms = {name: v[0].to(out_dtype) for name, v in terms.items()}
     return Estimate(
         q=q[0].to(out_dtype),

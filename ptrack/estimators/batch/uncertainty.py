@@ -1,12 +1,17 @@
 """What the batch solution leaves uncertain: `joint_std` from the marginal covariances of the Gauss-Newton
 Hessian (the Laplace approximation), and the limbs' depth-flip branches (`flip_posterior`, in the posterior of
-`ptrack.hypotheses.branches`), which add to it and whose lowest one restarts the solve (`lower_branch`)."""
+`ptrack.hypotheses.branches`), which add to it and whose lowest one restarts the solve (`lower_branch`);
+`calibrate_std` scales the result by the calibration fitted on the dev clips (`ptrack/data/
+batch_std_calibration.json`, made by `scripts/make_std_calibration.py`)."""
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import json
 import logging
 import math
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -20,6 +25,7 @@ from ptrack.hypotheses.ik import ik_plan
 from ptrack.hypotheses.jumps import check_independent, default_chains
 from ptrack.optim.banded import BlockBanded, factorize, marginal_blocks
 from ptrack.optim.jacobians import joint_jacobian
+from ptrack.package_data import data_file
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +48,35 @@ def joint_std(obj: Trajectory, q: Tensor, hessian: BlockBanded, branches: Branch
         var = var + branches.variance
     std = var.clamp(min=0).sqrt()
     return torch.where(ok[:, None, None], std, torch.full_like(std, math.nan))
+
+
+#: the shipped calibration of `joint_std` (`batch.std_calibration: true`)
+CALIBRATION_FILE = "batch_std_calibration.json"
+
+
+class StdCalibration(NamedTuple):
+    """std' = sqrt((scale std)^2 + floor_m^2): a variance factor and a floor (metres)."""
+
+    scale: float
+    floor_m: float
+
+
+@functools.cache
+def std_calibration(mode: str = "branches") -> StdCalibration:
+    """The calibration shipped in ptrack/data (`CALIBRATION_FILE`) for `batch.uncertainty` mode (branches,
+    laplace): fitted on the dev clips' runs
+    (configs/clips/dev.txt, keyframes every 1 s and first + last) to put 0.95 of the joint-frames within
+    2 std, the floor chosen by a leave-one-clip-out interval score (`scripts/make_std_calibration.py`)."""
+    doc = json.loads(data_file(CALIBRATION_FILE).read_text(encoding="utf-8"))
+    return StdCalibration(float(doc[mode]["scale"]), float(doc[mode]["floor_m"]))
+
+
+def calibrate_std(std: Tensor, calibration: StdCalibration) -> Tensor:
+    """std (..., J) metres (`joint_std`) -> sqrt((scale std)^2 + floor^2), the same shape. The raw std is the
+    spread the objective's own model predicts (its 2D noise, smoothing scales and flip branches); the
+    errors also hold what that model leaves out (depth drift between keyframes, motion faster than the
+    prior's), which the calibration adds: on the dev clips the raw std holds 0.78 of joint-frames within 2 std."""
+    return ((calibration.scale * std).square() + calibration.floor_m**2).sqrt()
 
 
 def flip_posterior(
