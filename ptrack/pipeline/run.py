@@ -471,8 +471,8 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
         series["joint_std_max_m"] = est.joint_std.amax(-1).detach().double().cpu().numpy()
         if prep.gt_joints is not None:  # how often the truth lies within 1, 2, 3 std (every joint)
             std, gt_all = est.joint_std.detach(), prep.gt_joints.to(est.joints)
-            for k in STD_COVERAGE:
-                summary[f"joint_within_{k}std"] = float(M.std_coverage(est.joints.detach(), gt_all, std, k))
+            for mult in STD_COVERAGE:
+                summary[f"joint_within_{mult}std"] = float(M.std_coverage(est.joints.detach(), gt_all, std, mult))
     if est.solver_cost is not None:
         summary["solver_iterations"] = int(est.solver_cost.shape[0] - 1)
         summary["solver_cost_start"], summary["solver_cost_final"] = (
