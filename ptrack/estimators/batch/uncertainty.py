@@ -128,7 +128,8 @@ def lower_branch(obj: Trajectory, q: Tensor, branches: BranchPosterior) -> Tenso
     where q's solve stopped at `batch.iterations`): not a restart."""
     cand = branches.branches.q[0].flatten(0, 1)  # (C L, T, D)
     energy = total_energy(obj, torch.cat([q, cand]))
-    moved = (branches.joints[0].flatten(0, 1) - obj.problem.skeleton.forward_kinematics(q[0])).norm(dim=-1)
+    sk = obj.problem.skeleton
+    moved = (sk.forward_kinematics(cand) - sk.forward_kinematics(q[0])).norm(dim=-1)  # (C L, T, J)
     other = moved.flatten(1).amax(-1) > SAME_M  # (C L,)
     lower = (energy[1:] < energy[0] - 1e-9 * energy[0].abs()) & other
     if not bool(lower.any()):
