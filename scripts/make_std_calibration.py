@@ -7,7 +7,7 @@
     (and the same with batch.uncertainty=laplace in both evaluations and --mode laplace)
 
 The raw std (the Laplace approximation at the solution plus the flip branches, `batch.std_calibration=false`)
-is overconfident: on the dev clips 0.74-0.78 of joint-frames lie within 2 std where a calibrated one puts 0.95.
+is overconfident: on the dev clips 0.78-0.82 of joint-frames lie within 2 std where a calibrated one puts 0.95.
 Its variance is that of the model the solve assumes (2D noise of `costs.sigma_px`, the smoothing prior's
 scales, the branches the flips reach), and the errors come mostly from what that model leaves out (depth
 drift between keyframes, faster motion than the prior's). The fix is a variance factor and a floor,
