@@ -398,6 +398,10 @@ def reprojected_keypoints(prep: Prepared, est: Estimate) -> torch.Tensor:
     return prob.observations.camera.project(kp).pixels
 
 
+#: the multiples of `joint_std` whose coverage of the truth metrics.json reports (`joint_within_<k>std`)
+STD_COVERAGE = (1, 2, 3)
+
+
 def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tuple[dict, dict[str, np.ndarray]]:
     """Summary metrics (JSON-able) and per-frame series {name: (T,)} for logging.
     reproj: (T, K, 2) from `reprojected_keypoints`."""
@@ -465,6 +469,10 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
     if est.joint_std is not None:
         put("joint_std_mean_m", est.joint_std.mean(-1))
         series["joint_std_max_m"] = est.joint_std.amax(-1).detach().double().cpu().numpy()
+        if prep.gt_joints is not None:  # how often the truth lies within 1, 2, 3 std (every joint)
+            std, gt_all = est.joint_std.detach(), prep.gt_joints.to(est.joints)
+            for mult in STD_COVERAGE:
+                summary[f"joint_within_{mult}std"] = float(M.std_coverage(est.joints.detach(), gt_all, std, mult))
     if est.solver_cost is not None:
         summary["solver_iterations"] = int(est.solver_cost.shape[0] - 1)
         summary["solver_cost_start"], summary["solver_cost_final"] = (
