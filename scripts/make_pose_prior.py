@@ -7,7 +7,8 @@
 For every non-root dof of the CMU skeleton: the circular mean of the angles in every AMC clip under
 `--cmu` whose subject has no clip in `--exclude` (the development clips, so that evaluation on them
 is held out) and that is not itself one of `--exclude-clips` (the held-out clips, judged with the prior),
-and the root-mean-square angular distance to that mean (each angle's difference is wrapped into [-pi, pi)). Frames are taken every `--stride` (120 fps -> 30 fps).
+and the root-mean-square angular distance to that mean (each angle's difference is wrapped into [-pi, pi)).
+Frames are taken every `--stride` (120 fps -> 30 fps).
 """
 
 from __future__ import annotations
