@@ -13,6 +13,9 @@ For each of the dev swings (configs/clips/golf.txt), a motion model is fitted on
                 CORR: 40 simulated pairs per frame, 1 px noise, 5% wrong matches)
     joints_corr joints and correspondences, no silhouette term (the paper's fig. 7 (b))
     pca_corr_m0 pca_corr keeping the pairs near the model's outlines too (pca.correspondence_margin_m=0)
+    *_other     pca and joints on observations of another person (OTHER: subject 64's skeleton with Winter's
+                proportions at 1.62 m, capsule radii each within +-25%, keypoints 3 cm off the joint centres,
+                and ROUGH), the issue-42 condition: does the silhouette term still help?
     *_6px       pca, joints, pca_corr, joints_corr, pca_corr_m0 with rougher joint tracks (ROUGH: noise_px 6, and the
                 start's wrist track smoothed over pca.key_smooth_s 0.15 s, without which the key postures
                 are not found in that noise)
@@ -29,7 +32,7 @@ golfer does what no training swing does. The tables go to <out>/results.md; --pl
 full tracker run seen from the camera and from above into docs/golf_swing.png.
 
     OMP_NUM_THREADS=1 python scripts/eval_golf.py [--out logs/eval_golf] [--variants pca,joints,...]
-        [--seeds 0,1,2] [--plot 64_01]
+        [--seeds 0,1,2] [--plot 64_01] [--set pca.silhouette_weight=0.5 ...]
 """
 
 from __future__ import annotations
@@ -63,6 +66,15 @@ CORR = [
     "observations.correspondence_outliers=0.05",
 ]
 ROUGH = ["observations.noise_px=6", "pca.key_smooth_s=0.15"]
+# another person than the tracker's body (ptrack/observe/person.py): subject 64's skeleton with Winter's proportions
+# at its own standing height (1.62 m; forearms 24% and head 23% longer, trunk 10% shorter than 64's), capsule radii
+# each within +-25%, the 2D keypoints 3 cm off the joint centres (fixed to the bones), and ROUGH's 6 px
+OTHER = [
+    "observations.body_height_m=1.62",
+    "observations.silhouette_radius_jitter=0.25",
+    "observations.keypoint_offset_m=0.03",
+    *ROUGH,
+]
 PCA_VARIANTS = {
     "pca": [],
     "pca_hold": ["pca.after_swing=hold"],
@@ -77,6 +89,8 @@ PCA_VARIANTS = {
     "joints_corr_6px": ["pca.silhouette_weight=0", *CORR, *ROUGH],
     "pca_corr_m0": [*CORR, "pca.correspondence_margin_m=0"],
     "pca_corr_m0_6px": [*CORR, "pca.correspondence_margin_m=0", *ROUGH],
+    "pca_other": OTHER,
+    "joints_other": ["pca.silhouette_weight=0", *OTHER],
 }
 BASELINES = ("frame", "kjs", "batch")
 TAIL_S = 0.5  # seconds after the end of the follow-through kept in the swing span
@@ -92,7 +106,7 @@ def model_for(swing: Path, swings: list[Path], out: Path) -> Path:
     return path
 
 
-def run(variant: str, swing: Path, model: Path, out: Path, seed: int = 0) -> Path:
+def run(variant: str, swing: Path, model: Path, out: Path, seed: int = 0, overrides: tuple[str, ...] = ()) -> Path:
     folder = out / variant / (swing.stem if seed == 0 else f"{swing.stem}-seed{seed}")
     if (folder / "metrics.json").is_file():
         return folder
@@ -110,6 +124,7 @@ def run(variant: str, swing: Path, model: Path, out: Path, seed: int = 0) -> Pat
             "progress=false",
             "plots=false",
             *extra,
+            *overrides,
         ],
     )
     log.info("%s %s seed %d", variant, swing.stem, seed)
@@ -237,6 +252,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variants", default=",".join([*PCA_VARIANTS, *BASELINES]))
     ap.add_argument("--plot", default=None, help="swing (e.g. 64_01) whose pca run to draw into docs/golf_swing.png")
     ap.add_argument("--seeds", default="0", help="observation seeds, comma-separated (tables: each swing's mean)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a config override added to every run after the variant's own (repeatable; use another --out)",
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     out = Path(args.out)
@@ -253,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
         for v in variants:
             per_seed: dict[str, list[dict]] = {"whole": [], "span": [], "last": []}
             for seed in seeds:
-                folder = run(v, swing, model, out, seed)
+                folder = run(v, swing, model, out, seed, tuple(args.set))
                 m = json.loads((folder / "metrics.json").read_text())
                 per_seed["whole"].append({**span_metrics(folder, None), "fps": m["fps"]})
                 per_seed["span"].append(span_metrics(folder, stop))
@@ -264,9 +286,14 @@ def main(argv: list[str] | None = None) -> int:
                     k: float(np.mean([x[k] for x in per_seed[name]])) for k in per_seed[name][0]
                 }
     frames = {s: f"{whole[s][variants[0]]['frames']:.0f} / {span[s][variants[0]]['frames']:.0f}" for s in whole}
-    groups = [[v for v in variants if not v.endswith("_6px")], [v for v in variants if v.endswith("_6px")]]
+    groups = [
+        [v for v in variants if not v.endswith(("_6px", "_other"))],
+        [v for v in variants if v.endswith("_6px")],
+        [v for v in variants if v.endswith("_other")],
+    ]
+    settings = ("", " Rougher joint tracks (noise_px 6):", " Another body, keypoints off the joints, 6 px (OTHER):")
     text = ""
-    for group, setting in zip(groups, ("", " Rougher joint tracks (noise_px 6):")):
+    for group, setting in zip(groups, settings):
         if group:
             text += (
                 table(span, group, f"{setting} Over the swing (to the end of the follow-through + 0.5 s):".strip())
