@@ -127,6 +127,15 @@ def shape_of(x: Tensor) -> tuple[int, ...]:
     return tuple(x.shape)
 
 
+def check_index(name: str, index, size: int, of: str) -> Tensor:
+    """`index` as a 1-D long tensor of `size` entries (an index into another axis; `of` says what it must match
+    in the message); InputError otherwise."""
+    k = torch.as_tensor(index)
+    if k.ndim != 1 or k.is_floating_point() or k.shape[0] != size:
+        raise InputError(f"{name} must be ({size},) indices to match {of}, got {shape_of(k)}")
+    return k.long()
+
+
 def check_times(name: str, times) -> Tensor:
     t = torch.as_tensor(times)
     if t.ndim != 1 or t.is_floating_point() or t.dtype == torch.bool:
