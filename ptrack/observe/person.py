@@ -7,7 +7,9 @@ centres' projections and the silhouettes its own capsules'. A real person differ
 - the skeleton: `seen_skeleton` is the tracker's template (a CMU ASF skeleton) scaled to a height with Winter's
   segment proportions, as the real-footage path scales it (`ptrack.body.subject.scale_to_height`); its joints move
   with the clip's angles and root translation, and make the 2D, the silhouettes and the ground truth;
-- the flesh: `seen_radii` turns each capsule's radius by a common factor and a factor of its own drawn within
+- the flesh: the silhouettes may come from the capsules of yet another skeleton (`seen_skeleton` of another
+  height) moving with the same angles, the 2D from the person's joints (a flesh model that is wrong where the
+  joints are right); `seen_radii` turns each capsule's radius by a common factor and a factor of its own drawn within
   +-jitter (left and right bones alike);
 - the detector: a keypoint marks a landmark on the body, not the joint centre the tracker places it at;
   `keypoint_offsets` draws, per keypoint, a point `offset_m` from the joint centre in a direction fixed in its

@@ -165,6 +165,11 @@ class ObservationsConfig:
         "subject; ptrack/observe/person.py), a body other than the tracker's: its joints make the 2D, the "
         "silhouettes and the ground truth; null: data.asf itself",
     )
+    silhouette_height_m: float | None = setting(
+        None,
+        "simulated: the silhouettes (and simulated correspondences) alone from the capsules of data.asf scaled to "
+        "this height with Winter's proportions, the 2D and the ground truth from the seen person; null: theirs",
+    )
     silhouette_radius_scale: float = setting(1.0, "simulated: the seen body's capsule radii times this")
     silhouette_radius_jitter: float = setting(
         0.0, "simulated: each capsule radius times a factor drawn in [1 - this, 1 + this] (left and right alike)"
@@ -535,10 +540,11 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         from ptrack.body.subject import check_height
 
         check_height(cfg.subject.height_m)
-    if o.body_height_m is not None:
-        from ptrack.body.subject import check_height
+    for key in ("body_height_m", "silhouette_height_m"):
+        if getattr(o, key) is not None:
+            from ptrack.body.subject import check_height
 
-        check_height(o.body_height_m, "observations.body_height_m")
+            check_height(getattr(o, key), f"observations.{key}")
     if not 0 < o.silhouette_radius_scale < float("inf"):
         raise InputError(
             f"config key 'observations.silhouette_radius_scale' must be positive, got {o.silhouette_radius_scale}"

@@ -176,18 +176,23 @@ def prepare(cfg: RunConfig, work_dir: Path | None = None) -> Prepared:
             swap_fraction=o.swap_fraction,
         )
         masks = None
-        # the capsule model of silhouettes and correspondences: the seen person's, its radii turned by
-        # observations.silhouette_radius_* (a generator of their own: the channel's draws stay as they were)
-        bones = torch.as_tensor(seen.bones(), dtype=torch.long)
-        names = [seen.joint_names[b] for _, b in seen.bones()]
-        radii = capsule_radii(names, torch.as_tensor(seen.lengths[bones[:, 1]], dtype=dtype))
+        # the capsule model of silhouettes and correspondences ("flesh"): the seen person's, or another body's
+        # (observations.silhouette_height_m), its radii turned by observations.silhouette_radius_* (a generator
+        # of their own: the channel's draws stay as they were)
+        flesh = seen_skeleton(seen, o.silhouette_height_m)
+        bones = torch.as_tensor(flesh.bones(), dtype=torch.long)
+        names = [flesh.joint_names[b] for _, b in flesh.bones()]
+        radii = capsule_radii(names, torch.as_tensor(flesh.lengths[bones[:, 1]], dtype=dtype))
         person_gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 3)
         radii = seen_radii(names, radii, o.silhouette_radius_scale, o.silhouette_radius_jitter, person_gen)
         offsets = keypoint_offsets(len(kps.names), o.keypoint_offset_m, person_gen)
         _, rotations = seen.forward_kinematics(q_full, rotations=True)
         points = offset_keypoints(gt_joints, rotations, torch.as_tensor(kps.index()), offsets)  # what a detector marks
+        flesh_joints, flesh_rotations = gt_joints, rotations
+        if flesh is not seen:
+            flesh_joints, flesh_rotations = flesh.forward_kinematics(q_full, rotations=True)
         if o.silhouettes:
-            masks = render_silhouettes(gt_joints, bones, radii, camera)
+            masks = render_silhouettes(flesh_joints, bones, radii, camera)
         times = torch.as_tensor(motion.times, dtype=dtype)
         obs, info = simulate_observations(
             points, range(len(kps.names)), camera, times, channel, gen, kps.names, kps.swap_pairs, masks
@@ -196,8 +201,8 @@ def prepare(cfg: RunConfig, work_dir: Path | None = None) -> Prepared:
         frames = motion.frames
         if o.correspondences:  # drawn after the keypoints' channel: turning them on leaves its draws as they were
             correspondences, _ = simulate_correspondences(
-                gt_joints,
-                rotations,
+                flesh_joints,
+                flesh_rotations,
                 bones,
                 radii,
                 camera,
