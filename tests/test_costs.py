@@ -198,6 +198,26 @@ def test_reprojection_keypoints_and_pose_prior_dofs():
         PosePrior(torch.zeros(2, dtype=D64), dofs=torch.tensor([0, 1, 2]))
 
 
+def test_robust_wraps_a_least_squares_term():
+    """`Robust(term, loss, scale)`: the term's residual and Jacobian, energy 0.5 sum rho(r_i^2), IRLS weights
+    rho'(r_i^2) entry by entry; with l2 the term itself."""
+    from ptrack.costs import Robust
+    from ptrack.costs.base import PoseJacobian
+
+    q = torch.randn(3, 4, generator=gen(6), dtype=D64) * 3
+    prior = PosePrior(torch.zeros(4, dtype=D64), 0.5)
+    robust = Robust(prior, "cauchy", 2.0)
+    r = prior.residual(ev(q=q))
+    jac = PoseJacobian(joints=q[..., None], pixels=q[..., None], depth=q)
+    torch.testing.assert_close(robust.residual(ev(q=q)), r)
+    torch.testing.assert_close(robust.jacobian(ev(q=q), jac), prior.jacobian(ev(q=q), jac))
+    torch.testing.assert_close(robust.energy(ev(q=q)), 0.5 * cauchy(r.square(), 2.0).sum(-1))
+    torch.testing.assert_close(robust.robust_weights(ev(q=q)), robust_loss_derivative("cauchy")(r.square(), 2.0))
+    torch.testing.assert_close(Robust(prior, "l2").energy(ev(q=q)), prior.energy(ev(q=q)))
+    with pytest.raises(InputError, match="robust loss"):
+        Robust(prior, "nope")
+
+
 def test_reprojection_float32():
     obs = torch.rand(4, 2, generator=gen(5), dtype=D64)
     term = Reprojection(obs, torch.ones(4))

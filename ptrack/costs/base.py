@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar, NamedTuple, Protocol
 
 import torch
@@ -216,3 +217,31 @@ class RobustMixin:
         r, s = self._squared(ev)
         w = robust_loss_derivative(self.loss)(s, self.scale)
         return w.unsqueeze(-1).expand(*w.shape, self._group).reshape(r.shape)
+
+
+@dataclass(frozen=True, eq=False)
+class Robust(RobustMixin):
+    """A least-squares term under a robust loss, entry by entry (theseus' residual, weight and loss as three
+    pieces): the same residual (..., M) and Jacobian, energy 0.5 sum_i rho(r_i^2, scale), IRLS weights
+    rho'(r_i^2). For a term whose residual entries are each one measurement (`RaySilhouette`'s samples)."""
+
+    term: CostTerm
+    loss: str = "cauchy"
+    scale: float = 1.0
+    _group: ClassVar[int] = 1
+
+    def __post_init__(self) -> None:
+        robust_loss(self.loss)
+        check_positive("Robust.scale", self.scale)
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """The term's residual (..., M)."""
+        return self.term.residual(ev)
+
+    def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
+        """The term's closed-form Jacobian (..., M, D); NotImplementedError where it has none (the `Objective`
+        then differentiates the residual)."""
+        closed = getattr(self.term, "jacobian", None)
+        if closed is None:
+            raise NotImplementedError(f"{type(self.term).__name__} has no closed-form Jacobian")
+        return closed(ev, jac)

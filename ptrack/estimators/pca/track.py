@@ -9,7 +9,7 @@ from typing import cast
 import torch
 from torch import Tensor
 
-from ptrack.costs import PoseEval, Reprojection
+from ptrack.costs import PoseEval, Reprojection, robust_loss
 from ptrack.costs.ray_silhouette import RaySilhouette
 from ptrack.estimators.pca.config import PcaRunConfig
 from ptrack.estimators.pca.pairs import correspondence_points, start_pairs
@@ -148,7 +148,8 @@ def final_terms(s: Setup, joints: Tensor, rotations: Tensor) -> dict[str, Tensor
     if s.rays is not None:
         assert s.ray_valid is not None  # set with rays
         sil = RaySilhouette(s.rays, s.ray_valid, cam.center, s.bones, s.radii, sigma_m=p.silhouette_sigma_m)
-        terms["silhouette"] = 0.5 * p.silhouette_weight * sil.residual_per_frame(joints).square().sum(-1)
+        rho = robust_loss(p.silhouette_loss)(sil.residual_per_frame(joints).square(), p.silhouette_scale)
+        terms["silhouette"] = 0.5 * p.silhouette_weight * rho.sum(-1)
     moved = correspondence_points(s, joints, rotations)
     if moved is not None:
         points, confidence = moved

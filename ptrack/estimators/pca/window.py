@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ptrack.costs import CostTerm, Objective, PoseEval, PosePrior, Reprojection
+from ptrack.costs import CostTerm, Objective, PoseEval, PosePrior, Reprojection, Robust
 from ptrack.costs.base import PoseJacobian
 from ptrack.costs.ray_silhouette import RaySilhouette
 from ptrack.estimators.pca.pairs import StartBody, WindowPairs
@@ -69,8 +69,9 @@ def window_objective(
             pairs.target, pairs.confidence, cc.sigma_px, cc.loss, cc.robust_scale, keypoints=k + torch.arange(n_pairs)
         )
         weights["correspondence"] = p.correspondence_weight
-    if silhouette is not None:
-        terms["silhouette"] = silhouette
+    if silhouette is not None:  # least squares, or robust per sample (pca.silhouette_loss)
+        robust = p.silhouette_loss != "l2"
+        terms["silhouette"] = Robust(silhouette, p.silhouette_loss, p.silhouette_scale) if robust else silhouette
         weights["silhouette"] = p.silhouette_weight
     fr = torch.arange(f, device=device)
     mus = m + fr
