@@ -203,20 +203,27 @@ class RobustMixin:
 
         def residual(self, ev: PoseEval) -> Tensor: ...
 
-    def _squared(self, ev: PoseEval) -> tuple[Tensor, Tensor]:
-        r = self.residual(ev)
-        return r, r.unflatten(-1, (-1, self._group)).square().sum(-1)
+    def _squared_of(self, r: Tensor) -> Tensor:
+        return r.unflatten(-1, (-1, self._group)).square().sum(-1)
+
+    def _weights_of(self, r: Tensor, s: Tensor) -> Tensor:
+        w = robust_loss_derivative(self.loss)(s, self.scale)
+        return w.unsqueeze(-1).expand(*w.shape, self._group).reshape(r.shape)
 
     def energy(self, ev: PoseEval) -> Tensor:
         """ev -> (...,) = 0.5 * sum over groups of rho(|r_group|^2, scale)."""
-        _, s = self._squared(ev)
+        s = self._squared_of(self.residual(ev))
         return 0.5 * robust_loss(self.loss)(s, self.scale).sum(-1)
 
     def robust_weights(self, ev: PoseEval) -> Tensor:
         """ev -> (..., M): rho'(|r_group|^2) repeated over each group's entries (IRLS weights)."""
-        r, s = self._squared(ev)
-        w = robust_loss_derivative(self.loss)(s, self.scale)
-        return w.unsqueeze(-1).expand(*w.shape, self._group).reshape(r.shape)
+        r = self.residual(ev)
+        return self._weights_of(r, self._squared_of(r))
+
+    def weights_and_energy(self, r: Tensor) -> tuple[Tensor, Tensor]:
+        """`robust_weights` (..., M) and `energy` (...,) of the residual r (..., M) already computed."""
+        s = self._squared_of(r)
+        return self._weights_of(r, s), 0.5 * robust_loss(self.loss)(s, self.scale).sum(-1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -245,3 +252,10 @@ class Robust(RobustMixin):
         if closed is None:
             raise NotImplementedError(f"{type(self.term).__name__} has no closed-form Jacobian")
         return closed(ev, jac)
+
+    def residual_jacobian(self, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor]:
+        """The term's `residual_jacobian`; NotImplementedError where it has none."""
+        both = getattr(self.term, "residual_jacobian", None)
+        if both is None:
+            raise NotImplementedError(f"{type(self.term).__name__} has no residual_jacobian")
+        return both(ev, jac)

@@ -11,7 +11,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ptrack.costs.base import CostTerm, LeastSquaresMixin, PoseEval, PoseJacobian
+from ptrack.costs.base import CostTerm, LeastSquaresMixin, PoseEval, PoseJacobian, RobustMixin
 from ptrack.errors import InputError
 
 # ---------------------------------------------------------------------------------------------
@@ -140,18 +140,25 @@ class Objective:
                     fold_gs.append(w * g)
                     continue
             stacked.append(name)
-            if isinstance(term, LeastSquaresMixin):
-                both = getattr(term, "residual_jacobian", None)
-                if both is not None:
+            r = None
+            both = getattr(term, "residual_jacobian", None)
+            if both is not None:
+                try:
                     r, j = both(ev, jac)
                     given[name] = math.sqrt(w) * j
-                else:
-                    r = term.residual(ev)
-                rs.append(math.sqrt(w) * r)
+                except NotImplementedError:
+                    r = None
+            if r is None:
+                r = term.residual(ev)
+            rs.append(math.sqrt(w) * r)
+            if isinstance(term, LeastSquaresMixin):
                 ws.append(torch.ones_like(r))
                 es.append(0.5 * w * r.square().sum(-1))
+            elif isinstance(term, RobustMixin):  # weights and energy from the residual just made
+                weights, energy_ = term.weights_and_energy(r)
+                ws.append(weights)
+                es.append(w * energy_)
             else:
-                rs.append(math.sqrt(w) * term.residual(ev))
                 ws.append(term.robust_weights(ev))
                 es.append(w * term.energy(ev))
         _same_batch("residuals", {name: r.shape[:-1] for name, r in zip(stacked, rs)})
