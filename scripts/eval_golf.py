@@ -150,8 +150,8 @@ def swing_keys(swing: Path, stride: int) -> list[int]:
     return [int(k) // stride for k in keys]
 
 
-def swing_end(swing: Path, stride: int) -> int:
-    """Index (at the run's stride) of the last frame of the swing span: end of follow-through + TAIL_S."""
+def swing_end(swing: Path, stride: int, tail_s: float = TAIL_S) -> int:
+    """Index (at the run's stride) of the last frame of the swing span: end of follow-through + tail_s."""
     sk = Skeleton.from_asf(asf_for(swing))
     motion = load_amc(swing, sk)
     cfg = load_config(REPO / "configs" / "eval_golf.yaml", run=False)
@@ -159,7 +159,7 @@ def swing_end(swing: Path, stride: int) -> int:
         keys = detect_key_postures(
             sk.forward_kinematics(motion.q.double()), sk, motion.fps, cfg.motion, clip=swing.stem
         )
-    return int((int(keys[-1]) + TAIL_S * motion.fps) // stride)
+    return int((int(keys[-1]) + tail_s * motion.fps) // stride)
 
 
 def span_metrics(folder: Path, stop: int | None, start: int = 0) -> dict:
@@ -201,6 +201,23 @@ def table(rows: dict[str, dict[str, dict]], variants: list[str], title: str) -> 
         means.append(" / ".join(f"{np.mean([x[k] for x in vals]):{f}}" for k, f in cols) if vals else "–")
     lines.append("| **mean** | " + " | ".join(f"**{m}**" for m in means) + " |")
     return "\n".join(lines) + "\n"
+
+
+def seed_table(seed_span: dict[str, dict[int, list[float]]], seeds: list[int], tail_s: float) -> str:
+    """Per variant and seed, the mean over the swings of MPJPE over the swing (the seeds' spread), and on how many
+    swings the table's first variant is better than each other one, seed by seed."""
+    if not seed_span:
+        return ""
+    first = next(iter(seed_span))
+    head = f"| variant | {' | '.join(f'seed {s}' for s in seeds)} | mean | {first} better on (swings, per seed) |"
+    title = f"Per seed, MPJPE over the swing (+ {tail_s:g} s), the mean over the swings:"
+    lines = [title, "", head, "|---" * (len(seeds) + 3) + "|"]
+    for v, per in seed_span.items():
+        means = [float(np.mean(per[s])) for s in seeds]
+        wins = [sum(a < b for a, b in zip(seed_span[first][s], per[s])) for s in seeds]
+        better = "–" if v == first else " / ".join(f"{w} of {len(per[s])}" for w, s in zip(wins, seeds))
+        lines.append(f"| {v} | " + " | ".join(f"{m:.1f}" for m in means) + f" | {np.mean(means):.1f} | {better} |")
+    return "\n".join(lines) + "\n\n"
 
 
 def plot(folder: Path, path: Path, n: int = 8) -> None:
@@ -260,6 +277,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plot", default=None, help="swing (e.g. 64_01) whose pca run to draw into docs/golf_swing.png")
     ap.add_argument("--seeds", default="0", help="observation seeds, comma-separated (tables: each swing's mean)")
     ap.add_argument(
+        "--tail-s",
+        type=float,
+        default=TAIL_S,
+        help="seconds after the end of the follow-through kept in the swing span (0: the swing alone)",
+    )
+    ap.add_argument(
         "--set",
         action="append",
         default=[],
@@ -276,9 +299,10 @@ def main(argv: list[str] | None = None) -> int:
     span: dict[str, dict[str, dict]] = {}
     last: dict[str, dict[str, dict]] = {}
     fps: dict[str, list[float]] = {v: [] for v in variants}
+    seed_span: dict[str, dict[int, list[float]]] = {}  # variant -> seed -> each swing's MPJPE over the swing
     for swing in swings:
         model = model_for(swing, swings, out)
-        stop = swing_end(swing, 4)
+        stop = swing_end(swing, 4, args.tail_s)
         for v in variants:
             per_seed: dict[str, list[dict]] = {"whole": [], "span": [], "last": []}
             for seed in seeds:
@@ -286,6 +310,7 @@ def main(argv: list[str] | None = None) -> int:
                 m = json.loads((folder / "metrics.json").read_text())
                 per_seed["whole"].append({**span_metrics(folder, None), "fps": m["fps"]})
                 per_seed["span"].append(span_metrics(folder, stop))
+                seed_span.setdefault(v, {}).setdefault(seed, []).append(per_seed["span"][-1]["mpjpe_mm"])
                 per_seed["last"].append(span_metrics(folder, None, start=m["frames"] - -(-m["frames"] // 6)))
                 fps[v].append(m["fps"])
             for name, rows in (("whole", whole), ("span", span), ("last", last)):
@@ -306,16 +331,18 @@ def main(argv: list[str] | None = None) -> int:
         " Another person seen (PERSON):",
     )
     text = ""
+    swing_title = f"Over the swing (to the end of the follow-through + {args.tail_s:g} s):"
     for group, setting in zip(groups, settings):
         if group:
             text += (
-                table(span, group, f"{setting} Over the swing (to the end of the follow-through + 0.5 s):".strip())
+                table(span, group, f"{setting} {swing_title}".strip())
                 + "\n"
                 + table(whole, group, f"{setting} Over the whole clip:".strip())
                 + "\n"
                 + table(last, group, f"{setting} Over the last sixth of the clip:".strip())
                 + "\n"
             )
+    text += seed_table(seed_span, seeds, args.tail_s)
     text = (
         text
         + "Frames (whole clip / swing): "
