@@ -159,6 +159,26 @@ class ObservationsConfig:
     occlusion_bursts: float = setting(0.0, "expected occlusion bursts per keypoint per second")
     dropped_frames: float = setting(0.0, "fraction of whole frames dropped")
     silhouettes: bool = setting(False, "render capsule-model silhouettes")
+    body_height_m: float | None = setting(
+        None,
+        "simulated: the person seen is data.asf scaled to this height with Winter's proportions (as real footage's "
+        "subject; ptrack/observe/person.py), a body other than the tracker's: its joints make the 2D, the "
+        "silhouettes and the ground truth; null: data.asf itself",
+    )
+    silhouette_height_m: float | None = setting(
+        None,
+        "simulated: the silhouettes (and simulated correspondences) alone from the capsules of data.asf scaled to "
+        "this height with Winter's proportions, the 2D and the ground truth from the seen person; null: theirs",
+    )
+    silhouette_radius_scale: float = setting(1.0, "simulated: the seen body's capsule radii times this")
+    silhouette_radius_jitter: float = setting(
+        0.0, "simulated: each capsule radius times a factor drawn in [1 - this, 1 + this] (left and right alike)"
+    )
+    keypoint_offset_m: float = setting(
+        0.0,
+        "simulated detector bias: each 2D keypoint marks a point this far (m) from its joint centre, in a direction "
+        "fixed to its bone, drawn per seed",
+    )
     correspondence_file: str | None = setting(
         None,
         "npz of real point correspondences between consecutive frames (method pca; ptrack/observe/correspondences.py)",
@@ -534,6 +554,21 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         from ptrack.body.subject import check_height
 
         check_height(cfg.subject.height_m)
+    for key in ("body_height_m", "silhouette_height_m"):
+        if getattr(o, key) is not None:
+            from ptrack.body.subject import check_height
+
+            check_height(getattr(o, key), f"observations.{key}")
+    if not 0 < o.silhouette_radius_scale < float("inf"):
+        raise InputError(
+            f"config key 'observations.silhouette_radius_scale' must be positive, got {o.silhouette_radius_scale}"
+        )
+    if not 0 <= o.silhouette_radius_jitter < 1:
+        raise InputError(
+            f"config key 'observations.silhouette_radius_jitter' must be in [0, 1), got {o.silhouette_radius_jitter}"
+        )
+    if not 0 <= o.keypoint_offset_m < float("inf"):
+        raise InputError(f"config key 'observations.keypoint_offset_m' must be >= 0, got {o.keypoint_offset_m}")
     if o.correspondences < 0:
         raise InputError(f"config key 'observations.correspondences' must be >= 0, got {o.correspondences}")
     if not 0 <= o.correspondence_noise_px < float("inf"):
