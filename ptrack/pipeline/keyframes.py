@@ -4,10 +4,11 @@ keyframe leaves out has no prior).
 
 Keyframe file (`keyframes.file`; YAML, or JSON with the same keys):
 
-    units: degrees            # angles in `dofs` and `q`: degrees (default) or radians
+    units: degrees            # angles in `dofs`, `q` and `covariance`: degrees (default) or radians
     keyframes:
       - frame: 0              # 0-based index into the reconstructed frames (after start/stride/upsample)
-        q: [0.1, 0.9, ...]    # every dof, in the model's dof order (result.npz `dof_names`), or
+        q: [0.1, 0.9, ...]    # a full pose: every dof, in the model's dof order (result.npz `dof_names`)
+      - frame: 30
         dofs:                 # some dofs by name (a partial keyframe): angles, root position in metres
           lfemur.rx: -20.0
           root.ty: 0.95
@@ -15,13 +16,23 @@ Keyframe file (`keyframes.file`; YAML, or JSON with the same keys):
         sigma_m: 0.02         # std of the given root coordinates (default: keyframes.sigma_m)
       - frame: 45
         joints:               # 3D joint positions, metres, world frame (Y up), by skeleton joint name
-          lhand: [0.12, 1.31, 0.40]
-          rfoot: [-0.2, 0.05, 0.3]
-        sigma_m: 0.03         # std of each coordinate (default: keyframes.sigma_m)
+          lwrist: [0.12, 1.31, 0.40]
+          rfoot: {position: [-0.2, 0.05, 0.3], sigma_m: 0.05}   # with its own std
+        sigma_m: 0.03         # std of each coordinate of the others (default: keyframes.sigma_m)
+      - frame: 60
+        dofs: {lfemur.rx: -20.0, lfemur.ry: 5.0}
+        covariance: [[9.0, 4.0], [4.0, 9.0]]      # full covariance of the given dofs, in their order
+        joints: {root: [0.0, 0.9, 0.1]}
+        joint_covariance: [[1e-4, 0, 0], [0, 1e-4, 0], [0, 0, 9e-4]]   # of the joints' x, y, z, m^2
 
-An entry may give `q` or `dofs` (not both) and/or `joints`. Errors (`InputError`) name the file and
-the entry: a frame outside the sequence, an unknown dof or joint, a zero or negative sigma, a value
-that is not a number, malformed YAML/JSON.
+An entry may give `q` or `dofs` (not both) and/or `joints`. `covariance` (a row and a column per given dof,
+in the order of `dofs` or `q`; in the values' units: degrees^2 or radians^2 for angles, m^2 for the root's
+position, their products across) replaces the entry's sigmas for its dofs; `joint_covariance` (a row and a
+column per coordinate x, y, z of each given joint, in the order of `joints`; m^2) replaces them for its
+joints. Both must be symmetric and positive definite. Errors (`InputError`) name the file and the entry: a
+frame outside the sequence, an unknown dof or joint, a zero or negative sigma, a value that is not a
+number (NaN, inf, text), a covariance of the wrong size, not symmetric or not positive definite, malformed
+YAML/JSON.
 """
 
 from __future__ import annotations
@@ -89,6 +100,37 @@ def _sigma(entry: dict, key: str, default: float, where: str) -> float:
     return s
 
 
+def _covariance(value, n: int, what: str, where: str, key: str) -> Tensor:
+    """A file's covariance matrix: n x n lists of finite numbers, symmetric, positive definite -> (n, n) float64."""
+    rows = value if isinstance(value, list) else None
+    if rows is None or len(rows) != n or not all(isinstance(r, list) and len(r) == n for r in rows):
+        got = f"{len(rows)} rows" if rows is not None else repr(value)
+        raise InputError(f"{where}: '{key}' must be a {n} x {n} matrix (a row and a column per {what}), got {got}")
+    c = torch.tensor([[_number(v, f"{where}: {key}[{i}][{j}]") for j, v in enumerate(r)] for i, r in enumerate(rows)])
+    c = c.double()
+    if not torch.allclose(c, c.T, rtol=1e-9, atol=1e-12 * float(c.abs().max())):
+        raise InputError(f"{where}: '{key}' must be symmetric")
+    if int(torch.linalg.cholesky_ex(c).info) != 0:
+        raise InputError(f"{where}: '{key}' must be positive definite (every variance > 0, correlations below 1)")
+    return c
+
+
+def _joint(value, where: str, name: str, sigma_m: float) -> tuple[list[float], float]:
+    """A joint of a keyframe: [x, y, z] metres, or {position: [x, y, z], sigma_m: s} -> (position, sigma)."""
+    if isinstance(value, dict):
+        bad = sorted(set(value) - {"position", "sigma_m"})
+        if bad or "position" not in value:
+            raise InputError(f"{where}: joint {name} must be [x, y, z] or {{position: [x, y, z], sigma_m: s}}")
+        sigma_m = _sigma(value, "sigma_m", sigma_m, f"{where}: joint {name}")
+        value = value["position"]
+    if not isinstance(value, list) or len(value) != 3:
+        raise InputError(f"{where}: joint {name} must be [x, y, z] in metres, got {value!r}")
+    return [_number(c, f"{where}: {name}") for c in value], sigma_m
+
+
+_ENTRY_KEYS = ("frame", "q", "dofs", "joints", "sigma_deg", "sigma_m", "covariance", "joint_covariance")
+
+
 def read_keyframes(
     path: str | Path,
     skeleton: Skeleton,
@@ -98,7 +140,8 @@ def read_keyframes(
     dtype: torch.dtype = torch.float32,
 ) -> tuple[Keyframes | None, JointKeyframes | None]:
     """Read a keyframe file (module docstring) for a model and a sequence of `num_frames` frames.
-    -> angle keyframes (partial ones masked) and joint-position keyframes, either None if absent."""
+    -> angle keyframes (partial ones masked; with a covariance where any entry gives one) and
+    joint-position keyframes, either None if absent."""
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"keyframe file not found: {p}")
@@ -124,15 +167,17 @@ def read_keyframes(
     joints = {n: i for i, n in enumerate(skeleton.joint_names)}
     trans = set(int(i) for i in skeleton.translation_dof if i >= 0)
     d, j = skeleton.num_dofs, skeleton.num_joints
-    kf_rows: list[tuple[int, list[float], list[bool], list[float]]] = []
-    jk_rows: list[tuple[int, list[list[float]], list[bool], float]] = []
+    # (frame, values, mask, std, covariance (D, D) or None)
+    kf_rows: list[tuple[int, list[float], list[bool], list[float], Tensor | None]] = []
+    # (frame, positions, mask, std per joint, covariance (3J, 3J) or None)
+    jk_rows: list[tuple[int, list[list[float]], list[bool], list[float], Tensor | None]] = []
     for n, entry in enumerate(raw["keyframes"]):
         where = f"keyframe file {p}, keyframe {n}"
         if not isinstance(entry, dict):
             raise InputError(f"{where} must be a mapping, got {entry!r}")
-        bad = sorted(set(entry) - {"frame", "q", "dofs", "joints", "sigma_deg", "sigma_m"})
+        bad = sorted(set(entry) - set(_ENTRY_KEYS))
         if bad:
-            raise InputError(f"{where}: unknown key {bad[0]!r} (known: frame, q, dofs, joints, sigma_deg, sigma_m)")
+            raise InputError(f"{where}: unknown key {bad[0]!r} (known: {', '.join(_ENTRY_KEYS)})")
         frame = entry.get("frame")
         if isinstance(frame, bool) or not isinstance(frame, int):
             raise InputError(f"{where}: 'frame' must be an integer, got {frame!r}")
@@ -145,6 +190,10 @@ def read_keyframes(
             raise InputError(f"{where}: give 'q' or 'dofs', not both")
         if not any(k in entry for k in ("q", "dofs", "joints")):
             raise InputError(f"{where}: gives nothing (add 'q', 'dofs' or 'joints')")
+        if "covariance" in entry and not ("q" in entry or "dofs" in entry):
+            raise InputError(f"{where}: 'covariance' is of the dofs given by 'q' or 'dofs', and it gives none")
+        if "joint_covariance" in entry and "joints" not in entry:
+            raise InputError(f"{where}: 'joint_covariance' is of the joints given by 'joints', and it gives none")
         if "q" in entry or "dofs" in entry:
             values, mask = [0.0] * d, [False] * d
             if "q" in entry:
@@ -159,6 +208,7 @@ def read_keyframes(
                 if not isinstance(entry["dofs"], dict) or not entry["dofs"]:
                     raise InputError(f"{where}: 'dofs' must map dof names to values")
                 items = list(entry["dofs"].items())
+            order = []
             for name, v in items:
                 if name not in dofs:
                     raise InputError(
@@ -167,23 +217,38 @@ def read_keyframes(
                 i = dofs[name]
                 values[i] = _number(v, f"{where}: {name}") * (1.0 if i in trans else scale)
                 mask[i] = True
-            kf_rows.append((frame, values, mask, [s_m if i in trans else s_ang for i in range(d)]))
+                order.append(i)
+            cov = None
+            if "covariance" in entry:  # in the units of the values: (degrees or radians) and metres
+                given = _covariance(entry["covariance"], len(order), "given dof", where, "covariance")
+                unit = torch.tensor([1.0 if i in trans else scale for i in order], dtype=torch.float64)
+                cov = torch.zeros(d, d, dtype=torch.float64)
+                cov[torch.tensor(order)[:, None], torch.tensor(order)[None, :]] = given * unit[:, None] * unit[None, :]
+            kf_rows.append((frame, values, mask, [s_m if i in trans else s_ang for i in range(d)], cov))
         if "joints" in entry:
             js = entry["joints"]
             if not isinstance(js, dict) or not js:
                 raise InputError(f"{where}: 'joints' must map joint names to [x, y, z]")
-            pos, mask = [[0.0, 0.0, 0.0] for _ in range(j)], [False] * j
+            pos, mask, std = [[0.0, 0.0, 0.0] for _ in range(j)], [False] * j, [s_m] * j
+            order = []
             for name, v in js.items():
                 if name not in joints:
                     raise InputError(
                         f"{where}: unknown joint {name!r} (the skeleton's joints: "
                         f"{', '.join(skeleton.joint_names[:8])}, ...)"
                     )
-                if not isinstance(v, list) or len(v) != 3:
-                    raise InputError(f"{where}: joint {name} must be [x, y, z] in metres, got {v!r}")
-                pos[joints[name]] = [_number(c, f"{where}: {name}") for c in v]
+                pos[joints[name]], std[joints[name]] = _joint(v, where, name, s_m)
                 mask[joints[name]] = True
-            jk_rows.append((frame, pos, mask, s_m))
+                order.append(joints[name])
+            cov = None
+            if "joint_covariance" in entry:  # m^2, x y z of each joint in the order given
+                given = _covariance(
+                    entry["joint_covariance"], 3 * len(order), "given joint's x, y, z", where, "joint_covariance"
+                )
+                idx = torch.tensor([3 * i + c for i in order for c in range(3)])
+                cov = torch.zeros(3 * j, 3 * j, dtype=torch.float64)
+                cov[idx[:, None], idx[None, :]] = given
+            jk_rows.append((frame, pos, mask, std, cov))
     kf = jk = None
     if kf_rows:
         kf = Keyframes(
@@ -191,6 +256,7 @@ def read_keyframes(
             q=torch.tensor([r[1] for r in kf_rows], dtype=dtype),
             mask=torch.tensor([r[2] for r in kf_rows], dtype=torch.bool),
             sigma=torch.tensor([r[3] for r in kf_rows], dtype=dtype),
+            covariance=_covariances([(r[3], r[4]) for r in kf_rows], 1),
         )
     if jk_rows:
         jk = JointKeyframes(
@@ -198,5 +264,18 @@ def read_keyframes(
             joints=torch.tensor([r[1] for r in jk_rows], dtype=dtype),
             mask=torch.tensor([r[2] for r in jk_rows], dtype=torch.bool),
             sigma=torch.tensor([r[3] for r in jk_rows], dtype=dtype),
+            covariance=_covariances([(r[3], r[4]) for r in jk_rows], 3),
         )
     return kf, jk
+
+
+def _covariances(rows: list[tuple[list[float], Tensor | None]], repeat: int) -> Tensor | None:
+    """Each keyframe's covariance (N, N) where one was given, its stds' diagonal (each std `repeat` times) where
+    not; None when no keyframe gave one. rows: (std, covariance or None) -> (F, N, N)."""
+    if all(c is None for _, c in rows):
+        return None
+    out = [
+        torch.diag_embed(torch.tensor(s, dtype=torch.float64).repeat_interleave(repeat).square()) if c is None else c
+        for s, c in rows
+    ]
+    return torch.stack(out)  # float64: a covariance's factor wants the precision

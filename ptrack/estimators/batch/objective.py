@@ -155,8 +155,9 @@ def trajectory_objective(
 
     keyframe, kf_frames, kf_target, kf_weight = _angle_keyframes(problem, cfg, angular, dtype, device)
     joint_keyframe = _joint_keyframes(problem)
-    for name, fr in (("keyframe", kf_frames), ("joint keyframe", joint_keyframe and joint_keyframe.times)):
-        if fr is not None and fr.numel() and (int(fr.min()) < 0 or int(fr.max()) >= t_len):
+    jk_frames = kf_frames.new_zeros(0) if joint_keyframe is None else joint_keyframe.times
+    for name, fr in (("keyframe", kf_frames), ("joint keyframe", jk_frames)):
+        if fr.numel() and (int(fr.min()) < 0 or int(fr.max()) >= t_len):
             raise InputError(f"a {name} at frame {int(fr.max())} lies outside the {t_len} reconstructed frames")
     barrier = cc.limits_sigma / math.sqrt(cc.limits_weight) if cc.limits_weight > 0 else None
     return Trajectory(
