@@ -37,6 +37,7 @@ YAML/JSON.
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import math
 from pathlib import Path
@@ -51,6 +52,22 @@ from ptrack.pipeline.config import load_yaml
 from ptrack.problem import JointKeyframes, Keyframes
 
 
+def keyframe_frames(times: Tensor, every_s: float | None, last: bool) -> Tensor:
+    """The ground-truth keyframes' frames: frame 0, then the first frame at or after each multiple of `every_s`
+    seconds (None: none), and the last frame if `last`. times (T,) s -> (F,) long, sorted."""
+    t_len = times.shape[0]
+    frames = {0}
+    if every_s is not None:
+        rel = (times.double() - times[0].double()).cpu()
+        k = 1
+        while k * every_s <= float(rel[-1]) + 1e-9:
+            frames.add(int(torch.searchsorted(rel, torch.tensor(k * every_s - 1e-9, dtype=rel.dtype))))
+            k += 1
+    if last:
+        frames.add(t_len - 1)
+    return torch.tensor(sorted(f for f in frames if f < t_len), dtype=torch.long)
+
+
 def ground_truth_keyframes(
     gt_q: Tensor,
     times: Tensor,
@@ -61,28 +78,90 @@ def ground_truth_keyframes(
     sigma_deg: float,
     sigma_m: float,
     generator: torch.Generator,
+    dofs: tuple[str, ...] | None = None,
 ) -> Keyframes:
-    """Ground-truth poses as keyframes: frame 0, then the first frame at or after each multiple of
-    `every_s` seconds (None: none), and the last frame if `last`. Angles get Gaussian noise of std
-    `noise_deg` (drawn from `generator`; the root position is kept). gt_q (T, D), times (T,) s."""
-    t_len = gt_q.shape[0]
-    frames = {0}
-    if every_s is not None:
-        rel = (times.double() - times[0].double()).cpu()
-        k = 1
-        while k * every_s <= float(rel[-1]) + 1e-9:
-            frames.add(int(torch.searchsorted(rel, torch.tensor(k * every_s - 1e-9, dtype=rel.dtype))))
-            k += 1
-    if last:
-        frames.add(t_len - 1)
-    idx = torch.tensor(sorted(f for f in frames if f < t_len), dtype=torch.long)
+    """Ground-truth poses as keyframes at `keyframe_frames`. Angles get Gaussian noise of std `noise_deg`
+    (drawn from `generator`; the root position is kept). gt_q (T, D), times (T,) s. dofs: the keyframes
+    after frame 0 give only the dofs matching these names or shell patterns (`keyframes.dofs`; () none of
+    them: frame 0 alone), None every dof."""
+    idx = keyframe_frames(times, every_s, last)
     q = gt_q[idx.to(gt_q.device)].clone()
     angular = torch.as_tensor(skeleton.angular_dofs(), device=q.device)
     if noise_deg > 0:
         noise = torch.randn(q.shape, generator=generator, dtype=torch.float64).to(q) * math.radians(noise_deg)
         q = torch.where(angular, q + noise, q)
     sigma = torch.where(angular, math.radians(sigma_deg), sigma_m).to(q).expand(q.shape).clone()
-    return Keyframes(frames=idx, q=q, sigma=sigma)
+    if dofs is None:
+        return Keyframes(frames=idx, q=q, sigma=sigma)
+    given = torch.zeros(skeleton.num_dofs, dtype=torch.bool)
+    for pattern in dofs:
+        hits = [i for i, n in enumerate(skeleton.dof_names) if fnmatch.fnmatchcase(n, pattern)]
+        if not hits:
+            raise InputError(
+                f"config key 'keyframes.dofs': {pattern!r} names no dof of the model "
+                f"({', '.join(skeleton.dof_names[:8])}, ...)"
+            )
+        given[hits] = True
+    mask = given.expand(len(idx), -1).clone()
+    mask[idx == 0] = True  # frame 0 stays a full pose: the trackers start from it
+    keep = mask.any(-1)
+    return Keyframes(
+        frames=idx[keep], q=q[keep.to(q.device)], mask=mask[keep].to(q.device), sigma=sigma[keep.to(q.device)]
+    )
+
+
+def ground_truth_joint_keyframes(
+    gt_joints: Tensor,
+    times: Tensor,
+    skeleton: Skeleton,
+    names: tuple[str, ...],
+    every_s: float | None,
+    last: bool,
+    sigma_m: float,
+    noise_m: float,
+    depth_noise_m: float,
+    camera_rotation: Tensor,
+    full: bool,
+    generator: torch.Generator,
+) -> JointKeyframes | None:
+    """Ground-truth positions of the joints `names` (`keyframes.joints`) at the keyframes after frame 0
+    (`keyframe_frames`), as a user's joint keyframes: gt_joints (T, J, 3) m, times (T,) s. Each position gets
+    Gaussian noise of std `noise_m` across the camera's view and `depth_noise_m` along its optical axis
+    (camera_rotation (3, 3), world to camera: its rows are the camera's axes in the world), drawn from
+    `generator`. The prior is that noise's covariance plus sigma_m^2 on each axis, R^T diag(s_a^2, s_a^2,
+    s_d^2) R (`full`), or only its world-axis variances (not `full`). None where no keyframe follows frame 0."""
+    joints = {n: i for i, n in enumerate(skeleton.joint_names)}
+    bad = [n for n in names if n not in joints]
+    if bad:
+        raise InputError(
+            f"config key 'keyframes.joints': unknown joint {bad[0]!r} (the skeleton's joints: "
+            f"{', '.join(skeleton.joint_names[:8])}, ...)"
+        )
+    idx = keyframe_frames(times, every_s, last)
+    idx = idx[idx > 0]
+    if not idx.numel():
+        return None
+    f_len, j_len = len(idx), skeleton.num_joints
+    sel = torch.tensor(sorted({joints[n] for n in names}), dtype=torch.long)
+    rot = camera_rotation.detach().double().cpu()
+    scale = torch.tensor([noise_m, noise_m, depth_noise_m], dtype=torch.float64)
+    x = gt_joints[idx.to(gt_joints.device)].detach().double().cpu().clone()  # (F, J, 3)
+    if noise_m > 0 or depth_noise_m > 0:
+        e = torch.randn(f_len, len(sel), 3, generator=generator, dtype=torch.float64)
+        x[:, sel] += (e * scale) @ rot  # camera-axis noise turned into the world: R^T (s e)
+    block = rot.T @ torch.diag(scale.square() + sigma_m**2) @ rot  # (3, 3) the prior of each joint
+    if not full:
+        block = torch.diag(block.diagonal())
+    mask = torch.zeros(f_len, j_len, dtype=torch.bool)
+    mask[:, sel] = True
+    covariance = torch.block_diag(*([block] * j_len)).expand(f_len, -1, -1).clone()
+    return JointKeyframes(
+        frames=idx,
+        joints=x.to(gt_joints),
+        mask=mask,
+        sigma=torch.full((f_len, j_len), sigma_m, dtype=gt_joints.dtype),
+        covariance=covariance,
+    )
 
 
 def _number(value, where: str) -> float:
