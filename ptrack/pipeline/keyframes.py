@@ -185,8 +185,10 @@ def _covariance(value, n: int, what: str, where: str, key: str) -> Tensor:
     if rows is None or len(rows) != n or not all(isinstance(r, list) and len(r) == n for r in rows):
         got = f"{len(rows)} rows" if rows is not None else repr(value)
         raise InputError(f"{where}: '{key}' must be a {n} x {n} matrix (a row and a column per {what}), got {got}")
-    c = torch.tensor([[_number(v, f"{where}: {key}[{i}][{j}]") for j, v in enumerate(r)] for i, r in enumerate(rows)])
-    c = c.double()
+    c = torch.tensor(
+        [[_number(v, f"{where}: {key}[{i}][{j}]") for j, v in enumerate(r)] for i, r in enumerate(rows)],
+        dtype=torch.float64,
+    )
     if not torch.allclose(c, c.T, rtol=1e-9, atol=1e-12 * float(c.abs().max())):
         raise InputError(f"{where}: '{key}' must be symmetric")
     if int(torch.linalg.cholesky_ex(c).info) != 0:
