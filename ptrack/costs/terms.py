@@ -170,7 +170,9 @@ class Smoothness(LeastSquaresMixin):
     on="q": x = ev.q (..., T, D), dof_scale (D,); on="joints": x = ev.joints (..., T, J, 3),
     dof_scale (J,). residual = concat of (x[t+1] - x[t]) / (dt sigma_velocity) over t < T-1 and
     (x[t+1] - 2x[t] + x[t-1]) / (dt^2 sigma_acceleration), each times dof_scale and flattened:
-    (..., (T-1)*E + (T-2)*E) for E entries per frame. A None sigma drops that part.
+    (..., (T-1)*E + (T-2)*E) for E entries per frame. A None sigma drops that part. The residual is
+    linear in x: each part's Jacobian is the n-th forward difference over time times dof_scale / (dt^n
+    sigma), whose normal equations are banded (`ptrack.optim.trajectory.weighted_band`).
     """
 
     dt: float
@@ -200,17 +202,16 @@ class Smoothness(LeastSquaresMixin):
                 f"Smoothness(on={self.on!r}) needs a trajectory (..., T, {'D' if n == 2 else 'J, 3'}), "
                 f"got {shape_of(x)}"
             )
-        if self.dof_scale is not None:
-            if self.dof_scale.shape[0] != x.shape[-n + 1]:
-                raise InputError(
-                    f"Smoothness.dof_scale {shape_of(self.dof_scale)} does not match {self.on} of shape {shape_of(x)}"
-                )
-            x = x * (self.dof_scale.to(x) if n == 2 else self.dof_scale.to(x)[:, None])
+        if self.dof_scale is not None and self.dof_scale.shape[0] != x.shape[-n + 1]:
+            raise InputError(
+                f"Smoothness.dof_scale {shape_of(self.dof_scale)} does not match {self.on} of shape {shape_of(x)}"
+            )
+        scale = None if self.dof_scale is None else self.dof_scale.to(x) if n == 2 else self.dof_scale.to(x)[:, None]
         parts = []
-        if self.sigma_velocity is not None:
-            parts.append(torch.diff(x, n=1, dim=-n) / (self.dt * self.sigma_velocity))
-        if self.sigma_acceleration is not None:
-            parts.append(torch.diff(x, n=2, dim=-n) / (self.dt**2 * self.sigma_acceleration))
+        for order, sigma in ((1, self.sigma_velocity), (2, self.sigma_acceleration)):
+            if sigma is not None:
+                diff = torch.diff(x, n=order, dim=-n)
+                parts.append((diff if scale is None else scale * diff) / (self.dt**order * sigma))
         if not parts:
             return x.new_zeros(x.shape[:-n] + (0,))
         return torch.cat([p.flatten(-n) for p in parts], dim=-1)

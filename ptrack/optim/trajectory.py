@@ -17,10 +17,19 @@ weights, one for least squares). Rows come in three forms:
 Rows given against joint positions (joint keyframes) reach the pose through the geometric joint Jacobian
 (`joint_rows`); reprojection rows through `ptrack.optim.jacobians.joint_jacobian_product`. h (B, T, D, D)
 and g (B, T, D) are added to in place.
+
+Terms that couple frames: rows that are the n-th forward differences of a dof over time (the smoothing prior,
+`ptrack.costs.Smoothness`), weighted per residual by c (its squared scale times any IRLS weight), give the
+band sum_n D_n^T diag(c_n) D_n of the normal equations, which couples each dof only with itself:
+
+    weighted_band(T, ((n, c_n (..., T-n, D)), ...), like) -> (..., T, W+1, D)   [t, k]: block (t, t-k)'s diagonal
+    band_matvec(band (T, W+1, D), q (B, T, D)) -> (B, T, D)                   the band times q
+    difference_transpose(n, v (..., T-n, D)) -> (..., T, D)                    D_n^T v: their J^T r
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -79,3 +88,49 @@ def joint_rows(sk: Skeleton, q: Tensor, joints: Sequence[int], d_joints: Tensor)
     (B, F, M, D) = sum_y d_joints[..., y, :] @ d X_y / d q (the geometric joint Jacobian)."""
     _, dx = joint_jacobian(sk, q, list(joints))  # (B, F, Y, 3, D)
     return torch.einsum("bfmyc,bfycd->bfmd", d_joints.expand(q.shape[0], -1, -1, -1, -1), dx)
+
+
+def _difference_coefficients(n: int) -> list[float]:
+    """The n-th forward difference's coefficients: residual i = sum_j coef[j] q[i + j]. -> n+1 floats."""
+    return [float((-1) ** (n - j) * math.comb(n, j)) for j in range(n + 1)]
+
+
+def weighted_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Tensor) -> Tensor:
+    """Band of sum_n D_n^T diag(c_n) D_n with a weight per residual: smooth ((n, c_n (..., T-n, D)), ...)
+    -> (..., T, W+1, D), W the largest n (at least 1); entry [t, k] is the (t, t-k) block's diagonal."""
+    d = like.shape[-1]
+    w = max([n for n, _ in smooth] + [1])
+    lead = torch.broadcast_shapes(*[c.shape[:-2] for _, c in smooth]) if smooth else ()
+    band = like.new_zeros(*lead, t_len, w + 1, d)
+    for n, c in smooth:
+        if t_len <= n:
+            continue
+        coef = _difference_coefficients(n)
+        rows = t_len - n  # residual i covers frames i .. i+n
+        for j in range(n + 1):
+            for k in range(j + 1):
+                band[..., j : rows + j, j - k, :] += coef[j] * coef[k] * c
+    return band
+
+
+def difference_transpose(n: int, v: Tensor) -> Tensor:
+    """D_n^T v over the frames: v (..., T-n, D) -> (..., T, D)."""
+    coef = _difference_coefficients(n)
+    return sum(
+        (coef[j] * torch.nn.functional.pad(v, (0, 0, j, n - j)) for j in range(n + 1)),
+        torch.zeros((), dtype=v.dtype, device=v.device),
+    )
+
+
+def band_matvec(band: Tensor, q: Tensor) -> Tensor:
+    """The band's symmetric matrix times q: band (T, W+1, D), q (B, T, D) -> (B, T, D)."""
+    out = band[:, 0] * q
+    t_len = q.shape[-2]
+    for k in range(1, min(band.shape[1] - 1, t_len - 1) + 1):
+        c = band[k:, k]
+        out = (
+            out
+            + torch.nn.functional.pad(c * q[:, :-k], (0, 0, k, 0))
+            + torch.nn.functional.pad(c * q[:, k:], (0, 0, 0, k))
+        )
+    return out

@@ -21,13 +21,14 @@ from ptrack.costs import (
     Keyframe,
     PoseEval,
     Reprojection,
+    Smoothness,
     robust_loss,
     robust_loss_derivative,
 )
 from ptrack.costs.base import PoseJacobian
 from ptrack.errors import InputError
 from ptrack.estimators.batch.config import ROOT_VELOCITY
-from ptrack.estimators.batch.smoothing import band_matvec, robust_smoothing, smoothing_band
+from ptrack.estimators.batch.smoothing import band_matvec, robust_smoothing, smoothing_band, smoothing_terms
 from ptrack.optim.jacobians import joint_jacobian_product
 from ptrack.optim.trajectory import FrameRows, add_all_frames, add_diagonal_rows, add_frame_rows, joint_rows
 from ptrack.problem import Problem
@@ -80,10 +81,18 @@ class Trajectory:
         return self.kf_frames.new_zeros(0) if jk is None else jk.times.to(self.kf_frames.device)
 
     @cached_property
+    def smooth_terms(self) -> tuple[tuple[int, Smoothness], ...]:
+        """`smooth` as the shared `Smoothness` terms (`smoothing_terms`)."""
+        return smoothing_terms(self.smooth)
+
+    @cached_property
     def limits(self) -> JointLimits | None:
         """The joint-limit barrier, `JointLimits` on [lower, upper] (read on each angle's nearest turn into
         the limits, `evaluate`), None without one."""
-        return None if self.limits_sigma is None else JointLimits(self.lower, self.upper, self.limits_sigma)
+        if self.limits_sigma is None:
+            return None
+        sigma = torch.tensor(self.limits_sigma, dtype=self.lower.dtype, device=self.lower.device)  # not float32
+        return JointLimits(self.lower, self.upper, sigma)
 
     @property
     def limits_scale(self) -> float:
