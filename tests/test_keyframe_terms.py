@@ -282,3 +282,13 @@ def test_bad_ground_truth_keyframe_settings(tmp_path, capsys):
     fail(
         capsys, out, ["run", str(BATCH), *SHORT, "keyframes.joint_covariance=no", f"out_dir={out}"], "joint_covariance"
     )
+
+
+def test_ground_truth_partial_angle_keyframes():
+    problem = prepare(load_config(BATCH, [*SHORT, "keyframes.every_s=0.25", "keyframes.dofs=[root.t*]"])).problem
+    kf = problem.keyframes
+    assert kf is not None and kf.mask is not None and kf.frames.tolist() == [0, 8, 15]
+    names = problem.skeleton.dof_names
+    assert bool(kf.mask[0].all())  # frame 0: the whole pose
+    assert [names[i] for i in kf.mask[1].nonzero().flatten().tolist()] == ["root.tx", "root.ty", "root.tz"]
+    assert problem.joint_keyframes is None
