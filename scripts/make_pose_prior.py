@@ -1,12 +1,14 @@
 """Make `ptrack/data/cmu_pose_prior.json`: the per-dof Gaussian pose prior of `ptrack.body.pose_prior`.
 
     python scripts/make_pose_prior.py [--cmu ../shared/data/cmu] [--exclude configs/clips/dev.txt]
+                                      [--exclude-clips configs/clips/heldout_batch.txt]
                                       [--stride 4] [--out ptrack/data/cmu_pose_prior.json]
 
 For every non-root dof of the CMU skeleton: the circular mean of the angles in every AMC clip under
 `--cmu` whose subject has no clip in `--exclude` (the development clips, so that evaluation on them
-is held out), and the root-mean-square angular distance to that mean (each angle's difference is
-wrapped into [-pi, pi)). Frames are taken every `--stride` (120 fps -> 30 fps).
+is held out) and that is not itself one of `--exclude-clips` (the held-out clips, judged with the prior),
+and the root-mean-square angular distance to that mean (each angle's difference is wrapped into [-pi, pi)).
+Frames are taken every `--stride` (120 fps -> 30 fps).
 """
 
 from __future__ import annotations
@@ -38,12 +40,22 @@ def main() -> None:
     ap.add_argument(
         "--exclude", default=str(ROOT / "configs" / "clips" / "dev.txt"), help="clips file whose subjects are left out"
     )
+    ap.add_argument(
+        "--exclude-clips",
+        default=str(ROOT / "configs" / "clips" / "heldout_batch.txt"),
+        help="clips file whose clips (not subjects) are left out",
+    )
     ap.add_argument("--stride", type=int, default=4, help="frame stride")
     ap.add_argument("--out", default=str(ROOT / "ptrack" / "data" / "cmu_pose_prior.json"))
     args = ap.parse_args()
     sk, clips = load_clips(Path(args.cmu).resolve())
     held_out = sorted({p.parent.name for p in parse_clips(args.exclude)})
-    used = {name: q[:: args.stride] for name, (subject, q) in clips.items() if subject not in held_out}
+    left_out = sorted(p.stem for p in parse_clips(args.exclude_clips))
+    used = {
+        name: q[:: args.stride]
+        for name, (subject, q) in clips.items()
+        if subject not in held_out and name not in left_out
+    }
     if not used:
         raise SystemExit("every clip's subject is excluded")
     mean, std = circular_stats(np.concatenate(list(used.values())))
@@ -60,6 +72,7 @@ def main() -> None:
         "date": date.today().isoformat(),
         "source": "CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu), ASF/AMC, 120 fps",
         "held_out_subjects": held_out,
+        "held_out_clips": left_out,
         "clips": sorted(used),
         "stride": args.stride,
         "frames": frames,
@@ -68,7 +81,7 @@ def main() -> None:
     Path(args.out).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
     print(
         f"wrote {args.out}: {len(table)} dofs from {len(used)} clips ({frames} frames), subjects "
-        f"{', '.join(held_out)} held out"
+        f"{', '.join(held_out)} and clips {', '.join(left_out)} held out"
     )
 
 

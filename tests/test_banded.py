@@ -213,6 +213,27 @@ def test_banded_lm_matches_dense_gauss_newton_and_batching():
     assert torch.allclose(q1[0], q[1], atol=1e-9)  # the same alone as in the batch
 
 
+def test_banded_lm_on_a_shared_objective_steps_only_the_trajectories_not_done():
+    """shared=True: starts of one objective; once some have stopped only the others are linearised, and each
+    ends where it does alone, after as many iterations."""
+    truth, obs, linearize = curve_problem(1, 8)
+    starts = truth + torch.tensor([0.01, 0.2, 0.5], dtype=F64)[:, None, None]
+    tight = dict(max_iter=50, tol=1e-14, gtol=1e-12)
+    rows: list[int] = []
+
+    def lin(x):
+        rows.append(x.shape[0])
+        return linearize(x, obs.expand(x.shape[0], -1, -1))[0]
+
+    q, info = banded_levenberg_marquardt(lin, starts, shared=True, **tight)
+    assert info.converged.all() and min(rows) < 3
+    for i in range(3):
+        alone, alone_info = banded_levenberg_marquardt(lambda x: linearize(x, obs)[0], starts[i : i + 1], **tight)
+        assert torch.allclose(q[i], alone[0], atol=1e-9)
+        assert int(info.iterations[i]) == int(alone_info.iterations[0])
+        assert float(info.cost[i]) == pytest.approx(float(alone_info.cost[0]), rel=1e-12)
+
+
 def test_banded_lm_respects_bounds():
     truth, obs, linearize = curve_problem(1, 6)
     upper = torch.tensor([1.0, 10.0], dtype=F64)

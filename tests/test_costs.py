@@ -11,6 +11,7 @@ from ptrack.costs import (
     Objective,
     ObjectiveValue,
     PoseEval,
+    PosePrior,
     Reprojection,
     Silhouette,
     Smoothness,
@@ -161,6 +162,60 @@ def test_reprojection_per_problem():
     assert Reprojection(obs, conf).residual(ev(pixels=pix)).shape == (24,)
     with pytest.raises(InputError, match="per_problem"):
         Reprojection(obs[0], conf[0], per_problem=True)
+
+
+def test_reprojection_keypoints_and_pose_prior_dofs():
+    """`Reprojection.keypoints` reads some of ev.pixels' keypoints, `PosePrior.dofs` some entries of ev.q (as the
+    golf tracker's window does: its tracked joints and pairs' points side by side, priors on parts of its state);
+    both equal the term on the selection alone, with closed-form Jacobian rows."""
+    from ptrack.costs.base import PoseJacobian
+
+    obs = torch.rand(2, 3, 2, generator=gen(1), dtype=D64) * 50
+    conf = torch.rand(2, 3, generator=gen(2), dtype=D64)
+    pix = torch.rand(4, 2, 5, 2, generator=gen(3), dtype=D64) * 50  # N = 4, T = 2, 5 projected points
+    keep = torch.tensor([4, 0, 2])
+    sub = Reprojection(obs, conf, loss="cauchy", keypoints=keep)
+    alone = Reprojection(obs, conf, loss="cauchy")
+    torch.testing.assert_close(sub.energy(ev(pixels=pix)), alone.energy(ev(pixels=pix[..., keep, :])))
+    dpix = torch.rand(4, 2, 5, 2, 7, generator=gen(4), dtype=D64)
+    jac = PoseJacobian(joints=dpix, pixels=dpix, depth=dpix[..., 0, :])
+    torch.testing.assert_close(
+        sub.jacobian(ev(pixels=pix), jac), alone.jacobian(ev(pixels=pix), jac._replace(pixels=dpix[..., keep, :, :]))
+    )
+    with pytest.raises(InputError, match="keypoints"):
+        Reprojection(obs, conf, keypoints=torch.tensor([0, 1]))
+    q = torch.randn(4, 6, generator=gen(5), dtype=D64)
+    dofs = torch.tensor([5, 1])
+    prior = PosePrior(torch.tensor([0.5, -0.2], dtype=D64), torch.tensor([0.1, 0.3], dtype=D64), dofs=dofs)
+    torch.testing.assert_close(
+        prior.residual(ev(q=q)),
+        (q[:, dofs] - torch.tensor([0.5, -0.2], dtype=D64)) / torch.tensor([0.1, 0.3], dtype=D64),
+    )
+    rows = prior.jacobian(ev(q=q), jac)
+    assert rows.shape == (4, 2, 6)
+    torch.testing.assert_close(rows[0], torch.eye(6, dtype=D64)[dofs] / torch.tensor([[0.1], [0.3]], dtype=D64))
+    with pytest.raises(InputError, match="dofs"):
+        PosePrior(torch.zeros(2, dtype=D64), dofs=torch.tensor([0, 1, 2]))
+
+
+def test_robust_wraps_a_least_squares_term():
+    """`Robust(term, loss, scale)`: the term's residual and Jacobian, energy 0.5 sum rho(r_i^2), IRLS weights
+    rho'(r_i^2) entry by entry; with l2 the term itself."""
+    from ptrack.costs import Robust
+    from ptrack.costs.base import PoseJacobian
+
+    q = torch.randn(3, 4, generator=gen(6), dtype=D64) * 3
+    prior = PosePrior(torch.zeros(4, dtype=D64), 0.5)
+    robust = Robust(prior, "cauchy", 2.0)
+    r = prior.residual(ev(q=q))
+    jac = PoseJacobian(joints=q[..., None], pixels=q[..., None], depth=q)
+    torch.testing.assert_close(robust.residual(ev(q=q)), r)
+    torch.testing.assert_close(robust.jacobian(ev(q=q), jac), prior.jacobian(ev(q=q), jac))
+    torch.testing.assert_close(robust.energy(ev(q=q)), 0.5 * cauchy(r.square(), 2.0).sum(-1))
+    torch.testing.assert_close(robust.robust_weights(ev(q=q)), robust_loss_derivative("cauchy")(r.square(), 2.0))
+    torch.testing.assert_close(Robust(prior, "l2").energy(ev(q=q)), prior.energy(ev(q=q)))
+    with pytest.raises(InputError, match="robust loss"):
+        Robust(prior, "nope")
 
 
 def test_reprojection_float32():

@@ -135,7 +135,7 @@ def test_sampling_baselines_run_at_the_same_budget(method):
 @pytest.mark.parametrize("backward", ["tree", "always"])  # after a keyframe start: forward pass only, both
 def test_frames_without_keypoints_are_carried(backward):
     # forward pass only: also without the smoother, which would draw the blind frames towards their neighbours
-    smooth = "kjs.smooth_sweeps=0" if backward == "tree" else "kjs.smooth_sweeps=1"
+    smooth = "kjs.stages=[recombine, decode]" if backward == "tree" else "kjs.stages=[smooth, recombine, decode]"
     cfg = load_config(KJS_YAML, [*EXACT, "data.stop=32", f"kjs.backward_pass={backward}", smooth])
     prep = prepare(cfg)
     obs = prep.problem.observations
@@ -257,16 +257,16 @@ def test_allocation_splits_an_even_share_over_the_modes():
         ("kjs.init=guess", "kjs.init"),
         ("kjs.even_share=1.5", "kjs.even_share"),
         ("kjs.weight_memory=-0.5", "kjs.weight_memory"),
-        ("kjs.weights=prior", "kjs.weights"),
+        ("kjs.stages=[smooth, prior]", "kjs.stages"),
+        ("kjs.stages=[decode, smooth]", "kjs.stages"),
         ("kjs.viterbi_sigma_m=0", "kjs.viterbi_sigma_m"),
         ("kjs.dynamics=walk", "kjs.dynamics"),
         ("kjs.dynamics_floor=-0.1", "kjs.dynamics_floor"),
         ("kjs.backward_pass=sideways", "kjs.backward_pass"),
-        ("kjs.smooth_sweeps=-1", "kjs.smooth_sweeps"),
         ("kjs.smooth_scale=0", "kjs.smooth_scale"),
         ("kjs.smooth_link_m=-0.1", "kjs.smooth_link_m"),
         ("kjs.recombine_sigma_m=0", "kjs.recombine_sigma_m"),
-        ("kjs.recombine=maybe", "kjs.recombine"),
+        ("kjs.recombine=true", "kjs.recombine"),
     ],
 )
 def test_bad_settings_are_one_line_errors(tmp_path, capsys, override, key):
@@ -396,11 +396,11 @@ def test_a_mode_that_lost_out_earlier_survives(cmu_file):
     arm fell to weight ~0 while the two branches reprojected alike; at frame 61 they were pruned, though on
     frame 60 one of them was the cheapest mode, and the arm stayed flipped in depth for the rest of the
     clip: 0.32 of the frames (best trajectory 29.1 mm). With 0.5: no frame, 15.3 mm (14.0 with the smoother,
-    2026-11-25): the forward pass's path (`kjs.path: forward`) is asserted. The MAP path of the final modes (the
-    default `kjs.path: map`) takes the flipped arm on 0.5 of the frames here (38.1 mm: the lattice holds both
+    2026-11-25): the forward pass's path (`kjs.stages` without `decode`) is asserted. The MAP path of the final
+    modes (`decode`, the default) takes the flipped arm on 0.5 of the frames here (38.1 mm: the lattice holds both
     readings from frame 1 to 47 and the sum of small differences of the frame costs chooses the wrong one); with
     the paper's re-weighting (`kjs.reweight: mixture`) it does not (11.6 mm), which is asserted too."""
-    for extra in ("kjs.path=forward", "kjs.reweight=mixture"):
+    for extra in ("kjs.stages=[smooth, recombine]", "kjs.reweight=mixture"):
         cfg = _balance_1px(cmu_file, "seed=3", extra)
         prep = prepare(cfg)
         est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(cfg.seed + 1))  # as `ptrack run`
@@ -444,9 +444,9 @@ def test_backward_pass_keeps_a_branch_the_forward_pass_lost(cmu_file):
     75. The backward pass from the last frame's modes carries that reading back to frame 0 (measured
     best-of-K: 32.6 mm forward only, 19.2 mm with both passes started from the forward pass's last modes
     alone, 15.9 mm with the last frame's own tree start beside them). The two passes' trajectories face
-    the same way (within `HEADING_SPLIT_DEG`), so the forward pass's modes lead the merge (`kjs.path: forward`
-    reports that path; compared without the smoother, which moves each pose towards its neighbours among either
-    run's hypotheses)."""
+    the same way (within `HEADING_SPLIT_DEG`), so the forward pass's modes lead the merge (without `decode` in
+    `kjs.stages` the run reports that path; compared without the smoother, which moves each pose towards its
+    neighbours among either run's hypotheses)."""
     runs = {}
     for backward in ("tree", "never"):
         cfg = _balance_1px(
@@ -454,8 +454,7 @@ def test_backward_pass_keeps_a_branch_the_forward_pass_lost(cmu_file):
             "kjs.init=tree",
             "seed=0",
             f"kjs.backward_pass={backward}",
-            "kjs.smooth_sweeps=0",
-            "kjs.path=forward",
+            "kjs.stages=[recombine]",
         )
         prep = prepare(cfg)
         runs[backward] = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(1))  # as `ptrack run`
@@ -492,8 +491,8 @@ def test_backward_pass_carries_a_limb_across_the_image_plane(cmu_file):
     for seed in range(5):
         runs = {}
         for backward in ("tree", "always"):  # after a keyframe start "tree" means the forward pass alone
-            overrides = [f"kjs.backward_pass={backward}", f"seed={seed}", "kjs.smooth_sweeps=0", "data.stop=84"]
-            overrides.append("kjs.path=forward")  # the forward pass's best trajectory, to compare it bit for bit
+            overrides = [f"kjs.backward_pass={backward}", f"seed={seed}", "data.stop=84"]
+            overrides.append("kjs.stages=[recombine]")  # the forward pass's best trajectory, to compare bit for bit
             overrides.append("kjs.reweight=memory")  # as measured (the default); mixture in the docstring
             cfg = _clip_1px(cmu_file, "02_01.amc", *overrides)
             prep = prepare(cfg)
@@ -670,20 +669,19 @@ def test_recombination_joins_the_right_reading_of_each_chain(kjs_run):
 
 def test_recombination_after_a_tree_start(cmu_file):
     """CMU 09_06 (a run) from the tree start at the evaluation setting (2 px, 10% missing, seed 3 as `ptrack
-    evaluate` runs it), `kjs.recombine` on against off from the same passes: the best-of-K error falls, and
-    with `kjs.path: forward` the best trajectory is the same (the recombined pose replaces a light mode after the
-    smoother).
-    Measured 49.1 -> 39.8 mm best-of-K (on seeds 0-4 it falls on every seed), with `kjs.reweight: memory`; with
-    `mixture` this seed's modes differ and the recombination finds little (51.3 -> 50.9 mm)."""
+    evaluate` runs it), the stage `recombine` in `kjs.stages` or not, from the same passes: the best-of-K error
+    falls, and without `decode` (the forward pass's path) the best trajectory is the same (the recombined pose
+    replaces a light mode after the smoother). Measured 49.1 -> 39.8 mm best-of-K (on seeds 0-4 it falls on every
+    seed), with `kjs.reweight: memory`; with `mixture` this seed's modes differ and the recombination finds little
+    (51.3 -> 50.9 mm)."""
     got = {}
-    for on in ("true", "false"):
+    for on, stages in (("true", "[smooth, recombine]"), ("false", "[smooth]")):
         cfg = _clip(
             cmu_file,
             "09_06.amc",
             "kjs.init=tree",
             "seed=3",
-            f"kjs.recombine={on}",
-            "kjs.path=forward",
+            f"kjs.stages={stages}",
             "kjs.reweight=memory",
         )
         metrics = _metrics(prepare(cfg), cfg)
@@ -698,7 +696,7 @@ def test_smoothing_steadies_the_trajectory(kjs_run):
     truth. Measured on this second of 10_02 at 1 px: acceleration error 9.6 -> 5.7 mm/frame², best
     trajectory 7.1 -> 6.7 mm, best-of-K 7.0 -> 6.6 mm."""
     prep, est = kjs_run
-    _, raw = _run("kjs.smooth_sweeps=0")
+    _, raw = _run("kjs.stages=[recombine, decode]")
     idx = prep.problem.keypoints.index()
     gt = prep.gt_joints.to(est.joints).index_select(-2, idx)
 
@@ -723,10 +721,11 @@ def test_keypoint_set_without_limbs_runs():
 
 
 def test_mode_posterior_and_map_path():
-    """kjs.weights posterior and kjs.path map come after the tracking: the same hypotheses as the filter's weights
-    and forward path, every frame's posterior weights sum to 1, and the MAP path takes one hypothesis per frame."""
-    _, est = _run("data.stop=60", "kjs.weights=posterior", "kjs.path=map")
-    _, fwd = _run("data.stop=60", "kjs.weights=filter", "kjs.path=forward")
+    """The stage `decode` (posterior weights and the MAP path) comes after the tracking: the same hypotheses as
+    without it (the filter's weights and the forward path), every frame's posterior weights sum to 1, and the MAP path
+    takes one hypothesis per frame."""
+    _, est = _run("data.stop=60", "kjs.stages=[smooth, recombine, decode]")
+    _, fwd = _run("data.stop=60", "kjs.stages=[smooth, recombine]")
     assert torch.equal(fwd.hypotheses, est.hypotheses)
     w = est.hypothesis_weights
     torch.testing.assert_close(w.sum(-1), torch.ones(w.shape[0]), atol=1e-5, rtol=0)

@@ -7,6 +7,7 @@ from scipy.linalg import orthogonal_procrustes
 from scipy.spatial.transform import Rotation
 
 from ptrack.errors import InputError
+from ptrack.pipeline import metrics as M
 from ptrack.pipeline.metrics import (
     JointLimitReport,
     accel_error,
@@ -535,3 +536,17 @@ def test_depth_order_scores_and_heaviest_mode_on_two_modes():
     assert distinct_modes(three, torch.tensor([[0.5, 0.3, 0.2], [1.0, 0.0, 0.0]])).tolist() == [2, 1]
     with pytest.raises(InputError, match="weights"):
         depth_order_scores(hyp, w[:, :1], gt, [(0, 1)], R, tt)
+
+
+def test_std_coverage_counts_errors_within_k_std():
+    gt = torch.zeros(2, 2, 3)
+    pred = gt.clone()
+    pred[..., 0] = torch.tensor([[0.01, 0.03], [0.05, 0.0]])  # errors 1, 3, 5, 0 cm
+    std = torch.full((2, 2), 0.02)
+    assert float(M.std_coverage(pred, gt, std, 1.0)) == pytest.approx(0.5)  # 1 and 0 cm
+    assert float(M.std_coverage(pred, gt, std, 2.0)) == pytest.approx(0.75)  # and 3 cm
+    assert float(M.std_coverage(pred, gt, std, 3.0)) == pytest.approx(1.0)
+    std[0, 0] = float("nan")  # left out
+    assert float(M.std_coverage(pred, gt, std, 1.0)) == pytest.approx(1 / 3)
+    with pytest.raises(InputError, match="std"):
+        M.std_coverage(pred, gt, std[0], 1.0)

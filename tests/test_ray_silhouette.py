@@ -99,6 +99,9 @@ def test_term_zero_on_own_silhouette_and_jacobian():
     assert r.abs().max() > 0.5
     ev2 = PoseEval(q=q2, joints=x, pixels=x[..., :1, :2], depth=x[..., :1, 2])
     assert torch.allclose(term.jacobian(ev2, PoseJacobian(joints=dx, pixels=dx, depth=dx)), jac)
+    # residual_jacobian: both from one distance, as Objective.linearize asks; the residual is `residual`'s
+    r2, jac2 = term.residual_jacobian(ev2, PoseJacobian(joints=dx, pixels=dx, depth=dx))
+    assert torch.equal(r2, term.residual(ev2)) and torch.equal(jac2, jac)
     eps = 1e-7
     for dof in (0, 4, 10):
         q3 = q2.clone()

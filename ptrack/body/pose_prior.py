@@ -7,8 +7,9 @@ whose zero pose has the arms straight out sideways: the truth of a walking frame
 than a wrong interpretation with the arms half raised in depth. This prior holds, for each dof, the
 circular mean and the standard deviation (about that mean, on the circle) of the angles real people
 take, from `ptrack/data/cmu_pose_prior.json`, made by `scripts/make_pose_prior.py` from CMU clips of
-subjects that are not in the development clips (`configs/clips/dev.txt`), so that the dev clips are
-held out of it.
+subjects that are not in the development clips (`configs/clips/dev.txt`), less the held-out clips
+(`configs/clips/heldout_batch.txt`; since 2026-11-29: four of them had been in it), so that neither split is
+judged with a prior fitted to it.
 
     mean, std, known = pose_prior(skeleton, lower, upper, angular)   # (D,), (D,), (D,) bool
 

@@ -14,7 +14,17 @@ Pixel coordinates follow OpenCV: u = column, v = row; pixel (u, v) covers [u, u+
 centre at (u + 0.5, v + 0.5), as in `Camera` and `render_silhouettes`.
 """
 
-from ptrack.costs.base import CostTerm, PoseEval, cauchy, geman_mcclure, huber, l2, robust_loss, robust_loss_derivative
+from ptrack.costs.base import (
+    CostTerm,
+    PoseEval,
+    Robust,
+    cauchy,
+    geman_mcclure,
+    huber,
+    l2,
+    robust_loss,
+    robust_loss_derivative,
+)
 from ptrack.costs.collision import SelfIntersection
 from ptrack.costs.floor import FloorContact
 from ptrack.costs.objective import Objective, ObjectiveValue
@@ -41,6 +51,7 @@ __all__ = [
     "PoseEval",
     "PosePrior",
     "Reprojection",
+    "Robust",
     "SelfIntersection",
     "Silhouette",
     "Smoothness",

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar, NamedTuple, Protocol
 
 import torch
@@ -127,6 +128,15 @@ def shape_of(x: Tensor) -> tuple[int, ...]:
     return tuple(x.shape)
 
 
+def check_index(name: str, index, size: int, of: str) -> Tensor:
+    """`index` as a 1-D long tensor of `size` entries (an index into another axis; `of` says what it must match
+    in the message); InputError otherwise."""
+    k = torch.as_tensor(index)
+    if k.ndim != 1 or k.is_floating_point() or k.shape[0] != size:
+        raise InputError(f"{name} must be ({size},) indices to match {of}, got {shape_of(k)}")
+    return k.long()
+
+
 def check_times(name: str, times) -> Tensor:
     t = torch.as_tensor(times)
     if t.ndim != 1 or t.is_floating_point() or t.dtype == torch.bool:
@@ -193,17 +203,59 @@ class RobustMixin:
 
         def residual(self, ev: PoseEval) -> Tensor: ...
 
-    def _squared(self, ev: PoseEval) -> tuple[Tensor, Tensor]:
-        r = self.residual(ev)
-        return r, r.unflatten(-1, (-1, self._group)).square().sum(-1)
+    def _squared_of(self, r: Tensor) -> Tensor:
+        return r.unflatten(-1, (-1, self._group)).square().sum(-1)
+
+    def _weights_of(self, r: Tensor, s: Tensor) -> Tensor:
+        w = robust_loss_derivative(self.loss)(s, self.scale)
+        return w.unsqueeze(-1).expand(*w.shape, self._group).reshape(r.shape)
 
     def energy(self, ev: PoseEval) -> Tensor:
         """ev -> (...,) = 0.5 * sum over groups of rho(|r_group|^2, scale)."""
-        _, s = self._squared(ev)
+        s = self._squared_of(self.residual(ev))
         return 0.5 * robust_loss(self.loss)(s, self.scale).sum(-1)
 
     def robust_weights(self, ev: PoseEval) -> Tensor:
         """ev -> (..., M): rho'(|r_group|^2) repeated over each group's entries (IRLS weights)."""
-        r, s = self._squared(ev)
-        w = robust_loss_derivative(self.loss)(s, self.scale)
-        return w.unsqueeze(-1).expand(*w.shape, self._group).reshape(r.shape)
+        r = self.residual(ev)
+        return self._weights_of(r, self._squared_of(r))
+
+    def weights_and_energy(self, r: Tensor) -> tuple[Tensor, Tensor]:
+        """`robust_weights` (..., M) and `energy` (...,) of the residual r (..., M) already computed."""
+        s = self._squared_of(r)
+        return self._weights_of(r, s), 0.5 * robust_loss(self.loss)(s, self.scale).sum(-1)
+
+
+@dataclass(frozen=True, eq=False)
+class Robust(RobustMixin):
+    """A least-squares term under a robust loss, entry by entry (theseus' residual, weight and loss as three
+    pieces): the same residual (..., M) and Jacobian, energy 0.5 sum_i rho(r_i^2, scale), IRLS weights
+    rho'(r_i^2). For a term whose residual entries are each one measurement (`RaySilhouette`'s samples)."""
+
+    term: CostTerm
+    loss: str = "cauchy"
+    scale: float = 1.0
+    _group: ClassVar[int] = 1
+
+    def __post_init__(self) -> None:
+        robust_loss(self.loss)
+        check_positive("Robust.scale", self.scale)
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """The term's residual (..., M)."""
+        return self.term.residual(ev)
+
+    def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
+        """The term's closed-form Jacobian (..., M, D); NotImplementedError where it has none (the `Objective`
+        then differentiates the residual)."""
+        closed = getattr(self.term, "jacobian", None)
+        if closed is None:
+            raise NotImplementedError(f"{type(self.term).__name__} has no closed-form Jacobian")
+        return closed(ev, jac)
+
+    def residual_jacobian(self, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor]:
+        """The term's `residual_jacobian`; NotImplementedError where it has none."""
+        both = getattr(self.term, "residual_jacobian", None)
+        if both is None:
+            raise NotImplementedError(f"{type(self.term).__name__} has no residual_jacobian")
+        return both(ev, jac)

@@ -11,7 +11,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ptrack.costs.base import CostTerm, LeastSquaresMixin, PoseEval, PoseJacobian
+from ptrack.costs.base import CostTerm, LeastSquaresMixin, PoseEval, PoseJacobian, RobustMixin
 from ptrack.errors import InputError
 
 # ---------------------------------------------------------------------------------------------
@@ -89,9 +89,15 @@ class Objective:
         differentiated by forward-mode autograd through their residual alone (no kinematics)."""
         return self._jacobian_of(list(self.terms), ev, jac)
 
-    def _jacobian_of(self, names: list[str], ev: PoseEval, jac: PoseJacobian) -> Tensor:
+    def _jacobian_of(
+        self, names: list[str], ev: PoseEval, jac: PoseJacobian, given: Mapping[str, Tensor] | None = None
+    ) -> Tensor:
+        """The Jacobian rows of the terms `names`, in order; `given`: rows already made (times sqrt(weight))."""
         parts = []
         for name in names:
+            if given is not None and name in given:
+                parts.append(given[name])
+                continue
             term = self.terms[name]
             closed = getattr(term, "jacobian", None)
             j = None
@@ -116,8 +122,10 @@ class Objective:
         `diagonal_jacobian` (joint limits, pose priors: one row per dof) and terms with a
         `gauss_newton(ev, jac) -> (energy, J^T J, J^T r)` (body collision: pairs apart give nothing).
         Their share comes back as two more outputs, fold_h (..., D, D) and fold_g (..., D); the
-        stacked rows hold the other terms only."""
+        stacked rows hold the other terms only. A least-squares term with a `residual_jacobian(ev, jac) ->
+        (residual, jacobian)` (its two from shared work, e.g. one ray-to-model distance) gives both at once."""
         rs, ws, es, stacked = [], [], [], []
+        given: dict[str, Tensor] = {}  # Jacobians that came with their residual
         diag_h: list[Tensor] = []  # folded terms' shares: J^T J diagonals (..., D), full (..., D, D), J^T r
         full_h: list[Tensor] = []
         fold_gs: list[Tensor] = []
@@ -132,25 +140,38 @@ class Objective:
                     fold_gs.append(w * g)
                     continue
             stacked.append(name)
-            if isinstance(term, LeastSquaresMixin):
+            r = None
+            both = getattr(term, "residual_jacobian", None)
+            if both is not None:
+                try:
+                    r, j = both(ev, jac)
+                    given[name] = math.sqrt(w) * j
+                except NotImplementedError:
+                    r = None
+            if r is None:
                 r = term.residual(ev)
-                rs.append(math.sqrt(w) * r)
+            rs.append(math.sqrt(w) * r)
+            if isinstance(term, LeastSquaresMixin):
                 ws.append(torch.ones_like(r))
                 es.append(0.5 * w * r.square().sum(-1))
+            elif isinstance(term, RobustMixin):  # weights and energy from the residual just made
+                weights, energy_ = term.weights_and_energy(r)
+                ws.append(weights)
+                es.append(w * energy_)
             else:
-                rs.append(math.sqrt(w) * term.residual(ev))
                 ws.append(term.robust_weights(ev))
                 es.append(w * term.energy(ev))
         _same_batch("residuals", {name: r.shape[:-1] for name, r in zip(stacked, rs)})
         energy = torch.stack(es).sum(0)
         if not fold:
-            return torch.cat(rs, -1), self.jacobian(ev, jac), torch.cat(ws, -1), energy
+            return torch.cat(rs, -1), self._jacobian_of(stacked, ev, jac, given), torch.cat(ws, -1), energy
         fold_h = _fold_sum(diag_h, full_h)
         fold_g = _sum(fold_gs) if fold_gs else None
         if not rs:  # every term folded: no stacked rows at all
             empty = ev.q.new_zeros(*ev.q.shape[:-1], 0)
             return empty, empty[..., None].expand(*empty.shape, ev.q.shape[-1]), empty, energy, fold_h, fold_g
-        return torch.cat(rs, -1), self._jacobian_of(stacked, ev, jac), torch.cat(ws, -1), energy, fold_h, fold_g
+        jacobian = self._jacobian_of(stacked, ev, jac, given)
+        return torch.cat(rs, -1), jacobian, torch.cat(ws, -1), energy, fold_h, fold_g
 
     def robust_weights(self, ev: PoseEval) -> Tensor:
         """ev -> (..., M_total) IRLS weights rho'(s) aligned with `residuals` (1 for l2 terms)."""

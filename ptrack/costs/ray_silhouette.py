@@ -181,11 +181,15 @@ class RaySilhouette(LeastSquaresMixin):
 
     def residual_per_frame(self, joints: Tensor) -> Tensor:
         """joints (..., *O, J, 3) -> (..., *O, S): the residuals with the sample axis kept apart."""
-        return self._distance(joints).distance * self.valid.to(joints) / self.sigma_m
+        return self._distance(joints).distance * (self.valid.to(joints) / self.sigma_m)
 
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
         """jac.joints (..., *O, J, 3, D) -> (..., |O|*S, D), rows as in `residual`."""
         return self.linearize_joints(ev.joints, jac.joints)[1]
+
+    def residual_jacobian(self, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor]:
+        """`residual` and `jacobian` from one ray-to-model distance (what `Objective.linearize` asks first)."""
+        return self.linearize_joints(ev.joints, jac.joints)
 
     def linearize_joints(self, joints: Tensor, d_joints: Tensor) -> tuple[Tensor, Tensor]:
         """Residual and Jacobian w.r.t. any parameters P, given joints (..., *O, J, 3) and their

@@ -18,6 +18,7 @@ from ptrack.costs.base import (
     PoseJacobian,
     RobustMixin,
     check_frame_count,
+    check_index,
     check_mask,
     check_positive,
     check_times,
@@ -40,7 +41,9 @@ class Reprojection(RobustMixin):
     of keypoint k adjacent; rho(s, scale) is applied to s_k = |r_k|^2 (both coordinates together),
     so `scale` is in units of sigma_px. With `per_problem` the first axis of observed (N, K, 2) and
     confidence (N, K) runs over N independent problems, each pose with its own frame's keypoints: ev.pixels
-    (N, K, 2) -> residual (N, K*2), not one problem's (N*K*2) residual over a trajectory.
+    (N, K, 2) -> residual (N, K*2), not one problem's (N*K*2) residual over a trajectory. `keypoints` (K,) long:
+    the entries of ev.pixels' keypoint axis the term reads (ev.pixels (..., *O, K_all, 2), e.g. the tracked
+    joints and other projected points side by side); None: all of them (K_all = K).
     """
 
     observed: Tensor
@@ -49,6 +52,7 @@ class Reprojection(RobustMixin):
     loss: str = "cauchy"
     scale: float = 1.0
     per_problem: bool = False
+    keypoints: Tensor | None = None
     _group: ClassVar[int] = 2
     _target: Tensor = field(init=False, repr=False)
     _sqrt_conf: Tensor = field(init=False, repr=False)
@@ -76,6 +80,9 @@ class Reprojection(RobustMixin):
         check_positive("Reprojection.sigma_px", self.sigma_px)
         check_positive("Reprojection.scale", self.scale)
         robust_loss(self.loss)
+        if self.keypoints is not None:
+            k = check_index("Reprojection.keypoints", self.keypoints, obs.shape[-2], f"observed {shape_of(obs)}")
+            object.__setattr__(self, "keypoints", k)
         object.__setattr__(self, "observed", obs)
         object.__setattr__(self, "confidence", conf)
         object.__setattr__(self, "_target", torch.where(valid[..., None], obs, 0.0))
@@ -84,6 +91,8 @@ class Reprojection(RobustMixin):
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.pixels (..., *O, K, 2) -> (..., |O|*K*2) whitened pixel residuals."""
         p, n = ev.pixels, self.observed.ndim
+        if self.keypoints is not None:
+            p = p.index_select(-2, self.keypoints.to(p.device))
         if p.ndim < n or p.shape[-n:] != self.observed.shape:
             raise InputError(
                 f"Reprojection: ev.pixels {shape_of(p)} must end in observed's shape {shape_of(self.observed)}"
@@ -94,7 +103,8 @@ class Reprojection(RobustMixin):
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
         """jac.pixels (..., *O, K, 2, D) -> (..., |O|*K*2, D), rows as in `residual`."""
         n = self.observed.ndim - self.per_problem
-        j = jac.pixels * self._sqrt_conf.to(jac.pixels)[..., None, None]
+        jp = jac.pixels if self.keypoints is None else jac.pixels.index_select(-3, self.keypoints.to(jac.pixels.device))
+        j = jp * self._sqrt_conf.to(jp)[..., None, None]
         return j.flatten(-n - 1, -2)
 
 
@@ -411,13 +421,15 @@ class JointKeyframe(LeastSquaresMixin):
 class PosePrior(LeastSquaresMixin):
     """Gaussian prior around a predicted pose, one prediction per hypothesis (a tracker's dynamics).
 
-    mean (..., D) predicted poses (broadcast against ev.q (..., D)); sigma float, (D,) or (..., D)
-    standard deviations (radians / metres; per hypothesis too). residual (..., D) = (q - mean) / sigma,
-    energy (...,).
+    mean (..., D') predicted values of the entries `dofs` (D',) long of q (None: all of them, D' = D;
+    broadcast against ev.q (..., D)); sigma float, (D',) or (..., D') standard deviations (radians / metres;
+    per hypothesis too). residual (..., D') = (q[..., dofs] - mean) / sigma, energy (...,). With `dofs` it
+    holds a part of any parameter vector read as ev.q (the golf tracker's PCA weights, times, root poses).
     """
 
     mean: Tensor
     sigma: float | Tensor = 0.15
+    dofs: Tensor | None = None
 
     def __post_init__(self) -> None:
         mean = as_float_tensor(self.mean, "mean")
@@ -427,6 +439,9 @@ class PosePrior(LeastSquaresMixin):
         if sigma.ndim >= 1 and sigma.shape[-1] != mean.shape[-1]:
             raise InputError(f"PosePrior.sigma must be a float or shape (..., {mean.shape[-1]}), got {shape_of(sigma)}")
         check_positive("PosePrior.sigma", sigma)
+        if self.dofs is not None:
+            dofs = check_index("PosePrior.dofs", self.dofs, mean.shape[-1], f"mean {shape_of(mean)}")
+            object.__setattr__(self, "dofs", dofs)
         object.__setattr__(self, "mean", mean)
         object.__setattr__(self, "sigma", sigma)
 
@@ -436,22 +451,36 @@ class PosePrior(LeastSquaresMixin):
         assert isinstance(self.sigma, Tensor)
         return self.sigma
 
+    def _held(self, q: Tensor) -> Tensor:
+        """q (..., D) -> the entries the prior holds (..., D')."""
+        if self.dofs is None:
+            if q.shape[-1] != self.mean.shape[-1]:
+                raise InputError(f"PosePrior: ev.q {shape_of(q)} must end in D={self.mean.shape[-1]}")
+            return q
+        if q.shape[-1] <= int(self.dofs.max()):
+            raise InputError(f"PosePrior: ev.q {shape_of(q)} has no entry {int(self.dofs.max())} (dofs)")
+        return q[..., self.dofs.to(q.device)]
+
     def residual(self, ev: PoseEval) -> Tensor:
-        """ev.q (..., D) -> (..., D)."""
-        if ev.q.shape[-1] != self.mean.shape[-1]:
-            raise InputError(f"PosePrior: ev.q {shape_of(ev.q)} must end in D={self.mean.shape[-1]}")
-        return (ev.q - self.mean.to(ev.q)) / self._sigma.to(ev.q)
+        """ev.q (..., D) -> (..., D')."""
+        return (self._held(ev.q) - self.mean.to(ev.q)) / self._sigma.to(ev.q)
 
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
-        """(..., D) -> (..., D, D) = diag(1 / sigma)."""
+        """(..., D) -> (..., D', D): diag(1 / sigma), its rows `dofs` with them."""
         q = ev.q
         inv = 1.0 / self._sigma.to(q)
+        if self.dofs is not None:
+            rows = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device)[self.dofs.to(q.device)]  # (D', D)
+            j = rows * inv[..., None]
+            return j.expand(*q.shape[:-1], *j.shape[-2:])
         if inv.ndim <= 1:
             return torch.diag_embed(inv.expand(q.shape[-1:])).expand(*q.shape, q.shape[-1])
         return torch.diag_embed(inv.expand(q.shape))  # a std per hypothesis: (..., D) like q
 
     def diagonal_jacobian(self, ev: PoseEval) -> Tensor:
-        """(..., D) -> (..., D): the Jacobian's diagonal, 1 / sigma (it has no other entries)."""
+        """(..., D) -> (..., D): the Jacobian's diagonal, 1 / sigma (it has no other entries); not with `dofs`."""
+        if self.dofs is not None:
+            raise NotImplementedError("PosePrior with dofs: its rows are stacked")
         return (1.0 / self._sigma.to(ev.q)).expand(ev.q.shape)
 
 

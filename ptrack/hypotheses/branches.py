@@ -137,7 +137,7 @@ def branch_poses(
     return Branches(tuple(chains), out, valid, dofs)
 
 
-def relax_branches(starts: Tensor, solve: Callable[[Tensor], Tensor]) -> Tensor:
+def relax_branches(starts: Tensor, solve: Callable[[Tensor], Tensor], q: Tensor | None = None) -> Tensor:
     """Start trajectories re-solved: the nearest minimum of the whole objective to each, by the
     trajectory solver `solve` (N, T, D) -> (N, T, D) (`method: batch`'s Levenberg-Marquardt in every
     dof, `ptrack.estimators.batch.solve_trajectory`). A rigid flip switches branch with a jump in the
@@ -145,11 +145,21 @@ def relax_branches(starts: Tensor, solve: Callable[[Tensor], Tensor]) -> Tensor:
     rejoins q smoothly where the branches meet, and moves whatever else the other branch needs (a
     flipped leg tilts the pelvis), so the smoothing energy of a switch is what the objective says.
 
-    starts (B, C, L, T, D) -> (B, C, L, T, D)."""
+    starts (B, C, L, T, D) -> (B, C, L, T, D), one chain's leaves at a time (L times the solve's memory,
+    not C L; all 20 leaves of a CMU skeleton in one batch were 4x slower per leaf on 148 frames). With
+    the trajectory q (B, T, D), a start equal to q at every frame (q on that leaf throughout) is q's own
+    minimum: returned as q, not re-solved."""
     t_len, d = starts.shape[-2:]
-    out = torch.empty_like(starts)
-    for c in range(starts.shape[1]):  # one chain's leaves at a time: L times the solve's memory, not C L
-        out[:, c] = solve(starts[:, c].reshape(-1, t_len, d)).reshape(starts[:, c].shape)
+    out = starts.clone()
+    for c in range(starts.shape[1]):
+        flat = starts[:, c].reshape(-1, t_len, d)
+        todo = torch.ones(flat.shape[0], dtype=torch.bool, device=starts.device)
+        if q is not None:
+            todo = ~(starts[:, c] == q[:, None]).all(-1).all(-1).reshape(-1)
+        if bool(todo.any()):
+            part = flat.clone()
+            part[todo] = solve(flat[todo])
+            out[:, c] = part.reshape(starts[:, c].shape)
     return out
 
 
@@ -268,18 +278,18 @@ def branch_posterior(
     plans: Sequence[ChainIK],
     frame_energy: Callable[[Tensor], Tensor],
     smooth: Sequence[tuple[int, Tensor]],
-    relax: Callable[[Tensor], Tensor] | None = None,
+    relax: Callable[[Tensor, Tensor], Tensor] | None = None,
     rho: Callable[[Tensor], Tensor] | None = None,
 ) -> BranchPosterior:
     """The flip branches of trajectory q (B, T, D) in its posterior (module docstring).
 
     frame_energy: trajectories (N, T, D) -> (N, T) the objective's per-frame terms (everything but
     the smoothing prior); smooth: the prior's ((n, a_n (D,)), ...), 1/2 |a_n diff_n(q)|^2;
-    relax: starts (B, C, L, T, D) -> the leaves re-solved (e.g. `relax_branches`), None = the
+    relax: (starts (B, C, L, T, D), q) -> the leaves re-solved (e.g. `relax_branches`), None = the
     rigid leaves; rho: the prior's robust loss on each residual's square, None = l2."""
     br = branch_poses(sk, camera, q, chains, plans)
     if relax is not None:
-        moved = relax(br.q)
+        moved = relax(br.q, q)
         dofs = (moved != q[:, None, None]).any(-2).any(2).any(0)  # (C, D): the dofs the leaves move
         br = Branches(br.chains, moved, br.valid.any(-1, keepdim=True).expand_as(br.valid), dofs | br.dofs)
     branch_joints = sk.forward_kinematics(br.q)  # (B, C, L, T, J, 3)

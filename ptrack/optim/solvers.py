@@ -549,6 +549,33 @@ def _band_damped(h, free: Tensor, lam: Tensor):
     return BlockBanded(diag, lower)
 
 
+def _band_rows(lin, rows: Tensor):
+    """The trajectories `rows` (n,) of a `BandedLinearization` (couplings shared by all, leading 1, stay)."""
+    from ptrack.optim.banded import BlockBanded
+
+    h = lin.hessian
+    lower = h.lower if h.lower.shape[0] == 1 else h.lower[rows]
+    return BandedLinearization(BlockBanded(h.diagonal[rows], lower), lin.gradient[rows], lin.energy[rows])
+
+
+def _band_put(lin, rows: Tensor, part):
+    """`lin` with the trajectories `rows` (n,) replaced by those of `part` (the inverse of `_band_rows`)."""
+    from ptrack.optim.banded import BlockBanded
+
+    h, p = lin.hessian, part.hessian
+    if h.lower.shape[0] == 1 and p.lower.shape[0] == 1 and torch.equal(h.lower, p.lower):
+        lower = h.lower
+    else:
+        lower = h.lower.expand(lin.gradient.shape[0], *h.lower.shape[1:]).index_copy(
+            0, rows, p.lower.expand(rows.shape[0], *p.lower.shape[1:])
+        )
+    return BandedLinearization(
+        BlockBanded(h.diagonal.index_copy(0, rows, p.diagonal), lower),
+        lin.gradient.index_copy(0, rows, part.gradient),
+        lin.energy.index_copy(0, rows, part.energy),
+    )
+
+
 def banded_levenberg_marquardt(
     linearize: Callable[[Tensor], BandedLinearization],
     q0: Tensor,
@@ -560,6 +587,7 @@ def banded_levenberg_marquardt(
     gtol: float = 1e-8,
     damping: float = 1e-4,
     callback: Callback | None = None,
+    shared: bool = False,
 ) -> tuple[Tensor, BandedLMInfo]:
     """Minimise B independent trajectory objectives by Levenberg-Marquardt on block-banded normal
     equations (DiFranco et al. 2001 §4: Gauss-Newton with a sparse solve).
@@ -574,6 +602,10 @@ def banded_levenberg_marquardt(
         max_iter, tol, gtol, damping, callback: as in `levenberg_marquardt` (damping lambda I
             relative to the largest diagonal entry of each trajectory's H; Nielsen's update; one
             accept/reject per trajectory). callback(iteration, q (B, T, D), cost (B,)).
+        shared: the B trajectories are starts of one objective (linearize gives row i's terms from
+            row i of its argument alone, whatever the batch), so once some are done only the others
+            are linearised, factorised and solved (e.g. the flip branches' re-solves, most of which
+            stop early); False: linearize always gets the whole batch (its rows are the B problems).
 
     Each step solves (H + lambda I) dq = -g by `ptrack.optim.banded.factorize` / `solve`: O(T W^2 D^3)
     work and O(T W D^2) memory, never the dense (T D) x (T D) matrix. A failed factorisation (not
@@ -608,10 +640,11 @@ def banded_levenberg_marquardt(
 
     def lin_at(x: Tensor) -> BandedLinearization:
         out = linearize(x)
-        if not isinstance(out, BandedLinearization) or out.gradient.shape != x.shape or out.energy.shape != (b_len,):
+        n = x.shape[0]
+        if not isinstance(out, BandedLinearization) or out.gradient.shape != x.shape or out.energy.shape != (n,):
             raise InputError(
                 "banded_levenberg_marquardt: linearize must return a BandedLinearization with "
-                f"gradient {tuple(x.shape)} and energy ({b_len},)"
+                f"gradient {tuple(x.shape)} and energy ({n},)"
             )
         return out
 
@@ -626,43 +659,54 @@ def banded_levenberg_marquardt(
     history = [lin.energy]
 
     def flat(x: Tensor) -> Tensor:
-        return x.reshape(b_len, t_len * d)
+        return x.reshape(x.shape[0], -1)
 
     for it in range(max_iter):
-        g = lin.gradient
-        small_g = _projected_gradient(flat(q), flat(g), flat(lo), flat(hi)) <= gtol
+        small_g = _projected_gradient(flat(q), flat(lin.gradient), flat(lo), flat(hi)) <= gtol
         converged |= small_g & ~done
         done |= small_g
         if bool(done.all()):
             break
-        free = _free(q, g, lo, hi)
-        factor, ok = factorize(_band_damped(lin.hessian, free, lam))
+        # with `shared`, only the trajectories not done take the step (rows: their indices)
+        rows = (~done).nonzero()[:, 0] if shared and bool(done.any()) else None
+        cur = lin if rows is None else _band_rows(lin, rows)
+        qa, loa, hia = (q, lo, hi) if rows is None else (q[rows], lo[rows], hi[rows])
+        lama, nua, g = (lam, nu, cur.gradient) if rows is None else (lam[rows], nu[rows], cur.gradient)
+        free = _free(qa, g, loa, hia)
+        factor, ok = factorize(_band_damped(cur.hessian, free, lama))
         dq = solve(factor, -torch.where(free, g, 0.0))
-        trial = torch.minimum(torch.maximum(q + dq, lo), hi)
-        step = trial - q
+        trial = torch.minimum(torch.maximum(qa + dq, loa), hia)
+        step = trial - qa
         new = lin_at(trial)
         evaluations += 1
-        predicted = -(flat(g * step).sum(-1) + 0.5 * flat(step * matvec(lin.hessian, step)).sum(-1))
-        actual = lin.energy - new.energy
-        active = ~done
-        iterations += active.long()
+        predicted = -(flat(g * step).sum(-1) + 0.5 * flat(step * matvec(cur.hessian, step)).sum(-1))
+        actual = cur.energy - new.energy
+        active = ~done if rows is None else torch.ones_like(actual, dtype=torch.bool)
         accept = active & ok & torch.isfinite(new.energy) & (actual > 0)
         rho = actual / predicted.clamp(min=tiny)
-        tiny_step = flat(step).norm(dim=-1) <= tol * (flat(q).norm(dim=-1) + tol)
-        small_drop = accept & (actual <= tol * lin.energy)
-        lam = torch.where(
-            accept, lam * torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3), torch.where(active, lam * nu, lam)
+        tiny_step = flat(step).norm(dim=-1) <= tol * (flat(qa).norm(dim=-1) + tol)
+        small_drop = accept & (actual <= tol * cur.energy)
+        lama = torch.where(
+            accept, lama * torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3), torch.where(active, lama * nua, lama)
         )
-        nu = torch.where(accept, torch.full_like(nu, 2.0), torch.where(active, nu * 2, nu))
-        q = _where(accept, trial, q)
-        lin = BandedLinearization(
-            _band_select(accept, new.hessian, lin.hessian),
-            _where(accept, new.gradient, lin.gradient),
-            torch.where(accept, new.energy, lin.energy),
+        nua = torch.where(accept, torch.full_like(nua, 2.0), torch.where(active, nua * 2, nua))
+        qa = _where(accept, trial, qa)
+        cur = BandedLinearization(
+            _band_select(accept, new.hessian, cur.hessian),
+            _where(accept, new.gradient, cur.gradient),
+            torch.where(accept, new.energy, cur.energy),
         )
         # the model itself promises nothing more (a step the box cut into a non-descent one does not count)
-        no_gain = (predicted >= 0) & (predicted <= tol * lin.energy)
+        no_gain = (predicted >= 0) & (predicted <= tol * cur.energy)
         stop = active & ok & (small_drop | tiny_step | (~accept & no_gain))
+        if rows is None:
+            q, lam, nu, lin = qa, lama, nua, cur
+            iterations += active.long()
+        else:
+            q, lam, nu = q.index_copy(0, rows, qa), lam.index_copy(0, rows, lama), nu.index_copy(0, rows, nua)
+            lin = _band_put(lin, rows, cur)
+            iterations[rows] += 1
+            stop = torch.zeros_like(done).index_copy(0, rows, stop)
         converged |= stop
         done |= stop | (lam > 1e30)
         history.append(lin.energy)

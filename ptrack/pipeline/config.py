@@ -159,6 +159,26 @@ class ObservationsConfig:
     occlusion_bursts: float = setting(0.0, "expected occlusion bursts per keypoint per second")
     dropped_frames: float = setting(0.0, "fraction of whole frames dropped")
     silhouettes: bool = setting(False, "render capsule-model silhouettes")
+    body_height_m: float | None = setting(
+        None,
+        "simulated: the person seen is data.asf scaled to this height with Winter's proportions (as real footage's "
+        "subject; ptrack/observe/person.py), a body other than the tracker's: its joints make the 2D, the "
+        "silhouettes and the ground truth; null: data.asf itself",
+    )
+    silhouette_height_m: float | None = setting(
+        None,
+        "simulated: the silhouettes (and simulated correspondences) alone from the capsules of data.asf scaled to "
+        "this height with Winter's proportions, the 2D and the ground truth from the seen person; null: theirs",
+    )
+    silhouette_radius_scale: float = setting(1.0, "simulated: the seen body's capsule radii times this")
+    silhouette_radius_jitter: float = setting(
+        0.0, "simulated: each capsule radius times a factor drawn in [1 - this, 1 + this] (left and right alike)"
+    )
+    keypoint_offset_m: float = setting(
+        0.0,
+        "simulated detector bias: each 2D keypoint marks a point this far (m) from its joint centre, in a direction "
+        "fixed to its bone, drawn per seed",
+    )
     correspondence_file: str | None = setting(
         None,
         "npz of real point correspondences between consecutive frames (method pca; ptrack/observe/correspondences.py)",
@@ -342,6 +362,18 @@ def _check_type(key: str, value: Any, tp: Any) -> Any:
     raise TypeError(f"unsupported config annotation {tp!r} for {key}")
 
 
+#: keys that older configs may still hold -> what took their place (the error names it)
+RETIRED_KEYS: dict[str, str] = {
+    "kjs.smooth_sweeps": "kjs.stages (name smooth once per sweep, e.g. [smooth, recombine, decode])",
+    "kjs.recombine": "kjs.stages (name recombine in it, e.g. [smooth, recombine, decode])",
+    "kjs.weights": "kjs.stages (decode last: posterior weights; without it the passes' weights)",
+    "kjs.path": "kjs.stages (decode last: the MAP path; without it the forward pass's Viterbi path)",
+    "kjs.momentum": "nothing: it was removed on 2026-11-29 (measured worse)",
+    "kjs.viterbi_space": "kjs.viterbi_sigma_m (the chain model's velocity prior is on the joints)",
+    "kjs.viterbi_sigma": "kjs.viterbi_sigma_m (the chain model's velocity prior is on the joints)",
+}
+
+
 def _build(cls, raw: dict, prefix: str = ""):
     if not isinstance(raw, dict):
         raise InputError(f"config section {prefix.rstrip('.') or '(top level)'!r} must be a mapping, got {raw!r}")
@@ -350,6 +382,8 @@ def _build(cls, raw: dict, prefix: str = ""):
     unknown = sorted(set(raw) - names)
     if unknown:
         key = prefix + str(unknown[0])
+        if key in RETIRED_KEYS:
+            raise InputError(f"config key {key!r} is retired; use {RETIRED_KEYS[key]}")
         raise InputError(f"unknown config key {key!r} (known keys here: {', '.join(sorted(names))})")
     kwargs = {}
     for f in dataclasses.fields(cls):
@@ -543,6 +577,21 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         from ptrack.body.subject import check_height
 
         check_height(cfg.subject.height_m)
+    for key in ("body_height_m", "silhouette_height_m"):
+        if getattr(o, key) is not None:
+            from ptrack.body.subject import check_height
+
+            check_height(getattr(o, key), f"observations.{key}")
+    if not 0 < o.silhouette_radius_scale < float("inf"):
+        raise InputError(
+            f"config key 'observations.silhouette_radius_scale' must be positive, got {o.silhouette_radius_scale}"
+        )
+    if not 0 <= o.silhouette_radius_jitter < 1:
+        raise InputError(
+            f"config key 'observations.silhouette_radius_jitter' must be in [0, 1), got {o.silhouette_radius_jitter}"
+        )
+    if not 0 <= o.keypoint_offset_m < float("inf"):
+        raise InputError(f"config key 'observations.keypoint_offset_m' must be >= 0, got {o.keypoint_offset_m}")
     if o.correspondences < 0:
         raise InputError(f"config key 'observations.correspondences' must be >= 0, got {o.correspondences}")
     if not 0 <= o.correspondence_noise_px < float("inf"):

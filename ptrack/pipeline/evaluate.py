@@ -56,6 +56,7 @@ COLUMNS = (
     ("depth_order_brier", "order Brier", "{:.3f}"),
     ("depth_order_in_modes", "order in modes", "{:.3f}"),
     ("distinct_modes_5cm", "modes 5 cm apart", "{:.1f}"),
+    ("joint_within_2std", "within 2 std", "{:.3f}"),
     ("seconds", "seconds", "{:.1f}"),
     ("seeds", "seeds", "{:d}"),  # with several seeds: how many ran (the row is their mean)
 )

@@ -119,6 +119,22 @@ def _procrustes_align(pred: Tensor, gt: Tensor) -> Tensor:
     return torch.where(finite[..., None, None], aligned, torch.full_like(aligned, float("nan")))
 
 
+def std_coverage(pred, gt, std, k: float = 2.0) -> Tensor:
+    """Share of joint-frames whose 3D error lies within k standard deviations: |pred - gt| <= k std.
+
+    pred, gt: (T, J, 3) metres (every joint, camera-independent: no alignment); std: (T, J) metres, the
+    square root of each joint's 3D covariance trace (`joint_std`) -> () in [0, 1]. A calibrated std puts
+    0.95-0.99 within 2 (a 3D Gaussian: 0.95 when the error lies along one axis, e.g. depth, 0.99 isotropic).
+    Joint-frames with a non-finite std are left out (NaN if none is finite)."""
+    pred, gt = _joint_pair(pred, gt)
+    std = torch.as_tensor(std, dtype=pred.dtype, device=pred.device)
+    if std.shape != pred.shape[:-1]:
+        raise InputError(f"std_coverage: std must be {tuple(pred.shape[:-1])}, got {tuple(std.shape)}")
+    err = (pred - gt).norm(dim=-1)
+    ok = torch.isfinite(std)
+    return ((err <= k * std) & ok).sum() / ok.sum()
+
+
 def pa_mpjpe(pred, gt) -> Tensor:
     """Procrustes-aligned MPJPE, in millimetres.
 

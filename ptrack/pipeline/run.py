@@ -49,6 +49,7 @@ from ptrack.io.export import write_bvh
 from ptrack.observe.camera import camera_for_motion
 from ptrack.observe.correspondences import Correspondences, simulate_correspondences
 from ptrack.observe.observations import ChannelConfig, Observations, simulate_observations
+from ptrack.observe.person import keypoint_offsets, offset_keypoints, seen_radii, seen_skeleton
 from ptrack.observe.silhouette import capsule_radii, render_silhouettes
 from ptrack.pipeline import metrics as M
 from ptrack.pipeline.config import RunConfig, check_device, dump_yaml
@@ -145,7 +146,8 @@ def prepare(cfg: RunConfig, work_dir: Path | None = None) -> Prepared:
                 f"stride {cfg.data.stride}) give {motion.q.shape[0]} frames; at least 3 are needed"
             )
         q_full = motion.q.to(dtype)
-        gt_joints = full.forward_kinematics(q_full)
+        seen = seen_skeleton(full, cfg.observations.body_height_m)  # the person the camera sees
+        gt_joints = seen.forward_kinematics(q_full)
         gt_q = model.reduce(q_full, full)
 
     if cfg.observations.file:
@@ -174,22 +176,33 @@ def prepare(cfg: RunConfig, work_dir: Path | None = None) -> Prepared:
             swap_fraction=o.swap_fraction,
         )
         masks = None
-        bones = torch.as_tensor(full.bones(), dtype=torch.long)  # the capsule model of silhouettes and correspondences
-        names = [full.joint_names[b] for _, b in full.bones()]
-        radii = capsule_radii(names, torch.as_tensor(full.lengths[bones[:, 1]], dtype=dtype))
+        # the capsule model of silhouettes and correspondences ("flesh"): the seen person's, or another body's
+        # (observations.silhouette_height_m), its radii turned by observations.silhouette_radius_* (a generator
+        # of their own: the channel's draws stay as they were)
+        flesh = seen_skeleton(seen, o.silhouette_height_m)
+        bones = torch.as_tensor(flesh.bones(), dtype=torch.long)
+        names = [flesh.joint_names[b] for _, b in flesh.bones()]
+        radii = capsule_radii(names, torch.as_tensor(flesh.lengths[bones[:, 1]], dtype=dtype))
+        person_gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 3)
+        radii = seen_radii(names, radii, o.silhouette_radius_scale, o.silhouette_radius_jitter, person_gen)
+        offsets = keypoint_offsets(len(kps.names), o.keypoint_offset_m, person_gen)
+        _, rotations = seen.forward_kinematics(q_full, rotations=True)
+        points = offset_keypoints(gt_joints, rotations, torch.as_tensor(kps.index()), offsets)  # what a detector marks
+        flesh_joints, flesh_rotations = gt_joints, rotations
+        if flesh is not seen:
+            flesh_joints, flesh_rotations = flesh.forward_kinematics(q_full, rotations=True)
         if o.silhouettes:
-            masks = render_silhouettes(gt_joints, bones, radii, camera)
+            masks = render_silhouettes(flesh_joints, bones, radii, camera)
         times = torch.as_tensor(motion.times, dtype=dtype)
         obs, info = simulate_observations(
-            gt_joints, kps.index(), camera, times, channel, gen, kps.names, swap_pairs=kps.swap_pairs, masks=masks
+            points, range(len(kps.names)), camera, times, channel, gen, kps.names, kps.swap_pairs, masks
         )
         visible = info.visible
         frames = motion.frames
         if o.correspondences:  # drawn after the keypoints' channel: turning them on leaves its draws as they were
-            _, rotations = full.forward_kinematics(q_full, rotations=True)
             correspondences, _ = simulate_correspondences(
-                gt_joints,
-                rotations,
+                flesh_joints,
+                flesh_rotations,
                 bones,
                 radii,
                 camera,
@@ -200,8 +213,8 @@ def prepare(cfg: RunConfig, work_dir: Path | None = None) -> Prepared:
                 outlier_px=o.outlier_px,
             )
         if upsample > 1:  # 2D on every upsample-th reconstructed frame only
-            seen = (torch.arange(obs.num_frames) % upsample == 0).to(obs.confidence)
-            obs = dataclasses.replace(obs, confidence=obs.confidence * seen[:, None])
+            observed = (torch.arange(obs.num_frames) % upsample == 0).to(obs.confidence)
+            obs = dataclasses.replace(obs, confidence=obs.confidence * observed[:, None])
     if tuple(obs.keypoint_names) != kps.names:
         raise InputError(
             f"observation keypoints {list(obs.keypoint_names)} differ from the model's keypoint set "
@@ -417,6 +430,10 @@ def reprojected_keypoints(prep: Prepared, est: Estimate) -> torch.Tensor:
     return prob.observations.camera.project(kp).pixels
 
 
+#: the multiples of `joint_std` whose coverage of the truth metrics.json reports (`joint_within_<k>std`)
+STD_COVERAGE = (1, 2, 3)
+
+
 def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tuple[dict, dict[str, np.ndarray]]:
     """Summary metrics (JSON-able) and per-frame series {name: (T,)} for logging.
     reproj: (T, K, 2) from `reprojected_keypoints`."""
@@ -484,6 +501,10 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
     if est.joint_std is not None:
         put("joint_std_mean_m", est.joint_std.mean(-1))
         series["joint_std_max_m"] = est.joint_std.amax(-1).detach().double().cpu().numpy()
+        if prep.gt_joints is not None:  # how often the truth lies within 1, 2, 3 std (every joint)
+            std, gt_all = est.joint_std.detach(), prep.gt_joints.to(est.joints)
+            for mult in STD_COVERAGE:
+                summary[f"joint_within_{mult}std"] = float(M.std_coverage(est.joints.detach(), gt_all, std, mult))
     if est.solver_cost is not None:
         summary["solver_iterations"] = int(est.solver_cost.shape[0] - 1)
         summary["solver_cost_start"], summary["solver_cost_final"] = (

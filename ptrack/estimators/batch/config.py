@@ -39,9 +39,21 @@ class BatchMethodConfig:
     upsample: int = setting(1, "reconstruct N frames per observed frame (data.stride must be divisible by N)")
     init: str = setting("frame", "start: frame (per-frame fits, frame.* settings) or keyframes (interpolated)")
     uncertainty: bool | str = setting(
-        "branches", "joint_std in result.npz: branches (true), laplace (faster, overconfident), false = none"
+        "branches",
+        "joint_std in result.npz: branches (true: Laplace + the limbs' flip branches), laplace (the Laplace "
+        "approximation alone: worse calibrated where a limb's depth is ambiguous), false = none",
+    )
+    std_calibration: bool = setting(
+        True,
+        "scale joint_std by the calibration of its batch.uncertainty mode fitted on the dev clips "
+        "(ptrack/data/batch_std_calibration.json); false: the raw std (overconfident: ~0.8 within 2 std)",
     )
     flip_restarts: int = setting(3, "rounds of restarts from the limbs' depth-flip branches (0: none)")
+    branch_iterations: int = setting(
+        10,
+        "Levenberg-Marquardt iterations of each flip branch's re-solve (restarts, branches; the branch a "
+        "restart takes is then solved with batch.iterations); 0: the rigid flips",
+    )
     hard_limits: bool = setting(
         True,
         "also keep every iterate inside the joint-limit box (false: the soft barrier costs.limits_* alone, "
@@ -72,6 +84,8 @@ def validate_batch(b: BatchMethodConfig) -> None:
         )
     if b.init not in ("frame", "keyframes"):
         raise InputError(f"config key 'batch.init' must be 'frame' or 'keyframes', got {b.init!r}")
+    if isinstance(b.branch_iterations, bool) or not isinstance(b.branch_iterations, int) or b.branch_iterations < 0:
+        raise InputError(f"config key 'batch.branch_iterations' must be an integer >= 0, got {b.branch_iterations!r}")
     if isinstance(b.flip_restarts, bool) or not isinstance(b.flip_restarts, int) or b.flip_restarts < 0:
         raise InputError(f"config key 'batch.flip_restarts' must be an integer >= 0, got {b.flip_restarts!r}")
     if isinstance(b.uncertainty, str) and b.uncertainty not in ("laplace", "branches"):

@@ -15,7 +15,7 @@ from ptrack.body.limits import wrap_to_limits
 from ptrack.estimators.batch.objective import evaluate, trajectory_objective
 from ptrack.estimators.batch.solve import solve_trajectory
 from ptrack.estimators.batch.start import has_full_keyframe, interpolate_keyframes, load_init, warp_to_keyframes
-from ptrack.estimators.batch.uncertainty import flip_posterior, joint_std, lower_branch
+from ptrack.estimators.batch.uncertainty import calibrate_std, flip_posterior, joint_std, lower_branch, std_calibration
 from ptrack.hypotheses.branches import BranchPosterior
 from ptrack.optim.solvers import BandedLMInfo
 from ptrack.problem import Estimate, Problem
@@ -95,13 +95,15 @@ def _estimate(
         "batch: %d iterations, cost %.6g -> %.6g", int(info.iterations[0]), float(history[0, 0]), float(info.cost[0])
     )
     branches: BranchPosterior | None = None
+    warm: tuple[BranchPosterior, Tensor] | None = None  # the posterior of the trajectory a restart replaced
     for _ in range(bc.flip_restarts):
         with torch.no_grad():
-            branches = flip_posterior(obj, q, bc)
+            branches = flip_posterior(obj, q, bc, warm)
             start = None if branches is None else lower_branch(obj, q, branches)
-        if start is None:
+        if start is None or branches is None:
             break
         done = history.shape[0] - 1
+        warm = (branches, q)
         q, info = solve(start)
         history = torch.cat([history, info.history[1:]])
         branches = None  # the posterior of the trajectory it replaced
@@ -113,8 +115,10 @@ def _estimate(
         if bc.uncertainty:
             mode = "branches" if bc.uncertainty is True else bc.uncertainty
             if mode == "branches" and branches is None:
-                branches = flip_posterior(obj, q, bc)
+                branches = flip_posterior(obj, q, bc, warm)
             std = joint_std(obj, q, info.hessian, branches if mode == "branches" else None)[0]
+            if bc.std_calibration:
+                std = calibrate_std(std, std_calibration(mode))
     terms = {name: v[0].to(out_dtype) for name, v in terms.items()}
     return Estimate(
         q=q[0].to(out_dtype),

@@ -38,7 +38,8 @@ def solve_trajectory(
 ) -> tuple[Tensor, BandedLMInfo]:
     """The whole objective's Levenberg-Marquardt from start (B, T, D), inside the joint-limit box where
     `obj.hard_limits` (`Trajectory.box`), with the `batch.*` settings bc (iterations, tol, damping)
-    -> q (B, T, D), `BandedLMInfo`."""
+    -> q (B, T, D), `BandedLMInfo`. The B starts share the objective: a trajectory that has stopped is
+    not linearised again while the others go on."""
     lower, upper = obj.box()
     return banded_levenberg_marquardt(
         linearization(obj),
@@ -50,4 +51,5 @@ def solve_trajectory(
         gtol=bc.tol * 1e-2,
         damping=bc.damping,
         callback=callback,
+        shared=True,
     )

@@ -1,11 +1,17 @@
 """What the batch solution leaves uncertain: `joint_std` from the marginal covariances of the Gauss-Newton
 Hessian (the Laplace approximation), and the limbs' depth-flip branches (`flip_posterior`, in the posterior of
-`ptrack.hypotheses.branches`), which add to it and whose lowest one restarts the solve (`lower_branch`)."""
+`ptrack.hypotheses.branches`), which add to it and whose lowest one restarts the solve (`lower_branch`);
+`calibrate_std` scales the result by the calibration fitted on the dev clips (`ptrack/data/
+batch_std_calibration.json`, made by `scripts/make_std_calibration.py`)."""
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import json
 import logging
 import math
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -14,11 +20,12 @@ from ptrack.errors import InputError
 from ptrack.estimators.batch.config import BatchMethodConfig
 from ptrack.estimators.batch.objective import Trajectory, evaluate, total_energy
 from ptrack.estimators.batch.solve import solve_trajectory
-from ptrack.hypotheses.branches import BranchPosterior, branch_posterior, relax_branches
+from ptrack.hypotheses.branches import SAME_M, BranchPosterior, branch_posterior, relax_branches
 from ptrack.hypotheses.ik import ik_plan
 from ptrack.hypotheses.jumps import check_independent, default_chains
 from ptrack.optim.banded import BlockBanded, factorize, marginal_blocks
 from ptrack.optim.jacobians import joint_jacobian
+from ptrack.package_data import data_file
 
 log = logging.getLogger(__name__)
 
@@ -43,14 +50,49 @@ def joint_std(obj: Trajectory, q: Tensor, hessian: BlockBanded, branches: Branch
     return torch.where(ok[:, None, None], std, torch.full_like(std, math.nan))
 
 
-def flip_posterior(obj: Trajectory, q: Tensor, bc: BatchMethodConfig) -> BranchPosterior | None:
+#: the shipped calibration of `joint_std` (`batch.std_calibration: true`)
+CALIBRATION_FILE = "batch_std_calibration.json"
+
+
+class StdCalibration(NamedTuple):
+    """std' = sqrt((scale std)^2 + floor_m^2): a variance factor and a floor (metres)."""
+
+    scale: float
+    floor_m: float
+
+
+@functools.cache
+def std_calibration(mode: str = "branches") -> StdCalibration:
+    """The calibration shipped in ptrack/data (`CALIBRATION_FILE`) for `batch.uncertainty` mode (branches,
+    laplace): fitted on the dev clips' runs
+    (configs/clips/dev.txt, keyframes every 1 s and first + last) to put 0.95 of the joint-frames within
+    2 std, the floor chosen by a leave-one-clip-out interval score (`scripts/make_std_calibration.py`)."""
+    doc = json.loads(data_file(CALIBRATION_FILE).read_text(encoding="utf-8"))
+    return StdCalibration(float(doc[mode]["scale"]), float(doc[mode]["floor_m"]))
+
+
+def calibrate_std(std: Tensor, calibration: StdCalibration) -> Tensor:
+    """std (..., J) metres (`joint_std`) -> sqrt((scale std)^2 + floor^2), the same shape. The raw std is the
+    spread the objective's own model predicts (its 2D noise, smoothing scales and flip branches); the
+    errors also hold what that model leaves out (depth drift between keyframes, motion faster than the
+    prior's), which the calibration adds: on the dev clips the raw std holds 0.80 of joint-frames within 2 std."""
+    return ((calibration.scale * std).square() + calibration.floor_m**2).sqrt()
+
+
+def flip_posterior(
+    obj: Trajectory, q: Tensor, bc: BatchMethodConfig, warm: tuple[BranchPosterior, Tensor] | None = None
+) -> BranchPosterior | None:
     """The flip branches of the solution q (B, T, D) in the posterior (`ptrack.hypotheses.branches`): every limb's
     depth-labelled leaves (the default chains: arms, legs, head) through q's projections, each leaf's
-    whole trajectory re-solved from there by `solve_trajectory` with the `batch.*` settings bc (0
-    iterations: the rigid leaves), and their marginal
+    whole trajectory re-solved from there by `solve_trajectory` with the `batch.*` settings bc for
+    `batch.branch_iterations` iterations (0: the rigid leaves), and their marginal
     probabilities per frame from the objective itself (per-frame terms, smoothing between
     consecutive frames' leaves; forward-backward). None (with a warning) for a model without the
-    default chains. Costs one batched solve of 4 trajectories per chain (20 on CMU skeletons)."""
+    default chains. Costs one batched solve of 4 trajectories per chain (20 on CMU skeletons).
+
+    warm (the posterior of an earlier solution q_0, q_0 (B, T, D)): after a restart from one of its
+    branches, the objective is the same and q moved from q_0 on one limb; each leaf starts from its
+    earlier re-solved trajectory moved by the same change (leaf + q - q_0), already near its minimum."""
     sk = obj.problem.skeleton
     try:
         chains = default_chains(sk)
@@ -64,21 +106,33 @@ def flip_posterior(obj: Trajectory, q: Tensor, bc: BatchMethodConfig) -> BranchP
         terms = evaluate(obj, x, with_jacobian=False).terms
         return terms["reprojection"] + terms["limits"] + terms["keyframes"]
 
-    def relax(starts: Tensor) -> Tensor:
-        return relax_branches(starts, lambda x: solve_trajectory(obj, x, bc)[0])
+    short = dataclasses.replace(bc, iterations=bc.branch_iterations)
+
+    def relax(starts: Tensor, at: Tensor) -> Tensor:
+        if warm is None:
+            return relax_branches(starts, lambda x: solve_trajectory(obj, x, short)[0], at)
+        before, q0 = warm
+        moved = before.branches.q + (at - q0)[:, None, None]
+        return relax_branches(moved, lambda x: solve_trajectory(obj, x, short)[0])
 
     cam = obj.problem.observations.camera
-    relaxed = relax if bc.iterations > 0 else None
+    relaxed = relax if bc.branch_iterations > 0 else None
     return branch_posterior(sk, cam, q, chains, plans, frame_energy, obj.smooth, relaxed, obj.smooth_rho())
 
 
 def lower_branch(obj: Trajectory, q: Tensor, branches: BranchPosterior) -> Tensor | None:
     """The re-solved flip branch (`flip_posterior`) of lowest whole energy, if it is lower than the
-    solution q's (B = 1): -> (1, T, D), or None. A flipped limb's trajectory that the objective itself
-    prefers means the solve stopped in a local minimum on the other branch."""
+    solution q's and another trajectory (B = 1): -> (1, T, D), or None. A flipped limb's trajectory that
+    the objective itself prefers means the solve stopped in a local minimum on the other branch. A branch
+    whose joints all stay within `SAME_M` of q's at every frame is q's own minimum (its re-solve only went on
+    where q's solve stopped at `batch.iterations`): not a restart."""
     cand = branches.branches.q[0].flatten(0, 1)  # (C L, T, D)
     energy = total_energy(obj, torch.cat([q, cand]))
-    best = int(torch.argmin(energy[1:]))
-    if not bool(energy[1 + best] < energy[0] - 1e-9 * energy[0].abs()):
+    sk = obj.problem.skeleton
+    moved = (sk.forward_kinematics(cand) - sk.forward_kinematics(q[0])).norm(dim=-1)  # (C L, T, J)
+    other = moved.flatten(1).amax(-1) > SAME_M  # (C L,)
+    lower = (energy[1:] < energy[0] - 1e-9 * energy[0].abs()) & other
+    if not bool(lower.any()):
         return None
+    best = int(torch.argmin(torch.where(lower, energy[1:], torch.inf)))
     return cand[best][None]

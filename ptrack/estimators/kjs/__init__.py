@@ -42,12 +42,12 @@ trajectory come from one model of the whole lattice (`lattice.chain_terms`): a c
 frame's modes, with each mode's own frame cost as its emission (data, limits, collision, pose prior;
 `frame_evidence`, a negative log-likelihood) and a Gaussian velocity prior between consecutive modes' joints
 relative to the root (std `kjs.viterbi_sigma_m` per frame) as its transition. `hypothesis_weights` are each
-mode's posterior probability given the whole clip under that chain (forward-backward, `decode`;
-`kjs.weights: posterior`), and `q`/`joints` its MAP path (Viterbi, `best_path`; `kjs.path: map`); after a
-keyframe start frame 0's emission also holds the keyframe's prior (`keyframe_cost`). On the held-out clips this
-took the best trajectory from 33.5 to 29.3 mm and the share of frames whose heaviest mode is within 10 mm of the
-best one from 0.70 to 0.86 (docs/results.md). `kjs.weights: filter` reports the passes' own
-weights and `kjs.path: forward` the Viterbi path of the forward pass's modes, as before.
+mode's posterior probability given the whole clip under that chain (forward-backward, the stage `decode`), and
+`q`/`joints` its MAP path (Viterbi, `best_path`); after a keyframe start frame 0's emission also holds the keyframe's
+prior (`keyframe_cost`). On the held-out clips this took the best trajectory from 33.5 to 29.3 mm and the share of
+frames whose heaviest mode is within 10 mm of the best one from 0.70 to 0.86 (docs/results.md). Without `decode` in
+`kjs.stages` a run reports the passes' own
+weights and the Viterbi path of the forward pass's modes, as before.
 
 Inside the passes a new minimum's weight is its prior times exp(-cost / `kjs.temperature`). With
 `kjs.reweight: memory` the prior is its parent mode's weight to the power `kjs.weight_memory`; with `mixture`
@@ -68,21 +68,25 @@ pass's heaviest, each depth order of the limbs before any order twice. After a t
 own modes lead the merge when the two passes' trajectories face directions more than `HEADING_SPLIT_DEG` apart
 (two readings of the whole body) and it costs less (`lead_pass`).
 
-Then `kjs.smooth_sweeps` sweeps of a smoother (`smooth_lattice`) re-polish every frame's hypotheses with the prior
-around the mean of their nearest neighbours in the frames before and after. The passes are filters: each
-mode holds its own frame's evidence and the past's (or the future's), so its depth jitters from frame to
+What follows the passes is a list of named stages, `kjs.stages` (`lattice.STAGES`; default `[smooth, recombine,
+decode]`), each taking the lattice and the best trajectory's mode per frame and returning both.
+
+`smooth`: one sweep of a smoother (`smooth_lattice`; named twice, two sweeps) re-polishes every frame's
+hypotheses with the prior around the mean of their nearest neighbours in the frames before and after. The passes are
+filters: each mode holds its own frame's evidence and the past's (or the future's), so its depth jitters from frame to
 frame where the 2D leaves it loose; the smoother brings in both sides.
 
-Then (`kjs.recombine`, `recombine`) each frame gets one more hypothesis: the forward pass's best trajectory's
+`recombine` (`recombine`): each frame gets one more hypothesis: the forward pass's best trajectory's
 pose with each chain's reading (which way each limb points in depth) chosen on its own, by a Viterbi pass per
 chain over the modes' readings of it. The modes hold the readings in combinations, and often none holds the
 right reading of every limb at once. It replaces a light mode.
 
-Last, the chain model above gives the final modes their posterior weights and the MAP path.
+`decode` (last when named): the chain model above gives the final modes their posterior weights and the MAP
+path.
 
 The package: `model` (the fixed setup, each frame's objective and polishing), `step` (one tracking step),
 `start` (the starts of both passes), `lattice` (the lattice record, its chain model with the posterior and the
-MAP path, the smoother, the recombination) and `track`
+MAP path, the smoother, the recombination, the named stages) and `track`
 (the loop and the estimators).
 """
 

@@ -12,6 +12,10 @@ from ptrack.costs.config import CostsConfig
 from ptrack.errors import InputError
 from ptrack.settings import setting
 
+#: the stages that may follow the passes (`kjs.stages`; `ptrack.estimators.kjs.lattice.STAGES` holds them), the
+#: default: all three in this order
+STAGE_NAMES: tuple[str, ...] = ("smooth", "recombine", "decode")
+
 
 @dataclass(frozen=True)
 class KjsMethodConfig:
@@ -62,16 +66,14 @@ class KjsMethodConfig:
     init_yaws: int = setting(8, "init tree: headings of the rest pose tried (each also leaned forward and back)")
     init_fits: int = setting(4, "init tree: distinct fitted poses whose chains are flipped (every combination)")
     backward_pass: str = setting("always", "a second pass backwards in time: always, tree (after a tree start), never")
-    smooth_sweeps: int = setting(1, "sweeps of the smoother over every frame's hypotheses after the passes (0: none)")
     smooth_scale: float = setting(0.2, "the smoother's prior std, times the dynamics'")
     smooth_link_m: float = setting(0.1, "smoother: neighbours within this mean joint distance (metres) are linked")
-    recombine: bool = setting(True, "one more hypothesis per frame: each chain's reading by its own Viterbi pass")
     recombine_sigma_m: float = setting(0.15, "recombine: velocity std on the chain's joints, metres per frame")
-    weights: str = setting(
-        "posterior", "hypothesis weights: posterior (forward-backward over the final modes) or filter (the passes')"
-    )
-    path: str = setting(
-        "map", "best trajectory: map (the MAP path of the final modes) or forward (Viterbi of the forward pass's)"
+    stages: tuple[str, ...] = setting(
+        STAGE_NAMES,
+        "what follows the passes, in order: smooth (a smoother sweep over the hypotheses), recombine (each chain's "
+        "reading by its own Viterbi pass), decode (posterior weights and MAP path; without it the passes' weights "
+        "and the forward Viterbi path)",
     )
 
 
@@ -123,7 +125,7 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
         raise InputError(
             "config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' must be >= 0"
         )
-    for key in ("motion_scale", "pose_prior_weight", "distinct_mm", "smooth_sweeps"):
+    for key in ("motion_scale", "pose_prior_weight", "distinct_mm"):
         if getattr(kc, key) < 0:
             raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")
     for key in ("even_share", "weight_memory"):
@@ -135,10 +137,13 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
         ("polisher", ("lm", "lbfgs")),
         ("init", ("keyframe", "tree")),
         ("backward_pass", ("tree", "always", "never")),
-        ("weights", ("posterior", "filter")),
         ("reweight", ("mixture", "memory")),
-        ("path", ("forward", "map")),
         ("prior_tail", ("gaussian", *(n for n in ROBUST_LOSSES if n != "l2"))),
     ):
         if getattr(kc, key) not in allowed:
             raise InputError(f"config key 'kjs.{key}' must be one of {', '.join(allowed)}, got {getattr(kc, key)!r}")
+    for name in kc.stages:
+        if name not in STAGE_NAMES:
+            raise InputError(f"config key 'kjs.stages' names {name!r}; the stages are {', '.join(STAGE_NAMES)}")
+    if "decode" in kc.stages and (kc.stages.count("decode") > 1 or kc.stages[-1] != "decode"):
+        raise InputError("config key 'kjs.stages': decode comes once, last (it weighs the final hypotheses)")

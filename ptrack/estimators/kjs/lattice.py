@@ -7,7 +7,7 @@ Shapes: T frames, K modes (`kjs.modes`), D dofs, J joints, C chains."""
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import torch
 from torch import Tensor
@@ -238,43 +238,71 @@ SMOOTH_ITERATIONS = 5
 
 
 def smooth_lattice(s: Setup, lat: Lattice) -> Lattice:
-    """`kjs.smooth_sweeps` sweeps of a smoother over the finished hypothesis lattice. Each tracked mode holds
-    the evidence of its own frame and, through the dynamics, of the frames before (a filter): its depth
-    jitters from frame to frame wherever the 2D leaves it loose. In a sweep each hypothesis of frame t is
-    linked to the nearest hypothesis of frames t-1 and t+1 (mean distance of the joints relative to the root
-    under `kjs.smooth_link_m`; none where the other frame holds no such pose, e.g. a limb's other branch)
-    and polished again on frame t's objective with the tracking prior around the mean of its linked
-    neighbours, std `kjs.smooth_scale` times the dynamics' (times sqrt 2 with one neighbour). A
-    hypothesis with no linked neighbour, and padding, keep their pose. Each sweep uses the poses of the
-    sweep before (Jacobi). -> the lattice with the smoothed poses, their objective, covariance and joints (the
-    weights as they were)."""
+    """One sweep of a smoother over the finished hypothesis lattice (the stage `smooth` of `kjs.stages`; named
+    twice, two sweeps). Each tracked mode holds the evidence of its own frame and, through the dynamics, of the
+    frames before (a filter): its depth jitters from frame to frame wherever the 2D leaves it loose. In a sweep
+    each hypothesis of frame t is linked to the nearest hypothesis of frames t-1 and t+1 (mean distance of the
+    joints relative to the root under `kjs.smooth_link_m`; none where the other frame holds no such pose, e.g. a
+    limb's other branch) and polished again on frame t's objective with the tracking prior around the mean of
+    its linked neighbours, std `kjs.smooth_scale` times the dynamics' (times sqrt 2 with one neighbour). A
+    hypothesis with no linked neighbour, and padding, keep their pose. Every hypothesis moves from the poses of
+    the lattice it was given (Jacobi). -> the lattice with the smoothed poses, their objective, covariance and
+    joints (the weights as they were)."""
     k = s.cfg.kjs
     hq, hw, hc, hl, joints = lat
     sk = s.problem.skeleton
     T, K, D = hq.shape
     base = torch.as_tensor(s.dynamics_sigma, dtype=hq.dtype, device=hq.device).expand(D) * k.smooth_scale
     frames = torch.arange(T, device=hq.device)[:, None].expand(T, K)
-    for _ in range(k.smooth_sweeps):
-        rel = joints - joints[..., :1, :]  # (T, K, J, 3)
-        pull = torch.zeros_like(hq)  # (T, K, D): sum of the wrapped steps to the linked neighbours
-        count = torch.zeros(T, K, 1, dtype=hq.dtype, device=hq.device)
-        for here, there in ((slice(1, None), slice(None, -1)), (slice(None, -1), slice(1, None))):  # t-1, t+1
-            gap = (rel[here][:, :, None] - rel[there][:, None]).norm(dim=-1).mean(-1)  # (T-1, K, K)
-            gap = torch.where(hw[there][:, None] > 0, gap, math.inf)
-            near, j = gap.min(-1)  # (T-1, K)
-            linked = (near < k.smooth_link_m).to(hq.dtype)[..., None]
-            neighbour = torch.gather(hq[there], 1, j[..., None].expand(-1, -1, D))
-            pull[here] += linked * wrapped_difference(neighbour - hq[here], s.angular)
-            count[here] += linked
-        move = (hw > 0) & (count[..., 0] > 0)  # (T, K)
-        if not bool(move.any()):
-            break
-        n = count[move]  # (M, 1): 1 or 2 linked neighbours
-        q, cost, hessian = polish_rows(
-            s, frames[move], hq[move], hq[move] + pull[move] / n, SMOOTH_ITERATIONS, base * torch.sqrt(2 / n), True
-        )
-        hq, hc, hl = hq.clone(), hc.clone(), hl.clone()
-        hq[move], hc[move], hl[move] = q, cost, mode_cholesky(s, hessian)
-        with torch.no_grad():
-            joints = sk.forward_kinematics(hq)
+    rel = joints - joints[..., :1, :]  # (T, K, J, 3)
+    pull = torch.zeros_like(hq)  # (T, K, D): sum of the wrapped steps to the linked neighbours
+    count = torch.zeros(T, K, 1, dtype=hq.dtype, device=hq.device)
+    for here, there in ((slice(1, None), slice(None, -1)), (slice(None, -1), slice(1, None))):  # t-1, t+1
+        gap = (rel[here][:, :, None] - rel[there][:, None]).norm(dim=-1).mean(-1)  # (T-1, K, K)
+        gap = torch.where(hw[there][:, None] > 0, gap, math.inf)
+        near, j = gap.min(-1)  # (T-1, K)
+        linked = (near < k.smooth_link_m).to(hq.dtype)[..., None]
+        neighbour = torch.gather(hq[there], 1, j[..., None].expand(-1, -1, D))
+        pull[here] += linked * wrapped_difference(neighbour - hq[here], s.angular)
+        count[here] += linked
+    move = (hw > 0) & (count[..., 0] > 0)  # (T, K)
+    if not bool(move.any()):
+        return lat
+    n = count[move]  # (M, 1): 1 or 2 linked neighbours
+    q, cost, hessian = polish_rows(
+        s, frames[move], hq[move], hq[move] + pull[move] / n, SMOOTH_ITERATIONS, base * torch.sqrt(2 / n), True
+    )
+    hq, hc, hl = hq.clone(), hc.clone(), hl.clone()
+    hq[move], hc[move], hl[move] = q, cost, mode_cholesky(s, hessian)
+    with torch.no_grad():
+        joints = sk.forward_kinematics(hq)
     return Lattice(hq, hw, hc, hl, joints)
+
+
+# ---------------------------------------------------------------- the stages after the passes
+
+
+class Stage(Protocol):
+    """A stage of `kjs.stages`: (setup, lattice (T, K), the best trajectory's mode per frame (T,)) -> both, new."""
+
+    def __call__(self, s: Setup, lat: Lattice, path: Tensor) -> tuple[Lattice, Tensor]: ...
+
+
+def _smooth(s: Setup, lat: Lattice, path: Tensor) -> tuple[Lattice, Tensor]:
+    return smooth_lattice(s, lat), path
+
+
+def _recombine(s: Setup, lat: Lattice, path: Tensor) -> tuple[Lattice, Tensor]:
+    return recombine(s, lat, path), path
+
+
+def _decode(s: Setup, lat: Lattice, path: Tensor) -> tuple[Lattice, Tensor]:
+    map_path, posterior = decode(s, lat)
+    return lat._replace(weight=posterior), map_path
+
+
+#: the stages that may follow the passes, by their name in `kjs.stages`, in the order a run names them:
+#: `smooth` (one sweep of `smooth_lattice`), `recombine` (one more hypothesis per frame, `recombine`) and
+#: `decode` (the chain model's posterior weights and MAP path, `decode`; last when named). Without `decode`
+#: the weights are the passes' own and the best trajectory the forward pass's Viterbi path.
+STAGES: dict[str, Stage] = {"smooth": _smooth, "recombine": _recombine, "decode": _decode}

@@ -9,15 +9,7 @@ import torch
 from torch import Tensor
 
 from ptrack.estimators.kjs.config import KjsRunConfig
-from ptrack.estimators.kjs.lattice import (
-    best_path,
-    decode,
-    lead_pass,
-    make_lattice,
-    principal_directions,
-    recombine,
-    smooth_lattice,
-)
+from ptrack.estimators.kjs.lattice import STAGES, best_path, lead_pass, make_lattice, principal_directions
 from ptrack.estimators.kjs.model import CSS, KJS, SS, Strategy, make_setup
 from ptrack.estimators.kjs.start import backward_start, feed_backward, first_modes
 from ptrack.estimators.kjs.step import merge_mixtures, track_step
@@ -101,17 +93,8 @@ def _track(
         lat = make_lattice(s, [merge_mixtures(s, a, b, int(p)) for a, b, p in zip(lead, other, path)])
         path = torch.zeros_like(path)
         jumps = [a + b for a, (_, b) in zip(jumps, reversed(passes[1]))]
-    if k.smooth_sweeps > 0:  # every frame's hypotheses smoothed in time (`smooth_lattice`); the choice of mode kept
-        lat = smooth_lattice(s, lat)
-    if k.recombine:  # each chain's reading chosen on its own, on the best trajectory's pose (`recombine`); after
-        # the smoother, so that the best trajectory is the same with it and without
-        lat = recombine(s, lat, path)
-    if k.path == "map" or k.weights == "posterior":  # the chain model on the final lattice (`decode`)
-        map_path, posterior = decode(s, lat)
-        if k.path == "map":  # its MAP path
-            path = map_path
-        if k.weights == "posterior":  # each mode's probability given the whole clip
-            lat = lat._replace(weight=posterior)
+    for name in k.stages:  # the named stages after the passes (`lattice.STAGES`), in the order given
+        lat, path = STAGES[name](s, lat, path)
     hq, hw, hc, hl, hyp_joints = lat
     with torch.no_grad():
         frames = torch.arange(hq.shape[0], device=hq.device)

@@ -26,6 +26,9 @@ mu_0 the start's timing (below; `pca.timing_sigma`, null drops it). Beyond the p
 none of them, time never runs backwards (each window's times are bounded below by the time of the frame
 that last left a window), the weights are boxed in `pca.alpha_bound` training stds, and the timing prior
 is there: without it the tracker read a held-out downswing as the backswing reversed (docs/notes/golf-history.md).
+The energy is an `ptrack.costs.Objective` of the shared terms (`window.window_objective`): `Reprojection` for the
+tracked joints and for the correspondences' points, `RaySilhouette` for the foreground samples, and `PosePrior` on
+parts of the state for every prediction and prior; the terms read a `PoseEval` whose q is the window's state.
 Each window is one Levenberg-Marquardt solve of `ptrack.optim.solvers` with a closed-form Jacobian: the
 decoder is linear in alpha and piecewise linear in mu, the joints' Jacobian is the geometric one
 (`ptrack.optim.jacobians.joint_jacobian`), the projections' is the camera's, and the silhouette term's comes
@@ -62,14 +65,14 @@ The model is read from `motion.model_file` (default ~/.cache/ptrack/motion/<conf
 file is there it is fitted from `motion.clips` (`ptrack fit-motion` does the same) and saved there.
 
 Modules: `setup` (what is fixed over the sequence, the motion model), `poses` (the state's poses and their
-derivatives), `window` (one window's energy and its linearisation), `pairs` (the correspondences), `start` (the
-initial timing and root) and `track` (`estimate_pca`).
+derivatives), `window` (one window's terms and the kinematics of its linearisation), `pairs` (the
+correspondences), `start` (the initial timing and root) and `track` (`estimate_pca`).
 """
 
 from __future__ import annotations
 
 from ptrack.estimators.pca.config import PcaMethodConfig
-from ptrack.estimators.pca.pairs import StartBody, WindowPairs, correspondence_residuals
+from ptrack.estimators.pca.pairs import StartBody, WindowPairs, correspondence_points
 from ptrack.estimators.pca.poses import poses_of, root_angles
 from ptrack.estimators.pca.setup import Setup, motion_model_for
 from ptrack.estimators.pca.start import initial_timing, place_root
@@ -82,7 +85,7 @@ __all__ = [
     "Setup",
     "StartBody",
     "WindowPairs",
-    "correspondence_residuals",
+    "correspondence_points",
     "estimate_pca",
     "initial_timing",
     "motion_model_for",

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
+from ptrack.costs.base import ROBUST_LOSSES
 from ptrack.costs.config import CostsConfig
 from ptrack.errors import InputError
 from ptrack.motion.config import MotionConfig
@@ -36,6 +37,10 @@ class PcaMethodConfig:
         0.03, "a pair counts only where p1's line of sight passes this far (m) from the model's outline"
     )
     silhouette_sigma_m: float = setting(0.02, "a ray this far (metres) from the model counts as one sigma")
+    silhouette_loss: str = setting(
+        "l2", "robust loss of each foreground sample's ray distance: l2, huber, cauchy, geman_mcclure"
+    )
+    silhouette_scale: float = setting(1.0, "scale of pca.silhouette_loss, in silhouette sigmas")
     silhouette_samples: int = setting(96, "foreground samples per frame (a regular grid, evenly thinned)")
     silhouette_step_px: int = setting(4, "grid step of the samples, pixels")
     root_sigma_m: float = setting(0.02, "prediction std of the root position, metres per frame")
@@ -95,11 +100,16 @@ def validate_pca(p: PcaMethodConfig, keypoints: dict[str, str] | None = None, na
             raise InputError(f"config key 'pca.{key}' must be >= 0, got {getattr(p, key)}")
     if p.timing_sigma is not None and not p.timing_sigma > 0:
         raise InputError(f"config key 'pca.timing_sigma' must be positive or null, got {p.timing_sigma}")
+    if p.silhouette_loss not in ROBUST_LOSSES:
+        raise InputError(
+            f"config key 'pca.silhouette_loss' must be one of {', '.join(ROBUST_LOSSES)}, got {p.silhouette_loss!r}"
+        )
     if p.after_swing not in AFTER_SWING:
         raise InputError(f"config key 'pca.after_swing' must be one of {', '.join(AFTER_SWING)}, got {p.after_swing!r}")
     if p.key_smooth_s < 0:
         raise InputError(f"config key 'pca.key_smooth_s' must be >= 0, got {p.key_smooth_s}")
-    for key in ("silhouette_sigma_m", "root_sigma_m", "root_sigma_deg", "time_sigma", "alpha_sigma", "alpha_bound"):
+    positive = ("silhouette_sigma_m", "silhouette_scale", "root_sigma_m", "root_sigma_deg", "time_sigma")
+    for key in (*positive, "alpha_sigma", "alpha_bound"):
         if not getattr(p, key) > 0:
             raise InputError(f"config key 'pca.{key}' must be positive, got {getattr(p, key)}")
     if not p.joints:

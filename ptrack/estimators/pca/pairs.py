@@ -1,6 +1,6 @@
 """The golf tracker's correspondences (`method: pca`, section 4.3): per window, each pair's p1 backprojected onto
 the capsule model of the frame before its frame (`start_pairs`, `window_pairs`), as body-fixed points seen at p2
-(`WindowPairs`), and the residuals of a whole trajectory (`correspondence_residuals`). Shapes: f frames of a
+(`WindowPairs`), and the moved points of a whole trajectory (`correspondence_points`). Shapes: f frames of a
 window, P pairs per frame, J joints."""
 
 from __future__ import annotations
@@ -18,12 +18,12 @@ from ptrack.observe.backprojection import Anchors, anchor_points, backproject_ra
 @dataclass(frozen=True)
 class WindowPairs:
     """The correspondences of a window of f frames, P per frame: body-fixed points (anchors (f, P)) to be
-    seen at target (f, P, 2) pixels in their frame, with weight (f, P) (sqrt(pair weight) / sigma_px, 0 for
-    padding and pairs whose p1 missed the model)."""
+    seen at target (f, P, 2) pixels in their frame, with confidence (f, P) (the pair's weight, 0 for padding and
+    pairs whose p1 missed the model): a `ptrack.costs.Reprojection` of the points."""
 
     anchors: Anchors
     target: Tensor
-    weight: Tensor
+    confidence: Tensor
 
 
 @dataclass(frozen=True)
@@ -95,15 +95,14 @@ def window_pairs(s: Setup, frames: Tensor, joints_prev: Tensor, rotations_prev: 
     return WindowPairs(anchors, p2, torch.where(keep, w, torch.zeros_like(w)))
 
 
-def correspondence_residuals(s: Setup, joints: Tensor, rotations: Tensor) -> Tensor | None:
-    """Per frame t and pair, the correspondence residuals (T, P, 2) (whitened pixels) of a trajectory's world
-    joints (T, J, 3) and rotations (T, J, 3, 3): p1 backprojected at frame t-1, moved with frame t. Frame 0
-    and pairs that miss the model are 0. None without correspondences."""
+def correspondence_points(s: Setup, joints: Tensor, rotations: Tensor) -> tuple[Tensor, Tensor] | None:
+    """Per frame t and pair, the body point of p1 (backprojected at frame t-1) moved with frame t, for a
+    trajectory's world joints (T, J, 3) and rotations (T, J, 3, 3) -> points (T, P, 3) and their confidence
+    (T, P) (the pair's weight; 0 at frame 0 and where p1 missed the model). None without correspondences."""
     if s.corr is None or s.corr_rays is None:
         return None
-    _, p2, w = s.corr
+    _, _, w = s.corr
     prev = (torch.arange(joints.shape[0], device=joints.device) - 1).clamp_min(0)
     anchors = _backproject(s, s.corr_rays, joints[prev], rotations[prev])
     x = anchor_points(anchors, joints[:, None], rotations[:, None])
-    r = (s.problem.observations.camera.project(x).pixels - p2) * w[..., None]
-    return torch.where((anchors.valid & (w > 0))[..., None], r, torch.zeros_like(r))
+    return x, torch.where(anchors.valid, w, torch.zeros_like(w))

@@ -62,7 +62,7 @@ class Setup:
     root_dofs: Tensor  # (6,) positions of root tx, ty, tz and the root's three angles in q
     tracked: Tensor  # (K',) skeleton joints of the tracked keypoints
     observed: Tensor  # (T, K', 2) pixels
-    weight: Tensor  # (T, K') sqrt(confidence) / sigma_px
+    confidence: Tensor  # (T, K') the detections' confidence (0: missing)
     rays: Tensor | None  # (T, S, 3) unit world rays of the foreground samples
     ray_valid: Tensor | None  # (T, S) bool
     bones: tuple[tuple[int, int], ...]
@@ -72,7 +72,7 @@ class Setup:
     root_xyz: tuple[int, ...]  # (3,) coordinate axis (0 x, 1 y, 2 z) of each of root_dofs[3:]
     root_rest: Tensor  # (3, 3) the root's world rotation at zero angles (the ASF root orientation)
     # correspondences by second frame t (None: none, or pca.correspondence_weight 0): p1 (T, P, 2) pixels in
-    # frame t-1, p2 (T, P, 2) in frame t, weight (T, P) sqrt(pair weight) / sigma_px (0: padding)
+    # frame t-1, p2 (T, P, 2) in frame t, weight (T, P) the pair's weight (0: padding)
     corr: tuple[Tensor, Tensor, Tensor] | None = None
     corr_rays: Tensor | None = None  # (T, P, 3) unit world rays of p1 (set with corr)
 
@@ -108,7 +108,6 @@ def make_setup(problem: Problem, cfg: PcaRunConfig) -> Setup:
     observed = obs.keypoints[:, kp].to(dtype)
     conf = obs.confidence[:, kp].to(dtype)
     observed = torch.where(conf[..., None] > 0, observed, 0.0)
-    weight = conf.sqrt() / cfg.costs.sigma_px
     bones = tuple((int(a), int(b)) for a, b in sk.bones())
     bone_t = torch.as_tensor(bones, dtype=torch.long)
     radii = capsule_radii(
@@ -140,7 +139,7 @@ def make_setup(problem: Problem, cfg: PcaRunConfig) -> Setup:
     corr = corr_rays = None
     if problem.correspondences is not None and p.correspondence_weight > 0:
         p1, p2, w = problem.correspondences.to(device=device, dtype=dtype).by_frame(obs.num_frames)
-        corr = (p1, p2, w.sqrt() / cfg.costs.sigma_px)
+        corr = (p1, p2, w)
         _, corr_rays = obs.camera.rays(p1)  # backprojected once per window: made once here
     return Setup(
         problem,
@@ -150,7 +149,7 @@ def make_setup(problem: Problem, cfg: PcaRunConfig) -> Setup:
         torch.as_tensor(root, device=device),
         tracked,
         observed,
-        weight,
+        conf,
         rays,
         valid,
         bones,

@@ -50,11 +50,11 @@ def place_root(s: Setup, mu0: Tensor) -> tuple[Tensor, Tensor]:
     sk, cam = s.problem.skeleton, obs.camera
     dtype, device = obs.keypoints.dtype, obs.keypoints.device
     m, y = s.m, s.cfg.pca.init_yaws
-    seen_frames = (s.weight > 0).sum(-1) >= 2
+    seen_frames = (s.confidence > 0).sum(-1) >= 2
     if not bool(seen_frames.any()):
         raise InputError("method pca: no frame shows two of the tracked joints (pca.joints)")
     frame = int(torch.nonzero(seen_frames)[0, 0])
-    seen = s.weight[frame] > 0
+    seen = s.confidence[frame] > 0
     alpha = torch.zeros(m, dtype=dtype, device=device)
     yaw = torch.arange(y, dtype=dtype, device=device) * (2 * math.pi / y)
     ref, _ = rotation_exp(torch.stack([torch.zeros_like(yaw), yaw, torch.zeros_like(yaw)], -1))  # (Y, 3, 3)

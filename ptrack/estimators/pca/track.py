@@ -9,12 +9,12 @@ from typing import cast
 import torch
 from torch import Tensor
 
-from ptrack.costs import robust_loss
+from ptrack.costs import PoseEval, Reprojection, robust_loss
 from ptrack.costs.ray_silhouette import RaySilhouette
 from ptrack.estimators.pca.config import PcaRunConfig
-from ptrack.estimators.pca.pairs import correspondence_residuals, start_pairs
+from ptrack.estimators.pca.pairs import correspondence_points, start_pairs
 from ptrack.estimators.pca.poses import orthonormal, poses_of, rotation_exp
-from ptrack.estimators.pca.setup import make_setup
+from ptrack.estimators.pca.setup import Setup, make_setup
 from ptrack.estimators.pca.start import initial_timing, place_root
 from ptrack.estimators.pca.window import (
     Prediction,
@@ -128,24 +128,33 @@ def _track(
         rest = hand_on(later_frames(problem, swing), cfg, q[swing - 1], progress)
         q = torch.cat([q[:swing], rest.q.to(q)])
     with torch.no_grad():
-        joints = sk.forward_kinematics(q)
-        # per frame, the observation terms of the final poses (the prediction terms belong to windows)
-        proj = obs.camera.project(joints[:, s.tracked])
-        r = (proj.pixels - s.observed) * s.weight[..., None]
-        terms = {
-            "joints": 0.5
-            * p.joint_weight
-            * robust_loss(cfg.costs.loss)(r.square().sum(-1), cfg.costs.robust_scale).sum(-1)
-        }
-        if s.rays is not None:
-            assert s.ray_valid is not None  # set with rays
-            sil = RaySilhouette(s.rays, s.ray_valid, obs.camera.center, s.bones, s.radii, sigma_m=p.silhouette_sigma_m)
-            terms["silhouette"] = 0.5 * p.silhouette_weight * sil.residual_per_frame(joints).square().sum(-1)
-        if s.corr is not None:
-            _, rotations = sk.forward_kinematics(q, rotations=True)
-            r_c = correspondence_residuals(s, joints, rotations)
-            assert r_c is not None  # s.corr is set
-            rho = robust_loss(cfg.costs.loss)(r_c.square().sum(-1), cfg.costs.robust_scale)
-            terms["correspondence"] = 0.5 * p.correspondence_weight * rho.sum(-1)
+        joints, rotations = sk.forward_kinematics(q, rotations=True)
+        terms = final_terms(s, joints, rotations)
     fit = MotionFit(alpha.detach(), mu.detach(), keys.to(torch.int64), tuple(s.model.key_names), modelled)
     return Estimate(q=q.detach(), joints=joints, cost=cast(Tensor, sum(terms.values())), terms=terms, motion=fit)
+
+
+def final_terms(s: Setup, joints: Tensor, rotations: Tensor) -> dict[str, Tensor]:
+    """Per frame (T,), the observation terms of the final poses, weighted as in the windows (`window_objective`;
+    the prediction terms belong to windows): world joints (T, J, 3) and rotations (T, J, 3, 3)."""
+    p, cc = s.cfg.pca, s.cfg.costs
+    cam = s.problem.observations.camera
+    proj = cam.project(joints[:, s.tracked])
+    ev = PoseEval(joints, joints, proj.pixels, proj.depth)  # q: unread
+    terms = {
+        "joints": p.joint_weight
+        * Reprojection(s.observed, s.confidence, cc.sigma_px, cc.loss, cc.robust_scale, per_problem=True).energy(ev)
+    }
+    if s.rays is not None:
+        assert s.ray_valid is not None  # set with rays
+        sil = RaySilhouette(s.rays, s.ray_valid, cam.center, s.bones, s.radii, sigma_m=p.silhouette_sigma_m)
+        rho = robust_loss(p.silhouette_loss)(sil.residual_per_frame(joints).square(), p.silhouette_scale)
+        terms["silhouette"] = 0.5 * p.silhouette_weight * rho.sum(-1)
+    moved = correspondence_points(s, joints, rotations)
+    if moved is not None:
+        points, confidence = moved
+        assert s.corr is not None  # set with the points
+        at = cam.project(points)
+        pairs = Reprojection(s.corr[1], confidence, cc.sigma_px, cc.loss, cc.robust_scale, per_problem=True)
+        terms["correspondence"] = p.correspondence_weight * pairs.energy(PoseEval(points, points, at.pixels, at.depth))
+    return terms

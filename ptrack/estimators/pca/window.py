@@ -1,5 +1,6 @@
-"""One window of the golf tracker (`method: pca`, eq. 7): its predictions (`Prediction`), the Levenberg-Marquardt
-linearisation of its energy (`window_linearization`), its state vector and box. Shapes: N states, f frames,
+"""One window of the golf tracker (`method: pca`, eq. 7): its predictions (`Prediction`), its energy from the
+shared cost terms (`window_objective`), the Levenberg-Marquardt linearisation of it (`window_linearization`: the
+state's kinematics, then the terms), its state vector and box. Shapes: N states, f frames,
 m PCA weights, K' tracked joints, P pairs, J joints."""
 
 from __future__ import annotations
@@ -11,7 +12,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ptrack.costs import robust_loss, robust_loss_derivative
+from ptrack.costs import CostTerm, Objective, PoseEval, PosePrior, Reprojection, Robust
+from ptrack.costs.base import PoseJacobian
 from ptrack.costs.ray_silhouette import RaySilhouette
 from ptrack.estimators.pca.pairs import StartBody, WindowPairs
 from ptrack.estimators.pca.poses import body_poses, rotation_exp
@@ -41,6 +43,56 @@ class Prediction:
     timing: Tensor | None = None  # (f,) the frames' start times, held by the prior of std pca.timing_sigma
 
 
+def window_objective(
+    s: Setup, frames: Tensor, pred: Prediction, silhouette: RaySilhouette | None, pairs: WindowPairs | None = None
+) -> Objective:
+    """The energy of one window (eq. 7) from the shared cost terms, over a `PoseEval` whose q is the window's
+    state x (N, m + 7 f), joints its world joints (N, f, J (+ P), 3) and pixels the projections (N, f, K' (+ P), 2)
+    of its tracked joints (and of the pairs' moved points, after them; `window_linearization`): the tracked joints'
+    robust reprojection (`Reprojection`, pca.joint_weight), the pairs' (pca.correspondence_weight), the foreground
+    samples (`RaySilhouette`, pca.silhouette_weight), and the Gaussian priors on parts of the state (`PosePrior`
+    with dofs): the predictions of alpha, mu, the root translation and rotation, alpha ~ N(0, sigma^2)
+    (pca.alpha_prior_weight) and the start's timing."""
+    p, cc = s.cfg.pca, s.cfg.costs
+    m, f = s.m, frames.shape[0]
+    device = frames.device
+    k = s.tracked.numel()
+    terms: dict[str, CostTerm] = {}
+    weights = {}
+    terms["joints"] = Reprojection(
+        s.observed[frames], s.confidence[frames], cc.sigma_px, cc.loss, cc.robust_scale, keypoints=torch.arange(k)
+    )
+    weights["joints"] = p.joint_weight
+    if pairs is not None:  # the pairs' points are projected after the tracked joints
+        n_pairs = pairs.confidence.shape[-1]
+        terms["correspondence"] = Reprojection(
+            pairs.target, pairs.confidence, cc.sigma_px, cc.loss, cc.robust_scale, keypoints=k + torch.arange(n_pairs)
+        )
+        weights["correspondence"] = p.correspondence_weight
+    if silhouette is not None:  # least squares, or robust per sample (pca.silhouette_loss)
+        robust = p.silhouette_loss != "l2"
+        terms["silhouette"] = Robust(silhouette, p.silhouette_loss, p.silhouette_scale) if robust else silhouette
+        weights["silhouette"] = p.silhouette_weight
+    fr = torch.arange(f, device=device)
+    mus = m + fr
+    t_cols = m + f + 6 * fr[:, None] + torch.arange(3, device=device)  # (f, 3) translation entries of x
+    if pred.alpha is not None:
+        terms["alpha"] = PosePrior(pred.alpha, p.alpha_sigma * s.alpha_sigma, dofs=torch.arange(m, device=device))
+    if p.alpha_prior_weight > 0:
+        terms["alpha_prior"] = PosePrior(torch.zeros_like(s.alpha_sigma), s.alpha_sigma, torch.arange(m, device=device))
+        weights["alpha_prior"] = p.alpha_prior_weight
+    if pred.mu is not None:
+        terms["time"] = PosePrior(pred.mu, p.time_sigma, dofs=mus)
+    if pred.timing is not None and p.timing_sigma is not None:
+        terms["timing"] = PosePrior(pred.timing, p.timing_sigma, dofs=mus)
+    if pred.trans is not None:
+        terms["root_position"] = PosePrior(pred.trans.flatten(), p.root_sigma_m, dofs=t_cols.flatten())
+    if pred.rotation:
+        w_cols = (t_cols + 3).flatten()  # rotation-vector entries, predicted 0
+        terms["root_rotation"] = PosePrior(s.alpha_sigma.new_zeros(3 * f), math.radians(p.root_sigma_deg), w_cols)
+    return Objective(terms, weights)
+
+
 def window_linearization(
     s: Setup,
     frames: Tensor,
@@ -51,25 +103,19 @@ def window_linearization(
     start: StartBody | None = None,
 ) -> Callable[[Tensor], Linearization]:
     """The LM `linearize` of one window: state x (N, m + 7 f) = [alpha, mu, (translation, rotation vector)
-    per frame] -> residuals, Jacobian, IRLS weights, energy. ref (N|1, f, 3, 3): the frames' reference
-    root rotations; a frame's rotation is exp(w) ref. pairs: the window's correspondences (`window_pairs`).
-    start: body poses already computed (`start_pairs`), used for a state whose alpha and mu equal its key."""
-    p, cc = s.cfg.pca, s.cfg.costs
+    per frame] -> residuals, Jacobian, IRLS weights, energy of `window_objective`. ref (N|1, f, 3, 3): the frames'
+    reference root rotations; a frame's rotation is exp(w) ref. pairs: the window's correspondences
+    (`window_pairs`). start: body poses already computed (`start_pairs`), used for a state whose alpha and mu
+    equal its key. The state's kinematics are here: the decoder's poses (`body_poses`), the joints' geometric
+    Jacobian (and the pairs' body-fixed points', one FK for both), the root's turn and shift, the camera."""
     m, f = s.m, frames.shape[0]
     sk, cam = s.problem.skeleton, s.problem.observations.camera
-    obs, w_obs = s.observed[frames], s.weight[frames]  # (f, K', 2), (f, K')
-    rho, drho = robust_loss(cc.loss), robust_loss_derivative(cc.loss)
-    scale = cc.robust_scale
-    sqrt_joint, sqrt_fg = math.sqrt(p.joint_weight), math.sqrt(p.silhouette_weight)
-    sqrt_corr = math.sqrt(p.correspondence_weight)
-    n_joints, n_tracked = sk.num_joints, s.tracked.numel()
-    seen, target, w_seen = s.tracked, obs, w_obs  # what is projected: the tracked joints, and the pairs' points
+    objective = window_objective(s, frames, pred, silhouette, pairs)
+    n_joints = sk.num_joints
+    seen = s.tracked  # what is projected: the tracked joints, and the pairs' points (joints J .. J + P - 1)
     if pairs is not None:
-        n_pairs = pairs.weight.shape[-1]
+        n_pairs = pairs.confidence.shape[-1]
         seen = torch.cat([seen, n_joints + torch.arange(n_pairs, device=seen.device)])
-        target, w_seen = torch.cat([obs, pairs.target], -2), torch.cat([w_obs, pairs.weight], -1)
-    alpha_pred_sigma = p.alpha_sigma * s.alpha_sigma
-    sqrt_prior = math.sqrt(p.alpha_prior_weight)
     fr = torch.arange(f, device=frames.device)
     t_cols = m + f + 6 * fr[:, None] + torch.arange(3, device=frames.device)  # (f, 3) translation columns
     w_cols = t_cols + 3  # rotation-vector columns
@@ -100,49 +146,13 @@ def window_linearization(
         # d joint / d w_k = (J_l e_k) x lever: (N, f, J, 3 columns k, 3 coordinates)
         dw = torch.linalg.cross(jl.mT[:, :, None], lever[..., None, :].expand(*lever.shape[:-1], 3, 3))
         dj[:, fr[:, None], :, :, w_cols] = dw.permute(1, 3, 0, 2, 4)
-        # tracked joints (and the pairs' points, projected with them): robust reprojection
         proj, dpix = cam.project_jacobian(joints[..., seen, :])
-        r_seen = (proj.pixels - target) * w_seen[..., None]  # (N, f, K' (+ P), 2) whitened
-        j_seen = (dpix @ dj[..., seen, :, :]) * w_seen[..., None, None]  # (N, f, K' (+ P), 2, P)
-        r_kp, j_kp = r_seen[..., :n_tracked, :], j_seen[..., :n_tracked, :, :]
-        sq = r_kp.square().sum(-1)
-        res = [sqrt_joint * r_kp.reshape(n, -1)]
-        jac = [sqrt_joint * j_kp.reshape(n, -1, npar)]
-        wts = [drho(sq, scale)[..., None].expand_as(r_kp).reshape(n, -1)]
-        energy = 0.5 * p.joint_weight * rho(sq, scale).flatten(1).sum(-1)
-        if pairs is not None:  # correspondences: robust reprojection of the moved points against p2
-            r_c, j_c = r_seen[..., n_tracked:, :], j_seen[..., n_tracked:, :, :]  # `reprojection_rows`
-            r_c = torch.where(pairs.weight[..., None] > 0, r_c, torch.zeros_like(r_c))  # a dropped pair's p2: anything
-            sq_c = r_c.square().sum(-1)
-            res.append(sqrt_corr * r_c.reshape(n, -1))
-            jac.append(sqrt_corr * j_c.reshape(n, -1, npar))
-            wts.append(drho(sq_c, scale)[..., None].expand_as(r_c).reshape(n, -1))
-            energy = energy + 0.5 * p.correspondence_weight * rho(sq_c, scale).flatten(1).sum(-1)
-            joints, dj = joints[..., :n_joints, :], dj[..., :n_joints, :, :]
-        plain = []  # least-squares blocks: (residual (N, M), jacobian (N, M, P) or (M, P))
-        if silhouette is not None:
-            r_fg, j_fg = silhouette.linearize_joints(joints, dj)
-            plain.append((sqrt_fg * r_fg, sqrt_fg * j_fg))
-        eye = torch.eye(npar, dtype=x.dtype, device=x.device)
-        if pred.alpha is not None:
-            plain.append(((alpha - pred.alpha) / alpha_pred_sigma, eye[:m] / alpha_pred_sigma[:, None]))
-        if sqrt_prior > 0:
-            plain.append((sqrt_prior * alpha / s.alpha_sigma, sqrt_prior * eye[:m] / s.alpha_sigma[:, None]))
-        if pred.mu is not None:
-            plain.append(((mu - pred.mu) / p.time_sigma, eye[m : m + f] / p.time_sigma))
-        if pred.timing is not None and p.timing_sigma is not None:
-            plain.append(((mu - pred.timing) / p.timing_sigma, eye[m : m + f] / p.timing_sigma))
-        if pred.trans is not None:
-            plain.append(((trans - pred.trans).reshape(n, -1) / p.root_sigma_m, eye[t_cols.flatten()] / p.root_sigma_m))
-        if pred.rotation:
-            sig = math.radians(p.root_sigma_deg)
-            plain.append((w.reshape(n, -1) / sig, eye[w_cols.flatten()] / sig))
-        for r, j in plain:
-            res.append(r)
-            jac.append(j.expand(n, *j.shape[-2:]) if j.ndim == 2 else j)
-            wts.append(torch.ones_like(r))
-            energy = energy + 0.5 * r.square().sum(-1)
-        return Linearization(torch.cat(res, -1), torch.cat(jac, -2), torch.cat(wts, -1), energy)
+        d_seen = dj[..., seen, :, :]  # (N, f, K' (+ P), 3, P)
+        depth_row = cam.R[2].to(x)[:, None]
+        ev = PoseEval(x, joints, proj.pixels, proj.depth)
+        jac = PoseJacobian(dj, dpix @ d_seen, (depth_row * d_seen).sum(-2))
+        out = objective.linearize(ev, jac)  # unfolded: residuals, Jacobian, IRLS weights, energy
+        return Linearization(out[0], out[1], out[2], out[3])
 
     return linearize
 
