@@ -32,12 +32,14 @@ class Keyframes:
     """User-given 3D poses. frames: (F,) indices into the reconstruction frames; q: (F, D);
     mask: (F, D) bool, True where a dof is given (partial keyframes), None = all given;
     sigma: (F, D) standard deviation of each given dof (radians / metres; DiFranco et al. eq. 4),
-    None = the estimator's default."""
+    None = the estimator's default; covariance: (F, D, D) the full covariance of each keyframe's given
+    dofs (radians and metres; the entries of dofs not given are not read), replacing sigma, or None."""
 
     frames: Tensor
     q: Tensor
     mask: Tensor | None = None
     sigma: Tensor | None = None
+    covariance: Tensor | None = None
 
     def __post_init__(self) -> None:
         if self.frames.ndim != 1 or self.q.ndim != 2 or self.q.shape[0] != self.frames.shape[0]:
@@ -49,27 +51,40 @@ class Keyframes:
             raise InputError(f"keyframes: mask shape {tuple(self.mask.shape)} must equal q's {tuple(self.q.shape)}")
         if self.sigma is not None and self.sigma.shape != self.q.shape:
             raise InputError(f"keyframes: sigma shape {tuple(self.sigma.shape)} must equal q's {tuple(self.q.shape)}")
+        f, d = self.q.shape
+        if self.covariance is not None and self.covariance.shape != (f, d, d):
+            raise InputError(f"keyframes: covariance shape {tuple(self.covariance.shape)} must be ({f}, {d}, {d})")
 
 
 @dataclass(frozen=True)
 class JointKeyframes:
     """User-given 3D joint positions. frames: (F,) indices into the reconstruction frames; joints:
-    (F, J, 3) metres in the world frame; mask: (F, J) bool, True where a joint is given; sigma: (F,)
-    metres, the standard deviation of each given coordinate."""
+    (F, J, 3) metres in the world frame; mask: (F, J) bool, True where a joint is given; sigma: (F, J)
+    metres, the standard deviation of each coordinate of each given joint ((F,): one per keyframe);
+    covariance: (F, 3J, 3J) the full covariance of each keyframe's joint coordinates (m^2; row 3j + c is
+    joint j's coordinate c; only the given joints' block is read), replacing sigma, or None."""
 
     frames: Tensor
     joints: Tensor
     mask: Tensor
     sigma: Tensor
+    covariance: Tensor | None = None
 
     def __post_init__(self) -> None:
         f = self.frames.shape[0]
         ok = self.frames.ndim == 1 and self.joints.ndim == 3 and self.joints.shape[0] == f and self.joints.shape[2] == 3
-        if not ok or self.mask.shape != self.joints.shape[:2] or self.sigma.shape != (f,):
+        j = self.joints.shape[1] if ok else 0
+        if not ok or self.mask.shape != self.joints.shape[:2] or self.sigma.shape not in ((f,), (f, j)):
             raise InputError(
-                f"joint keyframes: frames (F,), joints (F, J, 3), mask (F, J), sigma (F,) expected, got "
+                f"joint keyframes: frames (F,), joints (F, J, 3), mask (F, J), sigma (F, J) expected, got "
                 f"{tuple(self.frames.shape)}, {tuple(self.joints.shape)}, {tuple(self.mask.shape)}, "
                 f"{tuple(self.sigma.shape)}"
+            )
+        if self.sigma.shape == (f,):
+            object.__setattr__(self, "sigma", self.sigma[:, None].expand(f, j))
+        if self.covariance is not None and self.covariance.shape != (f, 3 * j, 3 * j):
+            raise InputError(
+                f"joint keyframes: covariance shape {tuple(self.covariance.shape)} must be ({f}, {3 * j}, {3 * j})"
             )
 
 
@@ -149,6 +164,7 @@ def later_frames(problem: Problem, start: int) -> Problem:
                 kf.q[keep],
                 kf.mask[keep] if kf.mask is not None else None,
                 kf.sigma[keep] if kf.sigma is not None else None,
+                kf.covariance[keep] if kf.covariance is not None else None,
             )
         )
     jk = problem.joint_keyframes
@@ -157,7 +173,13 @@ def later_frames(problem: Problem, start: int) -> Problem:
         jk = (
             None
             if not bool(keep.any())
-            else JointKeyframes(jk.frames[keep] - start, jk.joints[keep], jk.mask[keep], jk.sigma[keep])
+            else JointKeyframes(
+                jk.frames[keep] - start,
+                jk.joints[keep],
+                jk.mask[keep],
+                jk.sigma[keep],
+                jk.covariance[keep] if jk.covariance is not None else None,
+            )
         )
     return Problem(problem.skeleton, problem.keypoints, sliced, kf, jk, None, problem.floor)
 

@@ -10,6 +10,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
+from ptrack.body.limits import wrapped_difference
 from ptrack.checks import as_float_tensor
 from ptrack.costs.base import (
     LeastSquaresMixin,
@@ -179,7 +180,9 @@ class Smoothness(LeastSquaresMixin):
     on="q": x = ev.q (..., T, D), dof_scale (D,); on="joints": x = ev.joints (..., T, J, 3),
     dof_scale (J,). residual = concat of (x[t+1] - x[t]) / (dt sigma_velocity) over t < T-1 and
     (x[t+1] - 2x[t] + x[t-1]) / (dt^2 sigma_acceleration), each times dof_scale and flattened:
-    (..., (T-1)*E + (T-2)*E) for E entries per frame. A None sigma drops that part.
+    (..., (T-1)*E + (T-2)*E) for E entries per frame. A None sigma drops that part. The residual is
+    linear in x: each part's Jacobian is the n-th forward difference over time times dof_scale / (dt^n
+    sigma), whose normal equations are banded (`ptrack.optim.trajectory.weighted_band`).
     """
 
     dt: float
@@ -209,20 +212,63 @@ class Smoothness(LeastSquaresMixin):
                 f"Smoothness(on={self.on!r}) needs a trajectory (..., T, {'D' if n == 2 else 'J, 3'}), "
                 f"got {shape_of(x)}"
             )
-        if self.dof_scale is not None:
-            if self.dof_scale.shape[0] != x.shape[-n + 1]:
-                raise InputError(
-                    f"Smoothness.dof_scale {shape_of(self.dof_scale)} does not match {self.on} of shape {shape_of(x)}"
-                )
-            x = x * (self.dof_scale.to(x) if n == 2 else self.dof_scale.to(x)[:, None])
+        if self.dof_scale is not None and self.dof_scale.shape[0] != x.shape[-n + 1]:
+            raise InputError(
+                f"Smoothness.dof_scale {shape_of(self.dof_scale)} does not match {self.on} of shape {shape_of(x)}"
+            )
+        scale = None if self.dof_scale is None else self.dof_scale.to(x) if n == 2 else self.dof_scale.to(x)[:, None]
         parts = []
-        if self.sigma_velocity is not None:
-            parts.append(torch.diff(x, n=1, dim=-n) / (self.dt * self.sigma_velocity))
-        if self.sigma_acceleration is not None:
-            parts.append(torch.diff(x, n=2, dim=-n) / (self.dt**2 * self.sigma_acceleration))
+        for order, sigma in ((1, self.sigma_velocity), (2, self.sigma_acceleration)):
+            if sigma is not None:
+                diff = torch.diff(x, n=order, dim=-n)
+                parts.append((diff if scale is None else scale * diff) / (self.dt**order * sigma))
         if not parts:
             return x.new_zeros(x.shape[:-n] + (0,))
         return torch.cat([p.flatten(-n) for p in parts], dim=-1)
+
+
+def whitening(name: str, covariance: Tensor, mask: Tensor, diagonal: bool | None = None) -> Tensor:
+    """The whitening matrices of F keyframes whose N entries are given where mask (F, N) is True:
+    covariance (N, N) or (F, N, N) full, or (N,) / (F, N) variances (a 2-D covariance is ambiguous when
+    F == N: then say `diagonal=`); inf variances count as not given. -> W (F, N, N) float64 with
+    W_f = L_S^{-1} on the given entries S of keyframe f (L_S the Cholesky factor of their
+    sub-covariance) and zero rows and columns elsewhere, so |W_f e|^2 is the Mahalanobis distance of
+    the given entries of e. InputError naming `name` on shapes, NaN/inf, asymmetry and covariances of
+    the given entries that are not positive definite."""
+    n_f, d = mask.shape
+    cov = as_float_tensor(covariance, "covariance").double()
+    if diagonal is None:
+        if cov.ndim == 2 and n_f == d:
+            raise InputError(
+                f"{name}.covariance {shape_of(cov)} is ambiguous with F == D == "
+                f"{d}: pass diagonal=True (per-keyframe variances) or False"
+            )
+        diagonal = cov.ndim == 1 or (cov.ndim == 2 and cov.shape == (n_f, d) and n_f != d)
+    m = mask.double()
+    if diagonal:
+        if shape_of(cov) not in ((d,), (n_f, d)):
+            raise InputError(f"{name}.covariance (diagonal) must be (D,) or (F, D) = ({n_f}, {d}), got {shape_of(cov)}")
+        if cov.isnan().any() or (cov <= 0).any():
+            raise InputError(f"{name}.covariance variances must be > 0 (inf = unset)")
+        return torch.diag_embed(m * cov.expand(n_f, d).rsqrt())
+    if shape_of(cov) not in ((d, d), (n_f, d, d)):
+        raise InputError(f"{name}.covariance must be (D, D) or (F, D, D) with D={d}, F={n_f}, got {shape_of(cov)}")
+    cov = cov.expand(n_f, d, d)
+    keep = mask[:, :, None] & mask[:, None, :]
+    if not torch.isfinite(cov[keep]).all() or not torch.allclose(
+        torch.where(keep, cov, 0.0), torch.where(keep, cov.mT, 0.0), atol=1e-9
+    ):
+        raise InputError(f"{name}.covariance must be finite and symmetric")
+    eye = torch.eye(d, dtype=cov.dtype).expand_as(cov)
+    chol, info = torch.linalg.cholesky_ex(torch.where(keep, cov, eye))
+    if (info != 0).any():
+        raise InputError(
+            f"{name}.covariance of the kept entries is not positive definite "
+            f"for keyframes {(info != 0).nonzero().flatten().tolist()}"
+        )
+    # Kept and masked entries are uncoupled in the patched matrix, so its inverse factor is L_S^{-1} on
+    # the kept block; zeroing the masked rows leaves exactly that.
+    return torch.linalg.solve_triangular(chol, eye, upper=False) * m[:, :, None]
 
 
 @dataclass(frozen=True, eq=False)
@@ -232,10 +278,12 @@ class Keyframe(LeastSquaresMixin):
     times (F,) frame indices; target (F, D); covariance (D, D) or (F, D, D) full, or (D,) / (F, D)
     variances (a 2-D covariance is ambiguous when F == D: then say `diagonal=`); mask (F, D) bool,
     True = dof set by the keyframe (None: all). Masked-out dofs have infinite variance: the residual
-    whitens the kept entries with the Cholesky factor of their sub-covariance,
+    whitens the kept entries with the Cholesky factor of their sub-covariance (`whitening`),
     r_j = L_S^{-1}(q[t_j] - f_j)_S, and is 0 for the masked ones, so |r_j|^2 is the Mahalanobis
     distance of the kept dofs. Diagonal variances may be inf (= masked); target may be NaN where
-    masked. residual (..., F*D), energy (...,).
+    masked. angular (D,) bool or None: the differences of those dofs (angles) are taken on the circle,
+    in [-pi, pi) (`wrapped_difference`). residual (..., F*D), energy (...,). The residual is linear in
+    the keyframes' poses: d r_f / d q[t_f] = `whiten` (F, D, D), r_f = `frame_residual`.
     """
 
     times: Tensor
@@ -243,6 +291,7 @@ class Keyframe(LeastSquaresMixin):
     covariance: Tensor
     mask: Tensor | None = None
     diagonal: bool | None = None
+    angular: Tensor | None = None
     _whiten: Tensor = field(init=False, repr=False)
     _target: Tensor = field(init=False, repr=False)
     _last: int = field(init=False, repr=False)
@@ -255,50 +304,29 @@ class Keyframe(LeastSquaresMixin):
         mask = check_mask("Keyframe.mask", self.mask, (n_f, d))
         if not torch.isfinite(target[mask]).all():
             raise InputError("Keyframe.target has NaN/inf at dofs the mask keeps")
-        cov = as_float_tensor(self.covariance, "covariance").double()
-        diagonal = self.diagonal
-        if diagonal is None:
-            if cov.ndim == 2 and n_f == d:
-                raise InputError(
-                    f"Keyframe.covariance {shape_of(cov)} is ambiguous with F == D == "
-                    f"{d}: pass diagonal=True (per-keyframe variances) or False"
-                )
-            diagonal = cov.ndim == 1 or (cov.ndim == 2 and cov.shape == (n_f, d) and n_f != d)
-        m = mask.double()
-        if diagonal:
-            if shape_of(cov) not in ((d,), (n_f, d)):
-                raise InputError(
-                    f"Keyframe.covariance (diagonal) must be (D,) or (F, D) = ({n_f}, {d}), got {shape_of(cov)}"
-                )
-            if cov.isnan().any() or (cov <= 0).any():
-                raise InputError("Keyframe.covariance variances must be > 0 (inf = unset)")
-            whiten = torch.diag_embed(m * cov.expand(n_f, d).rsqrt())
-        else:
-            if shape_of(cov) not in ((d, d), (n_f, d, d)):
-                raise InputError(
-                    f"Keyframe.covariance must be (D, D) or (F, D, D) with D={d}, F={n_f}, got {shape_of(cov)}"
-                )
-            cov = cov.expand(n_f, d, d)
-            if not torch.isfinite(cov).all() or not torch.allclose(cov, cov.mT, atol=1e-9):
-                raise InputError("Keyframe.covariance must be finite and symmetric")
-            keep = mask[:, :, None] & mask[:, None, :]
-            eye = torch.eye(d, dtype=cov.dtype).expand_as(cov)
-            chol, info = torch.linalg.cholesky_ex(torch.where(keep, cov, eye))
-            if (info != 0).any():
-                raise InputError(
-                    f"Keyframe.covariance of the kept dofs is not positive definite "
-                    f"for keyframes {(info != 0).nonzero().flatten().tolist()}"
-                )
-            # Kept and masked dofs are uncoupled in the patched matrix, so its inverse factor is
-            # L_S^{-1} on the kept block; zeroing the masked rows leaves exactly that.
-            inv = torch.linalg.solve_triangular(chol, eye, upper=False)
-            whiten = inv * m[:, :, None]
+        if self.angular is not None:
+            angular = torch.as_tensor(self.angular)
+            if angular.dtype != torch.bool or shape_of(angular) != (d,):
+                raise InputError(f"Keyframe.angular must be a bool tensor of shape ({d},), got {shape_of(angular)}")
+            object.__setattr__(self, "angular", angular)
         object.__setattr__(self, "times", times)
         object.__setattr__(self, "target", target)
         object.__setattr__(self, "mask", mask)
-        object.__setattr__(self, "_whiten", whiten)
+        object.__setattr__(self, "_whiten", whitening("Keyframe", self.covariance, mask, self.diagonal))
         object.__setattr__(self, "_target", torch.where(mask, target, 0.0))
         object.__setattr__(self, "_last", int(times.max()) if n_f else -1)
+
+    @property
+    def whiten(self) -> Tensor:
+        """(F, D, D) float64: each keyframe's whitening matrix, the Jacobian of its residual w.r.t. its pose."""
+        return self._whiten
+
+    def frame_residual(self, q: Tensor) -> Tensor:
+        """The keyframes' poses q (..., F, D) (the trajectory at `times`) -> (..., F, D) whitened residuals."""
+        e = q - self._target.to(q)
+        if self.angular is not None:
+            e = wrapped_difference(e, self.angular.to(q.device))
+        return torch.einsum("fij,...fj->...fi", self._whiten.to(q), e)
 
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.q (..., T, D) -> (..., F*D) whitened keyframe residuals."""
@@ -306,24 +334,29 @@ class Keyframe(LeastSquaresMixin):
         if q.ndim < 2 or q.shape[-1] != self.target.shape[1]:
             raise InputError(f"Keyframe: ev.q {shape_of(q)} must be (..., T, {self.target.shape[1]})")
         check_frame_count("Keyframe", q, self._last, -2)
-        e = q.index_select(-2, self.times.to(q.device)) - self._target.to(q)
-        return torch.einsum("fij,...fj->...fi", self._whiten.to(q), e).flatten(-2)
+        return self.frame_residual(q.index_select(-2, self.times.to(q.device))).flatten(-2)
 
 
 @dataclass(frozen=True, eq=False)
 class JointKeyframe(LeastSquaresMixin):
     """User-given 3D joint positions at some frames, on ev.joints (..., T, J, 3).
 
-    times (F,), target_joints (F, J, 3) metres (NaN allowed where masked), mask (F, J) bool or
-    None (all), sigma_m metres. residual = mask (joints[t_f] - target) / sigma_m, (..., F*J*3).
+    times (F,), target_joints (F, J, 3) metres (NaN allowed where masked), mask (F, J) bool or None
+    (all); sigma_m metres: a float, or (F, J) per given joint, the std of each of its coordinates;
+    covariance (F, 3J, 3J) or None: the full covariance of each keyframe's joint coordinates (row 3j + c
+    is joint j's coordinate c; m^2; only the given joints' block is read), replacing sigma_m.
+    residual = W_f (joints[t_f] - target_f) flattened per frame (`whitening`: the given joints' Cholesky
+    whitening, 0 for the others; with sigma_m alone, mask (joints - target) / sigma_m), (..., F*J*3). The
+    residual is linear in the joints: d r_f / d joints[t_f] = `whiten` (F, 3J, 3J).
     """
 
     times: Tensor
     target_joints: Tensor
     mask: Tensor | None = None
-    sigma_m: float = 0.05
+    sigma_m: float | Tensor = 0.05
+    covariance: Tensor | None = None
     _target: Tensor = field(init=False, repr=False)
-    _weight: Tensor = field(init=False, repr=False)
+    _whiten: Tensor = field(init=False, repr=False)
     _last: int = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -333,16 +366,45 @@ class JointKeyframe(LeastSquaresMixin):
             raise InputError(
                 f"JointKeyframe.target_joints must have shape (F={times.shape[0]}, J, 3), got {shape_of(target)}"
             )
-        mask = check_mask("JointKeyframe.mask", self.mask, shape_of(target)[:2])
+        n_f, j = shape_of(target)[:2]
+        mask = check_mask("JointKeyframe.mask", self.mask, (n_f, j))
         if not torch.isfinite(target[mask]).all():
             raise InputError("JointKeyframe.target_joints has NaN/inf at joints the mask keeps")
-        check_positive("JointKeyframe.sigma_m", self.sigma_m)
+        sigma = as_float_tensor(self.sigma_m, "sigma_m")
+        if sigma.ndim not in (0, 2) or (sigma.ndim == 2 and shape_of(sigma) != (n_f, j)):
+            raise InputError(f"JointKeyframe.sigma_m must be a float or shape ({n_f}, {j}), got {shape_of(sigma)}")
+        check_positive("JointKeyframe.sigma_m", sigma[mask] if sigma.ndim else sigma)
+        coords = mask.repeat_interleave(3, -1)  # (F, 3J)
+        if self.covariance is None:
+            variance = sigma.double().square().expand(n_f, j).repeat_interleave(3, -1)
+            variance = torch.where(coords, variance, 1.0)  # not read: a masked joint's sigma may be anything
+            whiten = whitening("JointKeyframe", variance, coords, diagonal=True)
+        else:
+            whiten = whitening("JointKeyframe", self.covariance, coords, diagonal=False)
         object.__setattr__(self, "times", times)
         object.__setattr__(self, "target_joints", target)
         object.__setattr__(self, "mask", mask)
+        object.__setattr__(self, "sigma_m", sigma)
         object.__setattr__(self, "_target", torch.where(mask[..., None], target, 0.0))
-        object.__setattr__(self, "_weight", mask[..., None].to(target.dtype) / self.sigma_m)
+        object.__setattr__(self, "_whiten", whiten)
         object.__setattr__(self, "_last", int(times.max()) if times.numel() else -1)
+
+    @property
+    def whiten(self) -> Tensor:
+        """(F, 3J, 3J) float64: each keyframe's whitening matrix, the Jacobian of its residual w.r.t. its
+        flattened joints."""
+        return self._whiten
+
+    @property
+    def joints_given(self) -> tuple[int, ...]:
+        """The joints some keyframe gives (the residual does not depend on the others)."""
+        assert self.mask is not None  # set by __post_init__
+        return tuple(torch.nonzero(self.mask.any(0)).flatten().tolist())
+
+    def frame_residual(self, joints: Tensor) -> Tensor:
+        """The keyframes' joints (..., F, J, 3) (the trajectory's at `times`) -> (..., F, 3J) whitened residuals."""
+        e = (joints - self._target.to(joints)).flatten(-2)
+        return torch.einsum("fij,...fj->...fi", self._whiten.to(joints), e)
 
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.joints (..., T, J, 3) -> (..., F*J*3)."""
@@ -352,8 +414,7 @@ class JointKeyframe(LeastSquaresMixin):
                 f"JointKeyframe: ev.joints {shape_of(x)} must be (..., T, {self.target_joints.shape[1]}, 3)"
             )
         check_frame_count("JointKeyframe", x, self._last, -3)
-        e = x.index_select(-3, self.times.to(x.device)) - self._target.to(x)
-        return (e * self._weight.to(x)).flatten(-3)
+        return self.frame_residual(x.index_select(-3, self.times.to(x.device))).flatten(-2)
 
 
 @dataclass(frozen=True, eq=False)

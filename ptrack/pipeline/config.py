@@ -231,7 +231,30 @@ class KeyframesConfig:
     last: bool = setting(False, "ground truth at the last frame too")
     noise_deg: float = setting(0.0, "Gaussian noise (std, degrees) added to the ground-truth keyframes' angles")
     sigma_deg: float = setting(2.0, "prior std of a ground-truth keyframe's angles (and a file's default), degrees")
-    sigma_m: float = setting(0.02, "prior std of a ground-truth keyframe's root position (and a file's default), m")
+    sigma_m: float = setting(
+        0.02, "prior std of a ground-truth keyframe's root position and joints (and a file's default), m"
+    )
+    joints: tuple[str, ...] = setting(
+        (),
+        "ground truth after frame 0 gives only these joints' 3D positions (skeleton joint names, e.g. root, "
+        "lwrist), not the pose; frame 0 stays a full pose (the start); empty: the whole pose",
+    )
+    dofs: tuple[str, ...] = setting(
+        (),
+        "ground truth after frame 0 gives only these dofs (names or shell patterns, e.g. 'root.*'), with "
+        "keyframes.joints too if given; empty: every dof unless keyframes.joints is given",
+    )
+    noise_m: float = setting(
+        0.0, "Gaussian noise (std, m) added to the ground-truth joint keyframes across the camera's view"
+    )
+    depth_noise_m: float = setting(
+        0.0, "Gaussian noise (std, m) added to the ground-truth joint keyframes along the camera's optical axis"
+    )
+    joint_covariance: str = setting(
+        "full",
+        "prior of the ground-truth joint keyframes: full (the covariance of their noise plus sigma_m^2, "
+        "depth apart from the image plane) or diagonal (its world-axis variances only)",
+    )
 
 
 @dataclass(frozen=True)
@@ -603,6 +626,13 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     for key in ("sigma_deg", "sigma_m"):
         if not getattr(kf, key) > 0:
             raise InputError(f"config key 'keyframes.{key}' must be positive, got {getattr(kf, key)}")
+    for key in ("noise_m", "depth_noise_m"):
+        if not getattr(kf, key) >= 0:
+            raise InputError(f"config key 'keyframes.{key}' must be >= 0, got {getattr(kf, key)}")
+    if kf.joint_covariance not in ("full", "diagonal"):
+        raise InputError(
+            f"config key 'keyframes.joint_covariance' must be 'full' or 'diagonal', got {kf.joint_covariance!r}"
+        )
     b = cfg.batch
     validate_batch(b)
     if b.upsample > 1 and cfg.data.stride % b.upsample:

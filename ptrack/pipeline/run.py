@@ -54,7 +54,7 @@ from ptrack.observe.silhouette import capsule_radii, render_silhouettes
 from ptrack.pipeline import metrics as M
 from ptrack.pipeline.config import RunConfig, check_device, dump_yaml
 from ptrack.pipeline.footage import FootageFrame, keypoints_in_world, prepare_footage
-from ptrack.pipeline.keyframes import ground_truth_keyframes, read_keyframes
+from ptrack.pipeline.keyframes import ground_truth_joint_keyframes, ground_truth_keyframes, read_keyframes
 from ptrack.pipeline.memory import check_memory
 from ptrack.problem import Estimate, Floor, Problem
 
@@ -246,6 +246,8 @@ def prepare(cfg: RunConfig, work_dir: Path | None = None) -> Prepared:
     if kc.file:
         keyframes, joint_keyframes = read_keyframes(kc.file, model, obs.num_frames, kc.sigma_deg, kc.sigma_m, dtype)
     elif gt_q is not None:  # the clip's own poses play the user's 3D keyframes (frame 0 unless keyframes.* ask more)
+        partial = bool(kc.dofs or kc.joints)
+        kf_gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 2)
         keyframes = ground_truth_keyframes(
             gt_q,
             obs.times,
@@ -255,8 +257,25 @@ def prepare(cfg: RunConfig, work_dir: Path | None = None) -> Prepared:
             kc.noise_deg,
             kc.sigma_deg,
             kc.sigma_m,
-            torch.Generator(device="cpu").manual_seed(cfg.seed + 2),
+            kf_gen,
+            tuple(kc.dofs) if partial else None,
         )
+        if kc.joints:
+            assert gt_joints is not None  # with gt_q
+            joint_keyframes = ground_truth_joint_keyframes(
+                gt_joints,
+                obs.times,
+                model,
+                tuple(kc.joints),
+                kc.every_s,
+                kc.last,
+                kc.sigma_m,
+                kc.noise_m,
+                kc.depth_noise_m,
+                obs.camera.R,
+                kc.joint_covariance == "full",
+                kf_gen,
+            )
     problem = Problem(
         skeleton=model,
         keypoints=kps,

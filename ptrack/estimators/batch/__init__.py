@@ -5,18 +5,22 @@ For the trajectory Q = (q_0 .. q_{T-1}), q_t (D,), the energy is
 
     L(Q) = sum_t [ robust reprojection_t(q_t) + joint limits_t(q_t) ]        per frame (eqs. 1, 2)
          + 1/2 sum_n sum_t,d rho(|a_n * diff_n(Q)_t,d|^2)                   smoothing (eq. 3), n = 1, 2
-         + 1/2 sum_f |(q_{t_f} - f_f) / sigma_f|^2 over the given dofs       angle keyframes (eq. 4)
-         + 1/2 sum_g |(X_j(q_{t_g}) - x_g) / sigma_g|^2 over the given joints joint-position keyframes
+         + 1/2 sum_f |L_f^{-1} (q_{t_f} - f_f)_S|^2 over the given dofs S     angle keyframes (eq. 4)
+         + 1/2 sum_g |M_g^{-1} (X(q_{t_g}) - x_g)_G|^2 over the given joints G joint-position keyframes
 
-with a_1 = 1 / (dt sigma_velocity), a_2 = 1 / (dt^2 sigma_acceleration) per dof: by default
-(`batch.prior: cmu`) each CMU dof's own scale, the RMS velocity and acceleration of real motion
-(`ptrack/data/cmu_smoothing.json`, fitted to the dev clips by `scripts/make_smoothing_prior.py`: a
-knee accelerates at ~27 rad/s^2, the head at ~7), else `batch.velocity_sigma` / `accel_sigma` for
-angles and `*_sigma_m` for the root position; the root translations' velocity term holds only those
-`batch.root_velocity` names (`all`; `vertical`: a constant walking velocity on the ground costs
-nothing, only its changes do). rho is `batch.smooth_loss` at `batch.smooth_scale`
-prior std (default Cauchy at 2: quadratic for the motion the prior expects, logarithmic for faster
-motion, so a run's legs are not pulled flat; l2 is the paper's Gaussian). Missing keypoints
+with L_f L_f^T the covariance R_f of keyframe f's given dofs (its sigmas squared on the diagonal unless the
+keyframe gives a full covariance; angle differences on the circle) and M_g M_g^T that of keyframe g's given
+joint coordinates: the shared terms `ptrack.costs.Keyframe` and `JointKeyframe`. Every term is a shared cost
+term (`Reprojection`, `JointLimits`, `Smoothness`, `Keyframe`, `JointKeyframe`), their normal equations summed
+by the banded trajectory assembler `ptrack.optim.trajectory`. And a_1 = 1 / (dt sigma_velocity), a_2 = 1 /
+(dt^2 sigma_acceleration) per dof: by default (`batch.prior: cmu`) each CMU dof's own scale, the RMS velocity
+and acceleration of real motion (`ptrack/data/cmu_smoothing.json`, fitted to the dev clips by
+`scripts/make_smoothing_prior.py`: a knee accelerates at ~27 rad/s^2, the head at ~7), else
+`batch.velocity_sigma` / `accel_sigma` for angles and `*_sigma_m` for the root position; the root
+translations' velocity term holds only those `batch.root_velocity` names (`all`; `vertical`: a constant
+walking velocity on the ground costs nothing, only its changes do). rho is `batch.smooth_loss` at
+`batch.smooth_scale` prior std (default Cauchy at 2: quadratic for the motion the prior expects, logarithmic
+for faster motion, so a run's legs are not pulled flat; l2 is the paper's Gaussian). Missing keypoints
 (confidence 0) and frames without any 2D add nothing: the dynamics fill them, which is how
 `batch.upsample` reconstructs frames between the observed ones. The per-frame terms give the
 diagonal blocks J_t^T W J_t of the Gauss-Newton Hessian (J_t from the geometric joint Jacobian, one

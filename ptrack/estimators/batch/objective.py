@@ -7,21 +7,30 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, NamedTuple
 
-import numpy as np
 import torch
 from torch import Tensor
 
-from ptrack.body.limits import wrap_to_limits, wrapped_difference
+from ptrack.body.limits import wrap_to_limits
 from ptrack.body.pose_prior import smoothing_prior
-from ptrack.costs import PoseEval, Reprojection, robust_loss, robust_loss_derivative
+from ptrack.costs import (
+    JointKeyframe,
+    JointLimits,
+    Keyframe,
+    PoseEval,
+    Reprojection,
+    Smoothness,
+    robust_loss,
+    robust_loss_derivative,
+)
 from ptrack.costs.base import PoseJacobian
 from ptrack.errors import InputError
 from ptrack.estimators.batch.config import ROOT_VELOCITY
-from ptrack.estimators.batch.smoothing import band_matvec, robust_smoothing, smoothing_band
-from ptrack.optim.banded import numpy_path
-from ptrack.optim.jacobians import joint_jacobian, joint_jacobian_product
+from ptrack.estimators.batch.smoothing import band_matvec, robust_smoothing, smoothing_band, smoothing_terms
+from ptrack.optim.jacobians import joint_jacobian_product
+from ptrack.optim.trajectory import FrameRows, add_all_frames, add_diagonal_rows, add_frame_rows, joint_rows
 from ptrack.problem import Problem
 from ptrack.threads import on_two_threads, parallel_halves
 
@@ -31,36 +40,64 @@ _MIN_PART = 32  # `evaluate` splits the frames in two halves for two threads fro
 @dataclass(frozen=True, eq=False)
 class Trajectory:
     """The MAP objective of one sequence of T frames (D dofs, J joints, K keypoints); see
-    `ptrack.estimators.batch`. Built by `trajectory_objective`.
+    `ptrack.estimators.batch`. Built by `trajectory_objective`; its per-frame terms are the shared cost
+    terms of `ptrack.costs`, linearised by `evaluate` through the banded trajectory assembler
+    (`ptrack.optim.trajectory`).
 
-    reprojection: `Reprojection` on observed (T, K, 2); lower, upper (D,) joint limits; limits_scale
-    sqrt(weight) / sigma of their barrier (eq. 2); hard_limits: whether the solver also keeps every
-    iterate inside [lower, upper] (`box`; then the barrier is 0 throughout); smooth: ((n, a_n (D,)),
-    ...) difference order and per-dof weight;
+    reprojection: `Reprojection` on observed (T, K, 2); lower, upper (D,) joint limits; limits_sigma: the
+    violation (radians / metres) their barrier (eq. 2) prices at energy 1/2, costs.limits_sigma /
+    sqrt(costs.limits_weight) (None: no barrier), whose term is `limits`;
+    hard_limits: whether the solver also keeps every iterate inside [lower, upper] (`box`; then the
+    barrier is 0 throughout); smooth: ((n, a_n (D,)), ...) difference order and per-dof weight;
     band (T, W+1, D) the smoothing Hessian (band[t, k] = its (t, t-k) diagonal block's diagonal);
-    kf_frames (F,), kf_target (F, D), kf_weight (F, D) = 1/sigma (0 where not given), angular (D,)
-    bool; jk_frames (G,), jk_target (G, J, 3), jk_weight (G, J) = 1/sigma (0 where not given),
-    jk_joints the joints some joint keyframe gives (the others' weights are all 0).
+    keyframe: the angle keyframes, `Keyframe` (full or diagonal covariance, partial ones masked, angles
+    compared on the circle) or None; joint_keyframe: the joint-position keyframes, `JointKeyframe` or
+    None; angular (D,) bool; kf_frames (F,), kf_target (F, D) (0 where not given) and kf_weight (F, D) =
+    1 / the marginal std of each given dof (0 where not given): the angle keyframes as `warp_to_keyframes`
+    reads them.
     """
 
     problem: Problem
     reprojection: Reprojection
     lower: Tensor
     upper: Tensor
-    limits_scale: float
+    limits_sigma: float | None
     smooth: tuple[tuple[int, Tensor], ...]
     band: Tensor
+    keyframe: Keyframe | None
+    joint_keyframe: JointKeyframe | None
+    angular: Tensor
     kf_frames: Tensor
     kf_target: Tensor
     kf_weight: Tensor
-    angular: Tensor
-    jk_frames: Tensor
-    jk_target: Tensor
-    jk_weight: Tensor
-    jk_joints: tuple[int, ...]
     smooth_loss: str = "l2"
     smooth_scale: float = 1.0
     hard_limits: bool = True
+
+    @property
+    def jk_frames(self) -> Tensor:
+        """(G,) the frames of the joint-position keyframes."""
+        jk = self.joint_keyframe
+        return self.kf_frames.new_zeros(0) if jk is None else jk.times.to(self.kf_frames.device)
+
+    @cached_property
+    def smooth_terms(self) -> tuple[tuple[int, Smoothness], ...]:
+        """`smooth` as the shared `Smoothness` terms (`smoothing_terms`)."""
+        return smoothing_terms(self.smooth)
+
+    @cached_property
+    def limits(self) -> JointLimits | None:
+        """The joint-limit barrier, `JointLimits` on [lower, upper] (read on each angle's nearest turn into
+        the limits, `evaluate`), None without one."""
+        if self.limits_sigma is None:
+            return None
+        sigma = torch.tensor(self.limits_sigma, dtype=self.lower.dtype, device=self.lower.device)  # not float32
+        return JointLimits(self.lower, self.upper, sigma)
+
+    @property
+    def limits_scale(self) -> float:
+        """sqrt(costs.limits_weight) / costs.limits_sigma: the barrier's residual per unit of violation."""
+        return 0.0 if self.limits_sigma is None else 1.0 / self.limits_sigma
 
     def box(self) -> tuple[Tensor, Tensor]:
         """The solver's bounds (D,), (D,): the joint limits with `hard_limits`, else none (+-inf: the
@@ -125,55 +162,69 @@ def trajectory_objective(
     like = torch.zeros(d, dtype=dtype, device=device)
     band = smoothing_band(t_len, tuple(smooth), like)
 
-    kf = problem.keyframes
-    if kf is not None:
-        frames = kf.frames.to(device=device, dtype=torch.long)
-        mask = torch.ones_like(kf.q, dtype=torch.bool) if kf.mask is None else kf.mask
-        mask = mask.to(device)
-        default = torch.where(trans, cfg.keyframes.sigma_m, math.radians(cfg.keyframes.sigma_deg)).to(dtype)
-        sigma = default.expand(kf.q.shape) if kf.sigma is None else kf.sigma.to(device=device, dtype=dtype)
-        target = torch.where(mask, kf.q.to(device=device, dtype=dtype), 0.0)
-        target = wrap_to_limits(target, *sk.limits(dtype=dtype, device=device), angular)
-        kf_frames, kf_target, kf_weight = frames, target, torch.where(mask, 1.0 / sigma, 0.0)
-    else:
-        kf_frames, kf_target, kf_weight = (
-            torch.zeros(0, dtype=torch.long, device=device),
-            like.new_zeros(0, d),
-            like.new_zeros(0, d),
-        )
-    jk = problem.joint_keyframes
-    j = sk.num_joints
-    if jk is not None:
-        mask = jk.mask.to(device)
-        jk_frames = jk.frames.to(device=device, dtype=torch.long)
-        jk_target = torch.where(mask[..., None], jk.joints.to(device=device, dtype=dtype), 0.0)
-        jk_weight = torch.where(mask, 1.0 / jk.sigma.to(device=device, dtype=dtype)[:, None], 0.0)
-    else:
-        jk_frames = torch.zeros(0, dtype=torch.long, device=device)
-        jk_target, jk_weight = like.new_zeros(0, j, 3), like.new_zeros(0, j)
+    keyframe, kf_frames, kf_target, kf_weight = _angle_keyframes(problem, cfg, angular, dtype, device)
+    joint_keyframe = _joint_keyframes(problem)
+    jk_frames = kf_frames.new_zeros(0) if joint_keyframe is None else joint_keyframe.times
     for name, fr in (("keyframe", kf_frames), ("joint keyframe", jk_frames)):
         if fr.numel() and (int(fr.min()) < 0 or int(fr.max()) >= t_len):
             raise InputError(f"a {name} at frame {int(fr.max())} lies outside the {t_len} reconstructed frames")
+    barrier = cc.limits_sigma / math.sqrt(cc.limits_weight) if cc.limits_weight > 0 else None
     return Trajectory(
         problem,
         reproj,
         lower,
         upper,
-        math.sqrt(cc.limits_weight) / cc.limits_sigma,
+        barrier,
         tuple(smooth),
         band,
+        keyframe,
+        joint_keyframe,
+        angular,
         kf_frames,
         kf_target,
         kf_weight,
-        angular,
-        jk_frames,
-        jk_target,
-        jk_weight,
-        tuple(torch.nonzero((jk_weight != 0).any(0)).flatten().tolist()),
         bc.smooth_loss,
         bc.smooth_scale,
         bc.hard_limits,
     )
+
+
+def _angle_keyframes(
+    problem: Problem, cfg, angular: Tensor, dtype: torch.dtype, device: torch.device
+) -> tuple[Keyframe | None, Tensor, Tensor, Tensor]:
+    """The problem's angle keyframes as the shared `Keyframe` term: each given dof's std (`Keyframes.sigma`,
+    else `keyframes.sigma_deg` / `sigma_m`) or each keyframe's full covariance, targets written in the limits'
+    2 pi window, differences on the circle. -> (term or None, frames (F,), target (F, D), 1 / marginal std
+    (F, D), 0 where not given)."""
+    sk, kf, d = problem.skeleton, problem.keyframes, problem.skeleton.num_dofs
+    if kf is None:
+        empty = torch.zeros(0, d, dtype=dtype, device=device)
+        return None, torch.zeros(0, dtype=torch.long, device=device), empty, empty
+    trans = ~angular
+    frames = kf.frames.to(device=device, dtype=torch.long)
+    mask = (torch.ones_like(kf.q, dtype=torch.bool) if kf.mask is None else kf.mask).to(device)
+    target = torch.where(mask, kf.q.to(device=device, dtype=dtype), 0.0)
+    target = wrap_to_limits(target, *sk.limits(dtype=dtype, device=device), angular)
+    if kf.covariance is not None:
+        covariance = kf.covariance.to(device=device, dtype=dtype)
+        std = covariance.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
+        term = Keyframe(frames, target, covariance, mask, diagonal=False, angular=angular)
+    else:
+        default = torch.where(trans, cfg.keyframes.sigma_m, math.radians(cfg.keyframes.sigma_deg)).to(dtype)
+        std = default.expand(kf.q.shape) if kf.sigma is None else kf.sigma.to(device=device, dtype=dtype)
+        variance = torch.where(mask, std, 1.0).square()  # a dof not given is not read
+        term = Keyframe(frames, target, variance, mask, diagonal=True, angular=angular)
+    weight = torch.where(mask, 1.0 / torch.where(mask, std, 1.0), 0.0)
+    return term, frames, target, weight
+
+
+def _joint_keyframes(problem: Problem) -> JointKeyframe | None:
+    """The problem's joint-position keyframes as the shared `JointKeyframe` term (None without any)."""
+    jk = problem.joint_keyframes
+    if jk is None:
+        return None
+    sigma = torch.where(jk.mask, jk.sigma, 1.0)  # a joint not given is not read
+    return JointKeyframe(jk.frames.long(), jk.joints, jk.mask, sigma, jk.covariance)
 
 
 class Evaluation(NamedTuple):
@@ -232,15 +283,22 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
     # the barrier on each limited angle's nearest turn (an unboxed solve may carry it past +-pi; the
     # shift is constant, so the derivatives are q's)
     qw = wrap_to_limits(q, obj.lower, obj.upper, obj.angular)
-    lim = (torch.clamp(qw - obj.lower, max=0.0) + torch.clamp(qw - obj.upper, min=0.0)) * obj.limits_scale
-    terms["limits"] = 0.5 * lim.square().sum(-1)
+    lim = None if obj.limits is None else obj.limits.residual(PoseEval(qw, ev.joints, ev.pixels, ev.depth))
+    terms["limits"] = q.new_zeros(b_len, t_len) if lim is None else 0.5 * lim.square().sum(-1)
     # the smoothing's derivatives only where used: l2's gradient and band come from the fixed band
     robust = with_jacobian and obj.smooth_loss != "l2"
     terms["smooth"], smooth_grad, smooth_weights = robust_smoothing(obj, q, derivatives=robust)
-    kf_r = wrapped_difference(q[:, obj.kf_frames] - obj.kf_target, obj.angular) * obj.kf_weight  # (B, F, D)
-    keyframes = q.new_zeros(b_len, t_len).index_add(1, obj.kf_frames, 0.5 * kf_r.square().sum(-1))
-    jk_r = (ev.joints[:, obj.jk_frames] - obj.jk_target) * obj.jk_weight[..., None]  # (B, G, J, 3)
-    terms["keyframes"] = keyframes.index_add(1, obj.jk_frames, 0.5 * jk_r.square().sum((-1, -2)))
+    kf, jk = obj.keyframe, obj.joint_keyframe
+    keyframes = q.new_zeros(b_len, t_len)
+    kf_r = jk_r = None
+    if kf is not None:
+        kf_r = kf.frame_residual(q[:, obj.kf_frames])  # (B, F, D)
+        keyframes.index_add_(1, obj.kf_frames, 0.5 * kf_r.square().sum(-1))
+    if jk is not None:
+        jk_frames = obj.jk_frames
+        jk_r = jk.frame_residual(ev.joints[:, jk_frames])  # (B, G, 3J)
+        keyframes.index_add_(1, jk_frames, 0.5 * jk_r.square().sum(-1))
+    terms["keyframes"] = keyframes
     if not with_jacobian:
         return Evaluation(terms, None, None, smooth_weights)
     assert fk is not None  # with_jacobian
@@ -263,27 +321,21 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
 
     def normal_equations(part: slice, fk_part: tuple[Tensor, Tensor]) -> None:
         jw = joint_jacobian_product(sk, q[:, part], kps.joints, jp[:, part], fk_part)  # (B, t, K, 2, D)
-        jw = jw.flatten(-3, -2)  # (B, t, 2K, D), rows (keypoint, x|y)
-        if numpy_path(jw):  # CPU: numpy's batched product (BLAS per frame, less overhead than torch's)
-            np.matmul(jw.numpy().swapaxes(-1, -2), jw.numpy(), out=h[:, part].numpy())
-        else:
-            torch.matmul(jw.mT, jw, out=h[:, part])  # one batched product per frame, in place
-        torch.matmul(jw.mT, rw[:, part], out=g[:, part, :, None])
+        add_all_frames(h[:, part], g[:, part], jw.flatten(-3, -2), rw[:, part])  # rows (keypoint, x|y)
 
     per_parts(normal_equations, fk)
-    outside = ((qw < obj.lower) | (qw > obj.upper)).to(q.dtype)
-    diag = outside * obj.limits_scale**2
-    g = g + lim * obj.limits_scale
-    kf_w2 = obj.kf_weight.square()
-    diag = diag.index_add(1, obj.kf_frames, kf_w2.expand(b_len, -1, -1))
-    g = g.index_add(1, obj.kf_frames, kf_r * obj.kf_weight)
-    if obj.jk_frames.numel():
-        # only the rows of joints some joint keyframe gives (the others weigh 0): (B, G, J', 3, D)
-        _, dx_jk = joint_jacobian(sk, q[:, obj.jk_frames], obj.jk_joints)
-        gj = dx_jk * obj.jk_weight[:, list(obj.jk_joints), None, None]
-        h.index_add_(1, obj.jk_frames, torch.einsum("bgjcd,bgjce->bgde", gj, gj))
-        g = g.index_add(1, obj.jk_frames, torch.einsum("bgjcd,bgjc->bgd", gj, jk_r[:, :, list(obj.jk_joints)]))
-    h.diagonal(dim1=-2, dim2=-1).add_(diag)  # in place: a diag_embed would write T D^2 zeros
+    if lim is not None:
+        assert obj.limits is not None
+        g = add_diagonal_rows(h, g, lim, obj.limits.diagonal_jacobian(PoseEval(qw, ev.joints, ev.pixels, ev.depth)))
+    if kf is not None and kf_r is not None:
+        add_frame_rows(h, g, FrameRows(obj.kf_frames, kf_r, kf.whiten.to(q)[None]))
+    if jk is not None and jk_r is not None:
+        # only the rows and columns of joints some joint keyframe gives (the others weigh 0)
+        given = jk.joints_given
+        cols = torch.tensor([3 * j + c for j in given for c in range(3)], device=q.device)
+        w = jk.whiten.to(q)[:, cols][:, :, cols]  # (G, 3J', 3J')
+        rows = joint_rows(sk, q[:, jk_frames], given, w.unflatten(-1, (len(given), 3))[None])
+        add_frame_rows(h, g, FrameRows(jk_frames, jk_r[:, :, cols], rows))
     g = g + (smooth_grad if smooth_grad is not None else band_matvec(obj.band, q))
     return Evaluation(terms, h, g, smooth_weights)
 
