@@ -29,8 +29,8 @@ itself, so it adds a band of diagonal couplings (block-pentadiagonal with an acc
 constant for l2, else D_n^T diag(w a_n^2) D_n with the IRLS weights w = rho' of the residuals at the
 current Q). `ptrack.optim.solvers.banded_levenberg_marquardt` solves it with `ptrack.optim.banded` (never a
 dense (T*D)^2 matrix). The joint limits are the paper's barrier, 1/2 |(violation) / costs.limits_sigma|^2
-times costs.limits_weight, on each limited angle's nearest turn; with `batch.hard_limits` the solver also keeps
-every iterate inside the limit box, and the barrier is then 0 throughout.
+times costs.limits_weight, on each limited angle's nearest turn (the default); with `batch.hard_limits` the solver
+also keeps every iterate inside the limit box, and the barrier is then 0 throughout.
 
 Uncertainty: the diagonal blocks of the inverse Gauss-Newton Hessian at the solution (the banded
 recursion of `ptrack.optim.banded.marginal_blocks`) are the per-frame marginal covariances of the pose;

@@ -55,7 +55,7 @@ class BatchMethodConfig:
         "restart takes is then solved with batch.iterations); 0: the rigid flips",
     )
     hard_limits: bool = setting(
-        True,
+        False,
         "also keep every iterate inside the joint-limit box (false: the soft barrier costs.limits_* alone, "
         "the paper's eq. 2)",
     )

@@ -72,7 +72,7 @@ class Trajectory:
     kf_weight: Tensor
     smooth_loss: str = "l2"
     smooth_scale: float = 1.0
-    hard_limits: bool = True
+    hard_limits: bool = False
 
     @property
     def jk_frames(self) -> Tensor:
