@@ -495,3 +495,18 @@ def test_bad_init_from(tmp_path, capsys):
         str(short),
         "dofs",
     )
+
+
+def test_no_keyframe_at_all_and_the_kjs_start(tmp_path, capsys):
+    """`keyframes.first: false` with no other keyframe leaves the problem without any 3D keyframe; `batch.init: kjs`
+    then starts from the kjs tracker's tree start (it needs no keyframe) and solves; a tracker told to start from
+    frame 0's keyframe says there is none, in one line."""
+    none = ["keyframes.every_s=null", "keyframes.first=false", "keyframes.last=false"]
+    assert prepare(load_config(BATCH, [*SHORT, *none])).problem.keyframes is None
+    out = tmp_path / "run"
+    small = ["kjs.samples=32", "kjs.modes=4", "kjs.backward_pass=never", "batch.iterations=3"]
+    assert main(["run", str(BATCH), *SHORT, *none, "batch.init=kjs", *small, f"out_dir={out}", "--quiet"]) == 0
+    with np.load(out / "result.npz") as z:
+        assert np.isfinite(z["q"]).all() and z["solver_cost"][-1] <= z["solver_cost"][0]
+    k = tmp_path / "k"
+    fail(capsys, k, ["run", str(BATCH), *SHORT, *none, "method=kjs", "kjs.init=keyframe", f"out_dir={k}"], "kjs.init")

@@ -6,7 +6,7 @@ method reads its own section), `generator` a seeded `torch.Generator` and `progr
 iterable to show progress (identity when quiet).
 
 No estimator imports another (tests/test_layers.py): where one starts from another's output (batch from
-the per-frame fits; pca hands them the frames after the swing), the two are put together here.
+the per-frame fits or the kjs tracker; pca hands them the frames after the swing), the two are put together here.
 """
 
 import dataclasses
@@ -22,8 +22,8 @@ from ptrack.estimators.kjs import estimate_css, estimate_kjs, estimate_ss
 from ptrack.problem import Estimate, Keyframes, Problem
 
 #: `batch.estimate_batch`, started (where neither `init_from` nor the keyframes give the start) from the
-#: per-frame fits of `estimate_frames`
-estimate_batch = partial(batch.estimate_batch, per_frame=estimate_frames)
+#: per-frame fits of `estimate_frames`, or with `batch.init: kjs` from the kjs tracker's best trajectory
+estimate_batch = partial(batch.estimate_batch, per_frame=estimate_frames, tracker=estimate_kjs)
 
 
 def batch_after(problem: Problem, cfg, q_before: Tensor, progress: Callable[[Iterable], Iterable]) -> Estimate:

@@ -229,6 +229,9 @@ class KeyframesConfig:
     file: str | None = setting(None, "YAML/JSON keyframe file; replaces the ground-truth keyframes")
     every_s: float | None = setting(None, "ground truth every this many seconds (null: frame 0 only)")
     last: bool = setting(False, "ground truth at the last frame too")
+    first: bool = setting(
+        True, "ground truth at frame 0 (false, with every_s null and last false: no 3D keyframe; for batch)"
+    )
     noise_deg: float = setting(0.0, "Gaussian noise (std, degrees) added to the ground-truth keyframes' angles")
     sigma_deg: float = setting(2.0, "prior std of a ground-truth keyframe's angles (and a file's default), degrees")
     sigma_m: float = setting(

@@ -52,11 +52,11 @@ from ptrack.pipeline.config import load_yaml
 from ptrack.problem import JointKeyframes, Keyframes
 
 
-def keyframe_frames(times: Tensor, every_s: float | None, last: bool) -> Tensor:
-    """The ground-truth keyframes' frames: frame 0, then the first frame at or after each multiple of `every_s`
-    seconds (None: none), and the last frame if `last`. times (T,) s -> (F,) long, sorted."""
+def keyframe_frames(times: Tensor, every_s: float | None, last: bool, first: bool = True) -> Tensor:
+    """The ground-truth keyframes' frames: frame 0 if `first`, then the first frame at or after each multiple of
+    `every_s` seconds (None: none), and the last frame if `last`. times (T,) s -> (F,) long, sorted (maybe empty)."""
     t_len = times.shape[0]
-    frames = {0}
+    frames = {0} if first else set()
     if every_s is not None:
         rel = (times.double() - times[0].double()).cpu()
         k = 1
@@ -79,12 +79,16 @@ def ground_truth_keyframes(
     sigma_m: float,
     generator: torch.Generator,
     dofs: tuple[str, ...] | None = None,
-) -> Keyframes:
-    """Ground-truth poses as keyframes at `keyframe_frames`. Angles get Gaussian noise of std `noise_deg`
+    first: bool = True,
+) -> Keyframes | None:
+    """Ground-truth poses as keyframes at `keyframe_frames` (None when there are none: `first` false, no
+    `every_s`, no `last`). Angles get Gaussian noise of std `noise_deg`
     (drawn from `generator`; the root position is kept). gt_q (T, D), times (T,) s. dofs: the keyframes
     after frame 0 give only the dofs matching these names or shell patterns (`keyframes.dofs`; () none of
     them: frame 0 alone), None every dof."""
-    idx = keyframe_frames(times, every_s, last)
+    idx = keyframe_frames(times, every_s, last, first)
+    if not idx.numel():
+        return None
     q = gt_q[idx.to(gt_q.device)].clone()
     angular = torch.as_tensor(skeleton.angular_dofs(), device=q.device)
     if noise_deg > 0:

@@ -259,6 +259,7 @@ def prepare(cfg: RunConfig, work_dir: Path | None = None) -> Prepared:
             kc.sigma_m,
             kf_gen,
             tuple(kc.dofs) if partial else None,
+            kc.first,
         )
         if kc.joints:
             assert gt_joints is not None  # with gt_q

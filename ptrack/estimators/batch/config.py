@@ -37,7 +37,11 @@ class BatchMethodConfig:
     smooth_loss: str = setting("cauchy", "the smoothing residuals' loss: l2, huber, cauchy, geman_mcclure")
     smooth_scale: float = setting(2.0, "the smoothing loss's scale, in prior standard deviations")
     upsample: int = setting(1, "reconstruct N frames per observed frame (data.stride must be divisible by N)")
-    init: str = setting("frame", "start: frame (per-frame fits, frame.* settings) or keyframes (interpolated)")
+    init: str = setting(
+        "frame",
+        "start: frame (per-frame fits, frame.* settings), keyframes (interpolated) or kjs (the kjs tracker's best "
+        "trajectory, kjs.* settings; its tree start where frame 0 has no full keyframe)",
+    )
     uncertainty: bool | str = setting(
         "branches",
         "joint_std in result.npz: branches (true: Laplace + the limbs' flip branches), laplace (the Laplace "
@@ -82,8 +86,8 @@ def validate_batch(b: BatchMethodConfig) -> None:
         raise InputError(
             f"config key 'batch.root_velocity' must be one of {', '.join(ROOT_VELOCITY)}, got {b.root_velocity!r}"
         )
-    if b.init not in ("frame", "keyframes"):
-        raise InputError(f"config key 'batch.init' must be 'frame' or 'keyframes', got {b.init!r}")
+    if b.init not in ("frame", "keyframes", "kjs"):
+        raise InputError(f"config key 'batch.init' must be 'frame', 'keyframes' or 'kjs', got {b.init!r}")
     if isinstance(b.branch_iterations, bool) or not isinstance(b.branch_iterations, int) or b.branch_iterations < 0:
         raise InputError(f"config key 'batch.branch_iterations' must be an integer >= 0, got {b.branch_iterations!r}")
     if isinstance(b.flip_restarts, bool) or not isinstance(b.flip_restarts, int) or b.flip_restarts < 0:

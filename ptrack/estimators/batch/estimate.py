@@ -34,6 +34,7 @@ def estimate_batch(
     progress: Callable[[Iterable], Iterable] = lambda x: x,
     callback: Callable[[int, Tensor, Tensor], None] | None = None,
     per_frame: PerFrame | None = None,
+    tracker: PerFrame | None = None,
 ) -> Estimate:
     """The MAP trajectory (`ptrack.estimators.batch`). Deterministic given its start (uses no randomness).
     Solved in float64 on the observations' device; the Estimate is in the observations' dtype.
@@ -41,13 +42,23 @@ def estimate_batch(
     per_frame(problem, cfg, generator, progress) -> Estimate: the per-frame fits the start comes from when
     neither `init_from` nor the keyframes give it (`ptrack.estimators.estimate_batch` passes
     `estimate_frames`; no estimator imports another). Needed then, and None, it raises ValueError.
+    tracker, the same signature: the start with `batch.init: kjs` (`estimate_kjs`: its best trajectory; the
+    tracker's tree start where frame 0 has no full keyframe, whatever `kjs.init` says).
 
     callback(iteration, q (1, T, D), cost (1,)) is called after every solver iteration. Runs on one
     intra-op thread (`ptrack.threads.one_thread`: small per-frame products, shared cores); with torch
     allowed 2 or more threads, the linearisation's per-frame work runs on the sequence's two halves on
     two threads (`evaluate`)."""
     with one_thread():
-        return _estimate(problem, cfg, generator, progress, callback, per_frame)
+        return _estimate(problem, cfg, generator, progress, callback, per_frame, tracker)
+
+
+def _full_first(problem: Problem) -> bool:
+    """Whether frame 0 has a keyframe that gives every dof (a start the per-frame fits and kjs can take)."""
+    kf = problem.keyframes
+    return kf is not None and any(
+        bool(kf.mask is None or kf.mask[i].all()) for i in torch.nonzero(kf.frames == 0).flatten().tolist()
+    )
 
 
 def _estimate(
@@ -57,6 +68,7 @@ def _estimate(
     progress: Callable[[Iterable], Iterable],
     callback: Callable[[int, Tensor, Tensor], None] | None,
     per_frame: PerFrame | None,
+    tracker: PerFrame | None = None,
 ) -> Estimate:
     bc = cfg.batch
     obs = problem.observations
@@ -68,16 +80,18 @@ def _estimate(
         q0 = warp_to_keyframes(load_init(cfg.init_from, problem, dtype, device), obj)
     elif bc.init == "keyframes" and has_full_keyframe(problem):
         q0 = interpolate_keyframes(problem, lower, upper)
+    elif bc.init == "kjs":
+        if tracker is None:
+            raise ValueError("estimate_batch: batch.init is kjs; pass tracker (estimate_kjs)")
+        kjs_cfg = dataclasses.replace(cfg.kjs, init="keyframe" if _full_first(problem) else "tree")
+        q0 = tracker(problem, dataclasses.replace(cfg, kjs=kjs_cfg), generator, progress).q
     else:
         if bc.init == "keyframes":
             log.info("batch: no keyframe gives every dof, so the start is the per-frame fits (as batch.init=frame)")
         if per_frame is None:
             raise ValueError("estimate_batch: the start is the per-frame fit here; pass per_frame (estimate_frames)")
-        kf = problem.keyframes
-        full0 = kf is not None and any(
-            bool(kf.mask is None or kf.mask[i].all()) for i in torch.nonzero(kf.frames == 0).flatten().tolist()
-        )
-        frame_cfg = cfg if full0 else dataclasses.replace(cfg, frame=dataclasses.replace(cfg.frame, init="rest"))
+        rest = dataclasses.replace(cfg, frame=dataclasses.replace(cfg.frame, init="rest"))
+        frame_cfg = cfg if _full_first(problem) else rest
         q0 = per_frame(problem, frame_cfg, generator, progress).q
     q0 = wrap_to_limits(q0.detach().to(dtype), lower, upper, obj.angular)
     done = 0  # iterations so far: a restart's costs follow the first solve's on the logged timeline
