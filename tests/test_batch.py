@@ -510,3 +510,22 @@ def test_no_keyframe_at_all_and_the_kjs_start(tmp_path, capsys):
         assert np.isfinite(z["q"]).all() and z["solver_cost"][-1] <= z["solver_cost"][0]
     k = tmp_path / "k"
     fail(capsys, k, ["run", str(BATCH), *SHORT, *none, "method=kjs", "kjs.init=keyframe", f"out_dir={k}"], "kjs.init")
+
+
+def test_pose_prior_term_gradient_and_weight():
+    """`batch.pose_prior_weight`: the CMU pose prior is a term of the batch energy (0 without it), and evaluate's
+    gradient with it is autograd's gradient of the whole energy."""
+    over = [*SHORT, "data.stop=40"]
+    prep = prepare(load_config(BATCH, over))
+    q = (
+        prep.gt_q.double()[None]
+        + 0.05 * torch.randn(prep.gt_q.shape, generator=torch.Generator().manual_seed(0)).double()
+    )
+    for weight in (0.0, 0.1):
+        cfg = load_config(BATCH, [*over, f"batch.pose_prior_weight={weight}"])
+        obj = trajectory_objective(prep.problem, cfg, torch.float64, torch.device("cpu"))
+        energy = batch.evaluate(obj, q, with_jacobian=False).terms["pose_prior"]
+        assert (float(energy.sum()) > 0) == (weight > 0)
+        x = q.clone().requires_grad_()
+        (want,) = torch.autograd.grad(total_energy(obj, x).sum(), x)
+        torch.testing.assert_close(batch.evaluate(obj, q).g, want, rtol=1e-8, atol=1e-7)

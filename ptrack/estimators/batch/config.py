@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from ptrack.costs.base import ROBUST_LOSSES
@@ -58,6 +59,9 @@ class BatchMethodConfig:
         "Levenberg-Marquardt iterations of each flip branch's re-solve (restarts, branches; the branch a "
         "restart takes is then solved with batch.iterations); 0: the rigid flips",
     )
+    pose_prior_weight: float = setting(
+        0.0, "weight of the CMU per-dof pose prior (ptrack.body.pose_prior) on every frame, as kjs holds it; 0: none"
+    )
     hard_limits: bool = setting(
         False,
         "also keep every iterate inside the joint-limit box (false: the soft barrier costs.limits_* alone, "
@@ -90,6 +94,8 @@ def validate_batch(b: BatchMethodConfig) -> None:
         raise InputError(f"config key 'batch.init' must be 'frame', 'keyframes' or 'kjs', got {b.init!r}")
     if isinstance(b.branch_iterations, bool) or not isinstance(b.branch_iterations, int) or b.branch_iterations < 0:
         raise InputError(f"config key 'batch.branch_iterations' must be an integer >= 0, got {b.branch_iterations!r}")
+    if not b.pose_prior_weight >= 0 or not math.isfinite(b.pose_prior_weight):
+        raise InputError(f"config key 'batch.pose_prior_weight' must be >= 0, got {b.pose_prior_weight}")
     if isinstance(b.flip_restarts, bool) or not isinstance(b.flip_restarts, int) or b.flip_restarts < 0:
         raise InputError(f"config key 'batch.flip_restarts' must be an integer >= 0, got {b.flip_restarts!r}")
     if isinstance(b.uncertainty, str) and b.uncertainty not in ("laplace", "branches"):

@@ -14,12 +14,13 @@ import torch
 from torch import Tensor
 
 from ptrack.body.limits import wrap_to_limits
-from ptrack.body.pose_prior import smoothing_prior
+from ptrack.body.pose_prior import pose_prior, smoothing_prior
 from ptrack.costs import (
     JointKeyframe,
     JointLimits,
     Keyframe,
     PoseEval,
+    PosePrior,
     Reprojection,
     Smoothness,
     robust_loss,
@@ -48,7 +49,8 @@ class Trajectory:
     violation (radians / metres) their barrier (eq. 2) prices at energy 1/2, costs.limits_sigma /
     sqrt(costs.limits_weight) (None: no barrier), whose term is `limits`;
     hard_limits: whether the solver also keeps every iterate inside [lower, upper] (`box`; then the
-    barrier is 0 throughout); smooth: ((n, a_n (D,)), ...) difference order and per-dof weight;
+    barrier is 0 throughout); pose_prior: the CMU per-dof pose prior on every frame (`batch.pose_prior_weight`;
+    None: none), whose term is `pose_prior`; smooth: ((n, a_n (D,)), ...) difference order and per-dof weight;
     band (T, W+1, D) the smoothing Hessian (band[t, k] = its (t, t-k) diagonal block's diagonal);
     keyframe: the angle keyframes, `Keyframe` (full or diagonal covariance, partial ones masked, angles
     compared on the circle) or None; joint_keyframe: the joint-position keyframes, `JointKeyframe` or
@@ -73,6 +75,7 @@ class Trajectory:
     smooth_loss: str = "l2"
     smooth_scale: float = 1.0
     hard_limits: bool = False
+    pose_prior: PosePrior | None = None
 
     @property
     def jk_frames(self) -> Tensor:
@@ -169,6 +172,11 @@ def trajectory_objective(
         if fr.numel() and (int(fr.min()) < 0 or int(fr.max()) >= t_len):
             raise InputError(f"a {name} at frame {int(fr.max())} lies outside the {t_len} reconstructed frames")
     barrier = cc.limits_sigma / math.sqrt(cc.limits_weight) if cc.limits_weight > 0 else None
+    prior = None
+    if bc.pose_prior_weight > 0:  # as the trackers hold it (`kjs.model`): the dofs the table names, std >= 0.5 deg
+        mean, std, known = pose_prior(sk, lower, upper, angular)
+        sigma = torch.where(known, std.clamp_min(math.radians(0.5)), torch.full_like(std, 1e6))
+        prior = PosePrior(mean, sigma / math.sqrt(bc.pose_prior_weight))
     return Trajectory(
         problem,
         reproj,
@@ -186,6 +194,7 @@ def trajectory_objective(
         bc.smooth_loss,
         bc.smooth_scale,
         bc.hard_limits,
+        prior,
     )
 
 
@@ -285,6 +294,9 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
     qw = wrap_to_limits(q, obj.lower, obj.upper, obj.angular)
     lim = None if obj.limits is None else obj.limits.residual(PoseEval(qw, ev.joints, ev.pixels, ev.depth))
     terms["limits"] = q.new_zeros(b_len, t_len) if lim is None else 0.5 * lim.square().sum(-1)
+    pose = PoseEval(qw, ev.joints, ev.pixels, ev.depth)  # the prior on each angle's turn in the limits' window
+    prior_r = None if obj.pose_prior is None else obj.pose_prior.residual(pose)
+    terms["pose_prior"] = q.new_zeros(b_len, t_len) if prior_r is None else 0.5 * prior_r.square().sum(-1)
     # the smoothing's derivatives only where used: l2's gradient and band come from the fixed band
     robust = with_jacobian and obj.smooth_loss != "l2"
     terms["smooth"], smooth_grad, smooth_weights = robust_smoothing(obj, q, derivatives=robust)
@@ -327,6 +339,9 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
     if lim is not None:
         assert obj.limits is not None
         g = add_diagonal_rows(h, g, lim, obj.limits.diagonal_jacobian(PoseEval(qw, ev.joints, ev.pixels, ev.depth)))
+    if prior_r is not None:
+        assert obj.pose_prior is not None
+        g = add_diagonal_rows(h, g, prior_r, obj.pose_prior.diagonal_jacobian(pose))
     if kf is not None and kf_r is not None:
         add_frame_rows(h, g, FrameRows(obj.kf_frames, kf_r, kf.whiten.to(q)[None]))
     if jk is not None and jk_r is not None:

@@ -104,7 +104,7 @@ def flip_posterior(
 
     def frame_energy(x: Tensor) -> Tensor:
         terms = evaluate(obj, x, with_jacobian=False).terms
-        return terms["reprojection"] + terms["limits"] + terms["keyframes"]
+        return terms["reprojection"] + terms["limits"] + terms["keyframes"] + terms["pose_prior"]
 
     short = dataclasses.replace(bc, iterations=bc.branch_iterations)
 
