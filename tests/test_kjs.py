@@ -537,22 +537,24 @@ def test_backward_pass_keeps_a_light_depth_order(cmu_file):
 
 
 def test_backward_pass_restarts_on_the_last_frame(cmu_file):
-    """CMU 49_18 from the tree start at the issue's evaluation setting (2 px, 10% missing), seed 0 as
-    `ptrack evaluate` runs it. Frame 0's tree start misses the body's reading (its best mode 69-196 mm
-    off over seeds 0-4) and the forward pass never finds it (best trajectory 243 mm, its body turned 52°
+    """CMU 49_18 from the tree start at the issue's evaluation setting (2 px, 10% missing), seeds 0-2 as
+    `ptrack evaluate` runs them. Frame 0's tree start misses the body's reading (its best mode 69-196 mm
+    off over seeds 0-4) and the forward pass never finds it (seed 0: best trajectory 243 mm, its body turned 52°
     from the truth's). The backward pass also starts from the last frame's own tree start, which gets it
-    right (measured best-of-K: 22.2 mm; 98.3 when the backward pass started from the forward pass's last
-    modes alone). The two passes' trajectories face 52° apart, and the backward one, the cheaper, is the
-    best trajectory (`lead_pass`; measured 26.7 mm; with the smoother, 2026-11-25: best-of-K 21.4 mm,
-    best trajectory 24.8 mm)."""
-    cfg = _clip(cmu_file, "49_18.amc", "kjs.init=tree")
-    prep = prepare(cfg)
-    est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(1))  # as `ptrack run`
-    traj, best = _errors(prep, est)
-    assert best < 35.0, f"best-of-K {best:.1f} mm"
-    assert traj < 40.0, f"best trajectory {traj:.1f} mm"
-    d = (est.hypotheses - est.joints[:, None]).norm(dim=-1).amax(-1).amin(-1)
-    assert float(d.max()) < 1e-5  # the best trajectory is one of the modes in every frame
+    right (seed 0 best-of-K 22.2 mm; 98.3 when the backward pass started from the forward pass's last
+    modes alone). Measured with the pose prior fitted without the held-out clips (2026-11-29): best-of-K 20.4,
+    24.3, 26.0 mm, best trajectory 45.8, 47.4, 48.7 (24.8 on seed 0 with the old prior): the modes hold the
+    body's reading on every seed, and the best trajectory, one of them in every frame, is far from the forward
+    pass's."""
+    for seed in range(3):
+        cfg = _clip(cmu_file, "49_18.amc", "kjs.init=tree", f"seed={seed}")
+        prep = prepare(cfg)
+        est = ESTIMATORS["kjs"](prep.problem, cfg, torch.Generator().manual_seed(seed + 1))  # as `ptrack run`
+        traj, best = _errors(prep, est)
+        assert best < 35.0, f"seed {seed}: best-of-K {best:.1f} mm"
+        assert traj < 65.0, f"seed {seed}: best trajectory {traj:.1f} mm"
+        d = (est.hypotheses - est.joints[:, None]).norm(dim=-1).amax(-1).amin(-1)
+        assert float(d.max()) < 1e-5  # the best trajectory is one of the modes in every frame
 
 
 def test_best_trajectory_beats_frame(cmu_file):
@@ -670,26 +672,27 @@ def test_recombination_joins_the_right_reading_of_each_chain(kjs_run):
 
 
 def test_recombination_after_a_tree_start(cmu_file):
-    """CMU 09_06 (a run) from the tree start at the evaluation setting (2 px, 10% missing, seed 3 as `ptrack
-    evaluate` runs it), the stage `recombine` in `kjs.stages` or not, from the same passes: the best-of-K error
-    falls, and without `decode` (the forward pass's path) the best trajectory is the same (the recombined pose
-    replaces a light mode after the smoother). Measured 49.1 -> 39.8 mm best-of-K (on seeds 0-4 it falls on every
-    seed), with `kjs.reweight: memory`; with `mixture` this seed's modes differ and the recombination finds little
-    (51.3 -> 50.9 mm)."""
-    got = {}
-    for on, stages in (("true", "[smooth, recombine]"), ("false", "[smooth]")):
-        cfg = _clip(
-            cmu_file,
-            "09_06.amc",
-            "kjs.init=tree",
-            "seed=3",
-            f"kjs.stages={stages}",
-            "kjs.reweight=memory",
-        )
-        metrics = _metrics(prepare(cfg), cfg)
-        got[on] = (metrics["best_of_k_mpjpe_mm"], metrics["mpjpe_mm"])
-    assert got["true"][0] < got["false"][0] - 5.0, f"(best-of-K mm, best trajectory mm): {got}"
-    assert got["true"][1] == got["false"][1], got
+    """CMU 09_06 (a run) from the tree start at the evaluation setting (2 px, 10% missing, seeds 0-2 as `ptrack
+    evaluate` runs them), the stage `recombine` in `kjs.stages` or not, from the same passes: the best-of-K error
+    falls on every seed, and without `decode` (the forward pass's path) the best trajectory is the same (the
+    recombined pose replaces a light mode after the smoother). Measured with the pose prior fitted without the
+    held-out clips (2026-11-29), `kjs.reweight: memory`: 39.6 -> 36.5, 33.8 -> 31.5, 41.8 -> 40.0 mm (seed 3: 49.9
+    -> 47.9; with the old prior 49.1 -> 39.8)."""
+    for seed in range(3):
+        got = {}
+        for on, stages in (("true", "[smooth, recombine]"), ("false", "[smooth]")):
+            cfg = _clip(
+                cmu_file,
+                "09_06.amc",
+                "kjs.init=tree",
+                f"seed={seed}",
+                f"kjs.stages={stages}",
+                "kjs.reweight=memory",
+            )
+            metrics = _metrics(prepare(cfg), cfg)
+            got[on] = (metrics["best_of_k_mpjpe_mm"], metrics["mpjpe_mm"])
+        assert got["true"][0] < got["false"][0] - 1.0, f"seed {seed} (best-of-K mm, best trajectory mm): {got}"
+        assert got["true"][1] == got["false"][1], got
 
 
 def test_smoothing_steadies_the_trajectory(kjs_run):
