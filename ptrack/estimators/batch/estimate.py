@@ -14,7 +14,13 @@ from torch import Tensor
 from ptrack.body.limits import wrap_to_limits
 from ptrack.estimators.batch.objective import evaluate, trajectory_objective
 from ptrack.estimators.batch.solve import solve_trajectory
-from ptrack.estimators.batch.start import has_full_keyframe, interpolate_keyframes, load_init, warp_to_keyframes
+from ptrack.estimators.batch.start import (
+    has_full_first_keyframe,
+    has_full_keyframe,
+    interpolate_keyframes,
+    load_init,
+    warp_to_keyframes,
+)
 from ptrack.estimators.batch.uncertainty import calibrate_std, flip_posterior, joint_std, lower_branch, std_calibration
 from ptrack.hypotheses.branches import BranchPosterior
 from ptrack.optim.solvers import BandedLMInfo
@@ -53,14 +59,6 @@ def estimate_batch(
         return _estimate(problem, cfg, generator, progress, callback, per_frame, tracker)
 
 
-def _full_first(problem: Problem) -> bool:
-    """Whether frame 0 has a keyframe that gives every dof (a start the per-frame fits and kjs can take)."""
-    kf = problem.keyframes
-    return kf is not None and any(
-        bool(kf.mask is None or kf.mask[i].all()) for i in torch.nonzero(kf.frames == 0).flatten().tolist()
-    )
-
-
 def _estimate(
     problem: Problem,
     cfg,
@@ -83,15 +81,15 @@ def _estimate(
     elif bc.init == "kjs":
         if tracker is None:
             raise ValueError("estimate_batch: batch.init is kjs; pass tracker (estimate_kjs)")
-        kjs_cfg = dataclasses.replace(cfg.kjs, init="keyframe" if _full_first(problem) else "tree")
+        kjs_cfg = dataclasses.replace(cfg.kjs, init="keyframe" if has_full_first_keyframe(problem) else "tree")
         q0 = tracker(problem, dataclasses.replace(cfg, kjs=kjs_cfg), generator, progress).q
     else:
         if bc.init == "keyframes":
             log.info("batch: no keyframe gives every dof, so the start is the per-frame fits (as batch.init=frame)")
         if per_frame is None:
             raise ValueError("estimate_batch: the start is the per-frame fit here; pass per_frame (estimate_frames)")
-        rest = dataclasses.replace(cfg, frame=dataclasses.replace(cfg.frame, init="rest"))
-        frame_cfg = cfg if _full_first(problem) else rest
+        full0 = has_full_first_keyframe(problem)
+        frame_cfg = cfg if full0 else dataclasses.replace(cfg, frame=dataclasses.replace(cfg.frame, init="rest"))
         q0 = per_frame(problem, frame_cfg, generator, progress).q
     q0 = wrap_to_limits(q0.detach().to(dtype), lower, upper, obj.angular)
     done = 0  # iterations so far: a restart's costs follow the first solve's on the logged timeline

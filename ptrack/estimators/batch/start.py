@@ -48,6 +48,14 @@ def has_full_keyframe(problem: Problem) -> bool:
     return kf is not None and kf.frames.numel() > 0 and (kf.mask is None or bool(kf.mask.all(-1).any()))
 
 
+def has_full_first_keyframe(problem: Problem) -> bool:
+    """Whether frame 0 has a keyframe that gives every dof (a start the per-frame fits and kjs can take)."""
+    kf = problem.keyframes
+    return kf is not None and any(
+        bool(kf.mask is None or kf.mask[i].all()) for i in torch.nonzero(kf.frames == 0).flatten().tolist()
+    )
+
+
 def interpolate_keyframes(problem: Problem, lower: Tensor, upper: Tensor) -> Tensor:
     """A start from the full angle keyframes: linear between them, constant beyond. -> (T, D)."""
     kf = problem.keyframes
