@@ -85,6 +85,12 @@ def pose_prior(
     return wrap_to_limits(mean, lower, upper, angular), std, known
 
 
+def held_sigma(std: Tensor, known: Tensor, floor: float) -> Tensor:
+    """The std (D,) an objective holds each dof to its prior mean with: `pose_prior`'s std at least `floor`
+    (radians) where the file names the dof, 1e6 (no pull) where it does not. std, known (D,)."""
+    return torch.where(known, std.clamp_min(floor), torch.full_like(std, 1e6))
+
+
 #: the per-dof motion scale tables shipped in ptrack/data, by config name (`batch.prior`, `kjs.dynamics`); both
 #: made by `scripts/make_smoothing_prior.py`: "cmu" from the dev clips (configs/clips/dev.txt), "cmu-train"
 #: from the training clips (configs/clips/train.txt: subjects with no dev clip, none of the held-out clips)

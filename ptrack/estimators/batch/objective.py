@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from ptrack.body.limits import wrap_to_limits
-from ptrack.body.pose_prior import pose_prior, smoothing_prior
+from ptrack.body.pose_prior import held_sigma, pose_prior, smoothing_prior
 from ptrack.costs import (
     JointKeyframe,
     JointLimits,
@@ -175,8 +175,7 @@ def trajectory_objective(
     prior = None
     if bc.pose_prior_weight > 0:  # as the trackers hold it (`kjs.model`): the dofs the table names, std >= 0.5 deg
         mean, std, known = pose_prior(sk, lower, upper, angular)
-        sigma = torch.where(known, std.clamp_min(math.radians(0.5)), torch.full_like(std, 1e6))
-        prior = PosePrior(mean, sigma / math.sqrt(bc.pose_prior_weight))
+        prior = PosePrior(mean, held_sigma(std, known, math.radians(0.5)) / math.sqrt(bc.pose_prior_weight))
     return Trajectory(
         problem,
         reproj,

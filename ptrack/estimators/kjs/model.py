@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ptrack.body.pose_prior import pose_prior, smoothing_prior
+from ptrack.body.pose_prior import held_sigma, pose_prior, smoothing_prior
 from ptrack.costs import (
     CostTerm,
     HeavyTailedPrior,
@@ -95,7 +95,7 @@ def make_setup(problem: Problem, cfg: KjsRunConfig, strategy: Strategy) -> Setup
     root[[int(d) for d in (*sk.axis_dof[0], *sk.translation_dof) if d >= 0]] = True
     mean, std, known = pose_prior(sk, lower, upper, angular)
     known = known & ~root
-    prior_sigma = torch.where(known, std.clamp_min(math.radians(k.floor_deg)), torch.full_like(std, 1e6))
+    prior_sigma = held_sigma(std, known, math.radians(k.floor_deg))
     return Setup(
         problem,
         cfg,
