@@ -771,3 +771,12 @@ def test_mixture_prior_weight_is_the_predicted_mixture():
     torch.testing.assert_close(
         prior_weights(memory, q, parent, weight, predicted, sigma), cfg.kjs.weight_memory * weight.log()[parent]
     )
+
+
+def test_the_stage_names_are_the_stages():
+    """`kjs.stages` is checked against config.STAGE_NAMES (the config does not import the lattice), the default in
+    that order; lattice.STAGES runs them: the two name the same stages in the same order."""
+    from ptrack.estimators.kjs.config import STAGE_NAMES
+    from ptrack.estimators.kjs.lattice import STAGES
+
+    assert tuple(STAGES) == STAGE_NAMES
