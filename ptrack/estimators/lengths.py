@@ -12,7 +12,6 @@ the factor dZ / Z (1-3% at 3-5 m).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -58,9 +57,26 @@ def segment_lengths_from_2d(
     for the segments with at least `min_frames` frames. landmarks: (K,) the landmark of each keypoint of
     `problem`; segments: {name: (landmark a, landmark b)} with left landmarks ("l_...") standing for both
     sides."""
-    cam = problem.observations.camera
-    depth, px, seen = _observed_at_depth(problem, est)
-    focal = float(cam.K[0, 0] + cam.K[1, 1]) / 2
+    return _lengths(*_observed_at_depth(problem, est), _focal(problem), landmarks, segments, quantile, min_frames)
+
+
+def _focal(problem: Problem) -> float:
+    """The camera's focal length, pixels (the mean of fx and fy)."""
+    K = problem.observations.camera.K
+    return float(K[0, 0] + K[1, 1]) / 2
+
+
+def _lengths(
+    depth: np.ndarray,
+    px: np.ndarray,
+    seen: np.ndarray,
+    focal: float,
+    landmarks: tuple[str, ...],
+    segments: dict[str, tuple[str, str]],
+    quantile: float,
+    min_frames: int,
+) -> dict[str, tuple[float, int]]:
+    """`segment_lengths_from_2d` of `_observed_at_depth`'s arrays: depth (T, K), px (T, K, 2), seen (T, K)."""
     pos = {m: k for k, m in enumerate(landmarks)}
     out: dict[str, tuple[float, int]] = {}
     for name, (a, b) in segments.items():
@@ -103,22 +119,15 @@ def segment_length_spread(
     dt = float(torch.diff(obs.times.double()).median()) if T > 1 else 1.0
     block = max(1, min(round(block_s / dt), T // MIN_BLOCKS))  # a clip too short for such blocks: shorter ones
     rng = np.random.default_rng(seed)
+    depth, px, seen = _observed_at_depth(problem, est)  # once: a resample only picks frames of them
+    focal, present = _focal(problem), obs.confidence.detach().cpu().numpy() > 0
     found: dict[str, list[float]] = {}
     for _ in range(draws):
         starts = rng.integers(0, T, size=-(-T // block))
-        idx = torch.as_tensor(((starts[:, None] + np.arange(block)) % T).reshape(-1)[:T], device=obs.keypoints.device)
-        confidence = obs.confidence.index_select(0, idx)
-        if not bool((confidence > 0).any()):
+        idx = ((starts[:, None] + np.arange(block)) % T).reshape(-1)[:T]
+        if not bool(present[idx].any()):
             continue  # only frames without the person drawn
-        sample = dataclasses.replace(obs, keypoints=obs.keypoints.index_select(0, idx), confidence=confidence)
-        measured = segment_lengths_from_2d(
-            dataclasses.replace(problem, observations=sample),
-            est._replace(joints=est.joints.detach().index_select(0, idx.to(est.joints.device))),
-            landmarks,
-            segments,
-            quantile,
-            min_frames,
-        )
+        measured = _lengths(depth[idx], px[idx], seen[idx], focal, landmarks, segments, quantile, min_frames)
         for name, (length, _) in measured.items():
             found.setdefault(name, []).append(length)
     return {n: float(np.std(v, ddof=1)) for n, v in found.items() if len(v) > 1}
