@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from ptrack.costs import PoseEval, Smoothness
 from ptrack.errors import InputError
 from ptrack.hypotheses.branches import (
     Branches,
@@ -18,6 +19,7 @@ from ptrack.hypotheses.branches import (
     branch_posterior,
     forward_backward,
     mixture_variance,
+    smoothing_factors,
 )
 from ptrack.hypotheses.ik import ik_plan
 from ptrack.hypotheses.jumps import default_chains
@@ -63,9 +65,33 @@ def _mirror(t_len: int = 12) -> tuple[Branches, torch.Tensor]:
     return Branches(chains=(), q=q, valid=valid, dofs=torch.ones(1, 1, dtype=torch.bool)), bump
 
 
+def _smoothness(n: int, a: float) -> Smoothness:
+    """The prior 1/2 |a diff_n(q)|^2 on one dof."""
+    sigma = {"sigma_velocity" if n == 1 else "sigma_acceleration": 1.0}
+    return Smoothness(1.0, **sigma, dof_scale=torch.tensor([a], dtype=torch.float64))
+
+
+def test_smoothing_factors_are_the_terms_energy_of_each_stitched_path():
+    """Pair and triple factors summed along any path of states equal the shared `Smoothness` terms' energy of
+    the trajectory that path stitches together (robust loss, per-dof scales, the chain's dofs only)."""
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randn(3, 5, 4, generator=gen, dtype=torch.float64)  # (S, T, D)
+    idx = torch.tensor([0, 2, 3])
+    vel = Smoothness(1.0, 1.0, dof_scale=torch.tensor([2.0, 9.0, 0.5, 1.0]), loss="cauchy", scale=1.5)
+    acc = Smoothness(1.0, None, 1.0, dof_scale=torch.tensor([1.0, 7.0, 3.0, 0.2]), loss="cauchy", scale=1.5)
+    pair, triple = smoothing_factors(x[..., idx], [t.select(idx) for t in (vel, acc)])
+    assert pair is not None and triple is not None
+    for path in itertools.product(range(3), repeat=5):
+        stitched = x[list(path), torch.arange(5)][:, idx]  # (T, 3)
+        want = sum(t.select(idx).energy(PoseEval(stitched, *[stitched.new_zeros(0)] * 3)) for t in (vel, acc))
+        got = sum(pair[t, path[t], path[t + 1]] for t in range(4))
+        got = got + sum(triple[t, path[t], path[t + 1], path[t + 2]] for t in range(3))
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
 def test_equal_cost_flip_has_probability_one_half_and_the_std_covers_both():
     br, bump = _mirror()
-    smooth = [(1, torch.tensor([5.0], dtype=torch.float64)), (2, torch.tensor([3.0], dtype=torch.float64))]
+    smooth = [_smoothness(1, 5.0), _smoothness(2, 3.0)]
     prob = branch_marginals(br, torch.zeros(1, 1, 2, bump.shape[0], dtype=torch.float64), smooth)
     torch.testing.assert_close(prob, torch.full_like(prob, 0.5))
     # the point at x = the dof, reported on branch 0: its std about it is sqrt(0.5) * |2 bump|
@@ -81,7 +107,7 @@ def test_a_costly_frame_pins_its_branch_and_smoothing_carries_it():
     smoothing prior (switching costs nothing only where the branches meet) carries that to the
     neighbouring frames of the stretch; outside the stretch the branches are one pose."""
     br, bump = _mirror()
-    smooth = [(1, torch.tensor([5.0], dtype=torch.float64))]
+    smooth = [_smoothness(1, 5.0)]
     unary = torch.zeros(1, 1, 2, bump.shape[0], dtype=torch.float64)
     unary[0, 0, 1, 5] = 20.0
     prob = branch_marginals(br, unary, smooth)[0, 0, 1]

@@ -157,3 +157,31 @@ def test_heavy_tailed_prior(scene):
         HeavyTailedPrior(q, sigma, loss="nope")
     with pytest.raises(InputError):
         HeavyTailedPrior(q, -sigma)
+
+
+def test_reprojection_pixel_jacobian_through_each_keypoints_point(scene):
+    """`Reprojection.pixel_jacobian` on d pixels / d X (each keypoint's own 3D point, V = 3), taken on to the pose
+    by `add_point_rows` (the joint Jacobian's pairs), gives the same normal equations J^T J, J^T r as the pose
+    Jacobian `jacobian` (d pixels / d q) does, keypoint subset and a missing keypoint included."""
+    from ptrack.optim.jacobians import pose_eval_and_jacobian
+    from ptrack.optim.trajectory import add_point_rows
+
+    sk, q, kps, cam = scene
+    gen = torch.Generator().manual_seed(2)
+    ev, jac = pose_eval_and_jacobian(sk, cam, kps, q)  # (N, ...) poses as frames of one trajectory
+    keep = torch.arange(0, kps.index().numel(), 2)
+    obs = ev.pixels[:, keep] + torch.randn(ev.pixels[:, keep].shape, generator=gen, dtype=torch.float64)
+    conf = torch.rand(obs.shape[:-1], generator=gen, dtype=torch.float64)
+    conf[1, 2] = 0.0
+    term = Reprojection(obs, conf, sigma_px=2.0, keypoints=keep)
+    n, k, d = q.shape[0], keep.numel(), q.shape[-1]
+    r = term.residual(ev).reshape(n, 2 * k)
+    rows = term.jacobian(ev, jac).reshape(n, 2 * k, d)
+    _, dpix = cam.project_jacobian(ev.joints.index_select(-2, kps.index()))  # (N, K_all, 2, 3)
+    per_point = term.pixel_jacobian(dpix).reshape(n, k, 2, 3)
+    h = q.new_zeros(1, n, d, d)
+    g = q.new_zeros(1, n, d)
+    joints = [kps.joints[i] for i in keep.tolist()]
+    add_point_rows(h, g, sk, q[None], joints, per_point[None], r[None, ..., None])
+    torch.testing.assert_close(h[0], rows.mT @ rows, rtol=1e-10, atol=1e-8)
+    torch.testing.assert_close(g[0], (rows.mT @ r[..., None])[..., 0], rtol=1e-10, atol=1e-8)

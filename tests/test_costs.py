@@ -360,6 +360,63 @@ def test_smoothness_gradcheck():
     assert gradcheck(lambda x: term.energy(ev(q=x)), (q,))
 
 
+@pytest.mark.parametrize("loss", LOSSES)
+@pytest.mark.parametrize("on", ["q", "joints"])
+def test_robust_smoothness_gradient_and_band_weights_are_autograds(loss, on):
+    """`Smoothness.banded_gauss_newton` under a robust loss: its gradient equals autograd's of the term's energy,
+    its per-frame energies sum to that energy, and its band weights are the Gauss-Newton Hessian J^T W J with the
+    IRLS weights rho'(r^2) of `robust_weights` (J from autograd of the residual), per order."""
+    torch.manual_seed(0)
+    shape, scale = ((2, 7, 3), torch.tensor([1.0, 0.3, 2.0])) if on == "q" else ((2, 7, 2, 3), torch.tensor([0.5, 2.0]))
+    term = Smoothness(0.1, 0.5, 2.0, on=on, dof_scale=scale, loss=loss, scale=1.5)
+    x = 0.2 * torch.randn(shape, generator=gen(14), dtype=D64)
+    x[:, 4] += 1.0  # a jump: some residuals far into the loss's tails
+
+    def make(x_):
+        return ev(q=x_) if on == "q" else ev(joints=x_)
+
+    xg = x.clone().requires_grad_()
+    (grad,) = torch.autograd.grad(term.energy(make(xg)).sum(), xg)
+    out = term.banded_gauss_newton(make(x))
+    torch.testing.assert_close(out.gradient, grad, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out.energy.sum(-1), term.energy(make(x)), rtol=1e-12, atol=0.0)
+    assert out.energy.shape == x.shape[:2]
+    if loss != "l2":
+        assert not torch.equal(term.robust_weights(make(x)), torch.ones_like(term.residual(make(x))))
+    no_derivatives = term.banded_gauss_newton(make(x), derivatives=False)
+    assert no_derivatives.gradient is None and no_derivatives.weights == ()
+    torch.testing.assert_close(no_derivatives.energy, out.energy, rtol=0.0, atol=0.0)
+    t_len = x.shape[1]
+    for (n, part), (m, c) in zip(term.orders(), out.weights):
+        assert n == m and c.shape == (2, t_len - n, *x.shape[2:])
+        jac = torch.autograd.functional.jacobian(lambda y: part.residual(make(y)), x[0]).flatten(1)  # (M, T E)
+        w = part.robust_weights(make(x[0]))  # (M,)
+        want = jac.T @ (w[:, None] * jac)  # (T E, T E)
+        entries = jac.shape[1] // t_len
+        for k in range(entries):  # each entry's coupling over time: D_n^T diag(c[:, k]) D_n
+            dn = torch.zeros(t_len - n, t_len, dtype=D64)
+            for j in range(n + 1):
+                dn[torch.arange(t_len - n), torch.arange(t_len - n) + j] = (-1.0) ** (n - j) * math.comb(n, j)
+            got = dn.T @ (c[0].flatten(1)[:, k, None] * dn)
+            torch.testing.assert_close(got, want[k::entries, k::entries], rtol=1e-12, atol=1e-12)
+
+
+def test_smoothness_orders_and_select():
+    """`orders` splits the prior into its velocity and acceleration parts (energies adding up to the term's);
+    `select` keeps the scales of some dofs, for a trajectory of just those."""
+    term = Smoothness(0.1, 2.0, 5.0, dof_scale=torch.tensor([1.0, 0.5, 3.0]), loss="cauchy", scale=2.0)
+    q = torch.randn(2, 6, 3, generator=gen(15), dtype=D64)
+    parts = term.orders()
+    assert [n for n, _ in parts] == [1, 2]
+    assert parts[0][1].sigma_acceleration is None and parts[1][1].sigma_velocity is None
+    torch.testing.assert_close(sum(p.energy(ev(q=q)) for _, p in parts), term.energy(ev(q=q)))
+    idx = torch.tensor([2, 0])
+    sub = Smoothness(0.1, 2.0, 5.0, dof_scale=torch.tensor([3.0, 1.0]), loss="cauchy", scale=2.0)
+    torch.testing.assert_close(term.select(idx).energy(ev(q=q[..., idx])), sub.energy(ev(q=q[..., idx])))
+    with pytest.raises(InputError, match="loss"):
+        Smoothness(0.1, 1.0, loss="tukey")
+
+
 def test_smoothness_input_errors():
     with pytest.raises(InputError, match="dt"):
         Smoothness(dt=0.0, sigma_velocity=1.0)

@@ -29,6 +29,7 @@ from ptrack.costs.collision import SelfIntersection
 from ptrack.costs.floor import FloorContact
 from ptrack.costs.objective import Objective, ObjectiveValue
 from ptrack.costs.silhouette import Silhouette, distance_transform
+from ptrack.costs.smoothness import BandedGaussNewton, Smoothness
 from ptrack.costs.terms import (
     HeavyTailedPrior,
     JointKeyframe,
@@ -36,10 +37,10 @@ from ptrack.costs.terms import (
     Keyframe,
     PosePrior,
     Reprojection,
-    Smoothness,
 )
 
 __all__ = [
+    "BandedGaussNewton",
     "CostTerm",
     "FloorContact",
     "HeavyTailedPrior",

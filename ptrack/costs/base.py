@@ -185,7 +185,11 @@ class LeastSquaresMixin:
 
     def energy(self, ev: PoseEval) -> Tensor:
         """ev -> (...,) = 0.5 * sum of squared residual entries."""
-        return 0.5 * self.residual(ev).square().sum(-1)
+        return self.energy_of(self.residual(ev))
+
+    def energy_of(self, r: Tensor) -> Tensor:
+        """`energy` (...,) of the residual r (..., M) already computed (e.g. one frame's rows per leading index)."""
+        return 0.5 * r.square().sum(-1)
 
     def robust_weights(self, ev: PoseEval) -> Tensor:
         """ev -> (..., M) of ones (no robust loss)."""
@@ -210,10 +214,17 @@ class RobustMixin:
         w = robust_loss_derivative(self.loss)(s, self.scale)
         return w.unsqueeze(-1).expand(*w.shape, self._group).reshape(r.shape)
 
+    def _energy_of(self, s: Tensor) -> Tensor:
+        return 0.5 * robust_loss(self.loss)(s, self.scale).sum(-1)
+
     def energy(self, ev: PoseEval) -> Tensor:
         """ev -> (...,) = 0.5 * sum over groups of rho(|r_group|^2, scale)."""
-        s = self._squared_of(self.residual(ev))
-        return 0.5 * robust_loss(self.loss)(s, self.scale).sum(-1)
+        return self.energy_of(self.residual(ev))
+
+    def energy_of(self, r: Tensor) -> Tensor:
+        """`energy` (...,) of the residual r (..., M) already computed (any leading dims: e.g. (..., T, M / T)
+        a trajectory's residual split by frame gives each frame's energy)."""
+        return self._energy_of(self._squared_of(r))
 
     def robust_weights(self, ev: PoseEval) -> Tensor:
         """ev -> (..., M): rho'(|r_group|^2) repeated over each group's entries (IRLS weights)."""
@@ -223,7 +234,7 @@ class RobustMixin:
     def weights_and_energy(self, r: Tensor) -> tuple[Tensor, Tensor]:
         """`robust_weights` (..., M) and `energy` (...,) of the residual r (..., M) already computed."""
         s = self._squared_of(r)
-        return self._weights_of(r, s), 0.5 * robust_loss(self.loss)(s, self.scale).sum(-1)
+        return self._weights_of(r, s), self._energy_of(s)
 
 
 @dataclass(frozen=True, eq=False)

@@ -153,7 +153,7 @@ class Objective:
             rs.append(math.sqrt(w) * r)
             if isinstance(term, LeastSquaresMixin):
                 ws.append(torch.ones_like(r))
-                es.append(0.5 * w * r.square().sum(-1))
+                es.append(w * term.energy_of(r))
             elif isinstance(term, RobustMixin):  # weights and energy from the residual just made
                 weights, energy_ = term.weights_and_energy(r)
                 ws.append(weights)
@@ -213,7 +213,7 @@ def _folded(term, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor, Tens
         if jd is not None:
             r = term.residual(ev)
             if least_squares:
-                return 0.5 * r.square().sum(-1), jd.square(), jd * r, True
+                return term.energy_of(r), jd.square(), jd * r, True
             w = term.robust_weights(ev)
             return term.energy(ev), w * jd.square(), w * jd * r, True
     gauss_newton = getattr(term, "gauss_newton", None)

@@ -1,5 +1,5 @@
-"""Least-squares and robust cost terms on poses and trajectories: reprojection, joint limits,
-smoothness, keyframes."""
+"""Least-squares and robust cost terms on poses and trajectories: reprojection, joint limits, keyframes, pose
+priors (the smoothing prior is `ptrack.costs.smoothness`)."""
 
 from __future__ import annotations
 
@@ -101,9 +101,18 @@ class Reprojection(RobustMixin):
         return r.flatten(-(n - self.per_problem))
 
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
-        """jac.pixels (..., *O, K, 2, D) -> (..., |O|*K*2, D), rows as in `residual`."""
+        """jac.pixels (..., *O, K, 2, D) -> (..., |O|*K*2, D), rows as in `residual` (`pixel_jacobian`)."""
+        return self.pixel_jacobian(jac.pixels)
+
+    def pixel_jacobian(self, d_pixels: Tensor) -> Tensor:
+        """The residual's derivatives from the pixels': d_pixels (..., *O, K, 2, V) (K as ev.pixels' keypoint
+        axis) -> (..., |O|*K*2, V), rows as in `residual`. The residual is the pixels times sqrt(confidence)
+        / sigma_px, so this is the chain rule's first factor for any V variables: the pose (V = D, d pixels / d q:
+        `jacobian`), or each keypoint's own 3D position (V = 3, d pixels / d X from `Camera.project_jacobian`:
+        the blocks of a block-diagonal Jacobian, which `ptrack.optim.trajectory.add_point_rows` takes on to the
+        pose without forming (K, 3, D) rows)."""
         n = self.observed.ndim - self.per_problem
-        jp = jac.pixels if self.keypoints is None else jac.pixels.index_select(-3, self.keypoints.to(jac.pixels.device))
+        jp = d_pixels if self.keypoints is None else d_pixels.index_select(-3, self.keypoints.to(d_pixels.device))
         j = jp * self._sqrt_conf.to(jp)[..., None, None]
         return j.flatten(-n - 1, -2)
 
@@ -171,60 +180,6 @@ class JointLimits(LeastSquaresMixin):
         q = ev.q
         outside = (q < self.lower.to(q)) | (q > self.upper.to(q))
         return outside.to(q) / self._sigma.to(q).expand(q.shape[-1:])
-
-
-@dataclass(frozen=True, eq=False)
-class Smoothness(LeastSquaresMixin):
-    """Finite-difference velocity and acceleration prior on a trajectory.
-
-    on="q": x = ev.q (..., T, D), dof_scale (D,); on="joints": x = ev.joints (..., T, J, 3),
-    dof_scale (J,). residual = concat of (x[t+1] - x[t]) / (dt sigma_velocity) over t < T-1 and
-    (x[t+1] - 2x[t] + x[t-1]) / (dt^2 sigma_acceleration), each times dof_scale and flattened:
-    (..., (T-1)*E + (T-2)*E) for E entries per frame. A None sigma drops that part. The residual is
-    linear in x: each part's Jacobian is the n-th forward difference over time times dof_scale / (dt^n
-    sigma), whose normal equations are banded (`ptrack.optim.trajectory.weighted_band`).
-    """
-
-    dt: float
-    sigma_velocity: float | None = None
-    sigma_acceleration: float | None = None
-    on: str = "q"
-    dof_scale: Tensor | None = None
-
-    def __post_init__(self) -> None:
-        check_positive("Smoothness.dt", self.dt)
-        for name in ("sigma_velocity", "sigma_acceleration"):
-            if getattr(self, name) is not None:
-                check_positive(f"Smoothness.{name}", getattr(self, name))
-        if self.on not in ("q", "joints"):
-            raise InputError(f"Smoothness.on must be 'q' or 'joints', got {self.on!r}")
-        if self.dof_scale is not None:
-            scale = as_float_tensor(self.dof_scale, "dof_scale")
-            if scale.ndim != 1 or not (torch.isfinite(scale).all() and (scale >= 0).all()):
-                raise InputError(f"Smoothness.dof_scale must be a finite, >= 0 vector, got shape {shape_of(scale)}")
-            object.__setattr__(self, "dof_scale", scale)
-
-    def residual(self, ev: PoseEval) -> Tensor:
-        """ev.q (..., T, D) or ev.joints (..., T, J, 3) -> (..., M)."""
-        x, n = (ev.q, 2) if self.on == "q" else (ev.joints, 3)
-        if x.ndim < n or (n == 3 and x.shape[-1] != 3):
-            raise InputError(
-                f"Smoothness(on={self.on!r}) needs a trajectory (..., T, {'D' if n == 2 else 'J, 3'}), "
-                f"got {shape_of(x)}"
-            )
-        if self.dof_scale is not None and self.dof_scale.shape[0] != x.shape[-n + 1]:
-            raise InputError(
-                f"Smoothness.dof_scale {shape_of(self.dof_scale)} does not match {self.on} of shape {shape_of(x)}"
-            )
-        scale = None if self.dof_scale is None else self.dof_scale.to(x) if n == 2 else self.dof_scale.to(x)[:, None]
-        parts = []
-        for order, sigma in ((1, self.sigma_velocity), (2, self.sigma_acceleration)):
-            if sigma is not None:
-                diff = torch.diff(x, n=order, dim=-n)
-                parts.append((diff if scale is None else scale * diff) / (self.dt**order * sigma))
-        if not parts:
-            return x.new_zeros(x.shape[:-n] + (0,))
-        return torch.cat([p.flatten(-n) for p in parts], dim=-1)
 
 
 def whitening(name: str, covariance: Tensor, mask: Tensor, diagonal: bool | None = None) -> Tensor:

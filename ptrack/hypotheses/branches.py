@@ -22,7 +22,8 @@ curvature there, not the other branches' probability. This module puts them into
 
    U_t the frame's own terms (data, joint limits, keyframes: `frame_energy`) at leaf s_t's pose, V
    and A the first- and second-difference smoothing energies between consecutive frames' leaf
-   poses (the prior is per dof, so a stitched path's smoothing energy is exactly these). The
+   poses: the objective's own smoothing terms (`ptrack.costs.Smoothness`) on each path of 2 and 3 frames
+   (the prior is per dof, so a stitched path's smoothing energy is exactly these). The
    acceleration term is third-order; it is kept exactly by forward-backward on pair states
    (s_{t-1}, s_t), so the marginals p_t(s) are exact for this energy over these candidates. A leaf
    that repeats a lower one at a frame (`repeats`) is not a second state there.
@@ -49,6 +50,7 @@ import torch
 from torch import Tensor
 
 from ptrack.body.skeleton import Skeleton
+from ptrack.costs import PoseEval, Smoothness
 from ptrack.hypotheses.ik import ChainIK, chain_ik
 from ptrack.hypotheses.jumps import Chain, interpretation_tree
 from ptrack.observe.camera import Camera
@@ -179,31 +181,33 @@ def repeats(joints: Tensor, valid: Tensor) -> Tensor:
     return out
 
 
-def smoothing_factors(
-    x: Tensor, smooth: Sequence[tuple[int, Tensor]], rho: Callable[[Tensor], Tensor] | None = None
-) -> tuple[Tensor | None, Tensor | None]:
-    """The smoothing energy between consecutive frames' states.
+def smoothing_factors(x: Tensor, smooth: Sequence[Smoothness]) -> tuple[Tensor | None, Tensor | None]:
+    """The smoothing energy between consecutive frames' states, the shared terms' own: each order-n part of
+    each term (`Smoothness.orders`, n = 1 or 2) priced on every path of n+1 frames through the states.
 
-    x (..., S, T, m) each state's trajectory of m dofs; smooth ((n, a_n (m,)), ...) the prior
-    1/2 |a_n diff_n(q)|^2 on those dofs (orders 1 and 2), or 1/2 sum rho((a_n diff_n(q))^2) with a
-    robust loss rho on each residual's square. -> pair (..., T-1, S, S) [t, a, b] the
-    first-difference energy from state a at t to b at t+1, triple (..., T-2, S, S, S) [t, a, b, c]
-    the second difference's over t, t+1, t+2; None for an order the prior lacks (or too few frames)."""
+    x (..., S, T, m) each state's trajectory of m dofs; smooth: `Smoothness` terms on q over those m dofs
+    (`Smoothness.select`). -> pair (..., T-1, S, S) [t, a, b] the first-difference energy from state a at t to b
+    at t+1, triple (..., T-2, S, S, S) [t, a, b, c] the second difference's over t, t+1, t+2; None for an order
+    the terms lack (or too few frames)."""
     t_len = x.shape[-2]
-    loss = (lambda s: s) if rho is None else rho
-    pair: Tensor | None = None
-    triple: Tensor | None = None
     x = x.transpose(-3, -2)  # (..., T, S, m)
-    for n, a in smooth:
-        if n == 1 and t_len > 1:
-            r = a * (x[..., 1:, None, :, :] - x[..., :-1, :, None, :])  # (..., T-1, S, S, m)
-            pair = 0.5 * loss(r.square()).sum(-1)
-        elif n == 2 and t_len > 2:
-            r = x[..., 2:, None, None, :, :] - 2 * x[..., 1:-1, None, :, None, :] + x[..., :-2, :, None, None, :]
-            triple = 0.5 * loss((a * r).square()).sum(-1)  # (..., T-2, S, S, S)
-        elif n not in (1, 2):
-            raise ValueError(f"smoothing_factors: difference order {n} is not 1 or 2")
-    return pair, triple
+    windows = {}  # n -> (..., T-n, S, .., S, n+1, m): every path of states over frames t .. t+n
+    if t_len > 1:
+        windows[1] = torch.stack(torch.broadcast_tensors(x[..., :-1, :, None, :], x[..., 1:, None, :, :]), -2)
+    if t_len > 2:
+        ends = (x[..., :-2, :, None, None, :], x[..., 1:-1, None, :, None, :], x[..., 2:, None, None, :, :])
+        windows[2] = torch.stack(torch.broadcast_tensors(*ends), -2)
+    energy: dict[int, Tensor] = {}
+    for term in smooth:
+        for n, part in term.orders():
+            if n not in (1, 2):
+                raise ValueError(f"smoothing_factors: difference order {n} is not 1 or 2")
+            if n not in windows:
+                continue
+            q = windows[n]
+            e = part.energy(PoseEval(q, q.new_zeros(0), q.new_zeros(0), q.new_zeros(0)))
+            energy[n] = e if n not in energy else energy[n] + e
+    return energy.get(1), energy.get(2)
 
 
 def forward_backward(unary: Tensor, pair: Tensor | None = None, triple: Tensor | None = None) -> Tensor:
@@ -243,22 +247,15 @@ def forward_backward(unary: Tensor, pair: Tensor | None = None, triple: Tensor |
     return torch.stack(out, -2)
 
 
-def branch_marginals(
-    branches: Branches,
-    unary: Tensor,
-    smooth: Sequence[tuple[int, Tensor]],
-    rho: Callable[[Tensor], Tensor] | None = None,
-) -> Tensor:
+def branch_marginals(branches: Branches, unary: Tensor, smooth: Sequence[Smoothness]) -> Tensor:
     """Each chain's leaf marginals per frame: unary (B, C, L, T) frame energies above the trajectory's
-    (inf where not valid) and the smoothing prior on the chain's dofs between the leaf poses
-    (`smoothing_factors`, robust loss rho or None) -> (B, C, L, T) probabilities (module docstring, 3)."""
+    (inf where not valid) and the smoothing prior's terms on q (D dofs) between the leaf poses, on the chain's
+    dofs (`smoothing_factors`) -> (B, C, L, T) probabilities (module docstring, 3)."""
     out = []
     u = torch.where(branches.valid, unary, torch.full_like(unary, torch.inf)).transpose(-2, -1)  # (B, C, T, L)
     for c in range(branches.q.shape[1]):
         idx = branches.dofs[c].nonzero()[:, 0]
-        pair, triple = smoothing_factors(
-            branches.q[:, c].index_select(-1, idx), [(n, a.index_select(0, idx)) for n, a in smooth], rho
-        )
+        pair, triple = smoothing_factors(branches.q[:, c].index_select(-1, idx), [t.select(idx) for t in smooth])
         out.append(forward_backward(u[:, c], pair, triple).transpose(-2, -1))
     return torch.stack(out, 1)
 
@@ -277,16 +274,15 @@ def branch_posterior(
     chains: Sequence[Chain],
     plans: Sequence[ChainIK],
     frame_energy: Callable[[Tensor], Tensor],
-    smooth: Sequence[tuple[int, Tensor]],
+    smooth: Sequence[Smoothness],
     relax: Callable[[Tensor, Tensor], Tensor] | None = None,
-    rho: Callable[[Tensor], Tensor] | None = None,
 ) -> BranchPosterior:
     """The flip branches of trajectory q (B, T, D) in its posterior (module docstring).
 
     frame_energy: trajectories (N, T, D) -> (N, T) the objective's per-frame terms (everything but
-    the smoothing prior); smooth: the prior's ((n, a_n (D,)), ...), 1/2 |a_n diff_n(q)|^2;
+    the smoothing prior); smooth: the prior, `Smoothness` terms on q (the objective's own, robust loss included);
     relax: (starts (B, C, L, T, D), q) -> the leaves re-solved (e.g. `relax_branches`), None = the
-    rigid leaves; rho: the prior's robust loss on each residual's square, None = l2."""
+    rigid leaves."""
     br = branch_poses(sk, camera, q, chains, plans)
     if relax is not None:
         moved = relax(br.q, q)
@@ -298,7 +294,7 @@ def branch_posterior(
     energy = frame_energy(br.q.reshape(-1, t_len, d)).reshape(b_len, c_len, leaves_n, t_len)
     unary = energy - frame_energy(q)[:, None, None]  # above q's (a constant per frame: cancels)
     unary = torch.where(br.valid, unary, torch.full_like(unary, torch.inf))
-    prob = branch_marginals(br, unary, smooth, rho)
+    prob = branch_marginals(br, unary, smooth)
     variance = mixture_variance(sk.forward_kinematics(q), branch_joints, prob)
     return BranchPosterior(br, unary, prob, branch_joints, variance)
 

@@ -1,35 +1,36 @@
 """The banded trajectory assembler: the Gauss-Newton normal equations of a trajectory objective, summed from
-the shared cost terms' residuals and Jacobians (`ptrack.costs`) into the per-frame blocks of a block-banded
-system (`ptrack.optim.banded`; the couplings between frames, a smoothing prior's band, are added by the
-objective that owns them).
+the shared cost terms' residuals, Jacobians and IRLS weights (`ptrack.costs`) into the blocks of a block-banded
+system (`ptrack.optim.banded`): each frame's diagonal block, and the band of diagonal couplings between frames
+that the smoothing prior gives.
 
 A per-frame term's residual rows each depend on one frame's pose q_t (D,). Its share of the Gauss-Newton
 Hessian and gradient is J_t^T W_t J_t and J_t^T W_t r_t on the diagonal block of that frame (W_t its IRLS
-weights, one for least squares). Rows come in three forms:
+weights, one for least squares). Rows come in four forms:
 
     FrameRows(frames (F,), residual (B, F, M), jacobian (B|1, F, M, D), weight (B, F, M) | None)
         rows at some frames, their Jacobian w.r.t. their frame's pose:   add_frame_rows(h, g, rows)
     every frame's rows, jacobian (B, T, M, D), residual (B, T, M, 1) (weights folded in: sqrt(W) J, sqrt(W) r):
                                                                          add_all_frames(h, g, jacobian, residual)
+    every frame's rows, each reading one joint's position: d rows / d that position (B, T, Y, R, 3) (the
+    reprojection's, `Reprojection.pixel_jacobian` on d pixels / d X), on to the pose without (Y, 3, D) rows:
+                                                                         add_point_rows(h, g, sk, q, joints, ...)
     one row per dof with a diagonal Jacobian (joint limits, pose priors), residual and diagonal (B, T, D):
                                                                          add_diagonal_rows(h, g, residual, diagonal)
 
 Rows given against joint positions (joint keyframes) reach the pose through the geometric joint Jacobian
-(`joint_rows`); reprojection rows through `ptrack.optim.jacobians.joint_jacobian_product`. h (B, T, D, D)
-and g (B, T, D) are added to in place.
+(`joint_rows`). h (B, T, D, D) and g (B, T, D) are added to in place.
 
-Terms that couple frames: rows that are the n-th forward differences of a dof over time (the smoothing prior,
-`ptrack.costs.Smoothness`), weighted per residual by c (its squared scale times any IRLS weight), give the
-band sum_n D_n^T diag(c_n) D_n of the normal equations, which couples each dof only with itself:
+Terms that couple frames: rows that are the n-th forward differences D_n of a dof over time (the smoothing prior,
+`ptrack.costs.Smoothness`, which gives its energy, gradient and weights c_n (..., T-n, D) per residual: its
+squared scale times its IRLS weight, `Smoothness.banded_gauss_newton`) give the band sum_n D_n^T diag(c_n) D_n of
+the normal equations, which couples each dof only with itself:
 
     weighted_band(T, ((n, c_n (..., T-n, D)), ...), like) -> (..., T, W+1, D)   [t, k]: block (t, t-k)'s diagonal
     band_matvec(band (T, W+1, D), q (B, T, D)) -> (B, T, D)                   the band times q
-    difference_transpose(n, v (..., T-n, D)) -> (..., T, D)                    D_n^T v: their J^T r
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -38,8 +39,9 @@ import torch
 from torch import Tensor
 
 from ptrack.body.skeleton import Skeleton
+from ptrack.costs.smoothness import difference_coefficients
 from ptrack.optim.banded import numpy_path
-from ptrack.optim.jacobians import joint_jacobian
+from ptrack.optim.jacobians import joint_jacobian, joint_jacobian_product
 
 
 class FrameRows(NamedTuple):
@@ -75,6 +77,25 @@ def add_all_frames(h: Tensor, g: Tensor, jacobian: Tensor, residual: Tensor) -> 
     torch.matmul(jacobian.mT, residual, out=g[..., None])
 
 
+def add_point_rows(
+    h: Tensor,
+    g: Tensor,
+    sk: Skeleton,
+    q: Tensor,
+    joints: Sequence[int],
+    d_points: Tensor,
+    residual: Tensor,
+    fk: tuple[Tensor, Tensor] | None = None,
+) -> None:
+    """Every frame's rows, each reading the position of one of the joints (Y,): h (B, T, D, D) = J^T J and g
+    (B, T, D) = J^T r written in place (`add_all_frames`), from q (B, T, D), d_points (B, T, Y, R, 3) the R rows
+    of each joint y by its position and residual (B, T, Y*R, 1), the IRLS weights' square roots in both. J =
+    d_points @ d X_y / d q by `joint_jacobian_product` (never the (Y, 3, D) rows). h, g, q, d_points and residual
+    may be the same slice of the frames; fk: `sk.forward_kinematics(q, rotations=True)` if already computed."""
+    jw = joint_jacobian_product(sk, q, joints, d_points, fk)  # (B, T, Y, R, D)
+    add_all_frames(h, g, jw.flatten(-3, -2), residual)
+
+
 def add_diagonal_rows(h: Tensor, g: Tensor, residual: Tensor, diagonal: Tensor) -> Tensor:
     """One row per dof and frame with a diagonal Jacobian: residual, diagonal (B, T, D). Adds diagonal^2 to
     h's diagonal (in place: no (D, D) matrix per frame) and returns g + diagonal * residual (a new tensor)."""
@@ -90,11 +111,6 @@ def joint_rows(sk: Skeleton, q: Tensor, joints: Sequence[int], d_joints: Tensor)
     return torch.einsum("bfmyc,bfycd->bfmd", d_joints.expand(q.shape[0], -1, -1, -1, -1), dx)
 
 
-def _difference_coefficients(n: int) -> list[float]:
-    """The n-th forward difference's coefficients: residual i = sum_j coef[j] q[i + j]. -> n+1 floats."""
-    return [float((-1) ** (n - j) * math.comb(n, j)) for j in range(n + 1)]
-
-
 def weighted_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Tensor) -> Tensor:
     """Band of sum_n D_n^T diag(c_n) D_n with a weight per residual: smooth ((n, c_n (..., T-n, D)), ...)
     -> (..., T, W+1, D), W the largest n (at least 1); entry [t, k] is the (t, t-k) block's diagonal."""
@@ -105,21 +121,12 @@ def weighted_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Tens
     for n, c in smooth:
         if t_len <= n:
             continue
-        coef = _difference_coefficients(n)
+        coef = difference_coefficients(n)
         rows = t_len - n  # residual i covers frames i .. i+n
         for j in range(n + 1):
             for k in range(j + 1):
                 band[..., j : rows + j, j - k, :] += coef[j] * coef[k] * c
     return band
-
-
-def difference_transpose(n: int, v: Tensor) -> Tensor:
-    """D_n^T v over the frames: v (..., T-n, D) -> (..., T, D)."""
-    coef = _difference_coefficients(n)
-    return sum(
-        (coef[j] * torch.nn.functional.pad(v, (0, 0, j, n - j)) for j in range(n + 1)),
-        torch.zeros((), dtype=v.dtype, device=v.device),
-    )
 
 
 def band_matvec(band: Tensor, q: Tensor) -> Tensor:

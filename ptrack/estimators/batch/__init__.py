@@ -55,9 +55,9 @@ onto the keyframes: `warp_to_keyframes`), or the keyframes interpolated (`batch.
 the per-frame fit where no keyframe gives every dof, e.g. a user's file of partial or joint keyframes).
 
 Modules: `objective` (the energy: `Trajectory`, `trajectory_objective`, `evaluate`), `smoothing` (the smoothing
-prior's differences, band and robust weights), `solve` (the banded linearisation and Levenberg-Marquardt),
-`uncertainty` (`joint_std`, the flip branches and the restarts from them), `start` (`init_from`, interpolated
-keyframes) and `estimate` (`estimate_batch`).
+prior as one shared `Smoothness` term per order, which gives its energy, gradient and robust weights; its band),
+`solve` (the banded linearisation and Levenberg-Marquardt), `uncertainty` (`joint_std`, the flip branches and the
+restarts from them), `start` (`init_from`, interpolated keyframes) and `estimate` (`estimate_batch`).
 """
 
 from __future__ import annotations

@@ -23,15 +23,11 @@ from ptrack.costs import (
     PosePrior,
     Reprojection,
     Smoothness,
-    robust_loss,
-    robust_loss_derivative,
 )
-from ptrack.costs.base import PoseJacobian
 from ptrack.errors import InputError
 from ptrack.estimators.batch.config import ROOT_VELOCITY
 from ptrack.estimators.batch.smoothing import band_matvec, robust_smoothing, smoothing_band, smoothing_terms
-from ptrack.optim.jacobians import joint_jacobian_product
-from ptrack.optim.trajectory import FrameRows, add_all_frames, add_diagonal_rows, add_frame_rows, joint_rows
+from ptrack.optim.trajectory import FrameRows, add_diagonal_rows, add_frame_rows, add_point_rows, joint_rows
 from ptrack.problem import Problem
 from ptrack.threads import on_two_threads, parallel_halves
 
@@ -50,8 +46,9 @@ class Trajectory:
     sqrt(costs.limits_weight) (None: no barrier), whose term is `limits`;
     hard_limits: whether the solver also keeps every iterate inside [lower, upper] (`box`; then the
     barrier is 0 throughout); pose_prior: the CMU per-dof pose prior on every frame (`batch.pose_prior_weight`;
-    None: none), whose term is `pose_prior`; smooth: ((n, a_n (D,)), ...) difference order and per-dof weight;
-    band (T, W+1, D) the smoothing Hessian (band[t, k] = its (t, t-k) diagonal block's diagonal);
+    None: none), whose term is `pose_prior`; smooth: ((n, a_n (D,)), ...) difference order and per-dof weight,
+    whose terms under `smooth_loss` at `smooth_scale` are `smooth_terms`; band (T, W+1, D) the least-squares
+    smoothing Hessian (band[t, k] = its (t, t-k) diagonal block's diagonal);
     keyframe: the angle keyframes, `Keyframe` (full or diagonal covariance, partial ones masked, angles
     compared on the circle) or None; joint_keyframe: the joint-position keyframes, `JointKeyframe` or
     None; angular (D,) bool; kf_frames (F,), kf_target (F, D) (0 where not given) and kf_weight (F, D) =
@@ -85,8 +82,8 @@ class Trajectory:
 
     @cached_property
     def smooth_terms(self) -> tuple[tuple[int, Smoothness], ...]:
-        """`smooth` as the shared `Smoothness` terms (`smoothing_terms`)."""
-        return smoothing_terms(self.smooth)
+        """`smooth` as the shared `Smoothness` terms under `smooth_loss` at `smooth_scale` (`smoothing_terms`)."""
+        return smoothing_terms(self.smooth, self.smooth_loss, self.smooth_scale)
 
     @cached_property
     def limits(self) -> JointLimits | None:
@@ -108,13 +105,6 @@ class Trajectory:
         if self.hard_limits:
             return self.lower, self.upper
         return torch.full_like(self.lower, -math.inf), torch.full_like(self.upper, math.inf)
-
-    def smooth_rho(self) -> Callable[[Tensor], Tensor] | None:
-        """The smoothing residuals' robust loss on their squares (in prior std units), None for l2."""
-        if self.smooth_loss == "l2":
-            return None
-        rho, c = robust_loss(self.smooth_loss), self.smooth_scale
-        return lambda s: rho(s, c)
 
 
 def trajectory_objective(
@@ -163,7 +153,7 @@ def trajectory_objective(
             if a is not None:
                 smooth.append((n, a))
     like = torch.zeros(d, dtype=dtype, device=device)
-    band = smoothing_band(t_len, tuple(smooth), like)
+    band = smoothing_band(t_len, smoothing_terms(tuple(smooth)), like)  # l2's: the weights do not change it
 
     keyframe, kf_frames, kf_target, kf_weight = _angle_keyframes(problem, cfg, angular, dtype, device)
     joint_keyframe = _joint_keyframes(problem)
@@ -285,17 +275,21 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
         ev = evaluate_pose(sk, cam, kps, q)
     rp = obj.reprojection
     k = rp.observed.shape[-2]
-    r = rp.residual(ev).unflatten(-1, (t_len, k, 2))  # (B, T, K, 2)
-    s = r.square().sum(-1)
-    terms = {"reprojection": 0.5 * robust_loss(rp.loss)(s, rp.scale).sum(-1)}
+    r = rp.residual(ev).unflatten(-1, (t_len, 2 * k))  # (B, T, 2K): each frame's rows (keypoint, x|y)
+    if with_jacobian:
+        rp_w, rp_e = rp.weights_and_energy(r)  # IRLS weights (B, T, 2K), energy (B, T)
+    else:
+        rp_e = rp.energy_of(r)
+    terms = {"reprojection": rp_e}
     # the barrier on each limited angle's nearest turn (an unboxed solve may carry it past +-pi; the
     # shift is constant, so the derivatives are q's)
     qw = wrap_to_limits(q, obj.lower, obj.upper, obj.angular)
-    lim = None if obj.limits is None else obj.limits.residual(PoseEval(qw, ev.joints, ev.pixels, ev.depth))
-    terms["limits"] = q.new_zeros(b_len, t_len) if lim is None else 0.5 * lim.square().sum(-1)
-    pose = PoseEval(qw, ev.joints, ev.pixels, ev.depth)  # the prior on each angle's turn in the limits' window
-    prior_r = None if obj.pose_prior is None else obj.pose_prior.residual(pose)
-    terms["pose_prior"] = q.new_zeros(b_len, t_len) if prior_r is None else 0.5 * prior_r.square().sum(-1)
+    pose = PoseEval(qw, ev.joints, ev.pixels, ev.depth)  # the prior too on each angle's turn in the limits' window
+    limits, prior = obj.limits, obj.pose_prior
+    lim = None if limits is None else limits.residual(pose)
+    prior_r = None if prior is None else prior.residual(pose)
+    for name, term, res in (("limits", limits, lim), ("pose_prior", prior, prior_r)):
+        terms[name] = q.new_zeros(b_len, t_len) if term is None or res is None else term.energy_of(res)
     # the smoothing's derivatives only where used: l2's gradient and band come from the fixed band
     robust = with_jacobian and obj.smooth_loss != "l2"
     terms["smooth"], smooth_grad, smooth_weights = robust_smoothing(obj, q, derivatives=robust)
@@ -304,43 +298,34 @@ def evaluate(obj: Trajectory, q: Tensor, with_jacobian: bool = True) -> Evaluati
     kf_r = jk_r = None
     if kf is not None:
         kf_r = kf.frame_residual(q[:, obj.kf_frames])  # (B, F, D)
-        keyframes.index_add_(1, obj.kf_frames, 0.5 * kf_r.square().sum(-1))
+        keyframes.index_add_(1, obj.kf_frames, kf.energy_of(kf_r))
     if jk is not None:
         jk_frames = obj.jk_frames
         jk_r = jk.frame_residual(ev.joints[:, jk_frames])  # (B, G, 3J)
-        keyframes.index_add_(1, jk_frames, 0.5 * jk_r.square().sum(-1))
+        keyframes.index_add_(1, jk_frames, jk.energy_of(jk_r))
     terms["keyframes"] = keyframes
     if not with_jacobian:
         return Evaluation(terms, None, None, smooth_weights)
     assert fk is not None  # with_jacobian
 
-    # J_t^T W J_t of the reprojection: per keypoint, the residual's 2 x 3 derivative w.r.t. its joint
-    # (`Reprojection.jacobian` on d pixels / d X) times sqrt(W), times that joint's geometric Jacobian
-    # (`joint_jacobian_product`: from the keypoints' joints' (joint, ancestor slot) pairs, 2 values
-    # each, never the (K, 3, D) rows). The chain rule's first factor: Reprojection's residual depends on
-    # the pixels alone and its `jacobian` reads `jac.pixels` only, here d pixels / d X (its "D" the 3
-    # coordinates of each keypoint's own joint); the joints and depth slots have no meaning for these
-    # per-keypoint variables and get empty tensors, so that a term reading them fails instead of
-    # computing with something else
-    root_w = robust_loss_derivative(rp.loss)(s, rp.scale).sqrt()[..., None]  # (B, T, K, 1) sqrt IRLS weights
-    unread = dpix.new_empty(0)
-    jp = rp.jacobian(ev, PoseJacobian(unread, dpix, unread)).unflatten(-2, (t_len, k, 2))  # (B, T, K, 2, 3)
-    jp = jp * root_w[..., None]
-    rw = (r * root_w).flatten(-2)[..., None]  # (B, T, 2K, 1)
+    # J_t^T W J_t of the reprojection: per keypoint, the residual's 2 x 3 derivative w.r.t. its joint's
+    # position (`Reprojection.pixel_jacobian` on d pixels / d X) times sqrt(W), taken on to the pose by the
+    # assembler (`add_point_rows`: the joint Jacobian's (joint, ancestor slot) pairs, never (K, 3, D) rows)
+    root_w = rp_w.sqrt()  # (B, T, 2K)
+    jp = rp.pixel_jacobian(dpix).unflatten(-2, (t_len, k, 2))  # (B, T, K, 2, 3)
+    jp = jp * root_w.unflatten(-1, (k, 2))[..., None]
+    rw = (r * root_w)[..., None]  # (B, T, 2K, 1)
     h = q.new_empty(b_len, t_len, _d, _d)
     g = q.new_empty(b_len, t_len, _d)
 
     def normal_equations(part: slice, fk_part: tuple[Tensor, Tensor]) -> None:
-        jw = joint_jacobian_product(sk, q[:, part], kps.joints, jp[:, part], fk_part)  # (B, t, K, 2, D)
-        add_all_frames(h[:, part], g[:, part], jw.flatten(-3, -2), rw[:, part])  # rows (keypoint, x|y)
+        add_point_rows(h[:, part], g[:, part], sk, q[:, part], kps.joints, jp[:, part], rw[:, part], fk_part)
 
     per_parts(normal_equations, fk)
-    if lim is not None:
-        assert obj.limits is not None
-        g = add_diagonal_rows(h, g, lim, obj.limits.diagonal_jacobian(PoseEval(qw, ev.joints, ev.pixels, ev.depth)))
-    if prior_r is not None:
-        assert obj.pose_prior is not None
-        g = add_diagonal_rows(h, g, prior_r, obj.pose_prior.diagonal_jacobian(pose))
+    if limits is not None and lim is not None:
+        g = add_diagonal_rows(h, g, lim, limits.diagonal_jacobian(pose))
+    if prior is not None and prior_r is not None:
+        g = add_diagonal_rows(h, g, prior_r, prior.diagonal_jacobian(pose))
     if kf is not None and kf_r is not None:
         add_frame_rows(h, g, FrameRows(obj.kf_frames, kf_r, kf.whiten.to(q)[None]))
     if jk is not None and jk_r is not None:

@@ -1,7 +1,8 @@
-"""The smoothing prior of the batch objective (`method: batch`, DiFranco, Cham & Rehg 2001, eq. 3): the shared
-`ptrack.costs.Smoothness` residuals (forward differences of the trajectory over time, per-dof scales) under a
-robust loss (IRLS weights), and the band of their Gauss-Newton Hessian (`ptrack.optim.trajectory`). Shapes: T
-frames, D dofs, W the band's width (the highest difference order)."""
+"""The smoothing prior of the batch objective (`method: batch`, DiFranco, Cham & Rehg 2001, eq. 3): one shared
+`ptrack.costs.Smoothness` term per difference order (the trajectory's forward differences times a per-dof scale,
+under the robust loss `batch.smooth_loss`), which gives its energy per frame, gradient and IRLS weights; their
+band in the normal equations is assembled by `ptrack.optim.trajectory`. Shapes: T frames, D dofs, W the band's
+width (the highest difference order)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from ptrack.costs import PoseEval, Smoothness, robust_loss, robust_loss_derivative
-from ptrack.optim.trajectory import band_matvec, difference_transpose, weighted_band
+from ptrack.costs import PoseEval, Smoothness
+from ptrack.optim.trajectory import band_matvec, weighted_band
 
 if TYPE_CHECKING:
     from ptrack.estimators.batch.objective import Trajectory
@@ -19,41 +20,43 @@ if TYPE_CHECKING:
 __all__ = ["band_matvec", "robust_smoothing", "smoothing_band", "smoothing_terms", "weighted_band"]
 
 
-def smoothing_terms(smooth: tuple[tuple[int, Tensor], ...]) -> tuple[tuple[int, Smoothness], ...]:
+def smoothing_terms(
+    smooth: tuple[tuple[int, Tensor], ...], loss: str = "l2", scale: float = 1.0
+) -> tuple[tuple[int, Smoothness], ...]:
     """The shared smoothness terms of smooth ((n, a_n (D,)), ...): (n, `Smoothness` whose residual is
-    a_n * (n-th forward difference of q over time), (..., (T-n)*D)), ...)."""
-    return tuple((n, Smoothness(1.0, 1.0 if n == 1 else None, 1.0 if n == 2 else None, dof_scale=a)) for n, a in smooth)
+    a_n * (n-th forward difference of q over time), (..., (T-n)*D), under the robust `loss` at `scale`), ..."""
+    return tuple(
+        (n, Smoothness(1.0, 1.0 if n == 1 else None, 1.0 if n == 2 else None, dof_scale=a, loss=loss, scale=scale))
+        for n, a in smooth
+    )
 
 
-def smoothing_band(t_len: int, smooth: tuple[tuple[int, Tensor], ...], like: Tensor) -> Tensor:
-    """Band of sum_n a_n^2 D_n^T D_n (D_n: n-th forward difference over T frames, per dof).
-    -> (T, W+1, D) with W = the largest n (at least 1); entry [t, k] is the (t, t-k) block's diagonal."""
-    return weighted_band(t_len, tuple((n, a.square().expand(max(t_len - n, 0), -1)) for n, a in smooth), like)
+def smoothing_band(t_len: int, terms: tuple[tuple[int, Smoothness], ...], like: Tensor) -> Tensor:
+    """Band of the least-squares smoothing's Hessian sum_n c_n^2 D_n^T D_n (D_n: n-th forward difference over T
+    frames, c_n (D,) each term's `difference_scales`): -> (T, W+1, D) with W = the largest n (at least 1);
+    entry [t, k] is the (t, t-k) block's diagonal."""
+    weights = tuple(
+        (n, c.square().expand(max(t_len - n, 0), like.shape[-1]))
+        for _, term in terms
+        for n, c in term.difference_scales(like)
+    )
+    return weighted_band(t_len, weights, like)
 
 
 def robust_smoothing(
     obj: Trajectory, q: Tensor, derivatives: bool = True
 ) -> tuple[Tensor, Tensor | None, tuple[tuple[int, Tensor], ...]]:
-    """The smoothing prior under the robust loss `obj.smooth_loss` (scale `obj.smooth_scale` prior std):
-    q (B, T, D) -> energy (B, T) (each residual at its middle frame), gradient (B, T, D), and the
-    Gauss-Newton weights ((n, w a_n^2 (B, T-n, D)), ...) with w the IRLS weight of each residual;
-    without `derivatives`, the energy only (gradient None, no weights)."""
-    rho, drho = robust_loss(obj.smooth_loss), robust_loss_derivative(obj.smooth_loss)
-    b_len, t_len, d = q.shape
-    energy = q.new_zeros(b_len, t_len)
+    """The smoothing prior's terms summed (`Smoothness.banded_gauss_newton`): q (B, T, D) -> energy (B, T) (each
+    residual at its middle frame), gradient (B, T, D), and the Gauss-Newton weights ((n, w c_n^2 (B, T-n, D)), ...)
+    with w the IRLS weight of each residual; without `derivatives`, the energy only (gradient None, no weights)."""
+    energy = q.new_zeros(q.shape[:-1])
     grad = torch.zeros_like(q) if derivatives else None
-    weights = []
+    weights: list[tuple[int, Tensor]] = []
     ev = PoseEval(q, q.new_zeros(0), q.new_zeros(0), q.new_zeros(0))
-    for (n, a), (_, term) in zip(obj.smooth, obj.smooth_terms):
-        if t_len <= n:
-            continue
-        r = term.residual(ev).unflatten(-1, (t_len - n, d))  # (B, T-n, D) in prior std units
-        s = r.square()
-        e = 0.5 * rho(s, obj.smooth_scale).sum(-1)
-        energy = energy + torch.nn.functional.pad(e, ((n + 1) // 2, n - (n + 1) // 2))
-        if grad is None:
-            continue
-        c = drho(s, obj.smooth_scale) * a.square()
-        grad = grad + difference_transpose(n, c * torch.diff(q, n=n, dim=-2))
-        weights.append((n, c))
+    for _, term in obj.smooth_terms:
+        part = term.banded_gauss_newton(ev, derivatives)
+        energy = energy + part.energy
+        if grad is not None and part.gradient is not None:
+            grad = grad + part.gradient
+        weights += part.weights
     return energy, grad, tuple(weights)

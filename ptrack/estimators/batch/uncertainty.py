@@ -117,7 +117,8 @@ def flip_posterior(
 
     cam = obj.problem.observations.camera
     relaxed = relax if bc.branch_iterations > 0 else None
-    return branch_posterior(sk, cam, q, chains, plans, frame_energy, obj.smooth, relaxed, obj.smooth_rho())
+    smooth = [term for _, term in obj.smooth_terms]
+    return branch_posterior(sk, cam, q, chains, plans, frame_energy, smooth, relaxed)
 
 
 def lower_branch(obj: Trajectory, q: Tensor, branches: BranchPosterior) -> Tensor | None:
