@@ -6,7 +6,7 @@
     python scripts/make_std_calibration.py A/every1 A/firstlast [--mode branches] [--target 0.95] [--out FILE]
     (and the same with batch.uncertainty=laplace in both evaluations and --mode laplace)
 
-    python scripts/make_std_calibration.py --report [--mode branches] [--calibration FILE ...] FOLDER ...
+    python scripts/make_std_calibration.py --report [--mode branches] [--calibration FILE] ... FOLDER ...
 
 The raw std (the Laplace approximation at the solution plus the flip branches, `batch.std_calibration=false`)
 is overconfident: on the dev clips 0.78-0.82 of joint-frames lie within 2 std where a calibrated one puts 0.95.
@@ -215,14 +215,18 @@ def main() -> None:
     ap.add_argument("--travel", type=float, nargs="*", default=None, help="travel shares to try (default TRAVELS)")
     ap.add_argument("--out", default=str(DATA))
     ap.add_argument("--report", action="store_true", help="fit nothing: report the calibrations on the runs")
-    ap.add_argument("--calibration", nargs="*", default=[str(DATA)], help="with --report: calibration files")
+    ap.add_argument(
+        "--calibration",
+        action="append",
+        help="with --report: a calibration file (repeat for more; default the shipped)",
+    )
     args = ap.parse_args()
     runs = load_runs(args.folders)
     if not runs:
         raise SystemExit("no result.npz with joint_std and gt_joints under the folders given")
     if args.report:
         cals = {}
-        for path in args.calibration:
+        for path in args.calibration or [str(DATA)]:
             entry = json.loads(Path(path).read_text(encoding="utf-8"))[args.mode]
             cals[Path(path).stem] = StdCalibration(entry["scale"], entry["floor_m"], entry.get("travel", 0.0))
         cals["raw"] = StdCalibration(1.0, 0.0, 0.0)
