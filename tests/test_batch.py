@@ -333,29 +333,65 @@ def test_joint_std_and_its_coverage_are_written(tmp_path):
     err = np.linalg.norm(joints - gt, axis=-1)
     for k in (1, 2, 3):  # every joint, the share of joint-frames within k std
         assert metrics[f"joint_within_{k}std"] == pytest.approx(float((err <= k * std).mean()), abs=1e-6)
-    _, _, cal = solve("batch.uncertainty=laplace")
+    _, prep, cal = solve("batch.uncertainty=laplace")
     _, _, raw = solve("batch.uncertainty=laplace", "batch.std_calibration=false")
-    expected = batch.calibrate_std(raw.joint_std, batch.std_calibration("laplace"))
+    travel = batch.keyframe_travel(raw.joints, keyframe_frames_of(prep.problem))
+    expected = batch.calibrate_std(raw.joint_std, batch.std_calibration("laplace"), travel)
     torch.testing.assert_close(cal.joint_std, expected)
+
+
+def keyframe_frames_of(problem) -> torch.Tensor:
+    """(F,) the frames of the problem's keyframes and joint keyframes."""
+    frames = [k.frames for k in (problem.keyframes, problem.joint_keyframes) if k is not None]
+    return torch.cat(frames) if frames else torch.zeros(0, dtype=torch.long)
+
+
+def test_keyframe_travel_and_the_calibration_formula():
+    """keyframe_travel: each joint's distance from its position at the nearest keyframe before or after (the
+    smaller), 0 at a keyframe, one-sided past the last one, from frame 0 without keyframes; calibrate_std:
+    sqrt((scale std)^2 + floor^2 + (travel m)^2)."""
+    t = torch.arange(7, dtype=torch.float64)
+    joints = torch.zeros(7, 2, 3, dtype=torch.float64)
+    joints[:, 0, 0] = t  # joint 0 walks 1 m a frame along x, joint 1 stands
+    travel = batch.keyframe_travel(joints, torch.tensor([4, 0, 4]))  # unsorted, repeated
+    torch.testing.assert_close(travel[:, 0], torch.tensor([0.0, 1, 2, 1, 0, 1, 2], dtype=torch.float64))
+    assert float(travel[:, 1].abs().max()) == 0.0
+    torch.testing.assert_close(batch.keyframe_travel(joints, torch.zeros(0, dtype=torch.long))[:, 0], t)
+    std = torch.full((7, 2), 0.015, dtype=torch.float64)
+    cal = batch.calibrate_std(std, batch.StdCalibration(2.0, 0.04, 0.05), travel)
+    torch.testing.assert_close(cal, ((2 * std) ** 2 + 0.04**2 + (0.05 * travel) ** 2).sqrt())
+    flat = batch.calibrate_std(std, batch.StdCalibration(2.0, 0.04, 0.0), travel)
+    torch.testing.assert_close(flat, torch.full_like(std, 0.05))  # no travel share: a scale and a floor (3-4-5)
 
 
 def test_calibrated_joint_std_covers_the_truth():
     """The shipped calibration (fitted on the dev clips) on a clip it was not fitted on: the bundled kick's
     first 80 frames from its first and last frame only (`uncertainty: branches`, the defaults). Measured
-    2026-11-29: within 2 std 0.81 raw, 0.99 calibrated; within 1 std 0.47 raw, 0.72 calibrated. The
-    calibrated std must cover the truth as a calibrated one does (0.9 or more within 2 std), and stay an
-    uncertainty, not a blanket (under 0.9 within 1 std: a Gaussian's 0.61-0.68)."""
+    2026-11-29 (scale 1.30, no floor, travel share 0.05): within 2 std 0.81 raw, 0.915 calibrated, 0.900
+    without the travel term (the calibration of before, a 60 mm floor: 0.986); within 1 std 0.47 raw, 0.60
+    calibrated. The calibrated std must cover the truth as a calibrated one does (0.9 or more within 2 std),
+    stay an uncertainty, not a blanket (under 0.9 within 1 std: a Gaussian's 0.61-0.68), and be wider where a
+    joint has travelled far from the keyframes: the travel term covers more than the same scale and floor
+    without it, and widens the far quarter of the joint-frames against the rest more than the raw std does."""
     _, prep, est = solve(
         "data.stop=320", "keyframes.every_s=null", "keyframes.last=true", "batch.uncertainty=branches",
         "batch.flip_restarts=3", "batch.std_calibration=false",
     )  # fmt: skip
-    err = (est.joints - prep.gt_joints.to(est.joints)).norm(dim=-1)
+    gt = prep.gt_joints.to(est.joints)
+    err = (est.joints - gt).norm(dim=-1)
     raw = est.joint_std
-    cal = batch.calibrate_std(raw, batch.std_calibration("branches"))
-    within = {k: float(M.std_coverage(est.joints, prep.gt_joints.to(est.joints), cal, k)) for k in (1, 2)}
+    shipped = batch.std_calibration("branches")
+    assert shipped.travel > 0
+    travel = batch.keyframe_travel(est.joints, keyframe_frames_of(prep.problem))
+    cal = batch.calibrate_std(raw, shipped, travel)
+    within = {k: float(M.std_coverage(est.joints, gt, cal, k)) for k in (1, 2)}
     assert within[2] >= 0.9, within
     assert within[1] <= 0.9, within
     assert float((err <= 2 * raw).double().mean()) < within[2]  # the calibration widens the raw std
+    flat = batch.calibrate_std(raw, shipped._replace(travel=0.0), travel)
+    assert float(M.std_coverage(est.joints, gt, flat, 2)) < within[2]
+    far = travel > travel.quantile(0.75)  # the calibrated std grows with the travel more than the raw one
+    assert float(cal[far].mean() / cal[~far].mean()) > float(raw[far].mean() / raw[~far].mean())
 
 
 def test_warm_start_from_a_run_folder_and_upsampling(tmp_path):

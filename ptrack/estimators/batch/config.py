@@ -50,8 +50,9 @@ class BatchMethodConfig:
     )
     std_calibration: bool = setting(
         True,
-        "scale joint_std by the calibration of its batch.uncertainty mode fitted on the dev clips "
-        "(ptrack/data/batch_std_calibration.json); false: the raw std (overconfident: ~0.8 within 2 std)",
+        "widen joint_std by the calibration of its batch.uncertainty mode fitted on the dev clips (a scale and a "
+        "share of each joint's travel from its nearest keyframe: ptrack/data/batch_std_calibration.json); "
+        "false: the raw std (overconfident: ~0.8 within 2 std)",
     )
     flip_restarts: int = setting(3, "rounds of restarts from the limbs' depth-flip branches (0: none)")
     branch_iterations: int = setting(

@@ -21,7 +21,14 @@ from ptrack.estimators.batch.start import (
     load_init,
     warp_to_keyframes,
 )
-from ptrack.estimators.batch.uncertainty import calibrate_std, flip_posterior, joint_std, lower_branch, std_calibration
+from ptrack.estimators.batch.uncertainty import (
+    calibrate_std,
+    flip_posterior,
+    joint_std,
+    keyframe_travel,
+    lower_branch,
+    std_calibration,
+)
 from ptrack.hypotheses.branches import BranchPosterior
 from ptrack.optim.solvers import BandedLMInfo
 from ptrack.problem import Estimate, Problem
@@ -130,7 +137,8 @@ def _estimate(
                 branches = flip_posterior(obj, q, bc, warm)
             std = joint_std(obj, q, info.hessian, branches if mode == "branches" else None)[0]
             if bc.std_calibration:
-                std = calibrate_std(std, std_calibration(mode))
+                travel = keyframe_travel(joints, torch.cat([obj.kf_frames, obj.jk_frames]))
+                std = calibrate_std(std, std_calibration(mode), travel)
     terms = {name: v[0].to(out_dtype) for name, v in terms.items()}
     return Estimate(
         q=q[0].to(out_dtype),

@@ -1,8 +1,9 @@
 """What the batch solution leaves uncertain: `joint_std` from the marginal covariances of the Gauss-Newton
 Hessian (the Laplace approximation), and the limbs' depth-flip branches (`flip_posterior`, in the posterior of
 `ptrack.hypotheses.branches`), which add to it and whose lowest one restarts the solve (`lower_branch`);
-`calibrate_std` scales the result by the calibration fitted on the dev clips (`ptrack/data/
-batch_std_calibration.json`, made by `scripts/make_std_calibration.py`)."""
+`calibrate_std` widens the result by the calibration fitted on the dev clips (`ptrack/data/
+batch_std_calibration.json`, made by `scripts/make_std_calibration.py`), partly in proportion to each joint's
+travel from its nearest keyframe (`keyframe_travel`)."""
 
 from __future__ import annotations
 
@@ -55,28 +56,50 @@ CALIBRATION_FILE = "batch_std_calibration.json"
 
 
 class StdCalibration(NamedTuple):
-    """std' = sqrt((scale std)^2 + floor_m^2): a variance factor and a floor (metres)."""
+    """std' = sqrt((scale std)^2 + floor_m^2 + (travel m)^2): a variance factor, a floor (metres) and a share of
+    the joint's travel from its nearest keyframe (m metres, `keyframe_travel`; dimensionless)."""
 
     scale: float
     floor_m: float
+    travel: float = 0.0
 
 
 @functools.cache
 def std_calibration(mode: str = "branches") -> StdCalibration:
     """The calibration shipped in ptrack/data (`CALIBRATION_FILE`) for `batch.uncertainty` mode (branches,
-    laplace): fitted on the dev clips' runs
-    (configs/clips/dev.txt, keyframes every 1 s and first + last) to put 0.95 of the joint-frames within
-    2 std, the floor chosen by a leave-one-clip-out interval score (`scripts/make_std_calibration.py`)."""
+    laplace): fitted on the dev clips' runs (configs/clips/dev.txt, keyframes every 1 s and first + last),
+    the floor and the travel share by the lowest leave-one-clip-out interval score, the scale so that 0.95 of
+    the joint-frames lie within 2 std (`scripts/make_std_calibration.py`)."""
     doc = json.loads(data_file(CALIBRATION_FILE).read_text(encoding="utf-8"))
-    return StdCalibration(float(doc[mode]["scale"]), float(doc[mode]["floor_m"]))
+    entry = doc[mode]
+    return StdCalibration(float(entry["scale"]), float(entry["floor_m"]), float(entry["travel"]))
 
 
-def calibrate_std(std: Tensor, calibration: StdCalibration) -> Tensor:
-    """std (..., J) metres (`joint_std`) -> sqrt((scale std)^2 + floor^2), the same shape. The raw std is the
-    spread the objective's own model predicts (its 2D noise, smoothing scales and flip branches); the
-    errors also hold what that model leaves out (depth drift between keyframes, motion faster than the
-    prior's), which the calibration adds: on the dev clips the raw std holds 0.80 of joint-frames within 2 std."""
-    return ((calibration.scale * std).square() + calibration.floor_m**2).sqrt()
+def keyframe_travel(joints: Tensor, frames: Tensor) -> Tensor:
+    """How far each joint has moved from where it was at the nearest keyframe: joints (T, J, 3) metres (the
+    solution), frames (F,) the keyframes' frames (any order, repeats allowed) -> (T, J) metres, the smaller of
+    |X_t - X_k| for k the last keyframe at or before t and the first at or after it (0 at a keyframe). Without
+    any keyframe, from frame 0 (the calibration was not fitted on such runs)."""
+    t_len = joints.shape[0]
+    frames = torch.unique(frames.to(device=joints.device, dtype=torch.long))  # sorted
+    if frames.numel() == 0:
+        frames = frames.new_zeros(1)
+    t = torch.arange(t_len, device=joints.device)
+    after = torch.searchsorted(frames, t).clamp(max=frames.numel() - 1)  # first keyframe >= t (or the last)
+    before = (torch.searchsorted(frames, t, right=True) - 1).clamp(min=0)  # last keyframe <= t (or the first)
+    d_before = (joints - joints[frames[before]]).norm(dim=-1)
+    d_after = (joints - joints[frames[after]]).norm(dim=-1)
+    return torch.minimum(d_before, d_after)
+
+
+def calibrate_std(std: Tensor, calibration: StdCalibration, travel_m: Tensor) -> Tensor:
+    """std (..., J) metres (`joint_std`), travel_m the same shape (`keyframe_travel`) -> sqrt((scale std)^2 +
+    floor^2 + (travel travel_m)^2), the same shape. The raw std is the spread the objective's own model predicts
+    (its 2D noise, smoothing scales and flip branches); the errors also hold what that model leaves out, mostly
+    depth drift away from the keyframes, which grows with how far the joint has moved since (or before) the
+    nearest one: on the dev clips the raw std holds 0.80 of joint-frames within 2 std."""
+    c = calibration
+    return ((c.scale * std).square() + c.floor_m**2 + (c.travel * travel_m).square()).sqrt()
 
 
 def flip_posterior(
