@@ -32,8 +32,9 @@ noise; the trackers themselves are deterministic), the tables give each swing's 
 taken three times: over the whole clip (metrics.json), over the swing, the frames up to the end of the
 follow-through plus 0.5 s (the end found in the ground-truth 3D wrists by the motion model's key-posture
 rules), and over the clip's last sixth, since the clips go on for up to 2 s after the swing, where the
-golfer does what no training swing does. The tables go to <out>/results.md; --plot SWING draws that swing's
-full tracker run seen from the camera and from above into docs/golf_swing.png.
+golfer does what no training swing does. Per seed, the means over the swings and, paired over the runs (swing x
+seed), each variant's difference from the first with its standard error. The tables go to <out>/results.md;
+--plot SWING draws that swing's full tracker run seen from the camera and from above into docs/golf_swing.png.
 
     OMP_NUM_THREADS=1 python scripts/eval_golf.py [--out logs/eval_golf] [--variants pca,joints,...]
         [--seeds 0,1,2] [--plot 64_01] [--set pca.silhouette_weight=0.5 ...]
