@@ -16,6 +16,8 @@ For each of the dev swings (configs/clips/golf.txt), a motion model is fitted on
     *_other     pca and joints with silhouettes of another body (OTHER: the capsules of subject 64's skeleton with
                 Winter's proportions at 1.62 m, radii each within +-25%), keypoints 3 cm off the joint centres,
                 and ROUGH: the issue-42 condition (does the silhouette term still help?)
+    *_s6_other  OTHER with the tracker told the 2D's noise (costs.sigma_px=6); pca_s6_other with the foreground term
+                at pca.silhouette_weight 0.3 against capsules pca.silhouette_radius_scale 1.6x as wide
     *_person    the same with that body the whole person seen (PERSON: its joints make the 2D and the ground
                 truth too; the tracker's body differs by up to 24% in a segment, 47 mm MPJPE at the exact angles)
     *_6px       pca, joints, pca_corr, joints_corr, pca_corr_m0 with rougher joint tracks (ROUGH: noise_px 6, and the
@@ -30,8 +32,9 @@ noise; the trackers themselves are deterministic), the tables give each swing's 
 taken three times: over the whole clip (metrics.json), over the swing, the frames up to the end of the
 follow-through plus 0.5 s (the end found in the ground-truth 3D wrists by the motion model's key-posture
 rules), and over the clip's last sixth, since the clips go on for up to 2 s after the swing, where the
-golfer does what no training swing does. The tables go to <out>/results.md; --plot SWING draws that swing's
-full tracker run seen from the camera and from above into docs/golf_swing.png.
+golfer does what no training swing does. Per seed, the means over the swings and, paired over the runs (swing x
+seed), each variant's difference from the first with its standard error. The tables go to <out>/results.md;
+--plot SWING draws that swing's full tracker run seen from the camera and from above into docs/golf_swing.png.
 
     OMP_NUM_THREADS=1 python scripts/eval_golf.py [--out logs/eval_golf] [--variants pca,joints,...]
         [--seeds 0,1,2] [--plot 64_01] [--set pca.silhouette_weight=0.5 ...]
@@ -80,6 +83,10 @@ OTHER = [
 ]
 # the same with that body the whole person seen: its joints make the 2D and the ground truth too
 PERSON = ["observations.body_height_m=1.62", *OTHER[1:]]
+# the tracker told the 2D's noise (costs.sigma_px 6, not the 2 px default); for the full tracker the foreground term
+# at 0.3 and measured against capsules 1.6x as wide (chosen on 64_01, 64_02, 64_04; docs/results.md)
+TOLD = ["costs.sigma_px=6"]
+WIDE = ["pca.silhouette_weight=0.3", "pca.silhouette_radius_scale=1.6"]
 PCA_VARIANTS = {
     "pca": [],
     "pca_hold": ["pca.after_swing=hold"],
@@ -96,6 +103,8 @@ PCA_VARIANTS = {
     "pca_corr_m0_6px": [*CORR, "pca.correspondence_margin_m=0", *ROUGH],
     "pca_other": OTHER,
     "joints_other": ["pca.silhouette_weight=0", *OTHER],
+    "pca_s6_other": [*OTHER, *TOLD, *WIDE],
+    "joints_s6_other": ["pca.silhouette_weight=0", *OTHER, *TOLD],
     "pca_person": PERSON,
     "joints_person": ["pca.silhouette_weight=0", *PERSON],
 }
@@ -217,6 +226,31 @@ def seed_table(seed_span: dict[str, dict[int, list[float]]], seeds: list[int], t
         wins = [sum(a < b for a, b in zip(seed_span[first][s], per[s])) for s in seeds]
         better = "–" if v == first else " / ".join(f"{w} of {len(per[s])}" for w, s in zip(wins, seeds))
         lines.append(f"| {v} | " + " | ".join(f"{m:.1f}" for m in means) + f" | {np.mean(means):.1f} | {better} |")
+    return "\n".join(lines) + "\n\n"
+
+
+def paired_table(seed_span: dict[str, dict[int, list[float]]], seeds: list[int], tail_s: float) -> str:
+    """The table's first variant against each other one, paired over the runs (swing x seed, the same
+    observations): the mean of the other's MPJPE minus the first's over the swing (positive: the first is
+    better), its standard error (the std of the n paired differences / sqrt(n)), per seed the mean difference,
+    and the runs the first is better on."""
+    if len(seed_span) < 2:
+        return ""
+    first = next(iter(seed_span))
+    title = f"Paired over swings x seeds, MPJPE over the swing (+ {tail_s:g} s), other minus {first} (mm):"
+    head = f"| variant | mean difference +- s.e. (n) | {' | '.join(f'seed {s}' for s in seeds)} | {first} better on |"
+    lines = [title, "", head, "|---" * (len(seeds) + 3) + "|"]
+    for v, per in seed_span.items():
+        if v == first:
+            continue
+        d = np.array([b - a for s in seeds for a, b in zip(seed_span[first][s], per[s])])
+        se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
+        by_seed = [float(np.mean(np.subtract(per[s], seed_span[first][s]))) for s in seeds]
+        lines.append(
+            f"| {v} | {d.mean():+.1f} +- {se:.1f} ({len(d)}) | "
+            + " | ".join(f"{x:+.1f}" for x in by_seed)
+            + f" | {int((d > 0).sum())} of {len(d)} |"
+        )
     return "\n".join(lines) + "\n\n"
 
 
@@ -342,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
                 + table(last, group, f"{setting} Over the last sixth of the clip:".strip())
                 + "\n"
             )
-    text += seed_table(seed_span, seeds, args.tail_s)
+    text += seed_table(seed_span, seeds, args.tail_s) + paired_table(seed_span, seeds, args.tail_s)
     text = (
         text
         + "Frames (whole clip / swing): "

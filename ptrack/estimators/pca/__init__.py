@@ -13,7 +13,8 @@ stands near their singularity). Its energy (eq. 7) is
 
     w_joint  sum rho(|proj(joint) - observed|^2 / sigma_px^2)   tracked joints (knees, ankles, wrists, head)
     + w_fg   sum (ray-to-model distance / sigma_m)^2             foreground samples (section 4.1,
-                                                                 `ptrack.costs.ray_silhouette`)
+                                                                 `ptrack.costs.ray_silhouette`; the model's
+                                                                 radii times pca.silhouette_radius_scale)
     + w_corr sum rho(|proj(x_i) - p2_i|^2 / sigma_px^2)         point correspondences (section 4.3,
                                                                  `ptrack.costs.correspondence`)
     + |(G - G^) / sigma_G|^2 + |(mu - mu^) / sigma_mu|^2 + |(alpha - alpha^) / (s sigma_alpha)|^2

@@ -41,12 +41,17 @@ class PcaMethodConfig:
         "l2", "robust loss of each foreground sample's ray distance: l2, huber, cauchy, geman_mcclure"
     )
     silhouette_scale: float = setting(1.0, "scale of pca.silhouette_loss, in silhouette sigmas")
+    silhouette_radius_scale: float = setting(
+        1.0,
+        "the foreground term's capsule radii times this: a ray through the wider capsules counts as explained (for "
+        "silhouettes of a body other than the model's; docs/results.md)",
+    )
     silhouette_samples: int = setting(96, "foreground samples per frame (a regular grid, evenly thinned)")
     silhouette_step_px: int = setting(4, "grid step of the samples, pixels")
     root_sigma_m: float = setting(0.02, "prediction std of the root position, metres per frame")
     root_sigma_deg: float = setting(3.0, "prediction std of the root orientation, degrees per frame")
     time_sigma: float = setting(0.01, "prediction std of the normalised time per frame")
-    timing_sigma: float | None = setting(0.03, "std of a prior holding each frame's time near the start's; null: none")
+    timing_sigma: float | None = setting(0.015, "std of a prior holding each frame's time near the start's; null: none")
     alpha_sigma: float = setting(0.1, "prediction std of the PCA weights, in the model's per-component std")
     alpha_prior_weight: float = setting(1.0, "weight of the prior alpha ~ N(0, sigma^2) of the training swings")
     alpha_bound: float = setting(3.0, "|alpha_i| at most this many training stds (a box in the solver)")
@@ -108,7 +113,14 @@ def validate_pca(p: PcaMethodConfig, keypoints: dict[str, str] | None = None, na
         raise InputError(f"config key 'pca.after_swing' must be one of {', '.join(AFTER_SWING)}, got {p.after_swing!r}")
     if p.key_smooth_s < 0:
         raise InputError(f"config key 'pca.key_smooth_s' must be >= 0, got {p.key_smooth_s}")
-    positive = ("silhouette_sigma_m", "silhouette_scale", "root_sigma_m", "root_sigma_deg", "time_sigma")
+    positive = (
+        "silhouette_sigma_m",
+        "silhouette_scale",
+        "silhouette_radius_scale",
+        "root_sigma_m",
+        "root_sigma_deg",
+        "time_sigma",
+    )
     for key in (*positive, "alpha_sigma", "alpha_bound"):
         if not getattr(p, key) > 0:
             raise InputError(f"config key 'pca.{key}' must be positive, got {getattr(p, key)}")

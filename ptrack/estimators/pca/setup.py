@@ -80,6 +80,11 @@ class Setup:
     def m(self) -> int:
         return self.model.num_components
 
+    @property
+    def silhouette_radii(self) -> Tensor:
+        """(B,) the foreground term's capsule radii: the model's times pca.silhouette_radius_scale."""
+        return self.radii * self.cfg.pca.silhouette_radius_scale
+
 
 def make_setup(problem: Problem, cfg: PcaRunConfig) -> Setup:
     sk, obs, kps = problem.skeleton, problem.observations, problem.keypoints

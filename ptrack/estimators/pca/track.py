@@ -147,7 +147,7 @@ def final_terms(s: Setup, joints: Tensor, rotations: Tensor) -> dict[str, Tensor
     }
     if s.rays is not None:
         assert s.ray_valid is not None  # set with rays
-        sil = RaySilhouette(s.rays, s.ray_valid, cam.center, s.bones, s.radii, sigma_m=p.silhouette_sigma_m)
+        sil = RaySilhouette(s.rays, s.ray_valid, cam.center, s.bones, s.silhouette_radii, sigma_m=p.silhouette_sigma_m)
         rho = robust_loss(p.silhouette_loss)(sil.residual_per_frame(joints).square(), p.silhouette_scale)
         terms["silhouette"] = 0.5 * p.silhouette_weight * rho.sum(-1)
     moved = correspondence_points(s, joints, rotations)

@@ -163,7 +163,12 @@ def window_silhouette(s: Setup, frames: Tensor) -> RaySilhouette | None:
     assert s.ray_valid is not None  # set with rays
     cam = s.problem.observations.camera
     return RaySilhouette(
-        s.rays[frames], s.ray_valid[frames], cam.center, s.bones, s.radii, sigma_m=s.cfg.pca.silhouette_sigma_m
+        s.rays[frames],
+        s.ray_valid[frames],
+        cam.center,
+        s.bones,
+        s.silhouette_radii,
+        sigma_m=s.cfg.pca.silhouette_sigma_m,
     )
 
 
