@@ -184,6 +184,56 @@ def later_frames(problem: Problem, start: int) -> Problem:
     return Problem(problem.skeleton, problem.keypoints, sliced, kf, jk, None, problem.floor)
 
 
+def every_nth(problem: Problem, n: int) -> Problem:
+    """The same problem over every n-th frame (0, n, 2n, ...): observations (times too, so the frame interval
+    is n times longer) and silhouettes of those frames, keyframes and joint keyframes on them renumbered
+    (t -> t / n), the others dropped; correspondences are left out (their pairs join neighbouring frames).
+    n = 1: `problem` itself. For a first run that needs only a sample of the frames (real footage's
+    measured lengths, `subject.measure_stride`)."""
+    if n < 1:
+        raise ValueError(f"every_nth: n {n} must be at least 1")
+    if n == 1:
+        return problem
+    obs = problem.observations
+    strided = Observations(
+        obs.keypoints[::n],
+        obs.confidence[::n],
+        obs.times[::n],
+        obs.camera,
+        obs.keypoint_names,
+        obs.masks[::n] if obs.masks is not None else None,
+    )
+    kf = problem.keyframes
+    if kf is not None:
+        keep = kf.frames % n == 0
+        kf = (
+            None
+            if not bool(keep.any())
+            else Keyframes(
+                kf.frames[keep] // n,
+                kf.q[keep],
+                kf.mask[keep] if kf.mask is not None else None,
+                kf.sigma[keep] if kf.sigma is not None else None,
+                kf.covariance[keep] if kf.covariance is not None else None,
+            )
+        )
+    jk = problem.joint_keyframes
+    if jk is not None:
+        keep = jk.frames % n == 0
+        jk = (
+            None
+            if not bool(keep.any())
+            else JointKeyframes(
+                jk.frames[keep] // n,
+                jk.joints[keep],
+                jk.mask[keep],
+                jk.sigma[keep],
+                jk.covariance[keep] if jk.covariance is not None else None,
+            )
+        )
+    return Problem(problem.skeleton, problem.keypoints, strided, kf, jk, None, problem.floor)
+
+
 def first_keyframe(problem: Problem, key: str, lower: Tensor, upper: Tensor) -> Tensor:
     """The user's 3D pose of frame 0 as the start of a tracker whose config key `key` asked for it,
     its angles written in the limits' 2 pi window (the same pose; never clamped). -> (D,) in lower's

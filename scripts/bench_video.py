@@ -1,6 +1,7 @@
 """Benchmark the real-footage path from keypoints to result: the Pose2Sim balancing trial's cam01 (100 frames of
 OpenPose BODY_25B, the calibration, height 1.72 m) through `configs/video.yaml`, against `method: frame` on the
-same input as the baseline, alternately `--repeats` times.
+same input as the baseline, alternately `--repeats` times (with `--defaults` and key=value overrides, the defaults
+too: before and after in one invocation).
 
 Timed: `ptrack.pipeline.run.estimate` (reading the keypoint folder, choosing the person, the camera, the scaled
 skeleton, and the estimator), as a run's `seconds`; Python start-up and writing the folder are not. Detection
@@ -8,7 +9,7 @@ is timed apart (`scripts/bench_detect.py`). Prints frames per second (median ove
 of each configuration's time to the baseline's, with the machine line. The issue's target: 10 frames per second.
 
 Usage (from the repo root):
-    PYTHONPATH=. python scripts/bench_video.py [--repeats 3] [--stop N] [key=value ...]
+    PYTHONPATH=. python scripts/bench_video.py [--repeats 3] [--stop N] [--defaults] [key=value ...]
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--stop", type=int, default=None, help="only the first STOP frames")
+    p.add_argument("--defaults", action="store_true", help="with overrides: configs/video.yaml without them too")
     p.add_argument("overrides", nargs="*", help="key=value for the configuration measured (not the baseline)")
     args = p.parse_args(argv)
     if not DATA.is_dir():
@@ -52,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.stop:
         base.append(f"data.stop={args.stop}")
     runs = {"configs/video.yaml" + (" " + " ".join(args.overrides) if args.overrides else ""): [*base, *args.overrides]}
+    if args.defaults and args.overrides:
+        runs["configs/video.yaml"] = base
     runs["baseline: method=frame"] = [*base, "method=frame"]
     print(machine_line(), f"torch threads {torch.get_num_threads()}")
     times: dict[str, list[float]] = {name: [] for name in runs}

@@ -2,7 +2,7 @@
 clip seen 5 m away, 2 px noise, face keypoints at score 0, a bystander, an empty image, an OpenCV YAML with
 intrinsics only), reconstructed three ways, each with the clip skeleton's standing height:
 
-    template  the CMU template (data.asf = subject 10) scaled to the height with Winter's proportions (default)
+    template  the CMU template (data.asf = subject 10) scaled to the height with Winter's proportions
     observed  `subject.lengths=observed`: limb and trunk lengths measured in the 2D, then the run again
     known     `subject.lengths=asf data.asf=<the clip's asf>`: the clip's own skeleton, as a known-skeleton bound
 
@@ -62,7 +62,7 @@ def run(setting: str, footage: Path, asf: Path, height: float, out: Path, seed: 
     cmd += [f"observations.file={footage / 'keypoints.json'}", f"camera.file={footage / 'camera.yml'}"]
     cmd += [f"subject.height_m={height:.6f}", "observations.fps=30", f"seed={seed}", f"out_dir={out}", "progress=false"]
     cmd += {
-        "template": [],
+        "template": ["subject.lengths=template"],  # configs/video.yaml measures them by default
         "observed": ["subject.lengths=observed"],
         "known": ["subject.lengths=asf", f"data.asf={asf}"],
     }[setting]

@@ -218,6 +218,8 @@ def test_without_a_camera_file_the_focal_is_the_image_diagonal(synthetic, tmp_pa
         ("observations.min_score=1.5", "observations.min_score"),
         ("camera.fov_deg=0", "camera.fov_deg"),
         ("subject.lengths=guess", "subject.lengths"),
+        ("subject.measure_stride=0", "subject.measure_stride"),
+        ("subject.measure_backward_pass=sometimes", "subject.measure_backward_pass"),
     ],
 )
 def test_bad_footage_settings_are_one_line_errors(synthetic, tmp_path, capsys, override, fragment):
@@ -292,6 +294,34 @@ def test_observed_lengths_carry_their_spread_over_the_frames(tmp_path):
         else:
             assert (row["source"], row["std_source"]) == ("template", "prior"), name
             assert row["length_m"] == pytest.approx(SEGMENTS[name][2] * 1.72, rel=1e-4), name
+
+
+@pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")
+def test_a_strided_first_run_measures_on_every_frame_and_reports_every_frame(tmp_path):
+    """subject.measure_stride=2 with kjs's first run forwards only: the first run tracks frames 0, 2, 4, the lengths
+    are measured on all six frames' 2D at depths between them, and the second run reports every input frame."""
+    out = tmp_path / "run"
+    argv = ["run", VIDEO_YAML, f"observations.file={P2S / 'balancing' / 'pose' / 'cam01_json'}", "camera.name=cam01"]
+    argv += [f"camera.file={P2S / 'Calib_qualisys.toml'}", "subject.height_m=1.72", "observations.fps=60"]
+    argv += ["data.stop=6", "kjs.modes=2", "kjs.samples=32", "subject.measure_stride=2"]
+    argv += ["subject.measure_backward_pass=never", f"out_dir={out}", "progress=false"]
+    assert main(argv) == 0
+    measured = json.loads((out / "metrics.json").read_text())["footage"]["segments_measured"]
+    assert set(measured) == {"thigh", "shank", "upper_arm", "forearm", "trunk"}
+    assert all(row["frames"] == 12 for row in measured.values())  # 6 frames, left and right: all the 2D
+    with np.load(out / "result.npz") as r:
+        assert r["q"].shape[0] == 6 and np.isfinite(r["keypoints"]).all()
+
+
+def test_between_frames_is_linear_and_holds_the_last():
+    """Every n-th frame's values -> every frame: linear between them, the last held after it."""
+    from ptrack.pipeline.run import between_frames
+
+    x = torch.tensor([[0.0, 10.0], [2.0, 30.0], [4.0, 50.0]])  # frames 0, 2, 4
+    y = between_frames(x, 2, 6)
+    torch.testing.assert_close(y[:, 0], torch.tensor([0.0, 1.0, 2.0, 3.0, 4.0, 4.0]))
+    torch.testing.assert_close(y[:, 1], torch.tensor([10.0, 20.0, 30.0, 40.0, 50.0, 50.0]))
+    torch.testing.assert_close(between_frames(x, 1, 3), x)
 
 
 @pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")

@@ -92,3 +92,32 @@ def test_later_frames(setup):
     assert tail.correspondences is None
     with pytest.raises(ValueError, match="start"):
         later_frames(full, t)
+
+
+def test_every_nth(setup):
+    """A problem over every n-th frame: observations and times strided (the frame interval n times longer),
+    keyframes on those frames renumbered (the others dropped), correspondences left out; n = 1 is the problem."""
+    from ptrack.problem import JointKeyframes, every_nth
+
+    sk, q_all, _cam, kps, obs = setup
+    t = obs.num_frames
+    q = q_all[[0, 1]].to(obs.keypoints)
+    kf = Keyframes(torch.tensor([0, 1]), q, sigma=torch.full_like(q, 0.1))
+    jk = JointKeyframes(
+        torch.tensor([2]),
+        torch.zeros(1, sk.num_joints, 3),
+        torch.ones(1, sk.num_joints, dtype=torch.bool),
+        torch.tensor([0.02]),
+    )
+    full = Problem(sk, kps, obs, kf, jk)
+    assert every_nth(full, 1) is full
+    half = every_nth(full, 2)
+    assert half.observations.num_frames == (t + 1) // 2
+    assert torch.equal(half.observations.keypoints, obs.keypoints[::2])
+    assert half.observations.frame_interval == pytest.approx(2 * obs.frame_interval)
+    assert half.keyframes is not None and half.keyframes.frames.tolist() == [0]  # frame 1 is not tracked
+    assert torch.equal(half.keyframes.q, q[:1])
+    assert half.joint_keyframes is not None and half.joint_keyframes.frames.tolist() == [1]  # frame 2 -> 1
+    assert half.correspondences is None and half.skeleton is sk
+    with pytest.raises(ValueError, match="at least 1"):
+        every_nth(full, 0)

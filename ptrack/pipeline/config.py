@@ -218,6 +218,14 @@ class SubjectConfig:
         "keypoint file/folder of a static standing trial, same camera and format: the segment lengths measured "
         "on it replace the template's (ptrack/pipeline/static.py); subject.lengths observed is then not measured",
     )
+    measure_stride: int = setting(
+        1,
+        "the first run of real footage (lengths observed, the floor from the person) tracks every n-th frame only; "
+        "the second run tracks every frame",
+    )
+    measure_backward_pass: str | None = setting(
+        None, "method kjs: kjs.backward_pass of that first run (always, tree, never); null: kjs.backward_pass"
+    )
 
 
 @dataclass(frozen=True)
@@ -575,6 +583,13 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
     if cfg.subject.static and cfg.subject.lengths == "asf":
         raise InputError(
             "config keys 'subject.static' and 'subject.lengths: asf' both set the segment lengths: give one"
+        )
+    if cfg.subject.measure_stride < 1:
+        raise InputError(f"config key 'subject.measure_stride' must be at least 1, got {cfg.subject.measure_stride}")
+    if cfg.subject.measure_backward_pass not in (None, "always", "tree", "never"):
+        raise InputError(
+            "config key 'subject.measure_backward_pass' must be always, tree, never or null, got "
+            f"{cfg.subject.measure_backward_pass!r}"
         )
     if cfg.subject.height_m is not None:
         from ptrack.body.subject import check_height

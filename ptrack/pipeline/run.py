@@ -56,7 +56,7 @@ from ptrack.pipeline.config import RunConfig, check_device, dump_yaml
 from ptrack.pipeline.footage import FootageFrame, keypoints_in_world, prepare_footage
 from ptrack.pipeline.keyframes import ground_truth_joint_keyframes, ground_truth_keyframes, read_keyframes
 from ptrack.pipeline.memory import check_memory
-from ptrack.problem import Estimate, Floor, Problem
+from ptrack.problem import Estimate, Floor, Problem, every_nth
 
 if TYPE_CHECKING:
     from ptrack.io.viz import RunLog  # imports rerun: on first use only
@@ -792,15 +792,23 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
         prep = apply_static(prep, cfg)
     check_memory(cfg, prep.problem)  # refuse settings that would not fit before the estimator allocates
 
-    def run(problem: Problem) -> Estimate:
+    def run(problem: Problem, run_cfg: RunConfig = cfg) -> Estimate:
         gen = torch.Generator(device="cpu").manual_seed(
             cfg.seed + 1
         )  # the samplers' draws (cfg.seed: the observations')
-        return ESTIMATORS[cfg.method](problem, cfg, gen, progress_display(progress, cfg.method))
+        return ESTIMATORS[cfg.method](problem, run_cfg, gen, progress_display(progress, cfg.method))
 
-    est = run(prep.problem)
-    if prep.footage is None:
-        return prep, est
+    measure = (cfg.subject.lengths == "observed" and not cfg.subject.static) or (
+        prep.problem.floor is None and cfg.camera.floor_m is not None and cfg.camera.floor_from_person
+    )
+    if prep.footage is None or not measure:
+        return prep, run(prep.problem)
+    # real footage measured on a first run (lengths, floor), then run again: the first run may be cheaper
+    # (every n-th frame, kjs without its backward pass), as it only gives the depths the 2D is measured at
+    n = cfg.subject.measure_stride
+    est = run(every_nth(prep.problem, n), measure_config(cfg))
+    if n > 1:  # every frame's joints (linear between the tracked ones): the lengths are measured on all the 2D
+        est = est._replace(joints=between_frames(est.joints, n, prep.problem.observations.num_frames))
     again = False
     if cfg.subject.lengths == "observed" and not cfg.subject.static:
         # measure the lengths, then run again (a static trial's lengths are the better measurement)
@@ -808,9 +816,29 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     if prep.problem.floor is None and cfg.camera.floor_m is not None and cfg.camera.floor_from_person:
         leveled = level_to_person(prep, est)  # the floor under the first pass's feet, then run again on it
         prep, again = leveled or prep, again or leveled is not None
-    if again:
+    if again or n > 1 or measure_config(cfg) is not cfg:  # the first run was not the configured one
         est = run(prep.problem)
     return prep, est
+
+
+def measure_config(cfg: RunConfig) -> RunConfig:
+    """The config of real footage's first (measuring) run: `cfg` with kjs.backward_pass set to
+    `subject.measure_backward_pass` (when given and the method is kjs); else `cfg` itself."""
+    bp = cfg.subject.measure_backward_pass
+    if cfg.method != "kjs" or bp is None or bp == cfg.kjs.backward_pass:
+        return cfg
+    return dataclasses.replace(cfg, kjs=dataclasses.replace(cfg.kjs, backward_pass=bp))
+
+
+def between_frames(x: torch.Tensor, n: int, frames: int) -> torch.Tensor:
+    """Values of every n-th frame (S, ...) (frames 0, n, ..., (S-1) n) -> every frame (frames, ...): linear
+    between the given ones, the last one held after it."""
+    t = torch.arange(frames, dtype=torch.float64) / n
+    lo = t.floor().long().clamp(max=x.shape[0] - 1)
+    hi = (lo + 1).clamp(max=x.shape[0] - 1)
+    w = (t - lo).clamp(max=1.0).to(x.dtype).reshape(-1, *([1] * (x.ndim - 1)))
+    w = torch.where((lo == hi).reshape(w.shape), torch.zeros_like(w), w)
+    return x[lo] * (1 - w) + x[hi] * w
 
 
 def level_to_person(prep: Prepared, est: Estimate) -> Prepared | None:
