@@ -237,13 +237,12 @@ def test_merge_serves_each_depth_order_first(kjs_run):
     torch.testing.assert_close(got.q, torch.stack([forward.q[0], backward.q[2], backward.q[0], forward.q[1]]))
 
 
-def test_allocation_splits_an_even_share_over_the_modes():
+def test_allocation_follows_the_weights_with_one_sample_per_mode_at_least():
     weight = torch.tensor([0.97, 0.01, 0.01, 0.01])
     by_weight = _allocate(weight, 100)
-    assert sum(by_weight) == 100 and max(by_weight[1:]) <= 2
-    half = _allocate(weight, 100, even=0.5)
-    assert sum(half) == 100 and min(half[1:]) >= 12 and half[0] > 50
-    assert _allocate(weight, 100, even=1.0) == [25, 25, 25, 25]
+    assert sum(by_weight) == 100 and min(by_weight[1:]) >= 1 and max(by_weight[1:]) <= 2
+    assert _allocate(torch.tensor([0.5, 0.3, 0.2]), 10) == [5, 3, 2]
+    assert _allocate(weight, 3) == [3, 0, 0, 0]  # fewer samples than modes: by weight alone
 
 
 @pytest.mark.parametrize(
@@ -255,7 +254,7 @@ def test_allocation_splits_an_even_share_over_the_modes():
         ("kjs.scale=-1", "kjs.scale"),
         ("kjs.tail=uniform", "kjs.tail"),
         ("kjs.init=guess", "kjs.init"),
-        ("kjs.even_share=1.5", "kjs.even_share"),
+        ("kjs.even_share=0.5", "kjs.even_share"),
         ("kjs.weight_memory=-0.5", "kjs.weight_memory"),
         ("kjs.stages=[smooth, prior]", "kjs.stages"),
         ("kjs.stages=[decode, smooth]", "kjs.stages"),

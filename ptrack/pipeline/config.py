@@ -374,6 +374,8 @@ RETIRED_KEYS: dict[str, str] = {
     "kjs.momentum": "nothing: it was removed on 2026-11-29 (measured worse)",
     "kjs.viterbi_space": "kjs.viterbi_sigma_m (the chain model's velocity prior is on the joints)",
     "kjs.viterbi_sigma": "kjs.viterbi_sigma_m (the chain model's velocity prior is on the joints)",
+    "kjs.even_share": "nothing: it was removed on 2026-11-29 (0 measured the same within the seed spread; the "
+    "diffusion samples follow the modes' weights, every mode at least one)",
 }
 
 
