@@ -263,7 +263,7 @@ def test_allocation_follows_the_weights_with_one_sample_per_mode_at_least():
         ("kjs.dynamics_floor=-0.1", "kjs.dynamics_floor"),
         ("kjs.backward_pass=sideways", "kjs.backward_pass"),
         ("kjs.smooth_scale=0", "kjs.smooth_scale"),
-        ("kjs.smooth_link_m=-0.1", "kjs.smooth_link_m"),
+        ("kjs.smooth_link_m=0.1", "kjs.smooth_link_m"),
         ("kjs.recombine_sigma_m=0", "kjs.recombine_sigma_m"),
         ("kjs.recombine=true", "kjs.recombine"),
     ],
@@ -615,9 +615,9 @@ def test_principal_directions_follow_the_largest_variance(kjs_run):
     assert float(got[:, sk.joint_index("rtibia")].norm()) < 1e-9  # the other leg does not
 
 
-def test_smoothing_moves_only_linked_hypotheses(kjs_run):
-    """`smooth_lattice` re-polishes a hypothesis towards its neighbours in the frames before and after; one with no
-    neighbour within `kjs.smooth_link_m` (here the body turned a quarter turn), and padding, stay as they are."""
+def test_smoothing_moves_hypotheses_towards_their_nearest_neighbours(kjs_run):
+    """`smooth_lattice` re-polishes a hypothesis towards its nearest neighbours in the frames before and after
+    (padding is no neighbour); padding stays as it is."""
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, EXACT)
     s = make_setup(prep.problem, cfg, KJS)
@@ -632,7 +632,8 @@ def test_smoothing_moves_only_linked_hypotheses(kjs_run):
     hl = torch.zeros(3, 2, sk.num_dofs, sk.num_dofs)
     sq, sw, sc, sl, sj = smooth_lattice(s, Lattice(hq, hw, hc, hl, sk.forward_kinematics(hq)))
     assert torch.equal(sw, hw)
-    assert torch.equal(sq[:, 1], hq[:, 1]) and torch.equal(sc[:, 1], hc[:, 1])  # unlinked, padding
+    assert torch.equal(sq[[0, 2], 1], hq[[0, 2], 1]) and torch.equal(sc[[0, 2], 1], hc[[0, 2], 1])  # padding
+    assert not torch.equal(sq[1, 1], hq[1, 1])  # the turned body is linked to its nearest neighbours too
     thigh = sk.dof_names.index("lfemur.rx")
     assert abs(float(sq[1, 0, thigh] - q[1, thigh])) < 0.5 * 0.3  # drawn back towards its neighbours
     assert bool(torch.isfinite(sc[:, 0]).all()) and float(sl[1, 0].abs().sum()) > 0

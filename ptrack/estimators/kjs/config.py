@@ -66,7 +66,6 @@ class KjsMethodConfig:
     init_fits: int = setting(4, "init tree: distinct fitted poses whose chains are flipped (every combination)")
     backward_pass: str = setting("always", "a second pass backwards in time: always, tree (after a tree start), never")
     smooth_scale: float = setting(0.2, "the smoother's prior std, times the dynamics'")
-    smooth_link_m: float = setting(0.1, "smoother: neighbours within this mean joint distance (metres) are linked")
     recombine_sigma_m: float = setting(0.15, "recombine: velocity std on the chain's joints, metres per frame")
     stages: tuple[str, ...] = setting(
         STAGE_NAMES,
@@ -107,7 +106,6 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
         "prior_tail_scale",
         "dynamics_scale",
         "smooth_scale",
-        "smooth_link_m",
         "recombine_sigma_m",
     ):
         if not getattr(kc, key) > 0:
