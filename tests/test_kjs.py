@@ -237,13 +237,12 @@ def test_merge_serves_each_depth_order_first(kjs_run):
     torch.testing.assert_close(got.q, torch.stack([forward.q[0], backward.q[2], backward.q[0], forward.q[1]]))
 
 
-def test_allocation_splits_an_even_share_over_the_modes():
+def test_allocation_follows_the_weights_with_one_sample_per_mode_at_least():
     weight = torch.tensor([0.97, 0.01, 0.01, 0.01])
     by_weight = _allocate(weight, 100)
-    assert sum(by_weight) == 100 and max(by_weight[1:]) <= 2
-    half = _allocate(weight, 100, even=0.5)
-    assert sum(half) == 100 and min(half[1:]) >= 12 and half[0] > 50
-    assert _allocate(weight, 100, even=1.0) == [25, 25, 25, 25]
+    assert sum(by_weight) == 100 and min(by_weight[1:]) >= 1 and max(by_weight[1:]) <= 2
+    assert _allocate(torch.tensor([0.5, 0.3, 0.2]), 10) == [5, 3, 2]
+    assert _allocate(weight, 3) == [3, 0, 0, 0]  # fewer samples than modes: by weight alone
 
 
 @pytest.mark.parametrize(
@@ -255,7 +254,7 @@ def test_allocation_splits_an_even_share_over_the_modes():
         ("kjs.scale=-1", "kjs.scale"),
         ("kjs.tail=uniform", "kjs.tail"),
         ("kjs.init=guess", "kjs.init"),
-        ("kjs.even_share=1.5", "kjs.even_share"),
+        ("kjs.even_share=0.5", "kjs.even_share"),
         ("kjs.weight_memory=-0.5", "kjs.weight_memory"),
         ("kjs.stages=[smooth, prior]", "kjs.stages"),
         ("kjs.stages=[decode, smooth]", "kjs.stages"),
@@ -264,7 +263,7 @@ def test_allocation_splits_an_even_share_over_the_modes():
         ("kjs.dynamics_floor=-0.1", "kjs.dynamics_floor"),
         ("kjs.backward_pass=sideways", "kjs.backward_pass"),
         ("kjs.smooth_scale=0", "kjs.smooth_scale"),
-        ("kjs.smooth_link_m=-0.1", "kjs.smooth_link_m"),
+        ("kjs.smooth_link_m=0.1", "kjs.smooth_link_m"),
         ("kjs.recombine_sigma_m=0", "kjs.recombine_sigma_m"),
         ("kjs.recombine=true", "kjs.recombine"),
     ],
@@ -616,9 +615,9 @@ def test_principal_directions_follow_the_largest_variance(kjs_run):
     assert float(got[:, sk.joint_index("rtibia")].norm()) < 1e-9  # the other leg does not
 
 
-def test_smoothing_moves_only_linked_hypotheses(kjs_run):
-    """`smooth_lattice` re-polishes a hypothesis towards its neighbours in the frames before and after; one with no
-    neighbour within `kjs.smooth_link_m` (here the body turned a quarter turn), and padding, stay as they are."""
+def test_smoothing_moves_hypotheses_towards_their_nearest_neighbours(kjs_run):
+    """`smooth_lattice` re-polishes a hypothesis towards its nearest neighbours in the frames before and after
+    (padding is no neighbour); padding stays as it is."""
     prep, _ = kjs_run
     cfg = load_config(KJS_YAML, EXACT)
     s = make_setup(prep.problem, cfg, KJS)
@@ -633,7 +632,8 @@ def test_smoothing_moves_only_linked_hypotheses(kjs_run):
     hl = torch.zeros(3, 2, sk.num_dofs, sk.num_dofs)
     sq, sw, sc, sl, sj = smooth_lattice(s, Lattice(hq, hw, hc, hl, sk.forward_kinematics(hq)))
     assert torch.equal(sw, hw)
-    assert torch.equal(sq[:, 1], hq[:, 1]) and torch.equal(sc[:, 1], hc[:, 1])  # unlinked, padding
+    assert torch.equal(sq[[0, 2], 1], hq[[0, 2], 1]) and torch.equal(sc[[0, 2], 1], hc[[0, 2], 1])  # padding
+    assert not torch.equal(sq[1, 1], hq[1, 1])  # the turned body is linked to its nearest neighbours too
     thigh = sk.dof_names.index("lfemur.rx")
     assert abs(float(sq[1, 0, thigh] - q[1, thigh])) < 0.5 * 0.3  # drawn back towards its neighbours
     assert bool(torch.isfinite(sc[:, 0]).all()) and float(sl[1, 0].abs().sum()) > 0

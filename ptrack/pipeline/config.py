@@ -382,6 +382,10 @@ RETIRED_KEYS: dict[str, str] = {
     "kjs.momentum": "nothing: it was removed on 2026-11-29 (measured worse)",
     "kjs.viterbi_space": "kjs.viterbi_sigma_m (the chain model's velocity prior is on the joints)",
     "kjs.viterbi_sigma": "kjs.viterbi_sigma_m (the chain model's velocity prior is on the joints)",
+    "kjs.even_share": "nothing: it was removed on 2026-11-29 (0 measured the same within the seed spread; the "
+    "diffusion samples follow the modes' weights, every mode at least one)",
+    "kjs.smooth_link_m": "nothing: it was removed on 2026-11-29 (1000 measured the same on held-out, dev and "
+    "tree-start runs; the smoother links each hypothesis to its nearest neighbours)",
 }
 
 

@@ -36,7 +36,6 @@ class KjsMethodConfig:
     refine_iterations: int = setting(10, "further iterations of the 4K most promising distinct minima")
     distinct_mm: float = setting(0.0, "minima whose joints are all closer (mm) are one; 0: compare dofs (distinct_deg)")
     distinct_deg: float = setting(3.0, "with distinct_mm 0: minima closer than this in every dof are one")
-    even_share: float = setting(0.5, "share of the diffusion samples split equally over the modes (the rest by weight)")
     temperature: float = setting(1.0, "weights ∝ prior * exp(-cost / temperature)")
     weight_memory: float = setting(0.5, "reweight memory: a new mode's prior is its parent's weight ** weight_memory")
     reweight: str = setting(
@@ -67,7 +66,6 @@ class KjsMethodConfig:
     init_fits: int = setting(4, "init tree: distinct fitted poses whose chains are flipped (every combination)")
     backward_pass: str = setting("always", "a second pass backwards in time: always, tree (after a tree start), never")
     smooth_scale: float = setting(0.2, "the smoother's prior std, times the dynamics'")
-    smooth_link_m: float = setting(0.1, "smoother: neighbours within this mean joint distance (metres) are linked")
     recombine_sigma_m: float = setting(0.15, "recombine: velocity std on the chain's joints, metres per frame")
     stages: tuple[str, ...] = setting(
         STAGE_NAMES,
@@ -108,7 +106,6 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
         "prior_tail_scale",
         "dynamics_scale",
         "smooth_scale",
-        "smooth_link_m",
         "recombine_sigma_m",
     ):
         if not getattr(kc, key) > 0:
@@ -128,9 +125,8 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
     for key in ("motion_scale", "pose_prior_weight", "distinct_mm"):
         if getattr(kc, key) < 0:
             raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")
-    for key in ("even_share", "weight_memory"):
-        if not 0 <= getattr(kc, key) <= 1:
-            raise InputError(f"config key 'kjs.{key}' must be in [0, 1], got {getattr(kc, key)}")
+    if not 0 <= kc.weight_memory <= 1:
+        raise InputError(f"config key 'kjs.weight_memory' must be in [0, 1], got {kc.weight_memory}")
     for key, allowed in (
         ("tail", ("gaussian", "student", "cauchy")),
         ("limits_mode", ("prune", "project")),

@@ -241,12 +241,11 @@ def smooth_lattice(s: Setup, lat: Lattice) -> Lattice:
     """One sweep of a smoother over the finished hypothesis lattice (the stage `smooth` of `kjs.stages`; named
     twice, two sweeps). Each tracked mode holds the evidence of its own frame and, through the dynamics, of the
     frames before (a filter): its depth jitters from frame to frame wherever the 2D leaves it loose. In a sweep
-    each hypothesis of frame t is linked to the nearest hypothesis of frames t-1 and t+1 (mean distance of the
-    joints relative to the root under `kjs.smooth_link_m`; none where the other frame holds no such pose, e.g. a
-    limb's other branch) and polished again on frame t's objective with the tracking prior around the mean of
-    its linked neighbours, std `kjs.smooth_scale` times the dynamics' (times sqrt 2 with one neighbour). A
-    hypothesis with no linked neighbour, and padding, keep their pose. Every hypothesis moves from the poses of
-    the lattice it was given (Jacobi). -> the lattice with the smoothed poses, their objective, covariance and
+    each hypothesis of frame t is linked to the nearest hypothesis of frames t-1 and t+1 (by the mean distance of
+    the joints relative to the root; none where the other frame holds only padding) and polished again on frame
+    t's objective with the tracking prior around the mean of its linked neighbours, std `kjs.smooth_scale` times
+    the dynamics' (times sqrt 2 with one neighbour). Padding keeps its pose. Every hypothesis moves from the poses
+    of the lattice it was given (Jacobi). -> the lattice with the smoothed poses, their objective, covariance and
     joints (the weights as they were)."""
     k = s.cfg.kjs
     hq, hw, hc, hl, joints = lat
@@ -261,7 +260,7 @@ def smooth_lattice(s: Setup, lat: Lattice) -> Lattice:
         gap = (rel[here][:, :, None] - rel[there][:, None]).norm(dim=-1).mean(-1)  # (T-1, K, K)
         gap = torch.where(hw[there][:, None] > 0, gap, math.inf)
         near, j = gap.min(-1)  # (T-1, K)
-        linked = (near < k.smooth_link_m).to(hq.dtype)[..., None]
+        linked = torch.isfinite(near).to(hq.dtype)[..., None]
         neighbour = torch.gather(hq[there], 1, j[..., None].expand(-1, -1, D))
         pull[here] += linked * wrapped_difference(neighbour - hq[here], s.angular)
         count[here] += linked

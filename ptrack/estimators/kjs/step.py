@@ -20,11 +20,10 @@ from ptrack.hypotheses.samplers import css_proposal, project_to_limits, spherica
 # ---------------------------------------------------------------- sampling
 
 
-def _allocate(weight: Tensor, total: int, even: float = 0.0) -> list[int]:
-    """Split `total` samples over modes: a share `even` of them equally, the rest by weight, every mode
-    at least one (if total allows)."""
+def _allocate(weight: Tensor, total: int) -> list[int]:
+    """Split `total` samples over modes by weight, every mode at least one (if total allows)."""
     m = weight.shape[0]
-    base = max(min(1, total // max(m, 1)), int(even * total) // max(m, 1))
+    base = min(1, total // max(m, 1))
     rest = total - base * m
     share = torch.floor(weight.double() * rest)
     left = rest - int(share.sum())
@@ -36,7 +35,7 @@ def _allocate(weight: Tensor, total: int, even: float = 0.0) -> list[int]:
 def _diffuse(s: Setup, modes: Modes, total: int, strategy: Strategy, gen: torch.Generator) -> tuple[Tensor, Tensor]:
     """Draw `total` diffusion samples: -> q (total, D), parent mode index (total,)."""
     k = s.cfg.kjs
-    counts = _allocate(modes.weight, total, k.even_share)
+    counts = _allocate(modes.weight, total)
     dof = k.tail_dof if k.tail == "student" else None
     propose = spherical_proposal if strategy.spherical else css_proposal
     draws = propose(modes.q, modes.chol, counts, gen, tail=k.tail, dof=dof)
