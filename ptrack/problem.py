@@ -142,46 +142,9 @@ def later_frames(problem: Problem, start: int) -> Problem:
     joint keyframes of those frames renumbered from 0; correspondences are left out (their pairs reach back to
     frame start - 1). For an estimator that hands the rest of a sequence to another (`method: pca` after the
     swing)."""
-    obs = problem.observations
-    if not 0 < start < obs.num_frames:
-        raise ValueError(f"later_frames: start {start} must be in (0, {obs.num_frames})")
-    sliced = Observations(
-        obs.keypoints[start:],
-        obs.confidence[start:],
-        obs.times[start:],
-        obs.camera,
-        obs.keypoint_names,
-        obs.masks[start:] if obs.masks is not None else None,
-    )
-    kf = problem.keyframes
-    if kf is not None:
-        keep = kf.frames >= start
-        kf = (
-            None
-            if not bool(keep.any())
-            else Keyframes(
-                kf.frames[keep] - start,
-                kf.q[keep],
-                kf.mask[keep] if kf.mask is not None else None,
-                kf.sigma[keep] if kf.sigma is not None else None,
-                kf.covariance[keep] if kf.covariance is not None else None,
-            )
-        )
-    jk = problem.joint_keyframes
-    if jk is not None:
-        keep = jk.frames >= start
-        jk = (
-            None
-            if not bool(keep.any())
-            else JointKeyframes(
-                jk.frames[keep] - start,
-                jk.joints[keep],
-                jk.mask[keep],
-                jk.sigma[keep],
-                jk.covariance[keep] if jk.covariance is not None else None,
-            )
-        )
-    return Problem(problem.skeleton, problem.keypoints, sliced, kf, jk, None, problem.floor)
+    if not 0 < start < problem.observations.num_frames:
+        raise ValueError(f"later_frames: start {start} must be in (0, {problem.observations.num_frames})")
+    return _frames(problem, start, 1)
 
 
 def every_nth(problem: Problem, n: int) -> Problem:
@@ -192,25 +155,35 @@ def every_nth(problem: Problem, n: int) -> Problem:
     measured lengths, `subject.measure_stride`)."""
     if n < 1:
         raise ValueError(f"every_nth: n {n} must be at least 1")
-    if n == 1:
-        return problem
+    return problem if n == 1 else _frames(problem, 0, n)
+
+
+def _frames(problem: Problem, start: int, step: int) -> Problem:
+    """The problem over its frames start, start + step, ...: observations and silhouettes of those frames,
+    keyframes and joint keyframes on them renumbered ((t - start) / step), the others dropped; no
+    correspondences (`later_frames`, `every_nth`)."""
     obs = problem.observations
-    strided = Observations(
-        obs.keypoints[::n],
-        obs.confidence[::n],
-        obs.times[::n],
+    rows = slice(start, None, step)
+    picked = Observations(
+        obs.keypoints[rows],
+        obs.confidence[rows],
+        obs.times[rows],
         obs.camera,
         obs.keypoint_names,
-        obs.masks[::n] if obs.masks is not None else None,
+        obs.masks[rows] if obs.masks is not None else None,
     )
+
+    def on(frames: Tensor) -> Tensor:
+        return (frames >= start) & ((frames - start) % step == 0)
+
     kf = problem.keyframes
     if kf is not None:
-        keep = kf.frames % n == 0
+        keep = on(kf.frames)
         kf = (
             None
             if not bool(keep.any())
             else Keyframes(
-                kf.frames[keep] // n,
+                (kf.frames[keep] - start) // step,
                 kf.q[keep],
                 kf.mask[keep] if kf.mask is not None else None,
                 kf.sigma[keep] if kf.sigma is not None else None,
@@ -219,19 +192,19 @@ def every_nth(problem: Problem, n: int) -> Problem:
         )
     jk = problem.joint_keyframes
     if jk is not None:
-        keep = jk.frames % n == 0
+        keep = on(jk.frames)
         jk = (
             None
             if not bool(keep.any())
             else JointKeyframes(
-                jk.frames[keep] // n,
+                (jk.frames[keep] - start) // step,
                 jk.joints[keep],
                 jk.mask[keep],
                 jk.sigma[keep],
                 jk.covariance[keep] if jk.covariance is not None else None,
             )
         )
-    return Problem(problem.skeleton, problem.keypoints, strided, kf, jk, None, problem.floor)
+    return Problem(problem.skeleton, problem.keypoints, picked, kf, jk, None, problem.floor)
 
 
 def first_keyframe(problem: Problem, key: str, lower: Tensor, upper: Tensor) -> Tensor:
