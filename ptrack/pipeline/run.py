@@ -798,25 +798,24 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
         )  # the samplers' draws (cfg.seed: the observations')
         return ESTIMATORS[cfg.method](problem, run_cfg, gen, progress_display(progress, cfg.method))
 
-    measure = (cfg.subject.lengths == "observed" and not cfg.subject.static) or (
-        prep.problem.floor is None and cfg.camera.floor_m is not None and cfg.camera.floor_from_person
-    )
-    if prep.footage is None or not measure:
-        return prep, run(prep.problem)
     # real footage measured on a first run (lengths, floor), then run again: the first run may be cheaper
-    # (every n-th frame, kjs without its backward pass), as it only gives the depths the 2D is measured at
-    n = cfg.subject.measure_stride
-    est = run(every_nth(prep.problem, n), measure_config(cfg))
+    # (every n-th frame, kjs without its backward pass), as it only gives the depths the 2D is measured at.
+    # A static trial's lengths are the better measurement; rescaling the model leaves the floor as it is.
+    measure_lengths = cfg.subject.lengths == "observed" and not cfg.subject.static
+    measure_floor = prep.problem.floor is None and cfg.camera.floor_m is not None and cfg.camera.floor_from_person
+    if prep.footage is None or not (measure_lengths or measure_floor):
+        return prep, run(prep.problem)
+    n, first_cfg = cfg.subject.measure_stride, measure_config(cfg)
+    est = run(every_nth(prep.problem, n), first_cfg)
     if n > 1:  # every frame's joints (linear between the tracked ones): the lengths are measured on all the 2D
         est = est._replace(joints=between_frames(est.joints, n, prep.problem.observations.num_frames))
     again = False
-    if cfg.subject.lengths == "observed" and not cfg.subject.static:
-        # measure the lengths, then run again (a static trial's lengths are the better measurement)
+    if measure_lengths:
         prep, again = rescale_subject(prep, est), True
-    if prep.problem.floor is None and cfg.camera.floor_m is not None and cfg.camera.floor_from_person:
+    if measure_floor:
         leveled = level_to_person(prep, est)  # the floor under the first pass's feet, then run again on it
         prep, again = leveled or prep, again or leveled is not None
-    if again or n > 1 or measure_config(cfg) is not cfg:  # the first run was not the configured one
+    if again or n > 1 or first_cfg is not cfg:  # the first run was not the configured one
         est = run(prep.problem)
     return prep, est
 
