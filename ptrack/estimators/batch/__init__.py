@@ -67,7 +67,7 @@ from __future__ import annotations
 from ptrack.estimators.batch.config import BatchMethodConfig
 from ptrack.estimators.batch.estimate import PerFrame, estimate_batch
 from ptrack.estimators.batch.objective import Evaluation, Trajectory, evaluate, total_energy, trajectory_objective
-from ptrack.estimators.batch.smoothing import robust_smoothing, smoothing_band, weighted_band
+from ptrack.estimators.batch.smoothing import robust_smoothing, smoothing_band
 from ptrack.estimators.batch.solve import linearization, solve_trajectory
 from ptrack.estimators.batch.start import has_full_keyframe, interpolate_keyframes, load_init, warp_to_keyframes
 from ptrack.estimators.batch.uncertainty import (
@@ -79,6 +79,7 @@ from ptrack.estimators.batch.uncertainty import (
     lower_branch,
     std_calibration,
 )
+from ptrack.optim.trajectory import weighted_band
 
 __all__ = [
     "BatchMethodConfig",

@@ -26,8 +26,15 @@ from ptrack.costs import (
 )
 from ptrack.errors import InputError
 from ptrack.estimators.batch.config import ROOT_VELOCITY
-from ptrack.estimators.batch.smoothing import band_matvec, robust_smoothing, smoothing_band, smoothing_terms
-from ptrack.optim.trajectory import FrameRows, add_diagonal_rows, add_frame_rows, add_point_rows, joint_rows
+from ptrack.estimators.batch.smoothing import robust_smoothing, smoothing_band, smoothing_terms
+from ptrack.optim.trajectory import (
+    FrameRows,
+    add_diagonal_rows,
+    add_frame_rows,
+    add_point_rows,
+    band_matvec,
+    joint_rows,
+)
 from ptrack.problem import Problem
 from ptrack.threads import on_two_threads, parallel_halves
 

@@ -12,12 +12,10 @@ import torch
 from torch import Tensor
 
 from ptrack.costs import PoseEval, Smoothness
-from ptrack.optim.trajectory import band_matvec, weighted_band
+from ptrack.optim.trajectory import weighted_band
 
 if TYPE_CHECKING:
     from ptrack.estimators.batch.objective import Trajectory
-
-__all__ = ["band_matvec", "robust_smoothing", "smoothing_band", "smoothing_terms", "weighted_band"]
 
 
 def smoothing_terms(

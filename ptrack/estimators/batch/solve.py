@@ -11,9 +11,9 @@ from torch import Tensor
 
 from ptrack.estimators.batch.config import BatchMethodConfig
 from ptrack.estimators.batch.objective import Trajectory, evaluate
-from ptrack.estimators.batch.smoothing import weighted_band
 from ptrack.optim.banded import BlockBanded
 from ptrack.optim.solvers import BandedLinearization, BandedLMInfo, banded_levenberg_marquardt
+from ptrack.optim.trajectory import weighted_band
 
 
 def linearization(obj: Trajectory) -> Callable[[Tensor], BandedLinearization]:
