@@ -94,9 +94,8 @@ class Smoothness(RobustMixin):
         both = ((1, self.sigma_velocity), (2, self.sigma_acceleration))
         return [(n, sigma) for n, sigma in both if sigma is not None]
 
-    def _trajectory(self, ev: PoseEval) -> tuple[Tensor, int, Tensor | None]:
-        """The trajectory the term reads, checked: -> x, its per-frame ndim plus one (the time axis is -that),
-        and dof_scale broadcast against one frame of x ((D,) or (J, 1); None without one)."""
+    def _trajectory(self, ev: PoseEval) -> tuple[Tensor, int]:
+        """The trajectory the term reads, checked: -> x and its per-frame ndim plus one (the time axis is -that)."""
         x, n = (ev.q, 2) if self.on == "q" else (ev.joints, 3)
         if x.ndim < n or (n == 3 and x.shape[-1] != 3):
             raise InputError(
@@ -107,18 +106,12 @@ class Smoothness(RobustMixin):
             raise InputError(
                 f"Smoothness.dof_scale {shape_of(self.dof_scale)} does not match {self.on} of shape {shape_of(x)}"
             )
-        scale = None if self.dof_scale is None else self.dof_scale.to(x) if n == 2 else self.dof_scale.to(x)[:, None]
-        return x, n, scale
-
-    def _part(self, x: Tensor, axis: int, scale: Tensor | None, order: int, sigma: float) -> tuple[Tensor, Tensor]:
-        """One order's raw differences of x over its time axis -axis and its residual, both (..., T-n, E...)."""
-        diff = torch.diff(x, n=order, dim=-axis)
-        return diff, (diff if scale is None else scale * diff) / (self.dt**order * sigma)
+        return x, n
 
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.q (..., T, D) or ev.joints (..., T, J, 3) -> (..., M)."""
-        x, n, scale = self._trajectory(ev)
-        parts = [self._part(x, n, scale, order, sigma)[1] for order, sigma in self._orders()]
+        x, n = self._trajectory(ev)
+        parts = [c * torch.diff(x, n=order, dim=-n) for order, c in self.difference_scales(x)]
         if not parts:
             return x.new_zeros(x.shape[:-n] + (0,))
         return torch.cat([p.flatten(-n) for p in parts], dim=-1)
@@ -134,15 +127,16 @@ class Smoothness(RobustMixin):
     def banded_gauss_newton(self, ev: PoseEval, derivatives: bool = True) -> BandedGaussNewton:
         """Each frame's energy, the gradient and the Gauss-Newton weights of the band (`BandedGaussNewton`) at
         the trajectory ev reads; without `derivatives` the energy only."""
-        x, n_ax, scale = self._trajectory(ev)
+        x, n_ax = self._trajectory(ev)
         t_len = x.shape[-n_ax]
         energy = x.new_zeros(x.shape[: x.ndim - n_ax + 1])  # (..., T)
         grad = torch.zeros_like(x) if derivatives else None
         weights = []
-        for (order, sigma), (_, c) in zip(self._orders(), self.difference_scales(x)):
+        for order, c in self.difference_scales(x):
             if t_len <= order:
                 continue
-            diff, r = self._part(x, n_ax, scale, order, sigma)  # (..., T-n, E...)
+            diff = torch.diff(x, n=order, dim=-n_ax)
+            r = c * diff  # (..., T-n, E...)
             flat = r.flatten(-n_ax + 1) if n_ax == 3 else r  # (..., T-n, E): one residual frame per row
             if grad is None:
                 e = self.energy_of(flat)
