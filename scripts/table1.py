@@ -54,7 +54,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: poses linearised or polished at once (2000 at once added about 350 MB of Jacobians and their products);
 #: each pose's LM is its own problem, so chunks give the same result (bit for bit, 600 CSS samples)
 CHUNK = 250
-#: largest std of a direction of H^-1 before scaling (the trackers' kjs.ceiling_deg); the scale multiplies it
+#: largest std of a direction of H^-1 before scaling (the trackers capped it at 30 degrees until 2026-11-29, now at
+#: half a turn after scaling: ptrack.estimators.kjs.model.WIDEST_STD); the scale multiplies it
 CEILING = math.radians(30.0)
 #: KJS experiments: the chains whose full interpretation trees are combined (a product) at the start, and
 #: what IK does with a leaf outside the joint limits (prune it, or project it onto the limits: `chain_ik`)

@@ -264,6 +264,7 @@ def test_allocation_follows_the_weights_with_one_sample_per_mode_at_least():
         ("kjs.backward_pass=sideways", "kjs.backward_pass"),
         ("kjs.smooth_scale=0", "kjs.smooth_scale"),
         ("kjs.smooth_link_m=0.1", "kjs.smooth_link_m"),
+        ("kjs.ceiling_deg=30", "kjs.ceiling_deg"),
         ("kjs.recombine_sigma_m=0", "kjs.recombine_sigma_m"),
         ("kjs.recombine=true", "kjs.recombine"),
     ],

@@ -386,6 +386,8 @@ RETIRED_KEYS: dict[str, str] = {
     "diffusion samples follow the modes' weights, every mode at least one)",
     "kjs.smooth_link_m": "nothing: it was removed on 2026-11-29 (1000 measured the same on held-out, dev and "
     "tree-start runs; the smoother links each hypothesis to its nearest neighbours)",
+    "kjs.ceiling_deg": "nothing: it was removed on 2026-11-29 (180 measured the same as 30 within the seed "
+    "spread on the held-out and the dev clips; no sampling std is capped below half a turn)",
 }
 
 

@@ -55,7 +55,6 @@ class KjsMethodConfig:
     )
     collision_weight: float = setting(1.0, "weight of the body non-self-intersection term")
     floor_deg: float = setting(0.5, "smallest sampling std per dof (unobservable directions), degrees")
-    ceiling_deg: float = setting(30.0, "largest sampling std per dof, degrees")
     viterbi_sigma_m: float = setting(
         0.05, "the lattice's velocity prior on the joints relative to the root: std, metres per frame and coordinate"
     )
@@ -99,7 +98,6 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
         "temperature",
         "prior_sigma",
         "floor_deg",
-        "ceiling_deg",
         "viterbi_sigma_m",
         "rest_sigma",
         "start_prior_scale",
