@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from torch import Tensor
 
 from ptrack.body.keypoints import make_keypoints
 from ptrack.body.skeleton import Skeleton, load_amc
@@ -66,22 +67,31 @@ def test_problem_and_keyframe_validation(setup):
         Problem(sk, other, obs)
 
 
-def test_later_frames(setup):
-    """A problem's frames from `start` on: observations and masks sliced, keyframes renumbered (earlier ones
-    dropped), correspondences left out."""
-    from ptrack.problem import JointKeyframes, later_frames
+def _keyed(setup, kf_frames: list[int], jk_frame: int) -> tuple[Problem, Tensor]:
+    """The setup's problem with angle keyframes (the true poses, std 0.1) on kf_frames and one joint keyframe
+    (every joint at 0, std 0.02) on jk_frame -> (problem, the keyframes' poses (F, D))."""
+    from ptrack.problem import JointKeyframes
 
     sk, q_all, _cam, kps, obs = setup
-    t = obs.num_frames
-    q = q_all[[0, t - 1]].to(obs.keypoints)
-    kf = Keyframes(torch.tensor([0, t - 1]), q, sigma=torch.full_like(q, 0.1))
+    q = q_all[kf_frames].to(obs.keypoints)
+    kf = Keyframes(torch.tensor(kf_frames), q, sigma=torch.full_like(q, 0.1))
     jk = JointKeyframes(
-        torch.tensor([1]),
+        torch.tensor([jk_frame]),
         torch.zeros(1, sk.num_joints, 3),
         torch.ones(1, sk.num_joints, dtype=torch.bool),
         torch.tensor([0.02]),
     )
-    full = Problem(sk, kps, obs, kf, jk)
+    return Problem(sk, kps, obs, kf, jk), q
+
+
+def test_later_frames(setup):
+    """A problem's frames from `start` on: observations and masks sliced, keyframes renumbered (earlier ones
+    dropped), correspondences left out."""
+    from ptrack.problem import later_frames
+
+    sk, _q_all, _cam, _kps, obs = setup
+    t = obs.num_frames
+    full, _ = _keyed(setup, [0, t - 1], 1)
     tail = later_frames(full, 2)
     assert tail.observations.num_frames == t - 2
     assert torch.equal(tail.observations.keypoints, obs.keypoints[2:])
@@ -97,19 +107,11 @@ def test_later_frames(setup):
 def test_every_nth(setup):
     """A problem over every n-th frame: observations and times strided (the frame interval n times longer),
     keyframes on those frames renumbered (the others dropped), correspondences left out; n = 1 is the problem."""
-    from ptrack.problem import JointKeyframes, every_nth
+    from ptrack.problem import every_nth
 
-    sk, q_all, _cam, kps, obs = setup
+    sk, _q_all, _cam, _kps, obs = setup
     t = obs.num_frames
-    q = q_all[[0, 1]].to(obs.keypoints)
-    kf = Keyframes(torch.tensor([0, 1]), q, sigma=torch.full_like(q, 0.1))
-    jk = JointKeyframes(
-        torch.tensor([2]),
-        torch.zeros(1, sk.num_joints, 3),
-        torch.ones(1, sk.num_joints, dtype=torch.bool),
-        torch.tensor([0.02]),
-    )
-    full = Problem(sk, kps, obs, kf, jk)
+    full, q = _keyed(setup, [0, 1], 2)
     assert every_nth(full, 1) is full
     half = every_nth(full, 2)
     assert half.observations.num_frames == (t + 1) // 2
