@@ -267,6 +267,8 @@ def test_allocation_follows_the_weights_with_one_sample_per_mode_at_least():
         ("kjs.ceiling_deg=30", "kjs.ceiling_deg"),
         ("kjs.recombine_sigma_m=0", "kjs.recombine_sigma_m"),
         ("kjs.recombine=true", "kjs.recombine"),
+        ("kjs.pose_mixture_weight=-1", "kjs.pose_mixture_weight"),
+        ("kjs.pose_mixture_weight=.nan", "kjs.pose_mixture_weight"),
     ],
 )
 def test_bad_settings_are_one_line_errors(tmp_path, capsys, override, key):

@@ -3,6 +3,7 @@ the run's config by `ptrack.pipeline.config`."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -52,6 +53,11 @@ class KjsMethodConfig:
     motion_scale: float = setting(1.0, "the prior's std widened by this times each mode's last displacement")
     pose_prior_weight: float = setting(
         0.1, "weight of the CMU pose prior (ptrack.body.pose_prior) in every tracking step"
+    )
+    pose_mixture_weight: float = setting(
+        0.0,
+        "weight of the CMU pose mixture (ptrack.body.pose_mixture) in each mode's frame cost, which ranks the modes "
+        "(best trajectory, weights) without moving them; 0: none",
     )
     collision_weight: float = setting(1.0, "weight of the body non-self-intersection term")
     floor_deg: float = setting(0.5, "smallest sampling std per dof (unobservable directions), degrees")
@@ -120,8 +126,8 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
         raise InputError(
             "config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' must be >= 0"
         )
-    for key in ("motion_scale", "pose_prior_weight", "distinct_mm"):
-        if getattr(kc, key) < 0:
+    for key in ("motion_scale", "pose_prior_weight", "pose_mixture_weight", "distinct_mm"):
+        if not getattr(kc, key) >= 0 or not math.isfinite(getattr(kc, key)):
             raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")
     if not 0 <= kc.weight_memory <= 1:
         raise InputError(f"config key 'kjs.weight_memory' must be in [0, 1], got {kc.weight_memory}")

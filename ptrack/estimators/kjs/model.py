@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ptrack.body.pose_mixture import PoseMixture, pose_mixture
 from ptrack.body.pose_prior import held_sigma, pose_prior, smoothing_prior
 from ptrack.costs import (
     CostTerm,
@@ -64,6 +65,7 @@ class Setup:
     prior: tuple[Tensor, Tensor, Tensor]  # CMU pose prior: mean (D,), std (D,), known (D,) bool (never the root)
     prior_sigma: Tensor  # (D,) the tracking term's std: the prior's spread (>= floor_deg), 1e6 where unknown
     dynamics_sigma: float | Tensor  # the dynamics' velocity std per frame before widening (`kjs.dynamics`)
+    mixture: PoseMixture | None = None  # the CMU pose mixture that ranks modes (`kjs.pose_mixture_weight` > 0)
 
 
 def make_setup(problem: Problem, cfg: KjsRunConfig, strategy: Strategy) -> Setup:
@@ -110,7 +112,19 @@ def make_setup(problem: Problem, cfg: KjsRunConfig, strategy: Strategy) -> Setup
         (mean, std, known),
         prior_sigma,
         _dynamics_sigma(problem, k, dtype, device),
+        _mixture(sk, k.pose_mixture_weight, dtype, device),
     )
+
+
+def _mixture(sk, weight: float, dtype: torch.dtype, device: torch.device) -> PoseMixture | None:
+    """The CMU pose mixture on `sk`'s dofs when `kjs.pose_mixture_weight` > 0, else None; an InputError for a
+    skeleton that names none of its dofs."""
+    if weight == 0:
+        return None
+    mix = pose_mixture(sk, dtype, device)
+    if mix is None:
+        raise InputError("config key 'kjs.pose_mixture_weight' needs a skeleton with CMU dof names (lfemur.rx, ...)")
+    return mix
 
 
 def _dynamics_sigma(problem: Problem, k, dtype: torch.dtype, device: torch.device) -> float | Tensor:
@@ -250,17 +264,21 @@ def make_modes(s: Setup, q: Tensor, cost: Tensor, hessian: Tensor, weight: Tenso
 
 def frame_evidence(s: Setup, t: int | Tensor, q: Tensor, joints: Tensor | None = None) -> Tensor:
     """Frame t's own cost of poses q (K, D) (joints (K, J, 3): their forward kinematics, if already at
-    hand) -> (K,): robust reprojection, limits, collision and the pose
-    prior, without the dynamics term. It is the unary term of the best-trajectory Viterbi pass, whose
-    pairwise term is the dynamics: a mode's tracking cost and weight already hold the dynamics around the
-    mode it came from (and, through the weights, every earlier frame), so using them there would count
-    the dynamics twice and tie the best trajectory to the filter's earlier choices."""
+    hand) -> (K,): robust reprojection, limits, collision, the floor, the pose prior and, with
+    `kjs.pose_mixture_weight` > 0, the weighted negative log-density of the CMU pose mixture
+    (`ptrack.body.pose_mixture`), without the dynamics term. It is the unary term of the best-trajectory
+    Viterbi pass, whose pairwise term is the dynamics: a mode's tracking cost and weight already hold the
+    dynamics around the mode it came from (and, through the weights, every earlier frame), so using them
+    there would count the dynamics twice and tie the best trajectory to the filter's earlier choices."""
     prob = s.problem
     sk = prob.skeleton
     with torch.no_grad():
         joints = sk.forward_kinematics(q) if joints is None else joints
         ev = pose_eval_from_joints(prob.observations.camera, prob.keypoints, q, joints)
-        return frame_objective(s, t, None, tracking=True)(ev).total
+        cost = frame_objective(s, t, None, tracking=True)(ev).total
+        if s.mixture is not None:
+            cost = cost + s.cfg.kjs.pose_mixture_weight * s.mixture.nll(q)
+        return cost
 
 
 #: the std (radians, metres) of the prior that holds frame 0's modes to the user's keyframe (`kjs.init: keyframe`):
