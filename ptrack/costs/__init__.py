@@ -32,6 +32,7 @@ from ptrack.costs.silhouette import Silhouette, distance_transform
 from ptrack.costs.smoothness import BandedGaussNewton, Smoothness
 from ptrack.costs.terms import (
     HeavyTailedPrior,
+    MixturePrior,
     JointKeyframe,
     JointLimits,
     Keyframe,
@@ -44,6 +45,7 @@ __all__ = [
     "CostTerm",
     "FloorContact",
     "HeavyTailedPrior",
+    "MixturePrior",
     "JointKeyframe",
     "JointLimits",
     "Keyframe",
