@@ -137,35 +137,3 @@ def test_bad_files(tmp_path):
     bad.write_text("{}")
     with pytest.raises(InputError, match="must be JSON"):
         read_pose_mixture(bad)
-
-
-def test_tracking_term_is_the_max_component_form(full):
-    """`MixturePrior` (the mixture in the tracking steps, `kjs.pose_mixture_tracking`): its energy is the best
-    component's, within log C of the mixture's negative log-density; its closed-form Jacobian matches autograd
-    through FK and projection, and folded into the normal equations it gives the same H, g and energy."""
-    from ptrack.body.keypoints import make_keypoints
-    from ptrack.costs import MixturePrior, Objective
-    from ptrack.observe.camera import camera_for_motion
-    from ptrack.optim.jacobians import objective_linearization
-    from ptrack.optim.solvers import _normal_equations
-    from ptrack.problem import evaluate_pose
-
-    sk = full.freeze(["*fingers", "*thumb", "*hand", "*toes"])
-    q = sk.reduce(load_amc(DATA / "10_02.amc", full).q[::25], full).double()  # (N, D)
-    mix = pose_mixture(sk, torch.float64, torch.device("cpu"))
-    term = MixturePrior(mix.index, mix.log_weight, mix.mean, mix.chol)
-    kps = make_keypoints(sk)
-    cam = camera_for_motion(sk.forward_kinematics(q), 6.0, 30.0, 10.0, 1000.0, 640, 480).to(dtype=torch.float64)
-    ev = evaluate_pose(sk, cam, kps, q)
-    energy, k_min, c = term.energy(ev), float((-mix.log_weight).min()), mix.log_weight.shape[0]
-    nll = mix.nll(q)
-    assert bool((nll <= energy + k_min + 1e-9).all()) and bool((nll >= energy + k_min - math.log(c) - 1e-9).all())
-    objective = Objective({"mixture": term}, {"mixture": 2.0})
-    lin = objective_linearization(sk, objective, cam, kps)(q)
-    auto = torch.autograd.functional.jacobian(lambda x: objective.residuals(evaluate_pose(sk, cam, kps, x)), q)
-    auto = torch.stack([auto[i, :, i] for i in range(q.shape[0])])
-    torch.testing.assert_close(lin.jacobian, auto, atol=1e-9, rtol=1e-9)
-    folded = objective_linearization(sk, objective, cam, kps, fold=True)(q)
-    for a, b in zip(_normal_equations(folded), _normal_equations(lin)):
-        torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-9)
-    torch.testing.assert_close(folded.energy, lin.energy)

@@ -32,7 +32,6 @@ from ptrack.costs.silhouette import Silhouette, distance_transform
 from ptrack.costs.smoothness import BandedGaussNewton, Smoothness
 from ptrack.costs.terms import (
     HeavyTailedPrior,
-    MixturePrior,
     JointKeyframe,
     JointLimits,
     Keyframe,
@@ -45,7 +44,6 @@ __all__ = [
     "CostTerm",
     "FloorContact",
     "HeavyTailedPrior",
-    "MixturePrior",
     "JointKeyframe",
     "JointLimits",
     "Keyframe",

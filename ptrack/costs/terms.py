@@ -440,57 +440,6 @@ class PosePrior(LeastSquaresMixin):
 
 
 @dataclass(frozen=True, eq=False)
-class MixturePrior(LeastSquaresMixin):
-    """A Gaussian mixture prior on some dofs of q (`ptrack.body.pose_mixture`), in its max-component form:
-    energy (...,) = min_c 0.5 |L_c^-1 wrap(q[index] - mean_c)|^2 + k_c - min_c k_c, with k_c = -log_weight_c
-    (the component's weight and normaliser): each pose is held by the component that explains it best, so the
-    term is least squares around that component's mean and its Gauss-Newton step is exact within it.
-
-    index (M,) the dofs it holds; log_weight (C,); mean (C, M) radians; chol (C, M, M) lower Cholesky factors of
-    the covariances. residual (..., M + 1): the whitened difference to the chosen component and
-    sqrt(2 (k_c - min k)), the constant that ranks the components (its Jacobian row is zero)."""
-
-    index: Tensor
-    log_weight: Tensor
-    mean: Tensor
-    chol: Tensor
-
-    def _choose(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """q (..., D) -> the chosen component (...,), its whitened difference z (..., M) and its offset (...,)."""
-        x = q.index_select(-1, self.index.to(q.device))[..., None, :]
-        d = torch.remainder(x - self.mean.to(q) + math.pi, 2 * math.pi) - math.pi  # (..., C, M)
-        z = torch.linalg.solve_triangular(self.chol.to(q), d[..., None], upper=False)[..., 0]
-        k = -self.log_weight.to(q)
-        k = k - k.min()
-        c = (0.5 * z.square().sum(-1) + k).argmin(-1)  # (...,)
-        pick = c[..., None, None].expand(*c.shape, 1, z.shape[-1])
-        return c, z.gather(-2, pick)[..., 0, :], k[c]
-
-    def residual(self, ev: PoseEval) -> Tensor:
-        _, z, k = self._choose(ev.q)
-        return torch.cat([z, torch.sqrt(2 * k)[..., None]], -1)
-
-    def _whitening(self, q: Tensor, c: Tensor) -> Tensor:
-        """(..., M, D): d z / d q of component c (...,): L_c^-1 on the columns `index`."""
-        inv = torch.linalg.inv(self.chol.to(q))[c]  # (..., M, M)
-        out = q.new_zeros(*q.shape[:-1], inv.shape[-2], q.shape[-1])
-        out[..., self.index.to(q.device)] = inv
-        return out
-
-    def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
-        """(..., M + 1, D): the chosen component's whitening, and a zero row for the constant."""
-        c, _, _ = self._choose(ev.q)
-        w = self._whitening(ev.q, c)
-        return torch.cat([w, torch.zeros_like(w[..., :1, :])], -2)
-
-    def gauss_newton(self, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor, Tensor]:
-        """energy (...,), J^T J (..., D, D), J^T r (..., D) without stacking rows (`Objective.linearize`'s fold)."""
-        c, z, k = self._choose(ev.q)
-        w = self._whitening(ev.q, c)  # (..., M, D)
-        return 0.5 * z.square().sum(-1) + k, w.transpose(-1, -2) @ w, (w.transpose(-1, -2) @ z[..., None])[..., 0]
-
-
-@dataclass(frozen=True, eq=False)
 class HeavyTailedPrior(RobustMixin):
     """A prior around predicted poses with heavy tails (the long-tailed mixture components of
     Sminchisescu & Triggs 2003): Gaussian within about `scale` standard deviations of the mean, then

@@ -59,9 +59,6 @@ class KjsMethodConfig:
         "weight of the CMU pose mixture (ptrack.body.pose_mixture) in each mode's frame cost, which ranks the modes "
         "(best trajectory, weights) without moving them; 0: none",
     )
-    pose_mixture_tracking: float = setting(
-        0.0, "weight of the CMU pose mixture (max-component form) in every tracking step; 0: none"
-    )
     collision_weight: float = setting(1.0, "weight of the body non-self-intersection term")
     floor_deg: float = setting(0.5, "smallest sampling std per dof (unobservable directions), degrees")
     viterbi_sigma_m: float = setting(
@@ -129,7 +126,7 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
         raise InputError(
             "config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' must be >= 0"
         )
-    for key in ("motion_scale", "pose_prior_weight", "pose_mixture_weight", "pose_mixture_tracking", "distinct_mm"):
+    for key in ("motion_scale", "pose_prior_weight", "pose_mixture_weight", "distinct_mm"):
         if not getattr(kc, key) >= 0 or not math.isfinite(getattr(kc, key)):
             raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")
     if not 0 <= kc.weight_memory <= 1:

@@ -17,7 +17,6 @@ from ptrack.costs import (
     CostTerm,
     HeavyTailedPrior,
     JointLimits,
-    MixturePrior,
     Objective,
     PosePrior,
     Reprojection,
@@ -113,7 +112,7 @@ def make_setup(problem: Problem, cfg: KjsRunConfig, strategy: Strategy) -> Setup
         (mean, std, known),
         prior_sigma,
         _dynamics_sigma(problem, k, dtype, device),
-        _mixture(sk, max(k.pose_mixture_weight, k.pose_mixture_tracking), dtype, device),
+        _mixture(sk, k.pose_mixture_weight, dtype, device),
     )
 
 
@@ -186,10 +185,6 @@ def frame_objective(
     if tracking and k.pose_prior_weight > 0:
         terms["pose_prior"] = PosePrior(s.prior[0], s.prior_sigma)
         weights["pose_prior"] = k.pose_prior_weight
-    if tracking and s.mixture is not None and k.pose_mixture_tracking > 0:
-        m = s.mixture
-        terms["pose_mixture"] = MixturePrior(m.index, m.log_weight, m.mean, m.chol)
-        weights["pose_mixture"] = k.pose_mixture_tracking
     return Objective(terms, weights)
 
 
