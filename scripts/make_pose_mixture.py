@@ -1,6 +1,6 @@
 """Make `ptrack/data/cmu_pose_mixture.json`: the Gaussian mixture over joint angles of `ptrack.body.pose_mixture`.
 
-    python scripts/make_pose_mixture.py [--cmu ../shared/data/cmu] [--components 8] [--stride 4] [--seed 0]
+    python scripts/make_pose_mixture.py [--cmu ../shared/data/cmu] [--components 4] [--stride 4] [--seed 0]
                                         [--exclude-clips configs/clips/heldout_batch.txt] [--out FILE]
 
 The clips: every AMC clip under `--cmu` less the held-out clips of `--exclude-clips` and the check clips of
