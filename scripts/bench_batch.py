@@ -59,14 +59,15 @@ CONFIG = REPO / "configs" / "batch.yaml"
 
 
 def problem(frames: int, every_s: float = 1.0, plain: bool = True):
-    """plain: least-squares reprojection and smoothing (scipy's objective); else the config's losses."""
+    """plain: least-squares reprojection, limits, smoothing and keyframes (the objective `residuals` gives scipy:
+    no pose prior); else the config's losses and terms."""
     cfg = load_config(
         CONFIG,
         [
             "data.stride=1",
             f"data.stop={frames}",
             "model.freeze=[]",
-            *(["costs.loss=l2", "batch.smooth_loss=l2"] if plain else []),
+            *(["costs.loss=l2", "batch.smooth_loss=l2", "batch.pose_prior_weight=0"] if plain else []),
             f"keyframes.every_s={every_s}",
             "progress=false",
         ],

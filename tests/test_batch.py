@@ -54,10 +54,12 @@ def mpjpe_mm(prep, est) -> float:
 
 
 def test_noise_free_clip_is_recovered_from_keyframes():
-    _, prep, est = solve("observations.noise_px=0", "observations.missing=0", "keyframes.every_s=0.5", "dtype=float64")
+    over = ("observations.noise_px=0", "observations.missing=0", "keyframes.every_s=0.5", "dtype=float64")
+    _, prep, est = solve(*over, "batch.pose_prior_weight=0")
     assert mpjpe_mm(prep, est) < 12.0
     # what is left is the smoothing prior's energy of the clip's own motion: ~18% of the start's with the
-    # per-dof scales of real motion (batch.prior: cmu), ~5% with one scale for all dofs
+    # per-dof scales of real motion (batch.prior: cmu), ~5% with one scale for all dofs (the pose prior, off
+    # here, would add its energy at the clip's own poses)
     assert float(est.solver_cost[-1]) < 0.25 * float(est.solver_cost[0])
 
 
@@ -159,10 +161,11 @@ def test_bad_root_velocity_setting():
 def test_reprojection_blocks_are_the_gauss_newton_of_the_residual():
     """`evaluate`'s per-frame blocks J_t^T W J_t of the reprojection (assembled from `Reprojection.jacobian`
     on d pixels / d X and the joint Jacobians) equal those from the autograd Jacobian of the whitened
-    residual with the IRLS weights rho'(s) of each keypoint (no limits; frames without keyframes)."""
+    residual with the IRLS weights rho'(s) of each keypoint (no limits, no pose prior; frames without keyframes)."""
     from ptrack.problem import evaluate_pose
 
-    cfg = load_config(BATCH, [*SHORT, "data.stop=24"])  # 6 frames, a keyframe at frame 0 only
+    # 6 frames, a keyframe at frame 0 only
+    cfg = load_config(BATCH, [*SHORT, "data.stop=24", "batch.pose_prior_weight=0"])
     prep = prepare(cfg)
     obj = trajectory_objective(prep.problem, cfg, torch.float64, torch.device("cpu"), limits=False)
     p = prep.problem
@@ -365,14 +368,15 @@ def test_keyframe_travel_and_the_calibration_formula():
 
 
 def test_calibrated_joint_std_covers_the_truth():
-    """The shipped calibration (fitted on the dev clips) on a clip it was not fitted on: the bundled kick's
-    first 80 frames from its first and last frame only (`uncertainty: branches`, the defaults). Measured
-    2026-11-29 (scale 1.30, no floor, travel share 0.05): within 2 std 0.81 raw, 0.915 calibrated, 0.900
-    without the travel term (the calibration of before, a 60 mm floor: 0.986); within 1 std 0.47 raw, 0.60
-    calibrated. The calibrated std must cover the truth as a calibrated one does (0.9 or more within 2 std),
-    stay an uncertainty, not a blanket (under 0.9 within 1 std: a Gaussian's 0.61-0.68), and be wider where a
-    joint has travelled far from the keyframes: the travel term covers more than the same scale and floor
-    without it, and widens the far quarter of the joint-frames against the rest more than the raw std does."""
+    """The shipped calibration (fitted on the dev and train clips) on a clip it was not fitted on: the bundled
+    kick's first 80 frames from its first and last frame only (`uncertainty: branches`, the defaults). Measured
+    2026-11-29 (scale 1.22, no floor, travel share 0.25; the pose prior at 0.03): within 2 std 0.89 raw, 0.998
+    calibrated, 0.94 without the travel term; within 1 std 0.64 raw, 0.87 calibrated. The calibrated std must
+    cover the truth as a calibrated one does (0.9 or more within 2 std), stay an uncertainty, not a blanket
+    (under 0.95 within 1 std; a Gaussian puts 0.68 there, and this easy clip is covered more than the held-out
+    clips the calibration is judged on), and be wider where a joint has travelled far from the keyframes: the
+    travel term covers more than the same scale and floor without it, and widens the far quarter of the
+    joint-frames against the rest more than the raw std does."""
     _, prep, est = solve(
         "data.stop=320", "keyframes.every_s=null", "keyframes.last=true", "batch.uncertainty=branches",
         "batch.flip_restarts=3", "batch.std_calibration=false",
@@ -386,7 +390,7 @@ def test_calibrated_joint_std_covers_the_truth():
     cal = batch.calibrate_std(raw, shipped, travel)
     within = {k: float(M.std_coverage(est.joints, gt, cal, k)) for k in (1, 2)}
     assert within[2] >= 0.9, within
-    assert within[1] <= 0.9, within
+    assert within[1] <= 0.95, within
     assert float((err <= 2 * raw).double().mean()) < within[2]  # the calibration widens the raw std
     flat = batch.calibrate_std(raw, shipped._replace(travel=0.0), travel)
     assert float(M.std_coverage(est.joints, gt, flat, 2)) < within[2]

@@ -50,8 +50,8 @@ class BatchMethodConfig:
     )
     std_calibration: bool = setting(
         True,
-        "widen joint_std by the calibration of its batch.uncertainty mode fitted on the dev clips (a scale and a "
-        "share of each joint's travel from its nearest keyframe: ptrack/data/batch_std_calibration.json); "
+        "widen joint_std by the calibration of its batch.uncertainty mode fitted on the dev and train clips (a "
+        "scale and a share of each joint's travel from its nearest keyframe: ptrack/data/batch_std_calibration.json); "
         "false: the raw std (overconfident: ~0.8 within 2 std)",
     )
     flip_restarts: int = setting(3, "rounds of restarts from the limbs' depth-flip branches (0: none)")
@@ -61,7 +61,9 @@ class BatchMethodConfig:
         "restart takes is then solved with batch.iterations); 0: the rigid flips",
     )
     pose_prior_weight: float = setting(
-        0.0, "weight of the CMU per-dof pose prior (ptrack.body.pose_prior) on every frame, as kjs holds it; 0: none"
+        0.03,
+        "weight of the CMU per-dof pose prior (ptrack.body.pose_prior) on every frame, as kjs holds it at 0.1 "
+        "(0.03: chosen on the dev clips; steadies limbs far from any keyframe); 0: none",
     )
     hard_limits: bool = setting(
         False,
