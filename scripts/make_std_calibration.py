@@ -1,10 +1,14 @@
 """Make `ptrack/data/batch_std_calibration.json`: the calibration of `method: batch`'s `joint_std`.
 
-    ptrack evaluate configs/eval_batch.yaml batch.std_calibration=false --clips configs/clips/dev.txt --out A/every1
-    ptrack evaluate configs/eval_batch.yaml batch.std_calibration=false keyframes.every_s=null \\
-        keyframes.last=true --clips configs/clips/dev.txt --out A/firstlast
-    python scripts/make_std_calibration.py A/every1 A/firstlast [--mode branches] [--target 0.95] [--out FILE]
-    (and the same with batch.uncertainty=laplace in both evaluations and --mode laplace)
+    E="ptrack evaluate configs/eval_batch.yaml batch.std_calibration=false --seeds 0-1"
+    FL="keyframes.every_s=null keyframes.last=true"
+    $E --clips configs/clips/dev.txt --out A/dev_every1
+    $E $FL --clips configs/clips/dev.txt --out A/dev_firstlast
+    $E --clips configs/clips/train.txt --out A/train_every1
+    $E $FL --clips configs/clips/train.txt --out A/train_firstlast
+    python scripts/make_std_calibration.py A/dev_every1 A/dev_firstlast A/train_every1 A/train_firstlast \\
+        [--mode branches] [--target 0.95] [--out FILE]
+    (and the same with batch.uncertainty=laplace in the evaluations and --mode laplace)
 
     python scripts/make_std_calibration.py --report [--mode branches] [--calibration FILE] ... FOLDER ...
 
@@ -20,8 +24,9 @@ with m (metres) the joint's distance from its own position at the nearest keyfra
 (the smaller; `ptrack.estimators.batch.keyframe_travel`, from the solution, so known at run time): the scale as
 a posterior variance factor (measured against the truth, since the 2D residuals fit their assumed noise and
 show none of the depth error), the floor for the error no term's curvature sees, travel the share of a joint's
-travel that drifts. Fitted on the runs given (every result.npz under the folders: the dev clips in both
-keyframe settings; the keyframes' frames from each run's config.yaml), each run weighted equally: for each
+travel that drifts. Fitted on the runs given (every result.npz under the folders: the dev and train clips,
+never the held-out ones, in both keyframe settings; the keyframes' frames from each run's config.yaml), each run
+weighted equally: for each
 (floor, travel) of `FLOORS_M` x `TRAVELS` the scale that puts `--target` of the joint-frames within 2
 calibrated std (a weighted quantile), and of those the pair whose leave-one-clip-out interval score is
 lowest (sharpness subject to calibration: a constant std of 80 mm also covers 0.95 and says nothing about which
@@ -56,7 +61,7 @@ DATA = ROOT / "ptrack" / "data" / "batch_std_calibration.json"
 #: floors tried (metres)
 FLOORS_M = (0.0, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.07, 0.08)
 #: travel shares tried (metres of std per metre of a joint's travel from its nearest keyframe)
-TRAVELS = (0.0, 0.02, 0.03, 0.04, 0.05, 0.06, 0.07, 0.08, 0.1)
+TRAVELS = (0.0, 0.02, 0.03, 0.05, 0.07, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4)
 
 
 @dataclass(frozen=True)
@@ -268,9 +273,9 @@ def main() -> None:
     doc[args.mode] = {
         "date": date.today().isoformat(),
         "made_with": f"scripts/make_std_calibration.py {' '.join(Path(f).name for f in args.folders)} "
-        f"--mode {args.mode} on `ptrack evaluate configs/eval_batch.yaml batch.std_calibration=false "
-        f"batch.uncertainty={args.mode} --clips configs/clips/dev.txt` (keyframes every 1 s; "
-        f"keyframes.every_s=null keyframes.last=true) at {commit()}",
+        f"--mode {args.mode} on raw-std runs (`ptrack evaluate configs/eval_batch.yaml batch.std_calibration=false "
+        f"batch.uncertainty={args.mode}`, keyframes every 1 s and first + last: keyframes.every_s=null "
+        f"keyframes.last=true; the folders' names say which clip list) at {commit()}",
         "runs": sorted(r.name for r in runs),
         "target_within_2std": args.target,
         "scale": round(cal.scale, 4),
