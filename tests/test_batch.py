@@ -367,6 +367,22 @@ def test_keyframe_travel_and_the_calibration_formula():
     torch.testing.assert_close(flat, torch.full_like(std, 0.05))  # no travel share: a scale and a floor (3-4-5)
 
 
+def test_shipped_calibration_was_fitted_on_no_held_out_clip():
+    """Both modes' calibrations list their runs (folder/clip/seed): none is a clip of the held-out list the
+    coverage is judged on, and both keyframe settings are among them."""
+    from ptrack.clips import parse_clips
+    from ptrack.package_data import data_file
+
+    doc = json.loads(data_file(batch.uncertainty.CALIBRATION_FILE).read_text())
+    held = {p.stem for p in parse_clips(str(REPO / "configs" / "clips" / "heldout_batch.txt"))}
+    for mode in ("branches", "laplace"):
+        runs = doc[mode]["runs"]
+        clips = {r.split("/")[1] for r in runs}
+        assert clips and not clips & held, mode
+        assert any("firstlast" in r.split("/")[0] for r in runs) and any("every1" in r.split("/")[0] for r in runs)
+        assert batch.std_calibration(mode).scale == doc[mode]["scale"]
+
+
 def test_calibrated_joint_std_covers_the_truth():
     """The shipped calibration (fitted on the dev and train clips) on a clip it was not fitted on: the bundled
     kick's first 80 frames from its first and last frame only (`uncertainty: branches`, the defaults). Measured
