@@ -92,13 +92,11 @@ class JointKeyframes:
 class Floor:
     """A known floor plane under the person: height_m along the model frame's +Y (metres), joints (F,) the
     skeleton's foot points that can touch it, clearance_m how high the lowest of them sits when a foot stands
-    flat (metres); up_given: the up axis came with the camera (a calibration's world), not from a plane fitted
-    under the person's feet, which keeps the camera's guess wherever the feet stay in place."""
+    flat (metres)."""
 
     height_m: float
     joints: tuple[int, ...]
     clearance_m: float = 0.0
-    up_given: bool = True
 
     def __post_init__(self) -> None:
         if not self.joints:

@@ -883,7 +883,7 @@ def level_to_person(prep: Prepared, est: Estimate) -> Prepared | None:
     problem = dataclasses.replace(
         prob,
         observations=dataclasses.replace(prob.observations, camera=camera),
-        floor=Floor(fit.height_m, joints, clearance, up_given=False),
+        floor=Floor(fit.height_m, joints, clearance),
     )
     return dataclasses.replace(prep, problem=problem, footage=footage)
 

@@ -59,13 +59,6 @@ class KjsMethodConfig:
         "weight of the CMU pose mixture (ptrack.body.pose_mixture) in each mode's frame cost, which ranks the modes "
         "(best trajectory, weights) without moving them; 0: none",
     )
-    balance_weight: float = setting(
-        0.0,
-        "weight of the static-balance cost (ptrack.body.balance: the centre of mass over the foot it stands on) in "
-        "each mode's frame cost, where the camera gives the up axis; it ranks the modes without moving them; 0: none",
-    )
-    balance_sigma_m: float = setting(0.1, "the balance cost's scale: the distance (metres) beyond balance_free_m costing log 2")
-    balance_free_m: float = setting(0.0, "the centre of mass's horizontal distance from the support (metres) that costs nothing")
     collision_weight: float = setting(1.0, "weight of the body non-self-intersection term")
     floor_deg: float = setting(0.5, "smallest sampling std per dof (unobservable directions), degrees")
     viterbi_sigma_m: float = setting(
@@ -133,13 +126,9 @@ def validate_kjs(kc: KjsMethodConfig) -> None:
         raise InputError(
             "config keys 'kjs.polish_iterations', 'kjs.refine_iterations' and 'kjs.jumps_per_sample' must be >= 0"
         )
-    for key in ("motion_scale", "pose_prior_weight", "pose_mixture_weight", "balance_weight", "distinct_mm"):
+    for key in ("motion_scale", "pose_prior_weight", "pose_mixture_weight", "distinct_mm"):
         if not getattr(kc, key) >= 0 or not math.isfinite(getattr(kc, key)):
             raise InputError(f"config key 'kjs.{key}' must be >= 0, got {getattr(kc, key)}")
-    if not kc.balance_sigma_m > 0 or not math.isfinite(kc.balance_sigma_m):
-        raise InputError(f"config key 'kjs.balance_sigma_m' must be > 0, got {kc.balance_sigma_m}")
-    if not kc.balance_free_m >= 0 or not math.isfinite(kc.balance_free_m):
-        raise InputError(f"config key 'kjs.balance_free_m' must be >= 0, got {kc.balance_free_m}")
     if not 0 <= kc.weight_memory <= 1:
         raise InputError(f"config key 'kjs.weight_memory' must be in [0, 1], got {kc.weight_memory}")
     for key, allowed in (

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ptrack.body.balance import Balance
 from ptrack.body.pose_mixture import PoseMixture, pose_mixture
 from ptrack.body.pose_prior import held_sigma, pose_prior, smoothing_prior
 from ptrack.costs import (
@@ -67,7 +66,6 @@ class Setup:
     prior_sigma: Tensor  # (D,) the tracking term's std: the prior's spread (>= floor_deg), 1e6 where unknown
     dynamics_sigma: float | Tensor  # the dynamics' velocity std per frame before widening (`kjs.dynamics`)
     mixture: PoseMixture | None = None  # the CMU pose mixture that ranks modes (`kjs.pose_mixture_weight` > 0)
-    balance: Balance | None = None  # the static balance that ranks modes (`kjs.balance_weight` > 0, up given)
 
 
 def make_setup(problem: Problem, cfg: KjsRunConfig, strategy: Strategy) -> Setup:
@@ -115,21 +113,7 @@ def make_setup(problem: Problem, cfg: KjsRunConfig, strategy: Strategy) -> Setup
         prior_sigma,
         _dynamics_sigma(problem, k, dtype, device),
         _mixture(sk, k.pose_mixture_weight, dtype, device),
-        _balance(problem, k),
     )
-
-
-def _balance(problem: Problem, k) -> Balance | None:
-    """The static-balance term when `kjs.balance_weight` > 0 and the camera gave the up axis (a floor with
-    `up_given`), else None; an InputError for a skeleton without the CMU joints it reads. A floor fitted under the
-    person's feet is not enough: where the feet stay in place it keeps the camera's guess at up, and a few degrees
-    off the vertical move the centre of mass's reading by centimetres (docs/notes/footage-history.md)."""
-    if k.balance_weight == 0 or problem.floor is None or not problem.floor.up_given:
-        return None
-    try:
-        return Balance.for_skeleton(problem.skeleton, k.balance_sigma_m, k.balance_free_m)
-    except InputError as e:
-        raise InputError(f"config key 'kjs.balance_weight': {e}") from None
 
 
 def _mixture(sk, weight: float, dtype: torch.dtype, device: torch.device) -> PoseMixture | None:
@@ -282,8 +266,7 @@ def frame_evidence(s: Setup, t: int | Tensor, q: Tensor, joints: Tensor | None =
     """Frame t's own cost of poses q (K, D) (joints (K, J, 3): their forward kinematics, if already at
     hand) -> (K,): robust reprojection, limits, collision, the floor, the pose prior and, with
     `kjs.pose_mixture_weight` > 0, the weighted negative log-density of the CMU pose mixture
-    (`ptrack.body.pose_mixture`) and, with `kjs.balance_weight` > 0 and a floor, the weighted static-balance cost
-    (`ptrack.body.balance`), without the dynamics term. It is the unary term of the best-trajectory
+    (`ptrack.body.pose_mixture`), without the dynamics term. It is the unary term of the best-trajectory
     Viterbi pass, whose pairwise term is the dynamics: a mode's tracking cost and weight already hold the
     dynamics around the mode it came from (and, through the weights, every earlier frame), so using them
     there would count the dynamics twice and tie the best trajectory to the filter's earlier choices."""
@@ -295,8 +278,6 @@ def frame_evidence(s: Setup, t: int | Tensor, q: Tensor, joints: Tensor | None =
         cost = frame_objective(s, t, None, tracking=True)(ev).total
         if s.mixture is not None:
             cost = cost + s.cfg.kjs.pose_mixture_weight * s.mixture.nll(q)
-        if s.balance is not None:
-            cost = cost + s.cfg.kjs.balance_weight * s.balance.energy(joints)
         return cost
 
 
