@@ -16,9 +16,14 @@ Clip groups (`--clips`):
     check  07_05 (walk, subject 7), 35_01 (walk), 02_05 (punch), 49_19 (balance), 135_04 (kick): never tuned on
 
     python scripts/eval_synthetic_footage.py [--clips tune|check|all|NN_MM,...] [--out logs/eval_synthetic]
-        [--frames 60] [--noise-px 2] [--seed 0] [key=value ...]
+        [--frames 60] [--noise-px 2] [--seed 0] [--keypoints coco17|halpe26] [--extrinsics] [key=value ...]
 
-Extra key=value arguments go to every run. Existing footage and run folders (under OUT/<clip>-s<seed>/) are reused.
+`--keypoints halpe26` (the feet, neck and pelvis seen as well) and `--extrinsics` (the camera's pose given: the runs
+get `camera.up=y` and the footage's `camera.floor_m`) make footage closer to a lab's (the Pose2Sim trial's BODY_25B
+and calibration); the issue's synthetic target is the default, COCO-17 with intrinsics only.
+
+Extra key=value arguments go to every run. Existing footage and run folders (under OUT/<clip>-s<seed>[-halpe26]
+[-extrinsics]/) are reused.
 """
 
 from __future__ import annotations
@@ -77,6 +82,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--noise-px", type=float, default=2.0)
     ap.add_argument("--seed", type=int, default=0, help="the footage's noise and the runs' seed")
+    ap.add_argument("--keypoints", choices=synthetic_footage.KEYPOINT_SETS, default="coco17")
+    ap.add_argument("--extrinsics", action="store_true", help="the camera's pose and the floor given to the runs")
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args()
     clips = list(GROUPS[a.clips]) if a.clips in GROUPS else a.clips.split(",")
@@ -84,16 +91,27 @@ def main() -> None:
         amc, asf = clip_files(clip)
         if not amc.is_file() or not asf.is_file():
             sys.exit(f"eval_synthetic_footage: {amc} or {asf} not found")
-        folder = a.out.resolve() / f"{clip}-s{a.seed}"
+        variant = ("" if a.keypoints == "coco17" else f"-{a.keypoints}") + ("-extrinsics" if a.extrinsics else "")
+        folder = a.out.resolve() / f"{clip}-s{a.seed}{variant}"
         footage = folder / "footage"
         if not (footage / "truth.npz").is_file():
-            synthetic_footage.make(amc, asf, footage, frames=a.frames, noise_px=a.noise_px, seed=a.seed)
+            synthetic_footage.make(
+                amc,
+                asf,
+                footage,
+                a.frames,
+                noise_px=a.noise_px,
+                seed=a.seed,
+                keypoints=a.keypoints,
+                extrinsics=a.extrinsics,
+            )
         with np.load(footage / "truth.npz") as t:
             height = float(t["height_m"])
+            camera = ["camera.up=y", f"camera.floor_m={float(t['floor_m']):.6f}"] if a.extrinsics else []
         own = segment_lengths(add_landmark_joints(Skeleton.from_asf(asf), height))
         rows = {}
         for setting in SETTINGS:
-            rc = run(setting, footage, asf, height, folder / setting, a.seed, a.overrides)
+            rc = run(setting, footage, asf, height, folder / setting, a.seed, [*camera, *a.overrides])
             if rc != 0:
                 rows[setting] = None
                 continue
@@ -103,7 +121,8 @@ def main() -> None:
         kind = GROUPS["all"].get(clip, "")
         print(
             f"\n{clip} {kind} ({'tune' if clip in GROUPS['tune'] else 'check'}; height {height:.3f} m, "
-            f"{a.frames} frames, {a.noise_px:g} px, seed {a.seed})\n"
+            f"{a.frames} frames, {a.noise_px:g} px, seed {a.seed}, {a.keypoints}"
+            f"{', extrinsics' if a.extrinsics else ''})\n"
         )
         print(
             "| setting | PA-MPJPE mm | MPJPE mm | MPJPE - known mm | " + " | ".join(f"{n} %" for n in MEASURED) + " |"

@@ -98,6 +98,46 @@ def synthetic(tmp_path_factory):
     return out, info
 
 
+def test_synthetic_footage_with_the_feet_and_the_camera_pose(tmp_path):
+    """scripts/synthetic_footage.py's lab-like variant: HALPE-26 (the feet, neck and pelvis scored, the face and
+    head top not) and the camera's pose in its YAML, which ptrack reads as a calibration; the floor it states lies
+    under the feet, the truth keeps the camera frame turned Y-up, and a run's keypoints score as the plain footage's."""
+    from ptrack.observe.camera_files import read_camera
+
+    info = synthetic_footage.make(
+        data_file("10_02.amc"), data_file("10.asf"), tmp_path, frames=6, keypoints="halpe26", extrinsics=True
+    )
+    images = json.loads((tmp_path / "keypoints.json").read_text())
+    person = next(r for r in images if r["image_id"] == 1)
+    kp = np.asarray(person["keypoints"]).reshape(26, 3)
+    halpe = get_keypoint_set("halpe26")
+    seen = {halpe.landmarks[i] for i in np.flatnonzero(kp[:, 2] > 0)}
+    assert {"l_heel", "r_big_toe", "neck", "pelvis", "l_ankle"} <= seen
+    assert not seen & {"nose", "l_eye", "r_ear", "head_top"}
+    cam = read_camera(tmp_path / "camera.yml")
+    assert cam.R is not None and cam.t is not None
+    with np.load(tmp_path / "truth.npz") as t:
+        assert str(t["keypoint_set"]) == "halpe26" and t["keypoints"].shape == (6, 26, 3)
+        assert float(t["floor_m"]) == pytest.approx(info["floor_m"])
+    # the world is the CMU clip's (Y up): the camera looks slightly down at a person standing on a floor below it
+    centre = -cam.R.T @ cam.t
+    assert centre[1] > info["floor_m"] + 0.3
+    # the score reads the set from the truth: the truth scored against itself is 0
+    res = tmp_path / "self.npz"
+    with np.load(tmp_path / "truth.npz") as t:
+        np.savez(
+            res,
+            keypoints=t["keypoints"] * np.array([1.0, -1.0, -1.0]),
+            keypoint_names=t["keypoint_names"],
+            world_from_model=np.eye(3),
+            camera_R=np.eye(3),
+            camera_t=np.zeros(3),
+            frames=t["frames"],
+        )
+    s = synthetic_footage.score(res, tmp_path / "truth.npz")
+    assert s["pa_mpjpe_mm"] == pytest.approx(0.0, abs=1e-6) and s["mpjpe_mm"] == pytest.approx(0.0, abs=1e-6)
+
+
 def _run_synthetic(synthetic, out: Path, *extra: str) -> int:
     folder, info = synthetic
     argv = ["run", VIDEO_YAML, f"observations.file={folder / 'keypoints.json'}", f"camera.file={folder / 'camera.yml'}"]
