@@ -475,6 +475,50 @@ def test_segment_lengths_from_2d_reach_the_length_in_the_image_plane():
     assert mid["thigh"][0] == pytest.approx(want["thigh"], rel=0.05)
 
 
+def test_floor_depth_factor_moves_the_standing_feet_onto_the_floor():
+    """A body standing on a known floor, seen by a camera that looks down at it, estimated 10% nearer along every
+    camera ray (what a template too short in the limbs does): the standing feet's rays meet the floor 1.1 times as
+    far, and the lengths measured at the depths times that factor are the true ones; without a floor there is none."""
+    import dataclasses
+
+    from ptrack.body.keypoint_sets import COCO_17
+    from ptrack.body.keypoints import landmark_keypoints
+    from ptrack.body.subject import floor_points, landmark_joints
+    from ptrack.estimators.lengths import floor_depth_factor, segment_lengths_from_2d
+    from ptrack.observe.camera import look_at
+    from ptrack.observe.observations import Observations
+    from ptrack.problem import Estimate, Floor, Problem
+
+    sk = add_landmark_joints(scale_to_height(Skeleton.from_asf(data_file("10.asf")), 1.7), 1.7)
+    joints = [str(j) for j in landmark_joints(sk, COCO_17.landmarks)]
+    kps = landmark_keypoints(sk, COCO_17.names, COCO_17.landmarks, joints)
+    T = 12
+    q = torch.zeros(T, sk.num_dofs, dtype=torch.float64)
+    q[:, sk.dof_names.index("root.ry")] = torch.linspace(-0.3, 0.3, T)
+    X = sk.forward_kinematics(q)
+    feet, clearance = floor_points(sk, 1.7)
+    floor = Floor(float(X[:, list(feet), 1].amin()) - clearance, feet, clearance)
+    cam = look_at([0.0, 0.0, 0.0], 4.0, 20.0, 15.0, 1000.0, 1280, 720)
+    px = cam.project(X[:, kps.index()]).pixels
+    obs = Observations(px, torch.ones(T, 17, dtype=torch.float64), torch.arange(T) / 30.0, cam, COCO_17.names)
+    problem = Problem(skeleton=sk, keypoints=kps, observations=obs, floor=floor)
+    centre = -cam.R.double().T @ cam.t.double()
+    near = centre + (X - centre) / 1.1  # every point 10% nearer the camera along its ray: the same 2D
+    est = Estimate(q=q, joints=near, cost=torch.zeros(T), terms={})
+    factor = floor_depth_factor(problem, est)
+    assert factor == pytest.approx(1.1, rel=1e-6)
+    segments = {n: (a, b) for n, (a, b, _) in SEGMENTS.items() if n in ("thigh", "shank", "trunk")}
+    truth = segment_lengths_from_2d(
+        problem, Estimate(q=q, joints=X, cost=torch.zeros(T), terms={}), COCO_17.landmarks, segments
+    )
+    short = segment_lengths_from_2d(problem, est, COCO_17.landmarks, segments)
+    fixed = segment_lengths_from_2d(problem, est, COCO_17.landmarks, segments, scale=factor)
+    for name in segments:
+        assert short[name][0] == pytest.approx(truth[name][0] / 1.1, rel=1e-6), name
+        assert fixed[name][0] == pytest.approx(truth[name][0], rel=1e-6), name
+    assert floor_depth_factor(dataclasses.replace(problem, floor=None), est) is None
+
+
 def test_rescale_segments_sets_the_targets_and_moves_the_landmark_joints():
     sk = add_landmark_joints(scale_to_height(Skeleton.from_asf(data_file("10.asf")), 1.7), 1.7)
     new = rescale_segments(sk, 1.7, {"shank": 0.5, "forearm": 0.2})

@@ -7,7 +7,13 @@ the segment lies in the image plane. The estimate of L is a high quantile of d Z
 both ends are observed (left and right pooled for the paired segments): over a sequence in which each
 segment passes near the image plane, it is near L; noise pushes it up, frames that never reach the plane
 pull it down. Z comes from an estimate made with the template's lengths; a depth error of dZ changes L by
-the factor dZ / Z (1-3% at 3-5 m).
+the factor dZ / Z.
+
+That depth error is not small. The 2D fixes a body's size only over its depth: a template shorter in the limbs
+than the person stands nearer the camera, and every length measured at its depth comes out short by the same
+factor (5-10% on CMU clips; docs/notes/footage-history.md). A calibrated floor says where the depth is: a foot that
+stands on it is where its camera ray meets the floor. `floor_depth_factor` measures how far along their rays the
+estimate's standing feet must move to touch the floor, and the measurements take the depths times that factor.
 """
 
 from __future__ import annotations
@@ -24,14 +30,53 @@ QUANTILE = 0.9
 #: fewest frames with both ends observed for a segment to be measured (else it keeps its template length)
 MIN_FRAMES = 10
 
+#: `floor_depth_factor`: frames whose lowest foot point is a standing foot, within this of the lowest over the clip
+#: (metres, along up) ...
+STANDING_BAND_M = 0.1
+#: ... and whose camera ray to it descends at least this steeply to the floor (degrees): a ray nearly parallel to
+#: the floor meets it anywhere
+MIN_RAY_SLOPE_DEG = 3.0
+#: the factor is kept within these bounds (a calibration far off would ask for more)
+FACTOR_RANGE = (0.5, 2.0)
 
-def _observed_at_depth(problem: Problem, est: Estimate) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """-> depth (T, K) of each keypoint of `problem` in the camera frame at the poses of `est`, the observed
-    pixels (T, K, 2) and whether each is seen (T, K) bool (a positive depth included)."""
+
+def floor_depth_factor(problem: Problem, est: Estimate, min_frames: int = MIN_FRAMES) -> float | None:
+    """How much farther from the camera the estimate should stand for its feet to touch the problem's floor:
+    for each frame whose lowest foot point (the floor's joints) lies within `STANDING_BAND_M` of the clip's lowest,
+    the point's camera ray is followed to the floor's contact height (`Floor.height_m` + `clearance_m`, along +Y)
+    and the ratio of the two distances from the camera taken; -> the median ratio (within `FACTOR_RANGE`), or None
+    without a floor or with fewer than `min_frames` such frames."""
+    floor = problem.floor
+    if floor is None:
+        return None
+    cam = problem.observations.camera
+    with torch.no_grad():
+        index = torch.as_tensor(floor.joints, device=est.joints.device)
+        feet = est.joints.detach().index_select(-2, index).double().cpu().numpy()  # (T, F, 3) model frame, +Y up
+        centre = (-cam.R.detach().double().T @ cam.t.detach().double()).cpu().numpy()  # the camera's centre
+    low = feet[np.arange(len(feet)), feet[..., 1].argmin(-1)]  # (T, 3) each frame's lowest foot point
+    ray = low - centre
+    contact = floor.height_m + floor.clearance_m
+    down = -ray[:, 1] / np.linalg.norm(ray, axis=-1)
+    ok = (low[:, 1] < low[:, 1].min() + STANDING_BAND_M) & (down > math.sin(math.radians(MIN_RAY_SLOPE_DEG)))
+    ok &= np.isfinite(low).all(-1)
+    if int(ok.sum()) < min_frames:
+        return None
+    # centre + s ray meets the contact height at s = (contact - centre_y) / ray_y; the estimate's point is s = 1
+    factor = float(np.median((contact - centre[1]) / ray[ok, 1]))
+    return float(np.clip(factor, *FACTOR_RANGE))
+
+
+def _observed_at_depth(
+    problem: Problem, est: Estimate, scale: float | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """-> depth (T, K) of each keypoint of `problem` in the camera frame at the poses of `est` (times `scale` when
+    given: `floor_depth_factor`), the observed pixels (T, K, 2) and whether each is seen (T, K) bool (a positive
+    depth included)."""
     obs, kps = problem.observations, problem.keypoints
     with torch.no_grad():
         z = obs.camera.world_to_camera(est.joints.detach().index_select(-2, kps.index(est.joints.device)))[..., 2]
-    depth = z.double().cpu().numpy()
+    depth = z.double().cpu().numpy() * (1.0 if scale is None else scale)
     seen = (obs.confidence.detach().cpu().numpy() > 0) & (depth > 0)
     return depth, obs.keypoints.detach().double().cpu().numpy(), seen
 
@@ -52,12 +97,14 @@ def segment_lengths_from_2d(
     segments: dict[str, tuple[str, str]],
     quantile: float = QUANTILE,
     min_frames: int = MIN_FRAMES,
+    scale: float | None = None,
 ) -> dict[str, tuple[float, int]]:
     """Each segment's length measured in the 2D (see the module docstring) -> {segment: (metres, frames used)},
     for the segments with at least `min_frames` frames. landmarks: (K,) the landmark of each keypoint of
     `problem`; segments: {name: (landmark a, landmark b)} with left landmarks ("l_...") standing for both
-    sides."""
-    return _lengths(*_observed_at_depth(problem, est), _focal(problem), landmarks, segments, quantile, min_frames)
+    sides; scale: the estimate's depths are taken times it (`floor_depth_factor`)."""
+    depth, px, seen = _observed_at_depth(problem, est, scale)
+    return _lengths(depth, px, seen, _focal(problem), landmarks, segments, quantile, min_frames)
 
 
 def _focal(problem: Problem) -> float:
@@ -107,19 +154,20 @@ def segment_length_spread(
     block_s: float = BLOCK_S,
     draws: int = DRAWS,
     seed: int = 0,
+    scale: float | None = None,
 ) -> dict[str, float]:
     """The standard deviation (metres) of each segment's `segment_lengths_from_2d` over a circular moving-block
     bootstrap of the sequence's frames (blocks of `block_s` seconds, `draws` resamples, seeded): how much the length
     would change had other stretches of the same motion been filmed. It is the sampling spread only: a depth error
     of `est` (the factor dZ / Z of the module docstring) and the quantile's own bias are not in it; on a clip shorter
-    than MIN_BLOCKS blocks the blocks are shorter, and the spread then understated.
-    -> {segment: std}, for the segments measured in at least two resamples."""
+    than MIN_BLOCKS blocks the blocks are shorter, and the spread then understated. scale: as in
+    `segment_lengths_from_2d`. -> {segment: std}, for the segments measured in at least two resamples."""
     obs = problem.observations
     T = obs.keypoints.shape[0]
     dt = float(torch.diff(obs.times.double()).median()) if T > 1 else 1.0
     block = max(1, min(round(block_s / dt), T // MIN_BLOCKS))  # a clip too short for such blocks: shorter ones
     rng = np.random.default_rng(seed)
-    depth, px, seen = _observed_at_depth(problem, est)  # once: a resample only picks frames of them
+    depth, px, seen = _observed_at_depth(problem, est, scale)  # once: a resample only picks frames of them
     focal, present = _focal(problem), obs.confidence.detach().cpu().numpy() > 0
     found: dict[str, list[float]] = {}
     for _ in range(draws):

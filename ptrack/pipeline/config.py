@@ -226,6 +226,11 @@ class SubjectConfig:
     measure_backward_pass: str | None = setting(
         None, "method kjs: kjs.backward_pass of that first run (always, tree, never); null: kjs.backward_pass"
     )
+    depth_from_floor: bool = setting(
+        False,
+        "lengths observed with a calibrated floor: the first run's depths are scaled so that its standing feet touch "
+        "the floor before the segments are measured (ptrack.estimators.lengths.floor_depth_factor)",
+    )
 
 
 @dataclass(frozen=True)

@@ -811,7 +811,7 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
         est = est._replace(joints=between_frames(est.joints, n, prep.problem.observations.num_frames))
     again = False
     if measure_lengths:
-        prep, again = rescale_subject(prep, est), True
+        prep, again = rescale_subject(prep, est, cfg.subject.depth_from_floor), True
     if measure_floor:
         leveled = level_to_person(prep, est)  # the floor under the first pass's feet, then run again on it
         prep, again = leveled or prep, again or leveled is not None
@@ -892,19 +892,23 @@ def level_to_person(prep: Prepared, est: Estimate) -> Prepared | None:
 MEASURED_SEGMENTS = ("thigh", "shank", "upper_arm", "forearm", "trunk")
 
 
-def rescale_subject(prep: Prepared, est: Estimate) -> Prepared:
+def rescale_subject(prep: Prepared, est: Estimate, depth_from_floor: bool = False) -> Prepared:
     """Real footage, `subject.lengths: observed`: `prep` with its model rescaled to the segments' lengths measured
-    in the 2D at the depths of `est` (`ptrack.estimators.lengths`), the footage record holding them."""
+    in the 2D at the depths of `est` (`ptrack.estimators.lengths`; with `depth_from_floor` and a floor, those depths
+    scaled so that the standing feet touch it), the footage record holding them."""
     from ptrack.body.subject import SEGMENTS
-    from ptrack.estimators.lengths import segment_length_spread, segment_lengths_from_2d
+    from ptrack.estimators.lengths import floor_depth_factor, segment_length_spread, segment_lengths_from_2d
 
     assert prep.footage is not None
     f = prep.footage
     # the limbs and the trunk: the widths (hips, shoulders) reach the image plane only when the person faces the
     # camera, the head and foot segments rarely
     segments = {n: (a, b) for n, (a, b, _) in SEGMENTS.items() if n in MEASURED_SEGMENTS}
-    measured = segment_lengths_from_2d(prep.problem, est, f.landmarks, segments)
-    spread = segment_length_spread(prep.problem, est, f.landmarks, segments)  # how much other frames would change them
+    scale = floor_depth_factor(prep.problem, est) if depth_from_floor else None
+    if scale is not None:
+        log.info("the first run's standing feet touch the floor %.3f times as far from the camera", scale)
+    measured = segment_lengths_from_2d(prep.problem, est, f.landmarks, segments, scale=scale)
+    spread = segment_length_spread(prep.problem, est, f.landmarks, segments, scale=scale)  # other frames' spread
     record = {n: {"length_m": v, "frames": k, "std_m": spread.get(n)} for n, (v, k) in measured.items()}
     log.info("segment lengths from the 2D: %s", ", ".join(f"{n} {v:.3f} m" for n, (v, _) in measured.items()))
     return with_segments(prep, record)
