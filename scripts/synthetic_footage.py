@@ -45,9 +45,9 @@ BODY += ("l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle")
 KEYPOINT_SETS = ("coco17", "halpe26")
 
 
-def _matrix(name: str, a: np.ndarray, rows: int, cols: int) -> str:
-    """One OpenCV FileStorage matrix entry."""
-    data = ", ".join(f"{v:.9f}" for v in np.asarray(a, dtype=np.float64).ravel())
+def _matrix(name: str, a: np.ndarray, rows: int, cols: int, digits: int = 9) -> str:
+    """One OpenCV FileStorage matrix entry, its values with `digits` decimals."""
+    data = ", ".join(f"{v:.{digits}f}" for v in np.asarray(a, dtype=np.float64).ravel())
     return f"{name}: !!opencv-matrix\n   rows: {rows}\n   cols: {cols}\n   dt: d\n   data: [ {data} ]\n"
 
 
@@ -107,13 +107,8 @@ def make(
     out.mkdir(parents=True, exist_ok=True)
     (out / "keypoints.json").write_text(json.dumps(results))
     K = cam.K.numpy()
-    yml = (
-        "%YAML:1.0\n---\n"
-        f"image_width: {width}\nimage_height: {height}\n"
-        "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
-        f"   data: [ {', '.join(f'{v:.6f}' for v in K.ravel())} ]\n"
-        "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ 0., 0., 0., 0., 0. ]\n"
-    )
+    yml = f"%YAML:1.0\n---\nimage_width: {width}\nimage_height: {height}\n"
+    yml += _matrix("camera_matrix", K, 3, 3, digits=6) + _matrix("distortion_coefficients", np.zeros(5), 1, 5, digits=1)
     floor = None
     if extrinsics:  # the CMU world: Y up; the floor where the lowest foot point stands flat
         yml += _matrix("R", cam.R.numpy(), 3, 3) + _matrix("T", cam.t.numpy(), 3, 1)
@@ -139,11 +134,10 @@ def score(result: Path, truth: Path, names: tuple[str, ...] | None = None) -> di
     """A run's result.npz against truth.npz over the keypoints `names` (default: the 12 body points, `BODY`, as the
     truth's keypoint set names them), both in the camera's frame turned Y-up (whatever frame the run reported in):
     {mpjpe_mm (the mid-hip aligned), pa_mpjpe_mm, frames}."""
-    with np.load(truth) as t:
-        kps = get_keypoint_set(str(t["keypoint_set"])) if "keypoint_set" in t.files else COCO_17
-    body = tuple(kps.names[kps.landmarks.index(m)] for m in BODY)
-    names = names or body
     with np.load(result) as r, np.load(truth) as t:
+        kps = get_keypoint_set(str(t["keypoint_set"])) if "keypoint_set" in t.files else COCO_17
+        body = tuple(kps.names[kps.landmarks.index(m)] for m in BODY)
+        names = names or body
         rn, tn = [str(n) for n in r["keypoint_names"]], [str(n) for n in t["keypoint_names"]]
         # the run's keypoints in the truth's frame, the camera's turned Y-up: world -> model -> camera -> turned
         model = r["keypoints"][:, [rn.index(n) for n in names]] @ r["world_from_model"]

@@ -502,8 +502,7 @@ def test_floor_depth_factor_moves_the_standing_feet_onto_the_floor():
     px = cam.project(X[:, kps.index()]).pixels
     obs = Observations(px, torch.ones(T, 17, dtype=torch.float64), torch.arange(T) / 30.0, cam, COCO_17.names)
     problem = Problem(skeleton=sk, keypoints=kps, observations=obs, floor=floor)
-    centre = -cam.R.double().T @ cam.t.double()
-    near = centre + (X - centre) / 1.1  # every point 10% nearer the camera along its ray: the same 2D
+    near = cam.center + (X - cam.center) / 1.1  # every point 10% nearer the camera along its ray: the same 2D
     est = Estimate(q=q, joints=near, cost=torch.zeros(T), terms={})
     factor = floor_depth_factor(problem, est)
     assert factor == pytest.approx(1.1, rel=1e-6)

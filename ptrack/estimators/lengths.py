@@ -53,7 +53,7 @@ def floor_depth_factor(problem: Problem, est: Estimate, min_frames: int = MIN_FR
     with torch.no_grad():
         index = torch.as_tensor(floor.joints, device=est.joints.device)
         feet = est.joints.detach().index_select(-2, index).double().cpu().numpy()  # (T, F, 3) model frame, +Y up
-        centre = (-cam.R.detach().double().T @ cam.t.detach().double()).cpu().numpy()  # the camera's centre
+        centre = cam.center.detach().double().cpu().numpy()
     low = feet[np.arange(len(feet)), feet[..., 1].argmin(-1)]  # (T, 3) each frame's lowest foot point
     ray = low - centre
     contact = floor.height_m + floor.clearance_m
