@@ -416,6 +416,7 @@ def test_remove_partial(tmp_path):
     left = tmp_path / "10_02" / ".seed-1.k3j9.partial"
     left.mkdir()
     (left / "config.yaml").write_text("x")
+    (tmp_path / "10_02" / ".seed-2.x8q1.probe").mkdir()  # killed between making and removing its write probe
     remove_partial(tmp_path)
     assert sorted(p.name for p in (tmp_path / "10_02").iterdir()) == ["seed-0"]
     assert (done / "metrics.json").is_file()

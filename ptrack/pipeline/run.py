@@ -32,6 +32,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Sized
+from contextlib import suppress
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -71,6 +72,7 @@ log = logging.getLogger(__name__)
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 PARTIAL = ".partial"  # the suffix of the hidden sibling a run folder is assembled in (`claim_out_dir`)
 CLAIMING = ".claim"  # the suffix of the folder a claim is prepared in before it is renamed to `.NAME.partial`
+PROBE = ".probe"  # the suffix of the empty folder `check_out_dir` makes and removes to see that it can write
 
 
 @dataclass(frozen=True)
@@ -640,9 +642,11 @@ def check_out_dir(out: Path) -> None:
     if not parent.is_dir():
         raise InputError(f"out_dir {out} cannot be made: {parent} is a file, not a folder")
     try:
-        os.rmdir(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".probe", dir=parent))
+        probe = tempfile.mkdtemp(prefix=f".{out.name}.", suffix=PROBE, dir=parent)
     except OSError as e:
         raise InputError(f"out_dir {out} cannot be made: cannot write in {parent} ({e.strerror})") from None
+    with suppress(FileNotFoundError):  # another run's `remove_partial` may have taken it first
+        os.rmdir(probe)
     if out.is_dir() and hasattr(os, "geteuid"):  # an empty folder: the finished run replaces it
         there, folder = parent.stat(), out.stat()
         if there.st_mode & stat.S_ISVTX and os.geteuid() not in (0, there.st_uid, folder.st_uid):
@@ -964,12 +968,15 @@ def execute(cfg: RunConfig, progress: bool | None = None) -> Path:
 
 def remove_partial(folder: Path, recursive: bool = True) -> None:
     """Remove what runs that were killed while writing left in `folder` (recursive: and below it): the hidden
-    siblings their folders were being assembled in (a run stopped any other way removes its own). A live
-    run's, locked by its process, stays."""
+    siblings their folders were being assembled in and the empty folders `check_out_dir` probes with (a run
+    stopped any other way removes its own). A live run's claim, locked by its process, stays."""
     found = folder.rglob if recursive else folder.glob
     for tmp in sorted([*found(f".*{PARTIAL}"), *found(f".*{CLAIMING}")]):
         if tmp.is_dir():
             _remove_if_stale(tmp)
+    for probe in found(f".*{PROBE}"):  # empty folders, never locked: a run killed between making and removing
+        with suppress(OSError):
+            probe.rmdir()
 
 
 #: off a terminal, progress is a log line (logger `ptrack.pipeline.run.progress`, INFO) at most every
