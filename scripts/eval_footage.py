@@ -53,8 +53,9 @@ def read_trc(path: Path) -> tuple[list[str], np.ndarray]:
     return names, data.reshape(len(rows), len(names), 3)
 
 
-def errors(result: Path, trc: Path) -> dict[str, float]:
-    """result.npz of a run against the TRC -> {mpjpe_mm, pa_mpjpe_mm, frames}."""
+def body_pairs(result: Path, trc: Path) -> tuple[np.ndarray, np.ndarray]:
+    """result.npz of a run and the TRC -> the 12 body keypoints (`BODY12`, in that order) of the run's frames,
+    estimated and reference, (T, 12, 3) metres each, in the calibration's world (lab axes)."""
     keypoint_set = get_keypoint_set(json.loads((result.parent / "metrics.json").read_text())["footage"]["keypoint_set"])
     with np.load(result) as z:  # the result's keypoints by landmark (the TRC's names are BODY_25B's)
         names = [str(n) for n in z["keypoint_names"]]
@@ -63,10 +64,16 @@ def errors(result: Path, trc: Path) -> dict[str, float]:
         frames = z["frames"]
     tnames, ref = read_trc(trc)
     ref = ref[:, [tnames.index(n) for n in BODY12]][:, :, [2, 0, 1]]  # TRC (X, Y, Z) = lab (Y, Z, X)
-    ref = ref[frames]
+    return est, ref[frames]
+
+
+def errors(result: Path, trc: Path) -> dict[str, float]:
+    """result.npz of a run against the TRC -> {mpjpe_mm, pa_mpjpe_mm, frames}."""
+    est, ref = body_pairs(result, trc)
+    frames = est.shape[0]
     mpjpe = np.linalg.norm(est - ref, axis=-1).mean(-1)
     pa = pa_mpjpe(torch.as_tensor(est), torch.as_tensor(ref))
-    return {"mpjpe_mm": 1000 * float(mpjpe.mean()), "pa_mpjpe_mm": float(pa.mean()), "frames": len(frames)}
+    return {"mpjpe_mm": 1000 * float(mpjpe.mean()), "pa_mpjpe_mm": float(pa.mean()), "frames": frames}
 
 
 def main() -> None:

@@ -130,19 +130,33 @@ def make(
     return {"height_m": h, "fps": 120.0 / stride, "frames": T, "nobody": nobody, "floor_m": floor}
 
 
+def body_names(truth: Path) -> tuple[str, ...]:
+    """The 12 body points (`BODY`: shoulders, elbows, wrists, hips, knees, ankles) as truth.npz's keypoint set
+    names them."""
+    with np.load(truth) as t:
+        kps = get_keypoint_set(str(t["keypoint_set"])) if "keypoint_set" in t.files else COCO_17
+    return tuple(kps.names[kps.landmarks.index(m)] for m in BODY)
+
+
+def camera_frame_pairs(result: Path, truth: Path, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """A run's result.npz and truth.npz -> the keypoints `names` of the run's frames, estimated and true, (T, K, 3)
+    metres each, in the truth's frame (the camera's, turned Y-up), whatever frame the run reported in."""
+    with np.load(result) as r, np.load(truth) as t:
+        rn, tn = [str(n) for n in r["keypoint_names"]], [str(n) for n in t["keypoint_names"]]
+        # world -> model -> camera -> turned
+        model = r["keypoints"][:, [rn.index(n) for n in names]] @ r["world_from_model"]
+        est = (model @ r["camera_R"].T.astype(np.float64) + r["camera_t"]) * np.array([1.0, -1.0, -1.0])
+        ref = t["keypoints"][r["frames"]][:, [tn.index(n) for n in names]]
+    return est, ref
+
+
 def score(result: Path, truth: Path, names: tuple[str, ...] | None = None) -> dict[str, float]:
     """A run's result.npz against truth.npz over the keypoints `names` (default: the 12 body points, `BODY`, as the
     truth's keypoint set names them), both in the camera's frame turned Y-up (whatever frame the run reported in):
     {mpjpe_mm (the mid-hip aligned), pa_mpjpe_mm, frames}."""
-    with np.load(result) as r, np.load(truth) as t:
-        kps = get_keypoint_set(str(t["keypoint_set"])) if "keypoint_set" in t.files else COCO_17
-        body = tuple(kps.names[kps.landmarks.index(m)] for m in BODY)
-        names = names or body
-        rn, tn = [str(n) for n in r["keypoint_names"]], [str(n) for n in t["keypoint_names"]]
-        # the run's keypoints in the truth's frame, the camera's turned Y-up: world -> model -> camera -> turned
-        model = r["keypoints"][:, [rn.index(n) for n in names]] @ r["world_from_model"]
-        est = (model @ r["camera_R"].T.astype(np.float64) + r["camera_t"]) * np.array([1.0, -1.0, -1.0])
-        ref = t["keypoints"][r["frames"]][:, [tn.index(n) for n in names]]
+    body = body_names(truth)
+    names = names or body
+    est, ref = camera_frame_pairs(result, truth, names)
     hips = [names.index(n) for n in body[6:8]]
     rel = (est - est[:, hips].mean(1, keepdims=True)) - (ref - ref[:, hips].mean(1, keepdims=True))
     pa = pa_mpjpe(torch.as_tensor(est), torch.as_tensor(ref))

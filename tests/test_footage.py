@@ -138,6 +138,53 @@ def test_synthetic_footage_with_the_feet_and_the_camera_pose(tmp_path):
     assert s["pa_mpjpe_mm"] == pytest.approx(0.0, abs=1e-6) and s["mpjpe_mm"] == pytest.approx(0.0, abs=1e-6)
 
 
+def test_error_breakdown_splits_position_and_shape(tmp_path, capsys):
+    """scripts/error_breakdown.py on a synthetic run folder (its truth found beside it): a shifted copy of the
+    truth has the shift as its mid-hip offset and no other error; a copy scaled about the mid-hips keeps
+    PA-MPJPE at 0 and shows the scale in every segment's ratio and in the hip-aligned error."""
+    import error_breakdown
+
+    synthetic_footage.make(data_file("10_02.amc"), data_file("10.asf"), tmp_path / "clip" / "footage", frames=6)
+    truth = tmp_path / "clip" / "footage" / "truth.npz"
+    run = tmp_path / "clip" / "observed"
+    run.mkdir()
+
+    def write(move):  # the truth moved by `move` (truth frame), as a run with R = I, t = 0 would report it
+        with np.load(truth) as t:
+            kp = move(t["keypoints"]) * np.array([1.0, -1.0, -1.0])
+            names, frames = t["keypoint_names"], t["frames"]
+        np.savez(
+            run / "result.npz",
+            keypoints=kp,
+            keypoint_names=names,
+            world_from_model=np.eye(3),
+            camera_R=np.eye(3),
+            camera_t=np.zeros(3),
+            frames=frames,
+        )
+
+    write(lambda x: x + np.array([0.1, 0.0, -0.05]))
+    b = error_breakdown.breakdown(*error_breakdown.pairs(run, None, None))
+    assert b["offset"] == pytest.approx([100.0, 0.0, -50.0], abs=1e-6)
+    assert b["depth"] == pytest.approx(50.0, abs=1e-6)  # -Z is the viewing direction in the truth's frame
+    assert b["trunk_tilt"] == pytest.approx(0.0, abs=1e-6) and b["legs_tilt"] == pytest.approx(0.0, abs=1e-6)
+    assert b["pa"] == pytest.approx(0.0, abs=1e-6) and b["hip_aligned"] == pytest.approx(0.0, abs=1e-6)
+    assert b["mpjpe"] == pytest.approx(np.hypot(100.0, 50.0), rel=1e-9)
+    assert b["est_lengths"] == pytest.approx(b["ref_lengths"], rel=1e-9)
+
+    hips = synthetic_footage.body_names(truth)[6:8]
+    with np.load(truth) as t:
+        idx = [[str(n) for n in t["keypoint_names"]].index(h) for h in hips]
+    write(lambda x: x[:, idx].mean(1, keepdims=True) + 1.1 * (x - x[:, idx].mean(1, keepdims=True)))
+    b = error_breakdown.breakdown(*error_breakdown.pairs(run, None, None))
+    assert b["pa"] == pytest.approx(0.0, abs=1e-4) and b["offset"] == pytest.approx([0.0, 0.0, 0.0], abs=1e-6)
+    assert b["est_lengths"] / b["ref_lengths"] == pytest.approx(np.full(10, 1.1), rel=1e-9)
+    assert b["hip_aligned"] > 10.0 and b["trunk_tilt"] == pytest.approx(0.0, abs=1e-6)
+    assert error_breakdown.main([str(run), str(run), "--mean"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("mean of 2 runs") and "| L shank |" in out and "| 1.100 |" in out
+
+
 def _run_synthetic(synthetic, out: Path, *extra: str) -> int:
     folder, info = synthetic
     argv = ["run", VIDEO_YAML, f"observations.file={folder / 'keypoints.json'}", f"camera.file={folder / 'camera.yml'}"]

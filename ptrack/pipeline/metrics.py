@@ -92,7 +92,7 @@ def mpjpe(pred, gt, root: int = 0) -> Tensor:
     return _mean_joint_distance_mm(pred_rel, gt_rel)
 
 
-def _procrustes_align(pred: Tensor, gt: Tensor) -> Tensor:
+def procrustes_align(pred: Tensor, gt: Tensor) -> Tensor:
     """Similarity-align pred to gt per frame (Umeyama, no reflections).
 
     pred, gt: (..., J, 3) -> (..., J, 3) s * R @ pred + t minimising the squared error to gt.
@@ -145,7 +145,7 @@ def pa_mpjpe(pred, gt) -> Tensor:
     pred, gt: (..., J, 3) metres -> (...,) mm.
     """
     pred, gt = _joint_pair(pred, gt)
-    return _mean_joint_distance_mm(_procrustes_align(pred, gt), gt)
+    return _mean_joint_distance_mm(procrustes_align(pred, gt), gt)
 
 
 def mpjpe_absolute(pred, gt, R=None, t=None) -> Tensor:
