@@ -41,18 +41,19 @@ from ptrack.pipeline.metrics import procrustes_align
 #: the 12 body keypoints in the order both references give them (BODY12, synthetic_footage.BODY)
 NAMES = ("LShoulder", "RShoulder", "LElbow", "RElbow", "LWrist", "RWrist", "LHip", "RHip", "LKnee", "RKnee")
 NAMES += ("LAnkle", "RAnkle")
-#: keypoint-to-keypoint lengths: name -> (a, b) indices into NAMES
+#: keypoint-to-keypoint lengths: name -> (a, b), each the indices into NAMES of the keypoints averaged for that end
 SEGMENTS = {
-    "shoulders": (0, 1),
-    "hips": (6, 7),
-    "L upper arm": (0, 2),
-    "R upper arm": (1, 3),
-    "L forearm": (2, 4),
-    "R forearm": (3, 5),
-    "L thigh": (6, 8),
-    "R thigh": (7, 9),
-    "L shank": (8, 10),
-    "R shank": (9, 11),
+    "shoulders": ((0,), (1,)),
+    "hips": ((6,), (7,)),
+    "trunk (mid-hip to mid-shoulder)": ((6, 7), (0, 1)),
+    "L upper arm": ((0,), (2,)),
+    "R upper arm": ((1,), (3,)),
+    "L forearm": ((2,), (4,)),
+    "R forearm": ((3,), (5,)),
+    "L thigh": ((6,), (8,)),
+    "R thigh": ((7,), (9,)),
+    "L shank": ((8,), (10,)),
+    "R shank": ((9,), (11,)),
 }
 
 
@@ -85,7 +86,7 @@ def breakdown(est: np.ndarray, ref: np.ndarray, view: np.ndarray) -> dict[str, n
     pa = aligned - ref
     mid_e, mid_r = est[:, 6:8].mean(1, keepdims=True), ref[:, 6:8].mean(1, keepdims=True)
     offset = (mid_e - mid_r)[:, 0]
-    length = lambda x, a, b: np.linalg.norm(x[:, a] - x[:, b], axis=-1).mean()  # noqa: E731
+    length = lambda x, a, b: np.linalg.norm(x[:, list(a)].mean(1) - x[:, list(b)].mean(1), axis=-1).mean()  # noqa: E731
 
     def tilt(a: slice) -> float:  # the mid-hip -> mid-(a) direction's tilt along the ray, estimate minus reference
         return float(

@@ -178,7 +178,7 @@ def test_error_breakdown_splits_position_and_shape(tmp_path, capsys):
     write(lambda x: x[:, idx].mean(1, keepdims=True) + 1.1 * (x - x[:, idx].mean(1, keepdims=True)))
     b = error_breakdown.breakdown(*error_breakdown.pairs(run, None, None))
     assert b["pa"] == pytest.approx(0.0, abs=1e-4) and b["offset"] == pytest.approx([0.0, 0.0, 0.0], abs=1e-6)
-    assert b["est_lengths"] / b["ref_lengths"] == pytest.approx(np.full(10, 1.1), rel=1e-9)
+    assert b["est_lengths"] / b["ref_lengths"] == pytest.approx(np.full(11, 1.1), rel=1e-9)
     assert b["hip_aligned"] > 10.0 and b["trunk_tilt"] == pytest.approx(0.0, abs=1e-6)
     assert error_breakdown.main([str(run), str(run), "--mean"]) == 0
     out = capsys.readouterr().out
