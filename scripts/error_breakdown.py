@@ -38,9 +38,8 @@ import synthetic_footage
 
 from ptrack.pipeline.metrics import procrustes_align
 
-#: the 12 body keypoints in the order both references give them (BODY12, synthetic_footage.BODY)
-NAMES = ("LShoulder", "RShoulder", "LElbow", "RElbow", "LWrist", "RWrist", "LHip", "RHip", "LKnee", "RKnee")
-NAMES += ("LAnkle", "RAnkle")
+#: the 12 body keypoints in the order both references give them (synthetic_footage.BODY has the same order)
+NAMES = tuple(eval_footage.BODY12)
 #: keypoint-to-keypoint lengths: name -> (a, b), each the indices into NAMES of the keypoints averaged for that end
 SEGMENTS = {
     "shoulders": ((0,), (1,)),
