@@ -87,11 +87,11 @@ def main() -> None:
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args()
     clips = list(GROUPS[a.clips]) if a.clips in GROUPS else a.clips.split(",")
+    variant = ("" if a.keypoints == "coco17" else f"-{a.keypoints}") + ("-extrinsics" if a.extrinsics else "")
     for clip in clips:
         amc, asf = clip_files(clip)
         if not amc.is_file() or not asf.is_file():
             sys.exit(f"eval_synthetic_footage: {amc} or {asf} not found")
-        variant = ("" if a.keypoints == "coco17" else f"-{a.keypoints}") + ("-extrinsics" if a.extrinsics else "")
         folder = a.out.resolve() / f"{clip}-s{a.seed}{variant}"
         footage = folder / "footage"
         if not (footage / "truth.npz").is_file():
