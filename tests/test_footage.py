@@ -617,3 +617,31 @@ def test_segment_length_spread_is_the_spread_over_other_frames_and_noise():
             assert across[n] / 3 < spread[n] < 3 * across[n], (seed, n, spread, across)
         assert spread["upper_arm"] > 2 * across["upper_arm"], (seed, spread, across)  # ratios 3.0-4.1
     assert segment_length_spread(filmed(0), est, COCO_17.landmarks, segments) == spreads[0]
+
+
+@pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")
+def test_detector_check_finds_mirrored_frames(tmp_path):
+    """scripts/detector_check.py on the first 12 frames of the Pose2Sim trial's cam01 OpenPose files: none mirrored
+    as shipped; with every left/right label exchanged in frames 4-6 (every person's), exactly those; the detections
+    lie within tens of pixels of the triangulation reprojected."""
+    import detector_check
+
+    files = sorted((P2S / "balancing" / "pose" / "cam01_json").glob("*.json"))[:12]
+    mirror = get_keypoint_set("BODY_25B").mirror_index()
+    for name, exchanged in (("shipped", ()), ("mirrored", (4, 5, 6))):
+        folder = tmp_path / name
+        folder.mkdir()
+        for t, f in enumerate(files):
+            doc = json.loads(f.read_text())
+            if t in exchanged:
+                for person in doc["people"]:
+                    kp = np.asarray(person["pose_keypoints_2d"]).reshape(-1, 3)
+                    person["pose_keypoints_2d"] = kp[mirror].ravel().tolist()
+            (folder / f.name).write_text(json.dumps(doc))
+        c = detector_check.compare(folder, "cam01")
+        assert c["frames"].tolist() == list(range(12))
+        assert c["frames"][c["mirrored"]].tolist() == list(exchanged)
+        err = c["error"][np.setdiff1d(np.arange(12), exchanged)]
+        assert 2.0 < np.nanmedian(err) < 30.0  # one camera's OpenPose against four cameras' triangulation
+        for pair, flags in c["pairs"].items():  # each pair alone reads exchanged in the mirrored frames too
+            assert flags.tolist() == [t in exchanged for t in range(12)], pair
