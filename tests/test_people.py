@@ -203,6 +203,37 @@ def test_frames_without_the_person_and_swaps_kept():
     assert track.frames.tolist() == [0, 1, 2, 3] and track.keypoint_set == "COCO_17" and track.fps == 30.0
 
 
+def test_a_mirrored_stretch_stays_the_same_person():
+    """A detector that labels the whole body mirrored from some frame on (MediaPipe on the Pose2Sim trial's cam02)
+    moves every paired keypoint by the body's width: the person stays one track, over every frame, with the
+    detector's labels kept."""
+    from ptrack.body.keypoint_sets import MEDIAPIPE_33
+
+    walk = []
+    for t in range(40):  # arms and legs spread (the standing person 4x as wide): exchanged, most keypoints move far
+        p = person(MEDIAPIPE_33, 100 + 2 * t, 50, 500)
+        p[:, 0] = 100 + 2 * t + 4 * (p[:, 0] - 100 - 2 * t)
+        walk.append(p)
+    frames = [[p[MEDIAPIPE_33.mirror_index()] if 15 <= t < 30 else p] for t, p in enumerate(walk)]
+    det = _detections(frames, kset=MEDIAPIPE_33)
+    assert len(track_summary(det, link_tracks(det))) == 1
+    track = select_person(det)
+    assert track.present.all()
+    np.testing.assert_array_equal(track.points[20], frames[20][0][:, :2])  # kept as the detector labelled it
+    # as given only (the linker before it read mirrored detections): the stretch was a track of its own
+    assert _cost_as_labelled_splits(walk, frames)
+
+
+def _cost_as_labelled_splits(walk, frames) -> bool:
+    """Whether the mirrored frame 15 costs more than the link gate when read as labelled (the test's premise)."""
+    from ptrack.observe.people import GATE, _cost, _Track
+
+    track = _Track(0, walk[0][:, :2])
+    for t in range(1, 15):
+        track.update(t, walk[t][:, :2])
+    return _cost(track, 15, frames[15][0][:, :2])[0] > GATE  # no mirror given: the labels as they are
+
+
 @pytest.mark.parametrize("bad", ["left", (1.0,), True, (np.nan, 3.0)])
 def test_person_of_another_kind(bad):
     det = _detections([[person(COCO_17, 0, 0, 300)]])

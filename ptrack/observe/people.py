@@ -13,7 +13,11 @@ keypoint with the detection linked to it, is a part of that person the detector 
 the Pose2Sim participant into upper and lower body in some frames): it gets the same track id, and the
 person's keypoints in that frame are taken from both parts. Any other detection left over starts a new
 track. The median makes a link robust to a detector's
-left/right swap of a few keypoints, the motion prediction keeps two people apart when they cross.
+left/right swap of a few keypoints, the motion prediction keeps two people apart when they cross. A detection is
+also compared with every left and right label exchanged, and the cheaper reading counts: a detector that takes
+the person for one facing the other way labels the whole body mirrored (MediaPipe on the Pose2Sim trial's cam02,
+from frame 41 to 73), every paired keypoint jumps by the body's width, and the person would otherwise start a
+new track there (and the longer half be chosen). The detections themselves keep the detector's labels.
 Linked tracks are numbered 0, 1, ... by first appearance, then by size (larger first).
 
 `select_person(det, person)` chooses one track:
@@ -39,6 +43,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from ptrack.body.keypoint_sets import get_keypoint_set
 from ptrack.errors import InputError
 from ptrack.observe.keypoint_files import Detections
 
@@ -130,7 +135,17 @@ class _Track:
         self.sizes.append(max(_size(xy), 1.0))
 
 
-def _cost(track: _Track, t: int, xy: np.ndarray) -> float:
+def _cost(track: _Track, t: int, xy: np.ndarray, mirror: np.ndarray | None = None) -> tuple[float, bool]:
+    """The cost of giving detection xy (K, 2) to `track` on frame t, and whether it fits better with every left and
+    right label exchanged (`mirror` (K,): the keypoint set's exchange; None: as given only)."""
+    own = _cost_as_labelled(track, t, xy)
+    if mirror is None:
+        return own, False
+    other = _cost_as_labelled(track, t, xy[mirror])
+    return (other, True) if other < own else (own, False)
+
+
+def _cost_as_labelled(track: _Track, t: int, xy: np.ndarray) -> float:
     pred = track.predict(t)
     d = np.linalg.norm(pred - xy, axis=-1)
     d = d[np.isfinite(d)]
@@ -154,6 +169,7 @@ def link_tracks(det: Detections, max_gap: int = MAX_GAP, gate: float = GATE) -> 
         return np.where(present, det.track_ids, -1)
     T, P = present.shape
     xy = det.people[..., :2]
+    mirror = get_keypoint_set(det.keypoint_set).mirror_index()
     raw = np.full((T, P), -1, dtype=np.int64)
     tracks: list[_Track] = []
     for t in range(T):
@@ -161,7 +177,9 @@ def link_tracks(det: Detections, max_gap: int = MAX_GAP, gate: float = GATE) -> 
         live = [j for j, tr in enumerate(tracks) if t - tr.last_t <= max_gap + 1]
         taken: dict[int, int] = {}  # column (detection) -> row (live track) it continues
         if live and len(slots):
-            cost = np.array([[_cost(tracks[j], t, xy[t, p]) for p in slots] for j in live])
+            costs = [[_cost(tracks[j], t, xy[t, p], mirror) for p in slots] for j in live]
+            cost = np.array([[c for c, _ in row] for row in costs])
+            mirrored = np.array([[m for _, m in row] for row in costs], dtype=bool)
             limit = np.array([gate * (1 + (t - tracks[j].last_t - 1) / 4) for j in live])[:, None]
             rows, cols = linear_sum_assignment(np.where(cost <= limit, cost, 1e6))
             taken = {c: r for r, c in zip(rows, cols, strict=True) if cost[r, c] <= limit[r, 0]}
@@ -178,7 +196,8 @@ def link_tracks(det: Detections, max_gap: int = MAX_GAP, gate: float = GATE) -> 
                 merged = xy[t, slots[parts[0]]].copy()
                 for c in parts[1:]:
                     merged = np.where(np.isfinite(merged), merged, xy[t, slots[c]])
-                tracks[live[r]].update(t, merged)
+                # the track keeps one labelling: a detection read mirrored moves it in the track's own
+                tracks[live[r]].update(t, merged[mirror] if mirrored[r, parts[0]] else merged)
                 raw[t, slots[parts]] = live[r]
         for c, p in enumerate(slots):
             if c not in taken:
