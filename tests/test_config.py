@@ -295,6 +295,8 @@ def test_absolute_paths_kept(tmp_path):
         ("frame.iterations=0", "frame.iterations"),
         ("costs.sigma_px=0", "costs.sigma_px"),
         ("costs.loss=tukey", "costs.loss"),
+        ("costs.swap_cost=-1", "costs.swap_cost"),
+        ("costs.swap_cost=nan", "costs.swap_cost"),
         ("batch.smooth_loss=tukey", "batch.smooth_loss"),
         ("kjs.prior_tail=l2", "kjs.prior_tail"),
     ],

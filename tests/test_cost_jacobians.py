@@ -10,7 +10,15 @@ import torch
 
 from ptrack.body.keypoints import make_keypoints
 from ptrack.body.skeleton import Skeleton, load_amc
-from ptrack.costs import HeavyTailedPrior, JointLimits, Objective, PosePrior, Reprojection, SelfIntersection
+from ptrack.costs import (
+    HeavyTailedPrior,
+    JointLimits,
+    Objective,
+    PosePrior,
+    Reprojection,
+    SelfIntersection,
+    SwapReprojection,
+)
 from ptrack.errors import InputError
 from ptrack.observe.camera import camera_for_motion
 from ptrack.optim.jacobians import objective_linearization
@@ -185,3 +193,65 @@ def test_reprojection_pixel_jacobian_through_each_keypoints_point(scene):
     add_point_rows(h, g, sk, q[None], joints, per_point[None], r[None, ..., None])
     torch.testing.assert_close(h[0], rows.mT @ rows, rtol=1e-10, atol=1e-8)
     torch.testing.assert_close(g[0], (rows.mT @ r[..., None])[..., 0], rtol=1e-10, atol=1e-8)
+
+
+def _partners(kps) -> torch.Tensor:
+    partners = torch.arange(len(kps.names))
+    for a, b in kps.swap_pairs:
+        partners[a], partners[b] = b, a
+    return partners
+
+
+def test_swap_reprojection_reads_mirrored_labels(scene):
+    """`SwapReprojection`: detections with every left/right label exchanged cost a pose what the true labels
+    would, plus `swap_cost`; unexchanged detections cost what `Reprojection` says; the Jacobian is the chosen
+    reading's (autograd), the marker rows zero."""
+    sk, q, kps, cam = scene
+    gen = torch.Generator().manual_seed(1)
+    partners = _partners(kps)
+    obs = cam.project(sk.forward_kinematics(q).index_select(-2, kps.index())).pixels  # (4, K, 2)
+    obs = obs + torch.randn(obs.shape, generator=gen, dtype=torch.float64)
+    conf = torch.rand(obs.shape[:-1], generator=gen, dtype=torch.float64) + 0.2
+    conf[1, 5] = 0.0  # a missing keypoint (its partner's reading then has none either)
+    mirrored = obs.index_select(-2, partners)
+    mirrored_conf = conf.index_select(-1, partners)
+    swapped_rows = torch.tensor([True, False, True, False])
+    seen = torch.where(swapped_rows[:, None, None], mirrored, obs)
+    seen_conf = torch.where(swapped_rows[:, None], mirrored_conf, conf)
+    options = dict(sigma_px=2.0, loss="cauchy", scale=3.0, per_problem=True)
+    term = SwapReprojection(seen, seen_conf, partners=partners, swap_cost=2.5, **options)
+    plain = Reprojection(obs, conf, **options)
+    ev = evaluate_pose(sk, cam, kps, q)
+    assert term.swapped(ev).tolist() == swapped_rows.tolist()
+    expected = plain.energy(ev) + 2.5 * swapped_rows.double()
+    torch.testing.assert_close(term.energy(ev), expected, atol=1e-9, rtol=1e-9)
+    r = term.residual(ev)
+    assert r.shape == (4, 2 * len(kps.names) + 2)
+    torch.testing.assert_close(r[:, :-2], plain.residual(ev), atol=1e-12, rtol=0)
+    # the Jacobian of the chosen reading, in the objective's linearisation, against autograd
+    x = q + 0.01 * torch.randn(q.shape, generator=gen, dtype=torch.float64)
+    objective = Objective({"reprojection": term, "prior": PosePrior(q, 0.1)})
+    assert term.swapped(evaluate_pose(sk, cam, kps, x)).tolist() == swapped_rows.tolist()
+    lin = objective_linearization(sk, objective, cam, kps)(x)
+    torch.testing.assert_close(lin.jacobian, _autograd(sk, kps, cam, objective, x), atol=1e-8, rtol=1e-7)
+    torch.testing.assert_close(lin.energy, objective(evaluate_pose(sk, cam, kps, x)).total)
+    marker = 2 * len(kps.names)
+    assert bool((lin.jacobian[:, marker : marker + 2] == 0).all())
+    # one frame for every pose: the same choice per pose
+    one = SwapReprojection(mirrored[0], mirrored_conf[0], partners=partners, swap_cost=2.5, sigma_px=2.0)
+    assert one.swapped(ev)[0]
+
+
+def test_swap_reprojection_checks_its_inputs(scene):
+    _sk, _q, kps, _cam = scene
+    k = len(kps.names)
+    obs, conf = torch.zeros(k, 2), torch.ones(k)
+    partners = _partners(kps)
+    with pytest.raises(InputError, match="involution"):
+        SwapReprojection(obs, conf, partners=torch.zeros(k, dtype=torch.long))
+    with pytest.raises(InputError, match="one frame per problem"):
+        SwapReprojection(torch.zeros(3, k, 2), torch.ones(3, k), partners=partners)
+    with pytest.raises(InputError, match="swap_cost"):
+        SwapReprojection(obs, conf, partners=partners, swap_cost=0.0)
+    with pytest.raises(InputError, match="partners"):
+        SwapReprojection(obs, conf, partners=partners[:-1])

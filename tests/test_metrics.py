@@ -550,3 +550,19 @@ def test_std_coverage_counts_errors_within_k_std():
     assert float(M.std_coverage(pred, gt, std, 1.0)) == pytest.approx(1 / 3)
     with pytest.raises(InputError, match="std"):
         M.std_coverage(pred, gt, std[0], 1.0)
+
+
+def test_exchanged_label_frames():
+    """Frames whose detections fit the reprojection better with left and right exchanged; None without pairs."""
+    from ptrack.pipeline.metrics import exchanged_label_frames
+
+    pixels = torch.tensor([[[0.0, 0.0], [10.0, 0.0], [0.0, 50.0], [10.0, 50.0], [5.0, 80.0]]]).repeat(4, 1, 1)
+    observed = pixels + 0.5
+    observed[1] = observed[1, [1, 0, 3, 2, 4]]  # the detector's mirrored body
+    observed[2, :2] = observed[2, [1, 0]]  # only the first pair exchanged, the second seen as is ...
+    confidence = torch.ones(4, 5)
+    confidence[2, 2:4] = 0.0  # ... but missing: the frame reads exchanged on what is seen
+    confidence[3, :4] = 0.0  # only the unpaired keypoint seen: nothing to tell
+    got = exchanged_label_frames(pixels, observed, confidence, ((0, 1), (2, 3)))
+    assert got.tolist() == [False, True, True, False]
+    assert exchanged_label_frames(pixels, observed, confidence, ()) is None

@@ -37,6 +37,7 @@ from ptrack.costs.terms import (
     Keyframe,
     PosePrior,
     Reprojection,
+    SwapReprojection,
 )
 
 __all__ = [
@@ -56,6 +57,7 @@ __all__ = [
     "SelfIntersection",
     "Silhouette",
     "Smoothness",
+    "SwapReprojection",
     "cauchy",
     "distance_transform",
     "geman_mcclure",

@@ -19,6 +19,11 @@ class CostsConfig:
     limits_sigma: float = setting(0.02, "scale of the joint-limit barrier, radians")
     smooth_weight: float = setting(1.0, "weight of the temporal prior")
     smooth_sigma: float = setting(0.15, "velocity scale of the temporal prior, radians (or metres) per frame")
+    swap_cost: float = setting(
+        0.0,
+        "the price (energy units) at which the kjs tracker reads a frame's detections with every left and right label "
+        "exchanged, a 2D detector's mirrored-body fault (ptrack.costs.terms.SwapReprojection); 0: off",
+    )
     floor_weight: float = setting(1.0, "weight of the floor contact (real footage with a known floor; 0: off)")
     floor_sigma_m: float = setting(0.03, "scale of the floor contact: the lowest foot point's height, metres")
     accel_sigma: float | None = setting(

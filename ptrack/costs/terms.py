@@ -118,6 +118,102 @@ class Reprojection(RobustMixin):
 
 
 @dataclass(frozen=True, eq=False)
+class SwapReprojection(Reprojection):
+    """`Reprojection` of one frame per problem that also reads the detections with every left and right label
+    exchanged, at a price: a 2D detector sometimes takes a person for one facing the other way and labels the
+    whole body mirrored for a stretch of frames (MediaPipe on the Pose2Sim trial's cam02, frames 41-73). A body
+    that keeps its heading then fits the exchanged labels, at `swap_cost`; one that turns round to follow the
+    labels pays the dynamics instead. A pose's energy is min(E(labels), E(exchanged labels) + swap_cost), E the
+    robust reprojection energy of `Reprojection`.
+
+    partners (K,) long: each keypoint's left/right partner (itself when it has none), as
+    `ptrack.body.keypoints.KeypointSet.swap_pairs` give them. swap_cost > 0, in energy units (the energy is
+    0.5 sum rho(s_k)). Residual (..., K*2 + 2): the chosen reading's whitened pixel residuals (rows as in
+    `Reprojection`), then a marker pair (sqrt(2 swap_cost), 0) where the exchanged reading was chosen and (0, 0)
+    elsewhere, outside the robust kernel (its energy is exactly swap_cost; its Jacobian rows are zero).
+    One frame per problem only: observed (K, 2) for every pose, or (N, K, 2) with `per_problem`."""
+
+    partners: Tensor | None = None
+    swap_cost: float = 1.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.observed.ndim - self.per_problem != 2:
+            raise InputError(
+                f"SwapReprojection reads one frame per problem: observed (K, 2), or (N, K, 2) with per_problem, "
+                f"got {shape_of(self.observed)}"
+            )
+        k = self.observed.shape[-2]
+        p = check_index("SwapReprojection.partners", self.partners, k, f"observed {shape_of(self.observed)}")
+        if not bool((p >= 0).all() and (p < k).all() and (p[p] == torch.arange(k)).all()):
+            raise InputError("SwapReprojection.partners must pair keypoints with each other (an involution)")
+        check_positive("SwapReprojection.swap_cost", self.swap_cost)
+        object.__setattr__(self, "partners", p)
+
+    def _readings(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """pixels (..., K, 2) of the read keypoints -> residuals as read (..., K*2) and with the labels
+        exchanged (..., K*2), and which reading each problem takes (...,) bool (True: exchanged)."""
+        sc = self._sqrt_conf.to(p)
+        target = self._target.to(p)
+        part = self.partners.to(p.device)
+        r_a = ((p - target) * sc[..., None]).flatten(-2)
+        r_b = ((p - target.index_select(-2, part)) * sc.index_select(-1, part)[..., None]).flatten(-2)
+        swapped = super().energy_of(r_b) + self.swap_cost < super().energy_of(r_a)
+        return r_a, r_b, swapped
+
+    def _pixels(self, ev: PoseEval) -> Tensor:
+        p = ev.pixels
+        if self.keypoints is not None:
+            p = p.index_select(-2, self.keypoints.to(p.device))
+        if p.shape[-2:] != self.observed.shape[-2:] or (self.per_problem and p.shape[-3:] != self.observed.shape):
+            raise InputError(
+                f"SwapReprojection: ev.pixels {shape_of(p)} must end in observed's shape {shape_of(self.observed)}"
+            )
+        return p
+
+    def _marked(self, r_a: Tensor, r_b: Tensor, swapped: Tensor) -> Tensor:
+        r = torch.where(swapped[..., None], r_b, r_a)
+        mark = torch.zeros(*r.shape[:-1], 2, dtype=r.dtype, device=r.device)
+        mark[..., 0] = swapped.to(r.dtype) * math.sqrt(2.0 * self.swap_cost)
+        return torch.cat([r, mark], -1)
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """ev.pixels (..., K, 2) -> (..., K*2 + 2) (the class docstring)."""
+        return self._marked(*self._readings(self._pixels(ev)))
+
+    def residual_jacobian(self, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor]:
+        """`residual` and its Jacobian (..., K*2 + 2, D): each problem's rows those of the reading it takes."""
+        r_a, r_b, swapped = self._readings(self._pixels(ev))
+        jp = jac.pixels if self.keypoints is None else jac.pixels.index_select(-3, self.keypoints.to(jac.pixels.device))
+        sc = self._sqrt_conf.to(jp)
+        sc = torch.where(swapped[..., None], sc.index_select(-1, self.partners.to(jp.device)), sc)
+        j = (jp * sc[..., None, None]).flatten(-3, -2)
+        j = torch.cat([j, j.new_zeros(*j.shape[:-2], 2, j.shape[-1])], -2)
+        return self._marked(r_a, r_b, swapped), j
+
+    def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
+        return self.residual_jacobian(ev, jac)[1]
+
+    def pixel_jacobian(self, d_pixels: Tensor) -> Tensor:
+        raise NotImplementedError("SwapReprojection's rows depend on the pose: use residual_jacobian")
+
+    def energy_of(self, r: Tensor) -> Tensor:
+        """The robust energy of the pixel residuals plus the marker's swap_cost (...,)."""
+        return super().energy_of(r[..., :-2]) + 0.5 * r[..., -2:].square().sum(-1)
+
+    def weights_and_energy(self, r: Tensor) -> tuple[Tensor, Tensor]:
+        w, e = super().weights_and_energy(r[..., :-2])
+        return torch.cat([w, torch.ones_like(r[..., -2:])], -1), e + 0.5 * r[..., -2:].square().sum(-1)
+
+    def robust_weights(self, ev: PoseEval) -> Tensor:
+        return self.weights_and_energy(self.residual(ev))[0]
+
+    def swapped(self, ev: PoseEval) -> Tensor:
+        """Which reading each problem takes (...,) bool: True where the exchanged labels fit at their cost."""
+        return self._readings(self._pixels(ev))[2]
+
+
+@dataclass(frozen=True, eq=False)
 class JointLimits(LeastSquaresMixin):
     """Two-sided joint-limit barrier (DiFranco et al. eq. 2, both sides), on ev.q.
 

@@ -345,6 +345,28 @@ def reprojection_error_per_keypoint(pixels, observed, confidence) -> Tensor:
     )
 
 
+def exchanged_label_frames(pixels, observed, confidence, swap_pairs) -> Tensor | None:
+    """The frames whose detections the reprojected estimate fits better with every left and right label exchanged
+    (a 2D detector's mirrored body): the mean pixel distance over the keypoints seen in both readings, each
+    keypoint against its partner's detection (`KeypointSet.swap_pairs`), below the labels' own.
+
+    pixels, observed: (T, K, 2); confidence (T, K) -> (T,) bool, or None without left/right pairs."""
+    if not swap_pairs:
+        return None
+    pixels, observed, confidence = (torch.as_tensor(x) for x in (pixels, observed, confidence))
+    partners = torch.arange(observed.shape[1])
+    for a, b in swap_pairs:
+        partners[a], partners[b] = b, a
+    paired = partners != torch.arange(len(partners))
+    seen = (confidence > 0) & (confidence.index_select(1, partners) > 0) & paired
+    own = (pixels - observed).norm(dim=-1)
+    other = (pixels - observed.index_select(1, partners)).norm(dim=-1)
+    count = seen.sum(1)
+    mean_own = torch.where(seen, own, 0.0).sum(1) / count.clamp_min(1)
+    mean_other = torch.where(seen, other, 0.0).sum(1) / count.clamp_min(1)
+    return (count > 0) & (mean_other < mean_own)
+
+
 def second_differences_mm(points) -> Tensor:
     """|x_{t+1} - 2 x_t + x_{t-1}| of each point, mm per frame^2: how much an estimate shakes (motion capture of
     a walk at 30 fps: a few mm). Their mean over the frames is the jitter.

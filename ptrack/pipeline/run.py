@@ -560,10 +560,11 @@ def footage_checks(
     keypoint (px), each keypoint's jitter (mean second difference, mm/frame^2) and their means, the skating
     of the feet (horizontal mm/frame while within 5 cm of their lowest height; the model frame is Y up), and
     with hypotheses the share of frames where the modes disagree about some limb's depth order (summed weight
-    between 0.1 and 0.9). est_kp: (T, K, 3) the estimate's keypoints. -> (summary, per-frame series (T,) for the
-    rerun log's plots: the jitter (NaN at the two ends), the feet's mean sliding step (NaN at frame 0 and where no
-    foot is on the floor), whether some limb is ambiguous (0/1) and the share of the limbs that are, and whether
-    the person is missing (0/1))."""
+    between 0.1 and 0.9), and the input frames whose detections the result fits better with every left and right
+    label exchanged (a detector's mirrored body; `costs.swap_cost`). est_kp: (T, K, 3) the estimate's keypoints.
+    -> (summary, per-frame series (T,) for the rerun log's plots: the jitter (NaN at the two ends), the feet's
+    mean sliding step (NaN at frame 0 and where no foot is on the floor), whether some limb is ambiguous (0/1) and
+    the share of the limbs that are, and whether the person is missing (0/1))."""
     assert prep.footage is not None
     prob = prep.problem
     obs, kps = prob.observations, prob.keypoints
@@ -593,6 +594,9 @@ def footage_checks(
         out["ambiguous_frame_share_per_limb"] = {
             f"{names[a]}-{names[b]}": float(v) for (a, b), v in zip(kps.limbs, ambiguous.double().mean(0))
         }
+    exchanged = M.exchanged_label_frames(reproj.cpu(), obs.keypoints.cpu(), obs.confidence.cpu(), kps.swap_pairs)
+    if exchanged is not None:  # where the result reads the detector's left and right the other way round
+        out["left_right_exchanged_frames"] = [int(f) for f in np.asarray(prep.footage.frames)[exchanged.numpy()]]
     series["person_missing"] = np.isin(prep.footage.frames, prep.footage.missing_frames).astype(np.float64)  # 0/1
     given = prep.footage.lengths == "asf"
     out["bone_lengths"] = M.bone_lengths_report(segment_lengths(prob.skeleton), prep.footage.segments, given)

@@ -21,6 +21,7 @@ from ptrack.costs import (
     PosePrior,
     Reprojection,
     SelfIntersection,
+    SwapReprojection,
 )
 from ptrack.errors import InputError
 from ptrack.estimators.kjs.config import KjsRunConfig
@@ -66,6 +67,7 @@ class Setup:
     prior_sigma: Tensor  # (D,) the tracking term's std: the prior's spread (>= floor_deg), 1e6 where unknown
     dynamics_sigma: float | Tensor  # the dynamics' velocity std per frame before widening (`kjs.dynamics`)
     mixture: PoseMixture | None = None  # the CMU pose mixture that ranks modes (`kjs.pose_mixture_weight` > 0)
+    partners: Tensor | None = None  # (K,) each keypoint's left/right partner, with `costs.swap_cost` > 0
 
 
 def make_setup(problem: Problem, cfg: KjsRunConfig, strategy: Strategy) -> Setup:
@@ -113,7 +115,20 @@ def make_setup(problem: Problem, cfg: KjsRunConfig, strategy: Strategy) -> Setup
         prior_sigma,
         _dynamics_sigma(problem, k, dtype, device),
         _mixture(sk, k.pose_mixture_weight, dtype, device),
+        _partners(problem, cfg.costs.swap_cost),
     )
+
+
+def _partners(problem: Problem, swap_cost: float) -> Tensor | None:
+    """(K,) each keypoint's left/right partner (itself when unpaired) when `costs.swap_cost` > 0 and the keypoint
+    set pairs any, else None."""
+    pairs = problem.keypoints.swap_pairs
+    if swap_cost == 0 or not pairs:
+        return None
+    partners = torch.arange(len(problem.keypoints.names), device=problem.observations.keypoints.device)
+    for a, b in pairs:
+        partners[a], partners[b] = b, a
+    return partners
 
 
 def _mixture(sk, weight: float, dtype: torch.dtype, device: torch.device) -> PoseMixture | None:
@@ -157,14 +172,12 @@ def frame_objective(
     `kjs.pose_prior_weight`). t: one frame for every pose, or (N,) frame indices, one per pose."""
     cc, k = s.cfg.costs, s.cfg.kjs
     obs = s.problem.observations
+    reprojection = dict(sigma_px=cc.sigma_px, loss=cc.loss, scale=cc.robust_scale, per_problem=isinstance(t, Tensor))
+    if s.partners is not None:  # the detector's mirrored labels read too, at `costs.swap_cost`
+        reprojection.update(partners=s.partners, swap_cost=cc.swap_cost)
     terms: dict[str, CostTerm] = {
-        "reprojection": Reprojection(
-            obs.keypoints[t],
-            obs.confidence[t],
-            sigma_px=cc.sigma_px,
-            loss=cc.loss,
-            scale=cc.robust_scale,
-            per_problem=isinstance(t, Tensor),
+        "reprojection": (SwapReprojection if s.partners is not None else Reprojection)(
+            obs.keypoints[t], obs.confidence[t], **reprojection
         ),
         "limits": JointLimits(s.lower, s.upper, sigma=cc.limits_sigma),
     }
