@@ -193,11 +193,12 @@ def link_tracks(det: Detections, max_gap: int = MAX_GAP, gate: float = GATE) -> 
                         break
             for r in set(taken.values()):
                 parts = [c for c in taken if taken[c] == r]
-                merged = xy[t, slots[parts[0]]].copy()
-                for c in parts[1:]:
-                    merged = np.where(np.isfinite(merged), merged, xy[t, slots[c]])
-                # the track keeps one labelling: a detection read mirrored moves it in the track's own
-                tracks[live[r]].update(t, merged[mirror] if mirrored[r, parts[0]] else merged)
+                # the track keeps one labelling: a part read mirrored moves it in the track's own
+                read = [xy[t, slots[c]][mirror] if mirrored[r, c] else xy[t, slots[c]] for c in parts]
+                merged = read[0].copy()
+                for part in read[1:]:
+                    merged = np.where(np.isfinite(merged), merged, part)
+                tracks[live[r]].update(t, merged)
                 raw[t, slots[parts]] = live[r]
         for c, p in enumerate(slots):
             if c not in taken:
