@@ -150,12 +150,16 @@ class SwapReprojection(Reprojection):
         check_positive("SwapReprojection.swap_cost", self.swap_cost)
         object.__setattr__(self, "partners", p)
 
+    def _partners(self, device: torch.device) -> Tensor:
+        assert self.partners is not None  # checked in __post_init__
+        return self.partners.to(device)
+
     def _readings(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """pixels (..., K, 2) of the read keypoints -> residuals as read (..., K*2) and with the labels
         exchanged (..., K*2), and which reading each problem takes (...,) bool (True: exchanged)."""
         sc = self._sqrt_conf.to(p)
         target = self._target.to(p)
-        part = self.partners.to(p.device)
+        part = self._partners(p.device)
         r_a = ((p - target) * sc[..., None]).flatten(-2)
         r_b = ((p - target.index_select(-2, part)) * sc.index_select(-1, part)[..., None]).flatten(-2)
         swapped = super().energy_of(r_b) + self.swap_cost < super().energy_of(r_a)
@@ -186,7 +190,7 @@ class SwapReprojection(Reprojection):
         r_a, r_b, swapped = self._readings(self._pixels(ev))
         jp = jac.pixels if self.keypoints is None else jac.pixels.index_select(-3, self.keypoints.to(jac.pixels.device))
         sc = self._sqrt_conf.to(jp)
-        sc = torch.where(swapped[..., None], sc.index_select(-1, self.partners.to(jp.device)), sc)
+        sc = torch.where(swapped[..., None], sc.index_select(-1, self._partners(jp.device)), sc)
         j = (jp * sc[..., None, None]).flatten(-3, -2)
         j = torch.cat([j, j.new_zeros(*j.shape[:-2], 2, j.shape[-1])], -2)
         return self._marked(r_a, r_b, swapped), j

@@ -172,13 +172,25 @@ def frame_objective(
     `kjs.pose_prior_weight`). t: one frame for every pose, or (N,) frame indices, one per pose."""
     cc, k = s.cfg.costs, s.cfg.kjs
     obs = s.problem.observations
-    reprojection = dict(sigma_px=cc.sigma_px, loss=cc.loss, scale=cc.robust_scale, per_problem=isinstance(t, Tensor))
+    observed, confidence, per_problem = obs.keypoints[t], obs.confidence[t], isinstance(t, Tensor)
+    reprojection: Reprojection
     if s.partners is not None:  # the detector's mirrored labels read too, at `costs.swap_cost`
-        reprojection.update(partners=s.partners, swap_cost=cc.swap_cost)
+        reprojection = SwapReprojection(
+            observed,
+            confidence,
+            sigma_px=cc.sigma_px,
+            loss=cc.loss,
+            scale=cc.robust_scale,
+            per_problem=per_problem,
+            partners=s.partners,
+            swap_cost=cc.swap_cost,
+        )
+    else:
+        reprojection = Reprojection(
+            observed, confidence, sigma_px=cc.sigma_px, loss=cc.loss, scale=cc.robust_scale, per_problem=per_problem
+        )
     terms: dict[str, CostTerm] = {
-        "reprojection": (SwapReprojection if s.partners is not None else Reprojection)(
-            obs.keypoints[t], obs.confidence[t], **reprojection
-        ),
+        "reprojection": reprojection,
         "limits": JointLimits(s.lower, s.upper, sigma=cc.limits_sigma),
     }
     weights = {"limits": cc.limits_weight}
