@@ -88,15 +88,21 @@ class Reprojection(RobustMixin):
         object.__setattr__(self, "_target", torch.where(valid[..., None], obs, 0.0))
         object.__setattr__(self, "_sqrt_conf", conf.sqrt() / self.sigma_px)
 
-    def residual(self, ev: PoseEval) -> Tensor:
-        """ev.pixels (..., *O, K, 2) -> (..., |O|*K*2) whitened pixel residuals."""
+    def _pixels(self, ev: PoseEval) -> Tensor:
+        """ev.pixels of the keypoints the term reads, (..., *O, K, 2); InputError unless they end in observed's
+        shape."""
         p, n = ev.pixels, self.observed.ndim
         if self.keypoints is not None:
             p = p.index_select(-2, self.keypoints.to(p.device))
         if p.ndim < n or p.shape[-n:] != self.observed.shape:
             raise InputError(
-                f"Reprojection: ev.pixels {shape_of(p)} must end in observed's shape {shape_of(self.observed)}"
+                f"{type(self).__name__}: ev.pixels {shape_of(p)} must end in observed's shape {shape_of(self.observed)}"
             )
+        return p
+
+    def residual(self, ev: PoseEval) -> Tensor:
+        """ev.pixels (..., *O, K, 2) -> (..., |O|*K*2) whitened pixel residuals."""
+        p, n = self._pixels(ev), self.observed.ndim
         r = (p - self._target.to(p)) * self._sqrt_conf.to(p)[..., None]
         return r.flatten(-(n - self.per_problem))
 
@@ -164,16 +170,6 @@ class SwapReprojection(Reprojection):
         r_b = ((p - target.index_select(-2, part)) * sc.index_select(-1, part)[..., None]).flatten(-2)
         swapped = super().energy_of(r_b) + self.swap_cost < super().energy_of(r_a)
         return r_a, r_b, swapped
-
-    def _pixels(self, ev: PoseEval) -> Tensor:
-        p = ev.pixels
-        if self.keypoints is not None:
-            p = p.index_select(-2, self.keypoints.to(p.device))
-        if p.shape[-2:] != self.observed.shape[-2:] or (self.per_problem and p.shape[-3:] != self.observed.shape):
-            raise InputError(
-                f"SwapReprojection: ev.pixels {shape_of(p)} must end in observed's shape {shape_of(self.observed)}"
-            )
-        return p
 
     def _marked(self, r_a: Tensor, r_b: Tensor, swapped: Tensor) -> Tensor:
         r = torch.where(swapped[..., None], r_b, r_a)
