@@ -195,20 +195,13 @@ def test_reprojection_pixel_jacobian_through_each_keypoints_point(scene):
     torch.testing.assert_close(g[0], (rows.mT @ r[..., None])[..., 0], rtol=1e-10, atol=1e-8)
 
 
-def _partners(kps) -> torch.Tensor:
-    partners = torch.arange(len(kps.names))
-    for a, b in kps.swap_pairs:
-        partners[a], partners[b] = b, a
-    return partners
-
-
 def test_swap_reprojection_reads_mirrored_labels(scene):
     """`SwapReprojection`: detections with every left/right label exchanged cost a pose what the true labels
     would, plus `swap_cost`; unexchanged detections cost what `Reprojection` says; the Jacobian is the chosen
     reading's (autograd), the marker rows zero."""
     sk, q, kps, cam = scene
     gen = torch.Generator().manual_seed(1)
-    partners = _partners(kps)
+    partners = kps.mirror_index()
     obs = cam.project(sk.forward_kinematics(q).index_select(-2, kps.index())).pixels  # (4, K, 2)
     obs = obs + torch.randn(obs.shape, generator=gen, dtype=torch.float64)
     conf = torch.rand(obs.shape[:-1], generator=gen, dtype=torch.float64) + 0.2
@@ -246,7 +239,7 @@ def test_swap_reprojection_checks_its_inputs(scene):
     _sk, _q, kps, _cam = scene
     k = len(kps.names)
     obs, conf = torch.zeros(k, 2), torch.ones(k)
-    partners = _partners(kps)
+    partners = kps.mirror_index()
     with pytest.raises(InputError, match="involution"):
         SwapReprojection(obs, conf, partners=torch.zeros(k, dtype=torch.long))
     with pytest.raises(InputError, match="one frame per problem"):

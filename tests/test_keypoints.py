@@ -42,6 +42,13 @@ def test_default_swap_pairs_are_left_right_partners(kps):
         assert kps.names[a][2:] == kps.names[b][2:]
 
 
+def test_mirror_index_exchanges_left_and_right(kps):
+    m = kps.mirror_index()
+    names = kps.names
+    assert [names[i] for i in m] == [n.replace("l_", "#").replace("r_", "l_").replace("#", "r_") for n in names]
+    assert m.dtype == torch.long and torch.equal(m[m], torch.arange(len(names)))
+
+
 def test_default_limbs(skeleton, kps):
     assert len(kps.limbs) == len(H36M17_LIMBS) == 10
     assert [(kps.names[a], kps.names[b]) for a, b in kps.limbs] == list(H36M17_LIMBS)

@@ -563,6 +563,6 @@ def test_exchanged_label_frames():
     confidence = torch.ones(4, 5)
     confidence[2, 2:4] = 0.0  # ... but missing: the frame reads exchanged on what is seen
     confidence[3, :4] = 0.0  # only the unpaired keypoint seen: nothing to tell
-    got = exchanged_label_frames(pixels, observed, confidence, ((0, 1), (2, 3)))
+    got = exchanged_label_frames(pixels, observed, confidence, torch.tensor([1, 0, 3, 2, 4]))
     assert got.tolist() == [False, True, True, False]
-    assert exchanged_label_frames(pixels, observed, confidence, ()) is None
+    assert exchanged_label_frames(pixels, observed, confidence, torch.arange(5)) is None

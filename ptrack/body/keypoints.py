@@ -93,6 +93,14 @@ class KeypointSet:
         """(K,) long tensor of skeleton joint indices."""
         return torch.as_tensor(self.joints, dtype=torch.long, device=device)
 
+    def mirror_index(self, device=None) -> Tensor:
+        """(K,) long tensor: each keypoint's left/right partner (`swap_pairs`), itself when it has none; indexing
+        the keypoint axis with it exchanges every left and right label."""
+        partners = torch.arange(self.num_keypoints, device=device)
+        for a, b in self.swap_pairs:
+            partners[a], partners[b] = b, a
+        return partners
+
     def limb_joints(self) -> list[tuple[int, int]]:
         """Limbs as skeleton joint index pairs."""
         return [(self.joints[a], self.joints[b]) for a, b in self.limbs]

@@ -345,19 +345,18 @@ def reprojection_error_per_keypoint(pixels, observed, confidence) -> Tensor:
     )
 
 
-def exchanged_label_frames(pixels, observed, confidence, swap_pairs) -> Tensor | None:
+def exchanged_label_frames(pixels, observed, confidence, partners) -> Tensor | None:
     """The frames whose detections the reprojected estimate fits better with every left and right label exchanged
     (a 2D detector's mirrored body): the mean pixel distance over the keypoints seen in both readings, each
-    keypoint against its partner's detection (`KeypointSet.swap_pairs`), below the labels' own.
+    keypoint against its partner's detection, below the labels' own.
 
-    pixels, observed: (T, K, 2); confidence (T, K) -> (T,) bool, or None without left/right pairs."""
-    if not swap_pairs:
+    pixels, observed: (T, K, 2); confidence (T, K); partners (K,) each keypoint's left/right partner
+    (`KeypointSet.mirror_index`) -> (T,) bool, or None when no keypoint has a partner."""
+    partners = torch.as_tensor(partners)
+    paired = partners != torch.arange(len(partners))
+    if not bool(paired.any()):
         return None
     pixels, observed, confidence = (torch.as_tensor(x) for x in (pixels, observed, confidence))
-    partners = torch.arange(observed.shape[1])
-    for a, b in swap_pairs:
-        partners[a], partners[b] = b, a
-    paired = partners != torch.arange(len(partners))
     seen = (confidence > 0) & (confidence.index_select(1, partners) > 0) & paired
     own = (pixels - observed).norm(dim=-1)
     other = (pixels - observed.index_select(1, partners)).norm(dim=-1)

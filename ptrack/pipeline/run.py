@@ -594,7 +594,7 @@ def footage_checks(
         out["ambiguous_frame_share_per_limb"] = {
             f"{names[a]}-{names[b]}": float(v) for (a, b), v in zip(kps.limbs, ambiguous.double().mean(0))
         }
-    exchanged = M.exchanged_label_frames(reproj.cpu(), obs.keypoints.cpu(), obs.confidence.cpu(), kps.swap_pairs)
+    exchanged = M.exchanged_label_frames(reproj.cpu(), obs.keypoints.cpu(), obs.confidence.cpu(), kps.mirror_index())
     if exchanged is not None:  # where the result reads the detector's left and right the other way round
         out["left_right_exchanged_frames"] = [int(f) for f in np.asarray(prep.footage.frames)[exchanged.numpy()]]
     series["person_missing"] = np.isin(prep.footage.frames, prep.footage.missing_frames).astype(np.float64)  # 0/1

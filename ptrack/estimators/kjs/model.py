@@ -122,13 +122,9 @@ def make_setup(problem: Problem, cfg: KjsRunConfig, strategy: Strategy) -> Setup
 def _partners(problem: Problem, swap_cost: float) -> Tensor | None:
     """(K,) each keypoint's left/right partner (itself when unpaired) when `costs.swap_cost` > 0 and the keypoint
     set pairs any, else None."""
-    pairs = problem.keypoints.swap_pairs
-    if swap_cost == 0 or not pairs:
+    if swap_cost == 0 or not problem.keypoints.swap_pairs:
         return None
-    partners = torch.arange(len(problem.keypoints.names), device=problem.observations.keypoints.device)
-    for a, b in pairs:
-        partners[a], partners[b] = b, a
-    return partners
+    return problem.keypoints.mirror_index(problem.observations.keypoints.device)
 
 
 def _mixture(sk, weight: float, dtype: torch.dtype, device: torch.device) -> PoseMixture | None:
