@@ -5,7 +5,7 @@ triangulation (issue 43's target: hip flexion and knee angles within 10 degrees 
         observations.file=../shared/data/pose2sim/balancing/pose/cam01_json \
         camera.file=../shared/data/pose2sim/Calib_qualisys.toml camera.name=cam01 \
         subject.height_m=1.72 observations.fps=60 out_dir=runs/balancing_cam01
-    python scripts/eval_opensim_ik.py runs/balancing_cam01 [--noise-mm 30]
+    python scripts/eval_opensim_ik.py runs/balancing_cam01 [--noise-mm 30] [--floor]
 
 Both IKs are `ptrack.io.opensim_ik.inverse_kinematics` (one marker task per marker the model and the TRC
 share, weights 1) on the shipped scaled model. Frames correspond by input frame number: the run's
@@ -13,7 +13,10 @@ share, weights 1) on the shipped scaled model. Frames correspond by input frame 
 Frame# i + 1, Time (i + 1) / fps). Also reported: both against the shipped `opensim_ik.mot` (Pose2Sim's own
 IK setup on a filtered TRC, a looser reference), and with `--noise-mm S` the same IK of the triangulated
 TRC with independent Gaussian noise of S mm on every coordinate of every marker (S * sqrt(3) mm RMS per
-marker), for scale. Needs the `export` extra (opensim) and ../shared/data/pose2sim.
+marker), for scale. With `--floor`, a floor under the target: the triangulated TRC with its 12 body markers
+replaced by `scripts/footage_floor.py`'s fit of cam01's OpenPose 2D started at the triangulation (the other
+markers left as triangulated), and, apart, by the nearest rigid body alone (no 2D). Needs the `export` extra
+(opensim) and ../shared/data/pose2sim.
 """
 
 from __future__ import annotations
@@ -57,6 +60,30 @@ def noisy_trc(src: Path, dst: Path, sigma_mm: float, seed: int) -> None:
     dst.write_text("\n".join(out) + "\n")
 
 
+def floor_trc(dst: Path, cam: str, with_2d: bool) -> None:
+    """The triangulated TRC with its 12 body markers replaced by `footage_floor.fit` of `cam`'s OpenPose 2D (with_2d)
+    or by the nearest rigid body (not with_2d), both started at the triangulation."""
+    import footage_floor  # scripts/ (this script's folder)
+
+    uv, conf, P, frames = footage_floor.camera_inputs(cam, None)
+    ref = footage_floor.reference(frames)
+    fitted = footage_floor.fit(ref, uv, conf, P, 8.0 if with_2d else None, 1.0 if with_2d else 0.0)  # lab axes
+    lines = (TRIAL / "triangulated.trc").read_text().splitlines()
+    names = [n for n in lines[3].split("\t")[2:] if n.strip()]
+    rows = {int(f): i for i, f in enumerate(frames)}
+    out = lines[:5]
+    for i, line in enumerate(lines[5:]):
+        cells = line.split("\t")
+        if len(cells) < 3 or i not in rows:
+            out.append(line)
+            continue
+        xyz = np.array([float(c) for c in cells[2 : 2 + 3 * len(names)]]).reshape(-1, 3)
+        for k, name in enumerate(footage_floor.BODY12):
+            xyz[names.index(name)] = fitted[rows[i], k][[1, 2, 0]]  # lab (X, Y, Z) -> TRC (Y, Z, X)
+        out.append("\t".join([*cells[:2], *(f"{v:.6f}" for v in xyz.ravel())]))
+    dst.write_text("\n".join(out) + "\n")
+
+
 def rms(a: dict[str, np.ndarray], b: dict[str, np.ndarray], rows_a: np.ndarray, rows_b: np.ndarray) -> list[float]:
     return [float(np.sqrt(np.mean((a[n][rows_a] - b[n][rows_b]) ** 2))) for n in ANGLES]
 
@@ -66,6 +93,7 @@ def main() -> None:
     ap.add_argument("run_dir", help="a ptrack run of cam01 of the balancing trial")
     ap.add_argument("--noise-mm", type=float, default=None, help="also: the triangulated TRC with this noise per axis")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--floor", action="store_true", help="also: footage_floor.py's fit of cam01, and the rigid body")
     args = ap.parse_args()
     model = TRIAL / "opensim_model_scaled.osim"
     with tempfile.TemporaryDirectory() as tmp:
@@ -93,10 +121,17 @@ def main() -> None:
             table[f"IK(triangulated + {args.noise_mm:g} mm noise) vs IK(triangulated)"] = rms(
                 noisy, tri, rows_ref, rows_ref
             )
+        if args.floor:
+            for with_2d, what in ((False, "nearest rigid body"), (True, "floor fit of cam01's 2D")):
+                floor_trc(work / "floor.trc", "cam01", with_2d)
+                inverse_kinematics(model, work / "floor.trc", work / "floor.mot", work)
+                _, floor = read_mot(work / "floor.mot")
+                table[f"IK({what}) vs IK(triangulated)"] = rms(floor, tri, rows_ref, rows_ref)
     print(f"{len(rows_ours)} frames; RMS differences in degrees")
-    print(f"{'':48s}" + "".join(f"{n:>17s}" for n in ANGLES))
+    width = max(len(what) for what in table)
+    print(" " * width + "".join(f"{n:>17s}" for n in ANGLES))
     for what, values in table.items():
-        print(f"{what:48s}" + "".join(f"{v:17.1f}" for v in values))
+        print(f"{what:{width}s}" + "".join(f"{v:17.1f}" for v in values))
 
 
 if __name__ == "__main__":

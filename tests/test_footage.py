@@ -669,3 +669,26 @@ def test_footage_floor_fit_keeps_a_consistent_body_and_follows_the_detector():
     moved = ff.fit(rigid, uv, conf, P, 8.0, 1.0)
     pa = float(pa_mpjpe(torch.as_tensor(moved), torch.as_tensor(rigid)).mean())
     assert 10.0 < pa < 250.0  # mm: the one camera's 2D disagrees with the four cameras' triangulation
+
+
+@pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")
+def test_eval_opensim_ik_floor_trc_replaces_only_the_body_markers(tmp_path):
+    """scripts/eval_opensim_ik.py --floor's TRC (the nearest rigid body): the triangulated file with its 12 body
+    markers moved by centimetres (the triangulation's bones vary by 3-10%), every other marker and the header kept."""
+    import eval_opensim_ik
+    import footage_floor
+    from eval_footage import read_trc
+
+    eval_opensim_ik.floor_trc(tmp_path / "floor.trc", "cam01", with_2d=False)
+    names, moved = read_trc(tmp_path / "floor.trc")
+    names_ref, ref = read_trc(P2S / "balancing" / "triangulated.trc")
+    assert names == names_ref and moved.shape == ref.shape
+    body = [names.index(n) for n in footage_floor.BODY12]
+    rest = np.setdiff1d(np.arange(len(names)), body)
+    assert np.abs(moved[:, rest] - ref[:, rest]).max() < 1e-5
+    shift = np.linalg.norm(moved[:, body] - ref[:, body], axis=-1)
+    assert 0.001 < shift.mean() < 0.05
+    text, text_ref = (
+        p.read_text().splitlines() for p in (tmp_path / "floor.trc", P2S / "balancing" / "triangulated.trc")
+    )
+    assert text[:5] == text_ref[:5]
