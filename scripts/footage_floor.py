@@ -162,13 +162,16 @@ def reference_segments(ref: np.ndarray) -> dict[str, dict]:
 YAWS = 8
 
 
-def model_floor(cam: str, detections: str | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def model_floor(
+    cam: str, detections: str | None, overrides: tuple[str, ...] = ()
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """ptrack's own model started at the reference: configs/video.yaml's skeleton with the reference's own segment
     lengths (`reference_segments`), fitted to the reference's 12 keypoints in 3D (Levenberg-Marquardt from the
     rest pose under `YAWS` headings, the closest kept), then each frame polished on the camera's 2D by the kjs
     tracker's frame objective (`ptrack.estimators.kjs.model.polish`: robust reprojection, limits, collision, the
-    floor; no dynamics) -> (the reference (T, 12, 3), the fit to it, the polished fit), the calibration's world."""
-    cfg, _ = config(cam, detections, ("subject.lengths=template",))
+    floor; no dynamics) -> (the reference (T, 12, 3), the fit to it, the polished fit), the calibration's world.
+    overrides: more key=value for the config (e.g. data.stop=N)."""
+    cfg, _ = config(cam, detections, ("subject.lengths=template", *overrides))
     with tempfile.TemporaryDirectory() as tmp:
         prep = prepare_real(cfg, Path(tmp))
     assert prep.footage is not None
