@@ -4,6 +4,7 @@ errors of bad footage inputs."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import sys
@@ -17,6 +18,7 @@ from cli_errors import fail
 from ptrack.body.keypoint_sets import get_keypoint_set
 from ptrack.body.skeleton import Skeleton
 from ptrack.body.subject import (
+    ANKLE_HEIGHT,
     CMU_LANDMARK_JOINTS,
     FLOOR_POINTS,
     SEGMENTS,
@@ -24,6 +26,7 @@ from ptrack.body.subject import (
     rescale_segments,
     scale_to_height,
     segment_lengths,
+    standing_height,
 )
 from ptrack.cli import main
 from ptrack.package_data import data_file
@@ -59,6 +62,28 @@ def test_scale_to_height_gives_every_segment_its_fraction():
     got = segment_lengths(sk)
     for name, (_, _, frac) in SEGMENTS.items():
         assert got[name] == pytest.approx(frac * 1.72, rel=1e-6), name
+
+
+def test_standing_height_counts_the_legs_straight():
+    """A CMU ASF's rest pose splays the legs outwards: the stature is the same as that of the same skeleton with
+    its legs turned to hang straight down (measured there as the head's end above the ankles), and above what the
+    splayed ankles' height would give."""
+    sk = Skeleton.from_asf(data_file("10.asf"))
+    _, rot = sk.forward_kinematics(torch.zeros(sk.num_dofs, dtype=torch.float64), rotations=True)
+    local = sk.offset_local.copy()
+    for bone in ("lfemur", "rfemur", "ltibia", "rtibia"):  # the bone vector, in the joint's frame, made world -Y
+        j = sk.joint_index(bone)
+        local[j] = rot[j].numpy().T @ np.array([0.0, -1.0, 0.0])
+    straight = dataclasses.replace(sk, offset_local=local)
+    joints = straight.forward_kinematics(torch.zeros(sk.num_dofs, dtype=torch.float64)).numpy()
+    hip, ankle = joints[straight.joint_index("lfemur") - 1], joints[straight.joint_index("ltibia")]
+    assert np.allclose(hip[[0, 2]], ankle[[0, 2]])  # the ankle right below the hip
+    top = joints[sk.joint_index("head"), 1]
+    extent = (top - joints[[sk.joint_index("ltibia"), sk.joint_index("rtibia")], 1].mean()) / (1 - ANKLE_HEIGHT)
+    assert standing_height(sk) == pytest.approx(extent, rel=1e-9)
+    assert standing_height(straight) == pytest.approx(extent, rel=1e-9)
+    splayed = sk.forward_kinematics(torch.zeros(sk.num_dofs, dtype=torch.float64)).numpy()
+    assert (top - splayed[sk.joint_index("ltibia"), 1]) / (1 - ANKLE_HEIGHT) < 0.98 * extent
 
 
 def test_landmark_joints_move_with_their_bone():
