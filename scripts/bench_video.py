@@ -59,17 +59,17 @@ def main(argv: list[str] | None = None) -> int:
     runs["baseline: method=frame"] = [*base, "method=frame"]
     print(machine_line(), f"torch threads {torch.get_num_threads()}")
     times: dict[str, list[float]] = {name: [] for name in runs}
-    frames = 0
+    frames: dict[str, int] = {}
     for _ in range(args.repeats):
         for name, overrides in runs.items():
-            seconds, frames = timed(overrides)
+            seconds, frames[name] = timed(overrides)
             times[name].append(seconds)
     baseline = statistics.median(times["baseline: method=frame"])
     print(f"\n| configuration | frames | seconds (median of {args.repeats}) | frames/s | time / baseline |")
     print("|---|---|---|---|---|")
     for name, ts in times.items():
         t = statistics.median(ts)
-        print(f"| {name} | {frames} | {t:.1f} | {frames / t:.2f} | {t / baseline:.2f}x |")
+        print(f"| {name} | {frames[name]} | {t:.1f} | {frames[name] / t:.2f} | {t / baseline:.2f}x |")
     return 0
 
 
