@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import shutil
 import sys
 from pathlib import Path
@@ -332,6 +333,7 @@ def test_without_a_camera_file_the_focal_is_the_image_diagonal(synthetic, tmp_pa
         ("camera.fov_deg=0", "camera.fov_deg"),
         ("subject.lengths=guess", "subject.lengths"),
         ("subject.measure_stride=0", "subject.measure_stride"),
+        ("observations.track_fps=0", "observations.track_fps"),
         ("subject.measure_backward_pass=sometimes", "subject.measure_backward_pass"),
     ],
 )
@@ -438,6 +440,62 @@ def test_between_frames_is_linear_and_holds_the_last():
     torch.testing.assert_close(y[:, 0], torch.tensor([0.0, 1.0, 2.0, 3.0, 4.0, 4.0]))
     torch.testing.assert_close(y[:, 1], torch.tensor([10.0, 20.0, 30.0, 40.0, 50.0, 50.0]))
     torch.testing.assert_close(between_frames(x, 1, 3), x)
+
+
+def test_fill_frames_interpolates_the_pose_and_moves_the_hypotheses():
+    """An estimate of frames 0, 2, 4 -> frames 0-5: the tracked frames as they were, the pose halfway between them
+    (an angle the shorter way round, through +-pi), the joints its forward kinematics, the hypotheses moved with the
+    body, no jumps on the filled frames, the last frame held."""
+    from ptrack.pipeline.run import fill_frames
+    from ptrack.problem import Estimate
+
+    sk = Skeleton.from_asf(data_file("10.asf"))
+    gen = torch.Generator().manual_seed(0)
+    q = 0.2 * torch.randn(3, sk.num_dofs, generator=gen, dtype=torch.float64)
+    yaw = sk.dof_names.index("root.ry")
+    q[:, yaw] = torch.tensor([3.0, -3.0, -2.9], dtype=torch.float64)  # 3.0 -> -3.0 crosses pi, not 0
+    joints = sk.forward_kinematics(q)
+    hyp = joints[:, None] + torch.randn(3, 4, sk.num_joints, 3, generator=gen, dtype=torch.float64)
+    est = Estimate(
+        q=q,
+        joints=joints,
+        cost=torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64),
+        terms={"mode_cost": torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)},
+        hypotheses=hyp,
+        hypothesis_weights=torch.full((3, 4), 0.25, dtype=torch.float64),
+        jumps={"larm": torch.tensor([1, 2, 3])},
+    )
+    out = fill_frames(sk, est, 2, 6)
+    assert out.q.shape == (6, sk.num_dofs) and out.hypotheses is not None and out.hypotheses.shape[0] == 6
+    torch.testing.assert_close(out.q[[0, 2, 4]], q)
+    torch.testing.assert_close(out.q[5], q[2])  # held after the last tracked frame
+    mid = 0.5 * (q[0] + q[1])
+    assert abs(math.remainder(float(out.q[1, yaw]) - math.pi, 2 * math.pi)) < 1e-9  # 3.0 -> -3.0 the short way
+    keep = [d for d in range(sk.num_dofs) if d != yaw]
+    torch.testing.assert_close(out.q[1, keep], mid[keep])
+    torch.testing.assert_close(out.joints, sk.forward_kinematics(out.q))
+    torch.testing.assert_close(out.hypotheses[1] - out.joints[1], hyp[0] - joints[0])
+    assert out.jumps is not None and out.jumps["larm"].tolist() == [1, 0, 2, 0, 3, 0]
+    assert out.cost.tolist() == [1.0, 1.0, 2.0, 2.0, 3.0, 3.0]
+    assert fill_frames(sk, est, 1, 3) is est
+
+
+@pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")
+def test_footage_above_track_fps_is_tracked_every_nth_frame_and_reported_whole(tmp_path):
+    """observations.track_fps=30 on 60 fps footage: every input frame is in the result, the tracked ones (0, 2, 4)
+    fit their own 2D, metrics.json says every 2nd frame was tracked; at 60 (the input's rate) every frame is."""
+    base = ["run", VIDEO_YAML, f"observations.file={P2S / 'balancing' / 'pose' / 'cam01_json'}", "camera.name=cam01"]
+    base += [f"camera.file={P2S / 'Calib_qualisys.toml'}", "subject.height_m=1.72", "observations.fps=60"]
+    base += ["data.stop=6", "kjs.modes=2", "kjs.samples=32", "progress=false"]
+    for track_fps, every in ((30, 2), (60, 1)):
+        out = tmp_path / f"run{track_fps}"
+        assert main([*base, f"observations.track_fps={track_fps}", f"out_dir={out}"]) == 0
+        assert json.loads((out / "metrics.json").read_text())["footage"]["tracked_every"] == every
+        with np.load(out / "result.npz") as r:
+            assert r["q"].shape[0] == 6 and r["hypotheses"].shape[0] == 6 and np.isfinite(r["keypoints"]).all()
+            err = np.linalg.norm(r["keypoints_reprojected"] - r["keypoints_observed"], axis=-1)
+            seen = r["confidence"] > 0
+            assert np.median(err[::2][seen[::2]]) < 25.0  # px: the tracked frames fit their 2D
 
 
 @pytest.mark.skipif(not P2S.is_dir(), reason=f"Pose2Sim data not found at {P2S}")

@@ -147,6 +147,11 @@ class ObservationsConfig:
     )
     keypoint_set: str | None = setting(None, "the file's keypoint set (BODY_25B, COCO_17, ...); null: inferred")
     fps: float | None = setting(None, "frames per second of the keypoint file; null: the file's or the video's")
+    track_fps: float | None = setting(
+        None,
+        "real footage above this rate is tracked every n-th frame (n = round(fps / track_fps)), the frames between "
+        "filled from their neighbours (docs/outputs.md); null: every frame",
+    )
     person: int | tuple[float, ...] | None = setting(
         None, "the person to reconstruct: a track id, or [x, y] px in the first frame; null: largest, most present"
     )
@@ -583,6 +588,8 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         raise InputError("config keys 'observations.file' and 'observations.video' are both set: give one")
     if o.fps is not None and not 0 < o.fps <= 10000:
         raise InputError(f"config key 'observations.fps' must be in (0, 10000], got {o.fps}")
+    if o.track_fps is not None and not 0 < o.track_fps <= 10000:
+        raise InputError(f"config key 'observations.track_fps' must be in (0, 10000] or null, got {o.track_fps}")
     if not 0 <= o.min_score < 1:
         raise InputError(f"config key 'observations.min_score' must be in [0, 1), got {o.min_score}")
     if isinstance(o.person, tuple) and len(o.person) != 2:

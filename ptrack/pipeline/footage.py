@@ -94,6 +94,7 @@ class FootageFrame:
     # `ptrack.estimators.ground`), "image" (the camera's image-up, taken as level)
     up: str = "image"
     ground: dict | None = None  # up "person": the floor fit's tilt_deg, contacts, spread_m
+    tracked_every: int = 1  # frames tracked: every n-th (`observations.track_fps`), the ones between filled
 
     def summary(self) -> dict:
         """JSON-ready record for metrics.json."""
@@ -103,6 +104,7 @@ class FootageFrame:
             "camera": self.camera,
             "floor_m": self.floor_m,
             "fps": self.fps,
+            "tracked_every": self.tracked_every,
             "up": self.up,
             "ground": self.ground,
             "height_m": self.height_m,

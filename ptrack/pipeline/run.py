@@ -806,15 +806,26 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
         )  # the samplers' draws (cfg.seed: the observations')
         return ESTIMATORS[cfg.method](problem, run_cfg, gen, progress_display(progress, cfg.method))
 
+    # real footage above `observations.track_fps`: every `every`-th frame tracked, the others filled
+    every = tracked_every(cfg, prep)
+    if every > 1:
+        assert prep.footage is not None  # tracked_every: real footage only
+        prep = dataclasses.replace(prep, footage=dataclasses.replace(prep.footage, tracked_every=every))
+
+    def track(problem: Problem) -> Estimate:
+        if every == 1:
+            return run(problem)
+        return fill_frames(problem.skeleton, run(every_nth(problem, every)), every, problem.observations.num_frames)
+
     # real footage measured on a first run (lengths, floor), then run again: the first run may be cheaper
     # (every n-th frame, kjs without its backward pass), as it only gives the depths the 2D is measured at.
     # A static trial's lengths are the better measurement; rescaling the model leaves the floor as it is.
     measure_lengths = cfg.subject.lengths == "observed" and not cfg.subject.static
     measure_floor = prep.problem.floor is None and cfg.camera.floor_m is not None and cfg.camera.floor_from_person
     if prep.footage is None or not (measure_lengths or measure_floor):
-        return prep, run(prep.problem)
-    n, first_cfg = cfg.subject.measure_stride, measure_config(cfg)
-    est = run(every_nth(prep.problem, n), first_cfg)
+        return prep, track(prep.problem)
+    n, first_cfg = cfg.subject.measure_stride * every, measure_config(cfg)
+    first = est = run(every_nth(prep.problem, n), first_cfg)
     if n > 1:  # every frame's joints (linear between the tracked ones): the lengths are measured on all the 2D
         est = est._replace(joints=between_frames(est.joints, n, prep.problem.observations.num_frames))
     again = False
@@ -823,9 +834,64 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     if measure_floor:
         leveled = level_to_person(prep, est)  # the floor under the first pass's feet, then run again on it
         prep, again = leveled or prep, again or leveled is not None
-    if again or n > 1 or first_cfg is not cfg:  # the first run was not the configured one
-        est = run(prep.problem)
-    return prep, est
+    if again or n > every or first_cfg is not cfg:  # the first run was not the configured one
+        return prep, track(prep.problem)
+    return prep, fill_frames(prep.problem.skeleton, first, every, prep.problem.observations.num_frames)
+
+
+def tracked_every(cfg: RunConfig, prep: Prepared) -> int:
+    """How many input frames one tracked frame stands for: real footage faster than `observations.track_fps` is
+    tracked every n-th frame, n = round(fps / track_fps) (60 fps at 30: every 2nd); else 1."""
+    track_fps = cfg.observations.track_fps
+    if prep.footage is None or track_fps is None or prep.footage.fps <= track_fps:
+        return 1
+    return max(round(prep.footage.fps / track_fps), 1)
+
+
+def fill_frames(sk: Skeleton, est: Estimate, n: int, frames: int) -> Estimate:
+    """An estimate of every n-th frame (S of them: frames 0, n, ..., (S-1) n) -> one of every frame (`frames`).
+
+    The pose q between two tracked frames is interpolated (angles along their shorter way round), the last one
+    held after it, and its joints are its forward kinematics. A filled frame's cost, terms, hypothesis weights and
+    costs, joint std and hypothesis directions are those of the tracked frame before it; its hypotheses are that
+    frame's moved with the reported body (each by the filled frame's joints minus the tracked frame's); no kinematic
+    jumps are counted on it. n = 1: `est` itself."""
+    if n == 1:
+        return est
+    t = torch.arange(frames, dtype=torch.float64) / n
+    lo = t.floor().long().clamp(max=est.q.shape[0] - 1)
+    hi = (lo + 1).clamp(max=est.q.shape[0] - 1)
+    w = torch.where(lo == hi, torch.zeros_like(t), (t - lo).clamp(max=1.0)).to(est.q.dtype)[:, None]
+    step = est.q[hi] - est.q[lo]
+    angular = torch.as_tensor(sk.angular_dofs(), device=est.q.device)
+    step = torch.where(angular, torch.remainder(step + math.pi, 2 * math.pi) - math.pi, step)
+    q = est.q[lo] + w * step
+    with torch.no_grad():
+        joints = sk.forward_kinematics(q).to(est.joints.dtype)
+    tracked = (torch.arange(frames) % n == 0) & (torch.arange(frames) // n < est.q.shape[0])
+
+    def held(x: torch.Tensor | None) -> torch.Tensor | None:
+        return None if x is None else x[lo.to(x.device)]
+
+    hypotheses = None
+    if est.hypotheses is not None:
+        moved = (joints - est.joints[lo.to(joints.device)])[:, None]
+        hypotheses = est.hypotheses[lo.to(est.hypotheses.device)] + moved.to(est.hypotheses)
+    jumps = None
+    if est.jumps is not None:
+        jumps = {c: torch.where(tracked.to(x.device), x[lo.to(x.device)], 0) for c, x in est.jumps.items()}
+    return est._replace(
+        q=q,
+        joints=joints,
+        cost=est.cost[lo.to(est.cost.device)],
+        terms={k: v[lo.to(v.device)] for k, v in est.terms.items()},
+        hypotheses=hypotheses,
+        hypothesis_weights=held(est.hypothesis_weights),
+        hypothesis_costs=held(est.hypothesis_costs),
+        joint_std=held(est.joint_std),
+        hypothesis_directions=held(est.hypothesis_directions),
+        jumps=jumps,
+    )
 
 
 def measure_config(cfg: RunConfig) -> RunConfig:
