@@ -858,17 +858,14 @@ def fill_frames(sk: Skeleton, est: Estimate, n: int, frames: int) -> Estimate:
     jumps are counted on it. n = 1: `est` itself."""
     if n == 1:
         return est
-    t = torch.arange(frames, dtype=torch.float64) / n
-    lo = t.floor().long().clamp(max=est.q.shape[0] - 1)
-    hi = (lo + 1).clamp(max=est.q.shape[0] - 1)
-    w = torch.where(lo == hi, torch.zeros_like(t), (t - lo).clamp(max=1.0)).to(est.q.dtype)[:, None]
+    lo, hi, w = _neighbours(n, frames, est.q.shape[0])
+    tracked = torch.arange(frames) == lo * n  # the others filled (and any held after the last tracked frame)
     step = est.q[hi] - est.q[lo]
     angular = torch.as_tensor(sk.angular_dofs(), device=est.q.device)
     step = torch.where(angular, torch.remainder(step + math.pi, 2 * math.pi) - math.pi, step)
-    q = est.q[lo] + w * step
+    q = est.q[lo] + w.to(est.q.dtype)[:, None] * step
     with torch.no_grad():
         joints = sk.forward_kinematics(q).to(est.joints.dtype)
-    tracked = (torch.arange(frames) % n == 0) & (torch.arange(frames) // n < est.q.shape[0])
 
     def held(x: torch.Tensor | None) -> torch.Tensor | None:
         return None if x is None else x[lo.to(x.device)]
@@ -906,12 +903,20 @@ def measure_config(cfg: RunConfig) -> RunConfig:
 def between_frames(x: torch.Tensor, n: int, frames: int) -> torch.Tensor:
     """Values of every n-th frame (S, ...) (frames 0, n, ..., (S-1) n) -> every frame (frames, ...): linear
     between the given ones, the last one held after it."""
-    t = torch.arange(frames, dtype=torch.float64) / n
-    lo = t.floor().long().clamp(max=x.shape[0] - 1)
-    hi = (lo + 1).clamp(max=x.shape[0] - 1)
-    w = (t - lo).clamp(max=1.0).to(x.dtype).reshape(-1, *([1] * (x.ndim - 1)))
-    w = torch.where((lo == hi).reshape(w.shape), torch.zeros_like(w), w)
+    lo, hi, w = _neighbours(n, frames, x.shape[0])
+    w = w.to(x.dtype).reshape(-1, *([1] * (x.ndim - 1)))
     return x[lo] * (1 - w) + x[hi] * w
+
+
+def _neighbours(n: int, frames: int, count: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each of `frames` frames between the `count` tracked ones (frames 0, n, ..., (count-1) n) -> the tracked
+    frame before it and after it (frames,) long, indices into the tracked ones, and its weight on the one after
+    (frames,) float64 in [0, 1): 0 on a tracked frame and after the last one (held)."""
+    t = torch.arange(frames, dtype=torch.float64) / n
+    lo = t.floor().long().clamp(max=count - 1)
+    hi = (lo + 1).clamp(max=count - 1)
+    w = torch.where(lo == hi, torch.zeros_like(t), (t - lo).clamp(max=1.0))
+    return lo, hi, w
 
 
 def level_to_person(prep: Prepared, est: Estimate) -> Prepared | None:
