@@ -100,11 +100,17 @@ class Reprojection(RobustMixin):
             )
         return p
 
+    def _whitened(self, p: Tensor) -> Tensor:
+        """`_pixels`' output (..., *O, K, 2) -> its whitened residuals, same shape."""
+        return (p - self._target.to(p)) * self._sqrt_conf.to(p)[..., None]
+
+    def _read_rows(self, d_pixels: Tensor) -> Tensor:
+        """Derivatives of ev.pixels (..., K_ev, 2, V) -> those of the keypoints the term reads (..., K, 2, V)."""
+        return d_pixels if self.keypoints is None else d_pixels.index_select(-3, self.keypoints.to(d_pixels.device))
+
     def residual(self, ev: PoseEval) -> Tensor:
         """ev.pixels (..., *O, K, 2) -> (..., |O|*K*2) whitened pixel residuals."""
-        p, n = self._pixels(ev), self.observed.ndim
-        r = (p - self._target.to(p)) * self._sqrt_conf.to(p)[..., None]
-        return r.flatten(-(n - self.per_problem))
+        return self._whitened(self._pixels(ev)).flatten(-(self.observed.ndim - self.per_problem))
 
     def jacobian(self, ev: PoseEval, jac: PoseJacobian) -> Tensor:
         """jac.pixels (..., *O, K, 2, D) -> (..., |O|*K*2, D), rows as in `residual` (`pixel_jacobian`)."""
@@ -118,7 +124,7 @@ class Reprojection(RobustMixin):
         the blocks of a block-diagonal Jacobian, which `ptrack.optim.trajectory.add_point_rows` takes on to the
         pose without forming (K, 3, D) rows)."""
         n = self.observed.ndim - self.per_problem
-        jp = d_pixels if self.keypoints is None else d_pixels.index_select(-3, self.keypoints.to(d_pixels.device))
+        jp = self._read_rows(d_pixels)
         j = jp * self._sqrt_conf.to(jp)[..., None, None]
         return j.flatten(-n - 1, -2)
 
@@ -166,7 +172,7 @@ class SwapReprojection(Reprojection):
         sc = self._sqrt_conf.to(p)
         target = self._target.to(p)
         part = self._partners(p.device)
-        r_a = ((p - target) * sc[..., None]).flatten(-2)
+        r_a = self._whitened(p).flatten(-2)
         r_b = ((p - target.index_select(-2, part)) * sc.index_select(-1, part)[..., None]).flatten(-2)
         swapped = super().energy_of(r_b) + self.swap_cost < super().energy_of(r_a)
         return r_a, r_b, swapped
@@ -184,7 +190,7 @@ class SwapReprojection(Reprojection):
     def residual_jacobian(self, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor]:
         """`residual` and its Jacobian (..., K*2 + 2, D): each problem's rows those of the reading it takes."""
         r_a, r_b, swapped = self._readings(self._pixels(ev))
-        jp = jac.pixels if self.keypoints is None else jac.pixels.index_select(-3, self.keypoints.to(jac.pixels.device))
+        jp = self._read_rows(jac.pixels)
         sc = self._sqrt_conf.to(jp)
         sc = torch.where(swapped[..., None], sc.index_select(-1, self._partners(jp.device)), sc)
         j = (jp * sc[..., None, None]).flatten(-3, -2)
