@@ -226,12 +226,12 @@ def test_a_mirrored_stretch_stays_the_same_person():
 
 def _cost_as_labelled_splits(walk, frames) -> bool:
     """Whether the mirrored frame 15 costs more than the link gate when read as labelled (the test's premise)."""
-    from ptrack.observe.people import GATE, _cost, _Track
+    from ptrack.observe.people import GATE, _cost_as_labelled, _Track
 
     track = _Track(0, walk[0][:, :2])
     for t in range(1, 15):
         track.update(t, walk[t][:, :2])
-    return _cost(track, 15, frames[15][0][:, :2])[0] > GATE  # no mirror given: the labels as they are
+    return _cost_as_labelled(track, 15, frames[15][0][:, :2]) > GATE  # the labels as they are
 
 
 @pytest.mark.parametrize("bad", ["left", (1.0,), True, (np.nan, 3.0)])

@@ -135,12 +135,10 @@ class _Track:
         self.sizes.append(max(_size(xy), 1.0))
 
 
-def _cost(track: _Track, t: int, xy: np.ndarray, mirror: np.ndarray | None = None) -> tuple[float, bool]:
+def _cost(track: _Track, t: int, xy: np.ndarray, mirror: np.ndarray) -> tuple[float, bool]:
     """The cost of giving detection xy (K, 2) to `track` on frame t, and whether it fits better with every left and
-    right label exchanged (`mirror` (K,): the keypoint set's exchange; None: as given only)."""
+    right label exchanged (`mirror` (K,): the keypoint set's exchange)."""
     own = _cost_as_labelled(track, t, xy)
-    if mirror is None:
-        return own, False
     other = _cost_as_labelled(track, t, xy[mirror])
     return (other, True) if other < own else (own, False)
 
