@@ -53,18 +53,29 @@ def read_trc(path: Path) -> tuple[list[str], np.ndarray]:
     return names, data.reshape(len(rows), len(names), 3)
 
 
+def body_rows(keypoint_set: str, names: list[str]) -> list[int]:
+    """The 12 body keypoints (`BODY12`, in that order) among a keypoint list `names` of the set `keypoint_set`,
+    matched by landmark (the TRC's names are BODY_25B's) -> their indices into `names`."""
+    ks = get_keypoint_set(keypoint_set)
+    return [names.index(ks.names[ks.index(BODY_25B.landmarks[BODY_25B.index(n)])]) for n in BODY12]
+
+
+def reference_body(trc: Path, frames: np.ndarray) -> np.ndarray:
+    """The TRC's 12 body keypoints (`BODY12`) at the input frames `frames` (TRC row i is frame i) -> (T, 12, 3)
+    metres, the calibration's world (lab axes)."""
+    tnames, ref = read_trc(trc)
+    ref = ref[:, [tnames.index(n) for n in BODY12]][:, :, [2, 0, 1]]  # TRC (X, Y, Z) = lab (Y, Z, X)
+    return ref[frames]
+
+
 def body_pairs(result: Path, trc: Path) -> tuple[np.ndarray, np.ndarray]:
     """result.npz of a run and the TRC -> the 12 body keypoints (`BODY12`, in that order) of the run's frames,
     estimated and reference, (T, 12, 3) metres each, in the calibration's world (lab axes)."""
-    keypoint_set = get_keypoint_set(json.loads((result.parent / "metrics.json").read_text())["footage"]["keypoint_set"])
-    with np.load(result) as z:  # the result's keypoints by landmark (the TRC's names are BODY_25B's)
-        names = [str(n) for n in z["keypoint_names"]]
-        body = [keypoint_set.names[keypoint_set.index(BODY_25B.landmarks[BODY_25B.index(n)])] for n in BODY12]
-        est = z["keypoints"][:, [names.index(n) for n in body]]
+    keypoint_set = json.loads((result.parent / "metrics.json").read_text())["footage"]["keypoint_set"]
+    with np.load(result) as z:
+        est = z["keypoints"][:, body_rows(keypoint_set, [str(n) for n in z["keypoint_names"]])]
         frames = z["frames"]
-    tnames, ref = read_trc(trc)
-    ref = ref[:, [tnames.index(n) for n in BODY12]][:, :, [2, 0, 1]]  # TRC (X, Y, Z) = lab (Y, Z, X)
-    return est, ref[frames]
+    return est, reference_body(trc, frames)
 
 
 def errors(result: Path, trc: Path) -> dict[str, float]:

@@ -38,9 +38,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from eval_footage import BODY12, DATA, FPS, HEIGHT_M, read_trc
+from eval_footage import BODY12, DATA, FPS, HEIGHT_M, body_rows, reference_body
 
-from ptrack.body.keypoint_sets import BODY_25B, get_keypoint_set
 from ptrack.body.skeleton import Skeleton
 from ptrack.estimators.kjs.model import KJS, make_setup, polish
 from ptrack.optim.jacobians import joint_jacobian
@@ -80,9 +79,7 @@ def camera_inputs(cam: str, detections: str | None) -> tuple[np.ndarray, np.ndar
     cfg, path = config(cam, detections)
     template = Skeleton.from_asf(cfg.data.asf)
     _, _, obs, frame = prepare_footage(cfg, template, path)
-    ks = get_keypoint_set(frame.keypoint_set)
-    names = list(obs.keypoint_names)
-    idx = [names.index(ks.names[ks.index(BODY_25B.landmarks[BODY_25B.index(n)])]) for n in BODY12]
+    idx = body_rows(frame.keypoint_set, list(obs.keypoint_names))
     cam_ = obs.camera
     R = cam_.R.double().numpy() @ frame.world_from_model.T  # world -> model -> camera
     P = cam_.K.double().numpy() @ np.concatenate([R, cam_.t.double().numpy()[:, None]], 1)
@@ -91,9 +88,7 @@ def camera_inputs(cam: str, detections: str | None) -> tuple[np.ndarray, np.ndar
 
 def reference(frames: np.ndarray) -> np.ndarray:
     """The triangulated TRC's 12 body keypoints at the input's frames, (T, 12, 3) metres, the calibration's world."""
-    names, ref = read_trc(DATA / "balancing" / "triangulated.trc")
-    ref = ref[:, [names.index(n) for n in BODY12]][:, :, [2, 0, 1]]  # TRC (X, Y, Z) = lab (Y, Z, X)
-    return ref[frames]
+    return reference_body(DATA / "balancing" / "triangulated.trc", frames)
 
 
 def lengths(x: torch.Tensor) -> torch.Tensor:
@@ -181,10 +176,7 @@ def model_floor(
     prob = prep.problem
     s = make_setup(prob, cfg, KJS)
     sk, dtype = prob.skeleton, prob.observations.keypoints.dtype
-    ks = get_keypoint_set(prep.footage.keypoint_set)
-    names = list(prob.observations.keypoint_names)
-    rows = [names.index(ks.names[ks.index(BODY_25B.landmarks[BODY_25B.index(n)])]) for n in BODY12]
-    kidx = prob.keypoints.index()[rows]
+    kidx = prob.keypoints.index()[body_rows(prep.footage.keypoint_set, list(prob.observations.keypoint_names))]
     ref = torch.as_tensor(ref_world @ W, dtype=dtype)  # (T, 12, 3) model frame
     T, D = ref.shape[0], sk.num_dofs
     q0 = torch.zeros(YAWS, T, D, dtype=dtype)
