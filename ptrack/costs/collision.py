@@ -257,51 +257,55 @@ class SelfIntersection(LeastSquaresMixin):
         rows = torch.einsum("...ep,...pc,...epcd->...pd", coef.index_select(-1, hit), n.index_select(-2, hit), dx)
         return out.index_copy(-2, hit, rows)
 
-    def _near(self, ends: Tensor) -> Tensor:
-        """ends (4, 3, ..., P) (capsule a's start, end, b's start, end; coordinates second) -> (H,)
-        the pairs that may penetrate in some pose of the batch. The segments are at least as far apart
-        as their midpoints less both half-lengths, so the others surely do not (residual exactly 0)."""
-        p0, p1, q0, q1 = ends
-        mid = 0.5 * ((p0 + p1) - (q0 + q1))
-        half = 0.5 * ((p1 - p0).square().sum(0).sqrt() + (q1 - q0).square().sum(0).sqrt())
-        bound = mid.square().sum(0).sqrt() - half  # (..., P) <= d_ab
-        maybe = bound < self._reach.to(bound) - self.margin
-        return (maybe.flatten(0, -2).any(0) if maybe.ndim > 1 else maybe).nonzero()[:, 0]
+    def _maybe(self, joints: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """joints (B, J, 3) -> the (pose b, pair k) entries that may penetrate, b (A,) and k (A,), and the capsules'
+        ends (2, B, C, 3) (starts, then ends). Two segments are at least as far apart as their midpoints less both
+        half-lengths, so every other entry surely does not penetrate (residual exactly 0); the bound is made per
+        capsule first (C capsules, fewer than the P pairs)."""
+        seg = self.segments.to(joints.device)
+        caps = joints.index_select(-2, seg.T.reshape(-1)).unflatten(-2, (2, -1)).movedim(-3, 0)  # (2, B, C, 3)
+        mid, half = 0.5 * (caps[0] + caps[1]), 0.5 * (caps[1] - caps[0]).square().sum(-1).sqrt()  # (B, C, 3), (B, C)
+        a, b = self.pairs.to(joints.device).T
+        apart = (mid.index_select(-2, a) - mid.index_select(-2, b)).square().sum(-1).sqrt()
+        bound = apart - half.index_select(-1, a) - half.index_select(-1, b)  # (B, P) <= d_ab
+        # a hair of slack (1e-6 of the reach, and a nanometre) for the bound's own rounding
+        reach = self._reach.to(bound) - self.margin
+        pose, pair = (bound < reach + 1e-6 * reach.abs() + 1e-9).nonzero(as_tuple=True)
+        return pose, pair, caps
 
     def gauss_newton(self, ev: PoseEval, jac: PoseJacobian) -> tuple[Tensor, Tensor, Tensor]:
-        """This term's share of the Gauss-Newton normal equations, from the pairs that can penetrate
-        only (`_near`; the rows of the others are zero): jac.joints (..., J, 3, D) -> energy (...,),
+        """This term's share of the Gauss-Newton normal equations, from the (pose, pair) entries that can
+        penetrate only (`_maybe`; the rows of the others are zero): jac.joints (..., J, 3, D) -> energy (...,),
         J^T J (..., D, D), J^T r (..., D). The same values as stacking `residual` and `jacobian`."""
         joints = ev.joints
         d = jac.joints.shape[-1]
-        ends = self._segment_ends(joints)  # (4, 3, ..., P)
-        near = self._near(ends)
-        if near.numel() == 0:  # nothing close anywhere in the batch (the usual case)
-            return (
-                joints.new_zeros(joints.shape[:-2]),
-                joints.new_zeros(*joints.shape[:-2], d, d),
-                joints.new_zeros(*joints.shape[:-2], d),
-            )
         batch = joints.shape[:-2]
-        p0, p1, q0, q1 = ends.index_select(-1, near).flatten(2, -2)  # (3, B, H) each, B poses
-        u, v, w = p1 - p0, q1 - q0, p0 - q0
-        with torch.no_grad():
-            s, t = _closest_parameters(u, v, w)
-        gap = w + s * u - t * v
-        dist = torch.sqrt((gap * gap).sum(0) + self.eps * self.eps)
-        r = (self._reach.to(joints)[near] - dist - self.margin).clamp(min=0.0) / self.sigma  # (B, H)
-        h = joints.new_zeros(r.shape[0], d, d)
-        g = joints.new_zeros(r.shape[0], d)
-        b, k = (r > 0).nonzero(as_tuple=True)  # the A penetrating (pose, pair) entries
+        flat = joints.reshape(-1, *joints.shape[-2:])  # (B, J, 3)
+        energy = flat.new_zeros(flat.shape[0])
+        h = flat.new_zeros(flat.shape[0], d, d)
+        g = flat.new_zeros(flat.shape[0], d)
+        b, k, caps = self._maybe(flat)
         if b.numel():
-            n = (gap[:, b, k] / dist[b, k]).T * (-1.0 / self.sigma)  # (A, 3) d r / d gap
-            coef = torch.stack([1 - s[b, k], s[b, k], t[b, k] - 1, -t[b, k]], dim=-1)  # (A, 4)
-            idx = self._ends.to(joints.device).view(4, -1)[:, near][:, k].T  # (A, 4) joints of the ends
-            dx = jac.joints.flatten(0, -4)[b[:, None], idx]  # (A, 4, 3, D)
-            rows = ((coef[..., None] * n[:, None, :])[..., None] * dx).sum((1, 2))  # (A, D)
-            h.index_add_(0, b, rows[:, :, None] * rows[:, None, :])
-            g.index_add_(0, b, rows * r[b, k, None])
-        energy = 0.5 * r.square().sum(-1)
+            pairs = self.pairs.to(joints.device)
+            ca, cb = pairs[k, 0], pairs[k, 1]
+            p0, p1, q0, q1 = (caps[e][b, c].T for e, c in ((0, ca), (1, ca), (0, cb), (1, cb)))  # (3, A) each
+            u, v, w = p1 - p0, q1 - q0, p0 - q0
+            with torch.no_grad():
+                s, t = _closest_parameters(u, v, w)
+            gap = w + s * u - t * v
+            dist = torch.sqrt((gap * gap).sum(0) + self.eps * self.eps)
+            r = (self._reach.to(joints)[k] - dist - self.margin).clamp(min=0.0) / self.sigma  # (A,)
+            hit = (r > 0).nonzero()[:, 0]  # the penetrating entries
+            if hit.numel():
+                b, k, r, s, t = b[hit], k[hit], r[hit], s[hit], t[hit]
+                n = (gap[:, hit] / dist[hit]).T * (-1.0 / self.sigma)  # (A', 3) d r / d gap
+                coef = torch.stack([1 - s, s, t - 1, -t], dim=-1)  # (A', 4)
+                idx = self._ends.to(joints.device).view(4, -1)[:, k].T  # (A', 4) joints of the ends
+                dx = jac.joints.reshape(-1, *jac.joints.shape[-3:])[b[:, None], idx]  # (A', 4, 3, D)
+                rows = ((coef[..., None] * n[:, None, :])[..., None] * dx).sum((1, 2))  # (A', D)
+                energy.index_add_(0, b, 0.5 * r.square())
+                h.index_add_(0, b, rows[:, :, None] * rows[:, None, :])
+                g.index_add_(0, b, rows * r[:, None])
         return energy.reshape(batch), h.reshape(*batch, d, d), g.reshape(*batch, d)
 
     @staticmethod
