@@ -678,8 +678,10 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         )
     if cfg.costs.sigma_px <= 0:
         raise InputError(f"config key 'costs.sigma_px' must be positive, got {cfg.costs.sigma_px}")
-    if not (math.isfinite(cfg.costs.swap_cost) and cfg.costs.swap_cost >= 0):
-        raise InputError(f"config key 'costs.swap_cost' must be a finite number >= 0, got {cfg.costs.swap_cost}")
+    if cfg.costs.swap_cost is not None and not (math.isfinite(cfg.costs.swap_cost) and cfg.costs.swap_cost >= 0):
+        raise InputError(
+            f"config key 'costs.swap_cost' must be a finite number >= 0 or null, got {cfg.costs.swap_cost}"
+        )
     if cfg.costs.loss not in ROBUST_LOSSES:
         raise InputError(f"config key 'costs.loss' must be one of {', '.join(ROBUST_LOSSES)}, got {cfg.costs.loss!r}")
     validate_pca(cfg.pca, cfg.model.keypoints, names=cfg.method == "pca")

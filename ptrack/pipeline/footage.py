@@ -53,7 +53,7 @@ from ptrack.observe.camera_files import (
 )
 from ptrack.observe.keypoint_files import read_keypoints
 from ptrack.observe.observations import Observations
-from ptrack.observe.people import PersonTrack, select_person
+from ptrack.observe.people import PersonTrack, mirror_switches, select_person
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +95,10 @@ class FootageFrame:
     up: str = "image"
     ground: dict | None = None  # up "person": the floor fit's tilt_deg, contacts, spread_m
     tracked_every: int = 1  # frames tracked: every n-th (`observations.track_fps`), the ones between filled
+    # input frame numbers where the detector exchanged every left/right label from the frame before
+    # (`ptrack.observe.people.mirror_switches`); with `costs.swap_cost: null` they turn the exchanged reading on
+    mirror_switches: tuple[int, ...] = ()
+    swap_cost: float | None = None  # the price of reading a frame's labels exchanged that the run used (0: off)
 
     def summary(self) -> dict:
         """JSON-ready record for metrics.json."""
@@ -105,6 +109,8 @@ class FootageFrame:
             "floor_m": self.floor_m,
             "fps": self.fps,
             "tracked_every": self.tracked_every,
+            "mirror_switch_frames": list(self.mirror_switches),
+            "swap_cost": self.swap_cost,
             "up": self.up,
             "ground": self.ground,
             "height_m": self.height_m,
@@ -239,6 +245,12 @@ def prepare_footage(
         track, frames=track.frames[cut], points=track.points[cut], scores=track.scores[cut], present=track.present[cut]
     )
     definition = get_keypoint_set(track.keypoint_set)
+    switches = mirror_switches(track.points, track.scores >= o.min_score, definition.mirror_index())
+    if len(switches):
+        log.info(
+            "the detector exchanged every left/right label of the person at frames %s",
+            ", ".join(str(int(f)) for f in track.frames[switches]),
+        )
     given, known = cfg.subject.height_m is not None, cfg.subject.lengths == "asf"  # asf: its bone lengths as they are
     height = check_height(cfg.subject.height_m) if given else standing_height(template) if known else DEFAULT_HEIGHT_M
     if not given and not known:
@@ -283,6 +295,7 @@ def prepare_footage(
         fps=float(fps),
         extrinsics=cam is not None and cam.has_extrinsics,
         up="calibration" if floor_known else "image",
+        mirror_switches=tuple(int(f) for f in track.frames[switches]),
     )
     return skeleton, kps, obs, frame
 

@@ -792,6 +792,7 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     `execute` computes them (same seed, same result), without writing anything. progress: a progress
     bar on stderr (on a terminal only)."""
     prep = prepare(cfg, work_dir)
+    cfg, prep = with_swap_cost(cfg, prep)
     if cfg.subject.static:  # the segment lengths of a static trial (ptrack.pipeline.static)
         from ptrack.pipeline.static import apply_static
 
@@ -837,6 +838,23 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     if again or n > every or first_cfg is not cfg:  # the first run was not the configured one
         return prep, track(prep.problem)
     return prep, fill_frames(prep.problem.skeleton, first, every, prep.problem.observations.num_frames)
+
+
+def with_swap_cost(cfg: RunConfig, prep: Prepared) -> tuple[RunConfig, Prepared]:
+    """`costs.swap_cost: null` resolved: `AUTO_SWAP_COST` on real footage whose detector exchanged every left/right
+    label of the person between two frames (`FootageFrame.mirror_switches`), else 0 (off); a number is kept. ->
+    the config with the price the run uses, and `prep` whose footage record holds it (metrics.json)."""
+    from ptrack.costs.config import AUTO_SWAP_COST
+
+    price = cfg.costs.swap_cost
+    if price is None:
+        price = AUTO_SWAP_COST if prep.footage is not None and prep.footage.mirror_switches else 0.0
+        if price:
+            log.info("the labels exchanged are read too, at costs.swap_cost %g (the detector mirrored them)", price)
+        cfg = dataclasses.replace(cfg, costs=dataclasses.replace(cfg.costs, swap_cost=price))
+    if prep.footage is not None:
+        prep = dataclasses.replace(prep, footage=dataclasses.replace(prep.footage, swap_cost=float(price)))
+    return cfg, prep
 
 
 def tracked_every(cfg: RunConfig, prep: Prepared) -> int:

@@ -119,10 +119,10 @@ def make_setup(problem: Problem, cfg: KjsRunConfig, strategy: Strategy) -> Setup
     )
 
 
-def _partners(problem: Problem, swap_cost: float) -> Tensor | None:
+def _partners(problem: Problem, swap_cost: float | None) -> Tensor | None:
     """(K,) each keypoint's left/right partner (itself when unpaired) when `costs.swap_cost` > 0 and the keypoint
-    set pairs any, else None."""
-    if swap_cost == 0 or not problem.keypoints.swap_pairs:
+    set pairs any, else None (also for null, which the pipeline resolves before a run: `run.with_swap_cost`)."""
+    if not swap_cost or not problem.keypoints.swap_pairs:
         return None
     return problem.keypoints.mirror_index(problem.observations.keypoints.device)
 
@@ -171,6 +171,7 @@ def frame_objective(
     observed, confidence, per_problem = obs.keypoints[t], obs.confidence[t], isinstance(t, Tensor)
     reprojection: Reprojection
     if s.partners is not None:  # the detector's mirrored labels read too, at `costs.swap_cost`
+        assert cc.swap_cost  # `_partners`: a positive price
         reprojection = SwapReprojection(
             observed,
             confidence,
