@@ -241,6 +241,7 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
     # near the camera's image-up; the camera looks 5 degrees down), the second pass's lowest foot points on it
     footage = metrics["footage"]
     assert footage["up"] == "person" and footage["ground"]["tilt_deg"] < 10 and footage["ground"]["contacts"] >= 10
+    assert footage["mirror_switch_frames"] == [] and footage["swap_cost"] == 0.0  # nothing mirrored: the labels only
     with np.load(out / "result.npz") as r:
         joint_names, joints = [str(n) for n in r["joint_names"]], r["joints"]
     feet = [joint_names.index(n) for n in FLOOR_POINTS if n in joint_names]
@@ -282,6 +283,41 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
     # kjs from no 3D at all, on a skeleton with other proportions than the template's: a loose bound (a pose with
     # the torso turned by 90 degrees scores over 200 mm); docs/results.md has the numbers
     assert score["pa_mpjpe_mm"] < 150.0, score
+
+
+def test_a_detector_that_mirrors_the_person_turns_the_exchanged_reading_on(synthetic, tmp_path):
+    """`costs.swap_cost: null` (the default): where the detector exchanged every left/right label of the person between
+    two frames (here images 8-15 of the synthetic footage), the run reads the labels exchanged too, at AUTO_SWAP_COST,
+    and the footage record says where and at what price; on the clean file, and with a price given, it does not."""
+    from ptrack.costs.config import AUTO_SWAP_COST
+    from ptrack.pipeline.config import load_config
+    from ptrack.pipeline.run import prepare, with_swap_cost
+
+    folder, info = synthetic
+    images = json.loads((folder / "keypoints.json").read_text())
+    mirror = get_keypoint_set("coco17").mirror_index()
+    for i in range(8, 16):  # the participant, the larger person of the image
+        people = [e for e in images if e["image_id"] == i]
+        if people:
+            e = max(people, key=lambda e: np.ptp(np.reshape(e["keypoints"], (-1, 3))[:, :2], 0).sum())
+            e["keypoints"] = np.reshape(e["keypoints"], (-1, 3))[mirror].reshape(-1).tolist()
+    mirrored = tmp_path / "mirrored.json"
+    mirrored.write_text(json.dumps(images))
+    seen = sorted({e["image_id"] for e in images} - {info["nobody"]})
+    switches = [min(i for i in seen if i >= 8), min(i for i in seen if i >= 16)]
+    base = [f"camera.file={folder / 'camera.yml'}", f"subject.height_m={info['height_m']:.3f}", "observations.fps=30"]
+    for keypoints, extra, frames, price in (
+        (folder / "keypoints.json", [], [], 0.0),
+        (mirrored, [], switches, AUTO_SWAP_COST),
+        (mirrored, ["costs.swap_cost=0"], switches, 0.0),
+        (folder / "keypoints.json", ["costs.swap_cost=1.5"], [], 1.5),
+    ):
+        cfg = load_config(VIDEO_YAML, [f"observations.file={keypoints}", *base, *extra])
+        cfg, prep = with_swap_cost(cfg, prepare(cfg, tmp_path))
+        assert prep.footage is not None
+        assert list(prep.footage.mirror_switches) == frames and cfg.costs.swap_cost == price, (keypoints, extra)
+        assert prep.footage.summary()["swap_cost"] == price
+        assert prep.footage.summary()["mirror_switch_frames"] == frames
 
 
 def test_known_skeleton_keeps_the_asf_bone_lengths(synthetic, tmp_path):

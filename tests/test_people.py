@@ -10,7 +10,7 @@ from keypoint_fixtures import SHIPPED_FRAMES, person, pose2sim
 from ptrack.body.keypoint_sets import BODY_25B, COCO_17
 from ptrack.errors import InputError
 from ptrack.observe.keypoint_files import Detections, read_keypoints
-from ptrack.observe.people import MAX_GAP, link_tracks, select_person, track_summary
+from ptrack.observe.people import MAX_GAP, link_tracks, mirror_switches, select_person, track_summary
 
 L_HIP, R_HIP = BODY_25B.index("LHip"), BODY_25B.index("RHip")
 
@@ -232,6 +232,43 @@ def _cost_as_labelled_splits(walk, frames) -> bool:
     for t in range(1, 15):
         track.update(t, walk[t][:, :2])
     return _cost_as_labelled(track, 15, frames[15][0][:, :2]) > GATE  # the labels as they are
+
+
+def _walker(frames: int, width: float, seed: int = 0) -> np.ndarray:
+    """(T, K, 2) a COCO-17 person drifting right 2 px a frame, its left/right spread `width` times a standing
+    person's (small: seen from the side), 1.5 px of noise."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for t in range(frames):
+        p = person(COCO_17, 100 + 2 * t, 50, 400)[:, :2]
+        centre = p[:, 0].mean()
+        p[:, 0] = centre + width * (p[:, 0] - centre)
+        out.append(p + rng.normal(0, 1.5, p.shape))
+    return np.asarray(out)
+
+
+def test_mirror_switches_find_a_whole_body_exchange_only():
+    """The frames where the detector exchanged every left/right label from the frame before, across a frame without
+    the person; not a side view (both readings alike), not a few swapped keypoints, not noise."""
+    mirror = COCO_17.mirror_index()
+    front = _walker(30, 3.0)  # arms and legs spread: exchanged, every paired keypoint moves far
+    seen = np.ones(front.shape[:2], dtype=bool)
+    mirrored = front.copy()
+    mirrored[10:20] = front[10:20][:, mirror]
+    assert mirror_switches(front, seen, mirror).tolist() == []
+    assert mirror_switches(mirrored, seen, mirror).tolist() == [10, 20]
+    gap = seen.copy()
+    gap[19:21] = False  # the person unseen when the labels turn back: frame 21 against frame 18
+    assert mirror_switches(mirrored, gap, mirror).tolist() == [10, 21]
+    side = _walker(30, 0.02)  # seen from the side: the two readings project within a few pixels
+    side_mirrored = side.copy()
+    side_mirrored[10:20] = side[10:20][:, mirror]
+    assert mirror_switches(side_mirrored, seen, mirror).tolist() == []
+    wrists = front.copy()  # only the wrists exchanged, as detectors often do: the median does not follow
+    lw, rw = COCO_17.index("left_wrist"), COCO_17.index("right_wrist")
+    wrists[10:20, [lw, rw]] = front[10:20][:, [rw, lw]]
+    assert mirror_switches(wrists, seen, mirror).tolist() == []
+    assert mirror_switches(mirrored[:1], seen[:1], mirror).tolist() == []  # one frame: nothing to compare
 
 
 @pytest.mark.parametrize("bad", ["left", (1.0,), True, (np.nan, 3.0)])

@@ -35,6 +35,7 @@ Left/right swaps of the detector are kept as they are (the estimators' robust te
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -166,27 +167,30 @@ SWITCH_MIN_PAIRED = 4
 
 
 def mirror_switches(points: np.ndarray, seen: np.ndarray, mirror: np.ndarray) -> np.ndarray:
-    """The frames where the detector exchanged every left and right label of the person from the frame before: it
-    took the person for one facing the other way (or back), and each paired keypoint jumps to where its partner
-    was. A side view, where both readings project alike, gives no switch; nor do a few keypoints swapped alone.
+    """The frames where the detector exchanged every left and right label of the person from the frame before it
+    (the last one with the person seen, across frames without): it took the person for one facing the other way
+    (or back), and each paired keypoint jumps to where its partner was. A side view, where both readings project
+    alike, gives no switch; nor do a few keypoints swapped alone.
 
     points (T, K, 2) pixels (NaN where missing); seen (T, K) bool; mirror (K,) each keypoint's left/right partner
-    (itself when unpaired) -> (S,) int, each a frame index t whose labels are exchanged from frame t-1's
-    (`SWITCH_STEP`, `SWITCH_RATIO`, `SWITCH_MIN_PAIRED`)."""
+    (itself when unpaired) -> (S,) int, each a frame index t whose labels are exchanged from the previous seen
+    frame's (`SWITCH_STEP`, `SWITCH_RATIO`, `SWITCH_MIN_PAIRED`; steps over the person's median bounding-box
+    diagonal)."""
     points, seen, mirror = np.asarray(points, dtype=np.float64), np.asarray(seen, dtype=bool), np.asarray(mirror)
     paired = (mirror != np.arange(len(mirror))) & seen & seen[:, mirror] & np.isfinite(points).all(-1)
-    if points.shape[0] < 2 or not paired.any():
+    frames = np.flatnonzero(paired.sum(-1) >= SWITCH_MIN_PAIRED)
+    if len(frames) < 2:
         return np.zeros(0, dtype=np.int64)
-    sizes = [_size(points[t, paired[t]]) for t in range(len(points)) if paired[t].sum() >= 2]
-    size = max(float(np.median(sizes)), 1.0) if sizes else 1.0
-    both = paired[1:] & paired[:-1]  # (T-1, K)
-    own = np.linalg.norm(points[1:] - points[:-1], axis=-1) / size
-    other = np.linalg.norm(points[1:, mirror] - points[:-1], axis=-1) / size
+    size = max(float(np.median([_size(points[t, paired[t]]) for t in frames])), 1.0)
     out = []
-    for i in np.flatnonzero(both.sum(-1) >= SWITCH_MIN_PAIRED):
-        step, exchanged = float(np.median(own[i, both[i]])), float(np.median(other[i, both[i]]))
+    for before, t in itertools.pairwise(frames):
+        both = paired[t] & paired[before]
+        if both.sum() < SWITCH_MIN_PAIRED:
+            continue
+        step = float(np.median(np.linalg.norm(points[t, both] - points[before, both], axis=-1))) / size
+        exchanged = float(np.median(np.linalg.norm(points[t, mirror][both] - points[before, both], axis=-1))) / size
         if step - exchanged > SWITCH_STEP and exchanged < SWITCH_RATIO * step:
-            out.append(i + 1)
+            out.append(t)
     return np.asarray(out, dtype=np.int64)
 
 
