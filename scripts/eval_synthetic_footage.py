@@ -16,7 +16,11 @@ Clip groups (`--clips`):
     check  07_05 (walk, subject 7), 35_01 (walk), 02_05 (punch), 49_19 (balance), 135_04 (kick): never tuned on
 
     python scripts/eval_synthetic_footage.py [--clips tune|check|all|NN_MM,...] [--out logs/eval_synthetic]
-        [--frames 60] [--noise-px 2] [--seed 0] [--keypoints coco17|halpe26] [--extrinsics] [key=value ...]
+        [--frames 60] [--noise-px 2] [--seed 0] [--keypoints coco17|halpe26] [--extrinsics] [--mirror A-B]
+        [key=value ...]
+
+`--mirror 25-39`: the participant's detections in images 25..39 labelled mirrored (every left/right label exchanged,
+the fault of a detector that takes the person for one facing the other way).
 
 `--keypoints halpe26` (the feet, neck and pelvis seen as well) and `--extrinsics` (the camera's pose given: the runs
 get `camera.up=y` and the footage's `camera.floor_m`) make footage closer to a lab's (the Pose2Sim trial's BODY_25B
@@ -84,10 +88,18 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="the footage's noise and the runs' seed")
     ap.add_argument("--keypoints", choices=synthetic_footage.KEYPOINT_SETS, default="coco17")
     ap.add_argument("--extrinsics", action="store_true", help="the camera's pose and the floor given to the runs")
+    ap.add_argument(
+        "--mirror",
+        type=synthetic_footage.image_range,
+        default=None,
+        metavar="A-B",
+        help="the participant labelled mirrored in images A..B (a detector's fault)",
+    )
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args()
     clips = list(GROUPS[a.clips]) if a.clips in GROUPS else a.clips.split(",")
     variant = ("" if a.keypoints == "coco17" else f"-{a.keypoints}") + ("-extrinsics" if a.extrinsics else "")
+    variant += f"-mirror{a.mirror[0]}-{a.mirror[1]}" if a.mirror else ""
     for clip in clips:
         amc, asf = clip_files(clip)
         if not amc.is_file() or not asf.is_file():
@@ -104,6 +116,7 @@ def main() -> None:
                 seed=a.seed,
                 keypoints=a.keypoints,
                 extrinsics=a.extrinsics,
+                mirrored=a.mirror,
             )
         with np.load(footage / "truth.npz") as t:
             height = float(t["height_m"])

@@ -64,11 +64,13 @@ def make(
     face: bool = False,
     keypoints: str = "coco17",
     extrinsics: bool = False,
+    mirrored: tuple[int, int] | None = None,
 ) -> dict:
     """Write the footage of `frames` frames (every `stride`-th AMC frame: 30 fps from 120) into `out` (face:
     the face keypoints scored as the rest; keypoints: one of `KEYPOINT_SETS`; extrinsics: the camera's R and T in
-    the YAML and the floor in truth.npz); -> a summary {height_m, fps, frames, nobody, floor_m (None without
-    extrinsics)}."""
+    the YAML and the floor in truth.npz; mirrored (first, last): the participant's detections in those images written
+    with every left and right label exchanged, as a detector that takes the person for one facing the other way);
+    -> a summary {height_m, fps, frames, nobody, floor_m (None without extrinsics)}."""
     if keypoints not in KEYPOINT_SETS:
         raise ValueError(f"synthetic_footage: keypoints must be one of {', '.join(KEYPOINT_SETS)}, got {keypoints!r}")
     kps = get_keypoint_set(keypoints)
@@ -99,6 +101,8 @@ def make(
             continue
         kp = np.concatenate([obs[t], score[t, :, None]], -1)
         kp[score[t] == 0] = 0.0
+        if mirrored is not None and mirrored[0] <= t <= mirrored[1]:
+            kp = kp[kps.mirror_index()]
         results.append({"image_id": t, "category_id": 1, "keypoints": kp.ravel().round(3).tolist(), "score": 0.9})
         if t % 3 == 0:  # a bystander: the person at 60% size, 300 px to the side
             b = (obs[t] - obs[t].mean(0)) * 0.6 + obs[t].mean(0) + np.array([300.0, 40.0])
@@ -179,6 +183,7 @@ def main() -> None:
     ap.add_argument(
         "--extrinsics", action="store_true", help="the camera's R and T in the YAML, the floor in truth.npz"
     )
+    ap.add_argument("--mirror", type=image_range, default=None, metavar="A-B", help="images A..B labelled mirrored")
     a = ap.parse_args()
     asf = a.asf or next(a.amc.parent.glob("*.asf"))
     print(
@@ -191,8 +196,20 @@ def main() -> None:
             seed=a.seed,
             keypoints=a.keypoints,
             extrinsics=a.extrinsics,
+            mirrored=a.mirror,
         )
     )
+
+
+def image_range(text: str) -> tuple[int, int]:
+    """'A-B' -> (A, B), for --mirror."""
+    try:
+        a, b = (int(x) for x in text.split("-"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected A-B (two image numbers), got {text!r}") from None
+    if not 0 <= a <= b:
+        raise argparse.ArgumentTypeError(f"expected 0 <= A <= B, got {text!r}")
+    return a, b
 
 
 if __name__ == "__main__":

@@ -294,15 +294,16 @@ def test_a_detector_that_mirrors_the_person_turns_the_exchanged_reading_on(synth
     from ptrack.pipeline.run import prepare, with_swap_cost
 
     folder, info = synthetic
-    images = json.loads((folder / "keypoints.json").read_text())
+    mirrored_folder = tmp_path / "mirrored"  # the same footage with the participant mirrored in images 8-15
+    synthetic_footage.make(data_file("10_02.amc"), data_file("10.asf"), mirrored_folder, frames=24, mirrored=(8, 15))
+    mirrored = mirrored_folder / "keypoints.json"
+    images = json.loads(mirrored.read_text())
+    clean = json.loads((folder / "keypoints.json").read_text())
     mirror = get_keypoint_set("coco17").mirror_index()
-    for i in range(8, 16):  # the participant, the larger person of the image
-        people = [e for e in images if e["image_id"] == i]
-        if people:
-            e = max(people, key=lambda e: np.ptp(np.reshape(e["keypoints"], (-1, 3))[:, :2], 0).sum())
-            e["keypoints"] = np.reshape(e["keypoints"], (-1, 3))[mirror].reshape(-1).tolist()
-    mirrored = tmp_path / "mirrored.json"
-    mirrored.write_text(json.dumps(images))
+    for a, b in zip(images, clean, strict=True):  # the participant's labels exchanged there, nothing else
+        same = a["image_id"] not in range(8, 16) or a["score"] < 0.9  # (the bystander's score is 0.7)
+        want = np.reshape(b["keypoints"], (-1, 3)) if same else np.reshape(b["keypoints"], (-1, 3))[mirror]
+        np.testing.assert_array_equal(np.reshape(a["keypoints"], (-1, 3)), want)
     seen = sorted({e["image_id"] for e in images} - {info["nobody"]})
     switches = [min(i for i in seen if i >= 8), min(i for i in seen if i >= 16)]
     base = [f"camera.file={folder / 'camera.yml'}", f"subject.height_m={info['height_m']:.3f}", "observations.fps=30"]
