@@ -31,6 +31,8 @@ Linked tracks are numbered 0, 1, ... by first appearance, then by size (larger f
   first frame count, with their box in the first frame they appear, only when no track is in the first frame.
 
 Left/right swaps of the detector are kept as they are (the estimators' robust terms handle them).
+`mirror_switches(points, seen, mirror)` finds the frames where the detector exchanged every label of the person from
+the frame before (the run then lets the kjs tracker read the labels exchanged too, `costs.swap_cost`).
 """
 
 from __future__ import annotations
