@@ -246,11 +246,6 @@ def prepare_footage(
     )
     definition = get_keypoint_set(track.keypoint_set)
     switches = mirror_switches(track.points, track.scores >= o.min_score, definition.mirror_index())
-    if len(switches):
-        log.info(
-            "the detector exchanged every left/right label of the person at frames %s",
-            ", ".join(str(int(f)) for f in track.frames[switches]),
-        )
     given, known = cfg.subject.height_m is not None, cfg.subject.lengths == "asf"  # asf: its bone lengths as they are
     height = check_height(cfg.subject.height_m) if given else standing_height(template) if known else DEFAULT_HEIGHT_M
     if not given and not known:

@@ -850,7 +850,13 @@ def with_swap_cost(cfg: RunConfig, prep: Prepared) -> tuple[RunConfig, Prepared]
     if price is None:
         price = AUTO_SWAP_COST if prep.footage is not None and prep.footage.mirror_switches else 0.0
         if price:
-            log.info("the labels exchanged are read too, at costs.swap_cost %g (the detector mirrored them)", price)
+            assert prep.footage is not None
+            log.warning(
+                "the detector turns every left/right label of the person over at frame(s) %s (it takes them for "
+                "someone facing the other way): each frame is read both ways, at costs.swap_cost %g",
+                ", ".join(str(f) for f in prep.footage.mirror_switches),
+                price,
+            )
         cfg = dataclasses.replace(cfg, costs=dataclasses.replace(cfg.costs, swap_cost=price))
     if prep.footage is not None:
         prep = dataclasses.replace(prep, footage=dataclasses.replace(prep.footage, swap_cost=float(price)))
