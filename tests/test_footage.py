@@ -261,6 +261,7 @@ def test_synthetic_coco_run(synthetic, tmp_path, capsys):
     shares = metrics["ambiguous_frame_share_per_limb"].values()
     assert np.mean(list(logged["ambiguous_limb_share"].values())) == pytest.approx(np.mean(list(shares)))
     assert logged["person_missing"] == dict.fromkeys(frames.tolist(), 0.0)  # the empty image is not a frame
+    assert logged["left_right_exchanged"] == dict.fromkeys(frames.tolist(), 0.0)  # nothing mirrored, none read so
     skating = logged["foot_skating_mm_per_frame"]  # the feet's mean step while on the floor
     assert 3 <= len(skating) < len(frames) and frames[0] not in skating
     assert all(v >= 0 for v in skating.values())

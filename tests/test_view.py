@@ -108,6 +108,7 @@ def _log(full: bool = True) -> RunLog:
             "foot_skating_mm_per_frame": np.r_[np.nan, np.ones(T - 1)],
             "ambiguous_frame": np.ones(T),
             "person_missing": np.zeros(T),
+            "left_right_exchanged": np.zeros(T),
         },
         **kw,
     )
@@ -287,9 +288,10 @@ def test_plot_groups_cover_each_scalar_once(full):
     assert groups["other metrics"] == ["metrics/custom_score"]
     assert groups["jitter (mm/frame²)"] == ["metrics/jitter_mm_per_frame2"]
     assert groups["foot skating (mm/frame)"] == ["metrics/foot_skating_mm_per_frame"]
-    assert groups["ambiguous limbs, person missing (0/1, share)"] == [
+    assert groups["ambiguous limbs, labels exchanged, person missing (0/1, share)"] == [
         "metrics/ambiguous_frame",
         "metrics/person_missing",
+        "metrics/left_right_exchanged",
     ]
     titles = {v["display_name"][0]: v["query"] for v in rec.reachable_views()}
     assert titles["hypothesis costs"] == [f"+ /world/hypotheses/h{n}/cost" for n in range(N)]

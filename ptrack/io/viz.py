@@ -57,7 +57,9 @@ Entity layout (stable: tests and users rely on it):
                                         the checks without ground truth: jitter_mm_per_frame2,
                                         foot_skating_mm_per_frame (the mean horizontal step of the
                                         foot points on the floor), ambiguous_frame (0/1) and
-                                        ambiguous_limb_share (with hypotheses), person_missing (0/1)
+                                        ambiguous_limb_share (with hypotheses), left_right_exchanged
+                                        (0/1: the result reads the detector's labels the other way
+                                        round), person_missing (0/1)
     jumps/<chain>                       Scalars: kinematic-jump leaves kept per frame for each chain
     pca/time                            Scalars: the motion model's normalised time per frame  [if motion_time]
     pca/weights/alpha<i>                Scalars: the i-th PCA weight per frame  [if motion_weights]
@@ -800,8 +802,8 @@ def _metric_plot(name: str) -> str:
         return "jitter (mm/frame²)"
     if name.startswith("foot_skating"):
         return "foot skating (mm/frame)"
-    if name.startswith("ambiguous") or name == "person_missing":
-        return "ambiguous limbs, person missing (0/1, share)"
+    if name.startswith("ambiguous") or name in ("person_missing", "left_right_exchanged"):
+        return "ambiguous limbs, labels exchanged, person missing (0/1, share)"
     if name.endswith("_mm"):
         return "joint position error (mm)"
     if name.endswith("_px"):

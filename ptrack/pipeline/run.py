@@ -564,7 +564,8 @@ def footage_checks(
     label exchanged (a detector's mirrored body; `costs.swap_cost`). est_kp: (T, K, 3) the estimate's keypoints.
     -> (summary, per-frame series (T,) for the rerun log's plots: the jitter (NaN at the two ends), the feet's
     mean sliding step (NaN at frame 0 and where no foot is on the floor), whether some limb is ambiguous (0/1) and
-    the share of the limbs that are, and whether the person is missing (0/1))."""
+    the share of the limbs that are, whether the result reads the labels exchanged (0/1) and whether the person is
+    missing (0/1))."""
     assert prep.footage is not None
     prob = prep.problem
     obs, kps = prob.observations, prob.keypoints
@@ -597,6 +598,7 @@ def footage_checks(
     exchanged = M.exchanged_label_frames(reproj.cpu(), obs.keypoints.cpu(), obs.confidence.cpu(), kps.mirror_index())
     if exchanged is not None:  # where the result reads the detector's left and right the other way round
         out["left_right_exchanged_frames"] = [int(f) for f in np.asarray(prep.footage.frames)[exchanged.numpy()]]
+        series["left_right_exchanged"] = exchanged.double().numpy()  # 0/1
     series["person_missing"] = np.isin(prep.footage.frames, prep.footage.missing_frames).astype(np.float64)  # 0/1
     given = prep.footage.lengths == "asf"
     out["bone_lengths"] = M.bone_lengths_report(segment_lengths(prob.skeleton), prep.footage.segments, given)
