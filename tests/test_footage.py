@@ -320,6 +320,18 @@ def test_a_detector_that_mirrors_the_person_turns_the_exchanged_reading_on(synth
         assert list(prep.footage.mirror_switches) == frames and cfg.costs.swap_cost == price, (keypoints, extra)
         assert prep.footage.summary()["swap_cost"] == price
         assert prep.footage.summary()["mirror_switch_frames"] == frames
+    # the whole run: the mirrored images read exchanged, and their reprojection error counted in that reading
+    out = tmp_path / "run"
+    assert _run_synthetic((mirrored_folder, info), out) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["footage"]["swap_cost"] == AUTO_SWAP_COST
+    assert metrics["left_right_exchanged_frames"] == [i for i in seen if 8 <= i <= 15]
+    assert metrics["reprojection_error_px"] < 10.0  # 2 px noise: the labels the run used, not the detector's
+    with np.load(out / "result.npz") as r:  # the detections as labelled: the mirrored images far off
+        err = np.linalg.norm(r["keypoints_observed"] - r["keypoints_reprojected"], axis=-1)
+        err = np.where(r["confidence"] > 0, err, np.nan)
+        mirrored_rows = np.isin(r["frames"], np.arange(8, 16))
+    assert np.nanmean(err[mirrored_rows]) > 3 * metrics["reprojection_error_px"]
 
 
 def test_known_skeleton_keeps_the_asf_bone_lengths(synthetic, tmp_path):

@@ -453,7 +453,8 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
         series[name] = v
         summary[name] = float(np.nanmean(v)) if np.isfinite(v).any() else None
 
-    put("reprojection_error_px", M.reprojection_error_px(reproj, obs.keypoints, obs.confidence))
+    observed, confidence = detections_as_read(prep, reproj)
+    put("reprojection_error_px", M.reprojection_error_px(reproj, observed, confidence))
     if prep.visible is not None:  # a small reprojection error means little when the camera sees little
         summary["visible_fraction"] = float(prep.visible.float().mean())
     summary["observed_fraction"] = float((obs.confidence > 0).float().mean())  # what the estimator was given
@@ -520,6 +521,23 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
     return summary, series
 
 
+def detections_as_read(prep: Prepared, reproj: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The observed keypoints (T, K, 2) and confidences (T, K) as the run read them: on real footage whose run read
+    each frame's labels both ways (`FootageFrame.swap_cost` > 0), the frames that the result fits better with every
+    left and right label exchanged (`metrics.exchanged_label_frames`) in that reading, so that their reprojection
+    error is the one of the labels the run used; else as detected. reproj: (T, K, 2) the result reprojected."""
+    obs, kps = prep.problem.observations, prep.problem.keypoints
+    if prep.footage is None or not prep.footage.swap_cost:
+        return obs.keypoints, obs.confidence
+    mirror = kps.mirror_index(obs.keypoints.device)
+    exchanged = M.exchanged_label_frames(reproj.cpu(), obs.keypoints.cpu(), obs.confidence.cpu(), mirror.cpu())
+    if exchanged is None:
+        return obs.keypoints, obs.confidence
+    exchanged = exchanged.to(obs.keypoints.device)
+    observed = torch.where(exchanged[:, None, None], obs.keypoints.index_select(1, mirror), obs.keypoints)
+    return observed, torch.where(exchanged[:, None], obs.confidence.index_select(1, mirror), obs.confidence)
+
+
 #: the heaviest mode counts as the best one in a frame when its MPJPE is within this of the best mode's (mm)
 HEAVIEST_BEST_MM = 10.0
 
@@ -571,7 +589,8 @@ def footage_checks(
     obs, kps = prob.observations, prob.keypoints
     names = kps.names
     kp = est_kp.detach().double().cpu()
-    per_kp = M.reprojection_error_per_keypoint(reproj.cpu(), obs.keypoints.cpu(), obs.confidence.cpu())
+    observed, confidence = detections_as_read(prep, reproj)
+    per_kp = M.reprojection_error_per_keypoint(reproj.cpu(), observed.cpu(), confidence.cpu())
     shake = M.second_differences_mm(kp)  # (T-2, K)
     jitter = shake.mean(0) if len(shake) else shake.new_full((len(names),), float("nan"))
     out: dict = {
