@@ -478,6 +478,9 @@ def test_checks_without_ground_truth():
     lift = sliding[:4].clone()
     lift[3, 0, 1] = 0.3  # the foot leaves the floor in frame 3
     assert torch.isnan(foot_sliding_steps_mm(lift, up)[:, 0]).tolist() == [False, False, True]
+    wild = torch.cat([sliding.repeat(5, 1, 1), sliding[:1]])  # 31 frames on the floor, then one far under it
+    wild[-1, 0, 1] = -0.4  # (a lone detection fitted wildly): the floor is not set by it
+    assert foot_sliding_steps_mm(wild, up)[:-1, 0].isfinite().sum() >= 25
 
     # two modes of one limb (keypoints 0 -> 1) seen by a camera at the origin looking along +z
     R, tt = torch.eye(3), torch.zeros(3)
