@@ -152,6 +152,11 @@ class ObservationsConfig:
         "real footage above this rate is tracked every n-th frame (n = round(fps / track_fps)), the frames between "
         "filled from their neighbours (docs/outputs.md); null: every frame",
     )
+    filter_hz: float | None = setting(
+        None,
+        "real footage: the reported trajectory's poses low-passed at this frequency (Hz; zero-phase Butterworth, "
+        "between jumps; ptrack.pipeline.run.lowpass_trajectory); null: as tracked",
+    )
     person: int | tuple[float, ...] | None = setting(
         None, "the person to reconstruct: a track id, or [x, y] px in the first frame; null: largest, most present"
     )
@@ -588,6 +593,8 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         raise InputError("config keys 'observations.file' and 'observations.video' are both set: give one")
     if o.fps is not None and not 0 < o.fps <= 10000:
         raise InputError(f"config key 'observations.fps' must be in (0, 10000], got {o.fps}")
+    if o.filter_hz is not None and not (math.isfinite(o.filter_hz) and o.filter_hz > 0):
+        raise InputError(f"config key 'observations.filter_hz' must be a positive number or null, got {o.filter_hz}")
     if o.track_fps is not None and not 0 < o.track_fps <= 10000:
         raise InputError(f"config key 'observations.track_fps' must be in (0, 10000] or null, got {o.track_fps}")
     if not 0 <= o.min_score < 1:

@@ -99,6 +99,7 @@ class FootageFrame:
     # (`ptrack.observe.people.mirror_switches`); with `costs.swap_cost: null` they turn the exchanged reading on
     mirror_switches: tuple[int, ...] = ()
     swap_cost: float | None = None  # the price of reading a frame's labels exchanged that the run used (0: off)
+    filter_hz: float | None = None  # the reported trajectory low-passed at this frequency (`observations.filter_hz`)
 
     def summary(self) -> dict:
         """JSON-ready record for metrics.json."""
@@ -111,6 +112,7 @@ class FootageFrame:
             "tracked_every": self.tracked_every,
             "mirror_switch_frames": list(self.mirror_switches),
             "swap_cost": self.swap_cost,
+            "filter_hz": self.filter_hz,
             "up": self.up,
             "ground": self.ground,
             "height_m": self.height_m,

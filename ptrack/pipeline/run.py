@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import itertools
 import json
 import logging
 import math
@@ -812,8 +813,19 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     """The data and observations of `cfg` (`prepare`) and the configured method's estimate of them, as
     `execute` computes them (same seed, same result), without writing anything. progress: a progress
     bar on stderr (on a terminal only)."""
+    prep, est = _estimate(cfg, progress, work_dir)
+    hz = cfg.observations.filter_hz
+    if hz is not None and prep.footage is not None:
+        est = lowpass_trajectory(prep.problem.skeleton, est, prep.footage.fps, hz)
+        prep = dataclasses.replace(prep, footage=dataclasses.replace(prep.footage, filter_hz=hz))
+    return prep, est
+
+
+def _estimate(cfg: RunConfig, progress: bool, work_dir: Path | None) -> tuple[Prepared, Estimate]:
+    """`estimate` before `observations.filter_hz`."""
     prep = prepare(cfg, work_dir)
     cfg, prep = with_swap_cost(cfg, prep)
+    check_filter(cfg, prep)
     if cfg.subject.static:  # the segment lengths of a static trial (ptrack.pipeline.static)
         from ptrack.pipeline.static import apply_static
 
@@ -859,6 +871,56 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     if again or n > every or first_cfg is not cfg:  # the first run was not the configured one
         return prep, track(prep.problem)
     return prep, fill_frames(prep.problem.skeleton, first, every, prep.problem.observations.num_frames)
+
+
+#: `lowpass_trajectory`: a frame whose joints move more than this many times the clip's median step from the frame
+#: before starts a new stretch (a change of reading, which a filter would smear over its neighbours)
+JUMP_FACTOR = 5.0
+#: `lowpass_trajectory`'s Butterworth order (run forwards and backwards: zero phase, twice the roll-off)
+FILTER_ORDER = 2
+
+
+def check_filter(cfg: RunConfig, prep: Prepared) -> None:
+    """`observations.filter_hz` against the footage's frame rate (under half of it), before anything is tracked; a
+    warning where there is no real footage (it is then not used)."""
+    hz = cfg.observations.filter_hz
+    if hz is None:
+        return
+    if prep.footage is None:
+        log.warning("observations.filter_hz is for real footage; it is not used on simulated observations")
+        return
+    if hz >= prep.footage.fps / 2:
+        raise InputError(
+            f"config key 'observations.filter_hz' ({hz:g} Hz) must be under half the frame rate "
+            f"({prep.footage.fps:g} fps)"
+        )
+
+
+def lowpass_trajectory(sk: Skeleton, est: Estimate, fps: float, cutoff_hz: float) -> Estimate:
+    """The reported trajectory low-passed in time: each dof of q (T, D) (angles unwrapped) through a zero-phase
+    Butterworth filter (`FILTER_ORDER`, `scipy.signal.filtfilt`) at `cutoff_hz`, in stretches between jumps (a frame
+    whose joints move more than `JUMP_FACTOR` times the clip's median step from the frame before); stretches too
+    short for the filter stay as they are. The poses are kept within the joint limits and the joints are their
+    forward kinematics; the hypotheses, costs and weights stay as tracked (they are each frame's own)."""
+    from scipy.signal import butter, filtfilt
+
+    q = est.q.detach().double().cpu().numpy()
+    frames = q.shape[0]
+    joints = est.joints.detach().double().cpu().numpy()
+    step = np.linalg.norm(joints[1:] - joints[:-1], axis=-1).mean(-1)  # (T-1,)
+    jumps = np.flatnonzero(step > JUMP_FACTOR * max(float(np.median(step)) if len(step) else 0.0, 1e-9)) + 1
+    bounds = [0, *jumps.tolist(), frames]
+    angular = np.asarray(sk.angular_dofs(), dtype=bool)
+    unwrapped = q.copy()
+    unwrapped[:, angular] = np.unwrap(q[:, angular], axis=0)
+    b, a = butter(FILTER_ORDER, cutoff_hz / (fps / 2))
+    smooth = unwrapped.copy()
+    for start, end in itertools.pairwise(bounds):
+        if end - start > 3 * max(len(a), len(b)):  # filtfilt's padding needs more frames than this
+            smooth[start:end] = filtfilt(b, a, unwrapped[start:end], axis=0)
+    lower, upper = (x.double().cpu().numpy() for x in sk.limits(dtype=torch.float64))
+    out = torch.as_tensor(np.clip(q + (smooth - unwrapped), lower, upper), dtype=est.q.dtype, device=est.q.device)
+    return est._replace(q=out, joints=sk.forward_kinematics(out))
 
 
 def with_swap_cost(cfg: RunConfig, prep: Prepared) -> tuple[RunConfig, Prepared]:
