@@ -492,6 +492,42 @@ def test_between_frames_is_linear_and_holds_the_last():
     torch.testing.assert_close(between_frames(x, 1, 3), x)
 
 
+def test_lowpass_trajectory_smooths_between_jumps_and_keeps_the_body():
+    """`observations.filter_hz`: a slow swing with noise comes out nearer the swing; a jump of the whole body (a
+    change of reading) stays a jump, not smeared over its neighbours; the yaw crossing +-pi is filtered as one
+    angle; the poses stay within the limits, the joints are their forward kinematics, the rest as tracked."""
+    from ptrack.pipeline.run import lowpass_trajectory
+    from ptrack.problem import Estimate
+
+    sk = Skeleton.from_asf(data_file("10.asf"))
+    T, fps = 120, 60.0
+    gen = torch.Generator().manual_seed(0)
+    t = torch.arange(T, dtype=torch.float64) / fps
+    clean = torch.zeros(T, sk.num_dofs, dtype=torch.float64)
+    knee, x, yaw = sk.dof_names.index("ltibia.rx"), sk.dof_names.index("root.tx"), sk.dof_names.index("root.ry")
+    clean[:, knee] = 0.6 + 0.4 * torch.sin(2 * math.pi * 0.5 * t)  # a slow bend, 0.5 Hz
+    clean[:, yaw] = math.pi - 0.2 + 0.4 * t / t[-1]  # turning through +pi
+    clean[60:, x] += 1.0  # the whole body a metre aside from frame 60 on: a jump
+    lower, upper = sk.limits(dtype=torch.float64)
+    clean = torch.maximum(torch.minimum(clean, upper), lower)
+    noisy = clean + 0.03 * torch.randn(T, sk.num_dofs, generator=gen, dtype=torch.float64)
+    noisy[:, yaw] = torch.remainder(noisy[:, yaw] + math.pi, 2 * math.pi) - math.pi  # reported in (-pi, pi]
+    noisy = torch.maximum(torch.minimum(noisy, upper), lower)
+    est = Estimate(q=noisy, joints=sk.forward_kinematics(noisy), cost=torch.ones(T), terms={})
+    out = lowpass_trajectory(sk, est, fps, 6.0)
+
+    def err(q: torch.Tensor) -> float:
+        return float((q[:, knee] - clean[:, knee]).abs().mean())
+
+    assert err(out.q) < 0.6 * err(noisy)  # nearer the slow bend
+    torch.testing.assert_close(out.joints, sk.forward_kinematics(out.q))
+    assert (out.q >= lower - 1e-12).all() and (out.q <= upper + 1e-12).all()
+    assert abs(float(out.q[59, x] - clean[59, x])) < 0.05 and abs(float(out.q[60, x] - clean[60, x])) < 0.05
+    turned = torch.remainder(out.q[:, yaw] - clean[:, yaw] + math.pi, 2 * math.pi) - math.pi
+    assert turned.abs().max() < 0.1  # no swing the long way round at the crossing
+    assert out.cost is est.cost and out.terms is est.terms
+
+
 def test_fill_frames_interpolates_the_pose_and_moves_the_hypotheses():
     """An estimate of frames 0, 2, 4 -> frames 0-5: the tracked frames as they were, the pose halfway between them
     (an angle the shorter way round, through +-pi), the joints its forward kinematics, the hypotheses moved with the
