@@ -528,6 +528,22 @@ def test_lowpass_trajectory_smooths_between_jumps_and_keeps_the_body():
     assert out.cost is est.cost and out.terms is est.terms
 
 
+def test_filter_hz_not_under_half_the_frame_rate_is_a_warning(synthetic, tmp_path, caplog):
+    """configs/video.yaml low-passes at 6 Hz; footage at 10 fps or less cannot hold that: a warning, no filter."""
+    from ptrack.pipeline.config import load_config
+    from ptrack.pipeline.run import check_filter, prepare
+
+    folder, info = synthetic
+    base = [f"observations.file={folder / 'keypoints.json'}", f"camera.file={folder / 'camera.yml'}"]
+    base += [f"subject.height_m={info['height_m']:.3f}"]
+    for fps, warned in ((30, False), (12, True)):
+        caplog.clear()
+        cfg = load_config(VIDEO_YAML, [*base, f"observations.fps={fps}"])
+        assert cfg.observations.filter_hz == 6
+        check_filter(cfg, prepare(cfg, tmp_path))
+        assert ("not under half the frame rate" in caplog.text) == warned, fps
+
+
 def test_fill_frames_interpolates_the_pose_and_moves_the_hypotheses():
     """An estimate of frames 0, 2, 4 -> frames 0-5: the tracked frames as they were, the pose halfway between them
     (an angle the shorter way round, through +-pi), the joints its forward kinematics, the hypotheses moved with the

@@ -815,7 +815,7 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     bar on stderr (on a terminal only)."""
     prep, est = _estimate(cfg, progress, work_dir)
     hz = cfg.observations.filter_hz
-    if hz is not None and prep.footage is not None:
+    if hz is not None and prep.footage is not None and hz < prep.footage.fps / 2:  # else `check_filter` warned
         est = lowpass_trajectory(prep.problem.skeleton, est, prep.footage.fps, hz)
         prep = dataclasses.replace(prep, footage=dataclasses.replace(prep.footage, filter_hz=hz))
     return prep, est
@@ -881,18 +881,18 @@ FILTER_ORDER = 2
 
 
 def check_filter(cfg: RunConfig, prep: Prepared) -> None:
-    """`observations.filter_hz` against the footage's frame rate (under half of it), before anything is tracked; a
-    warning where there is no real footage (it is then not used)."""
+    """A warning, before anything is tracked, where `observations.filter_hz` will not be used: without real footage,
+    and at or above half the footage's frame rate (a trajectory sampled at that rate holds nothing faster)."""
     hz = cfg.observations.filter_hz
     if hz is None:
         return
     if prep.footage is None:
         log.warning("observations.filter_hz is for real footage; it is not used on simulated observations")
-        return
-    if hz >= prep.footage.fps / 2:
-        raise InputError(
-            f"config key 'observations.filter_hz' ({hz:g} Hz) must be under half the frame rate "
-            f"({prep.footage.fps:g} fps)"
+    elif hz >= prep.footage.fps / 2:
+        log.warning(
+            "observations.filter_hz (%g Hz) is not under half the frame rate (%g fps): the trajectory is not filtered",
+            hz,
+            prep.footage.fps,
         )
 
 
