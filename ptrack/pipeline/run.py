@@ -454,7 +454,8 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
         series[name] = v
         summary[name] = float(np.nanmean(v)) if np.isfinite(v).any() else None
 
-    observed, confidence = detections_as_read(prep, reproj)
+    exchanged = exchanged_frames(prep, reproj)
+    observed, confidence = detections_as_read(prep, exchanged)
     put("reprojection_error_px", M.reprojection_error_px(reproj, observed, confidence))
     if prep.visible is not None:  # a small reprojection error means little when the camera sees little
         summary["visible_fraction"] = float(prep.visible.float().mean())
@@ -500,7 +501,7 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
         distinct = M.distinct_modes(est.hypotheses.detach().cpu(), est.hypothesis_weights.detach().cpu())
         summary["distinct_modes_5cm"] = float(distinct.double().mean())
     if prep.footage is not None:
-        checks, per_frame = footage_checks(prep, est, est_kp, reproj)
+        checks, per_frame = footage_checks(prep, est, est_kp, reproj, (observed, confidence), exchanged)
         summary.update(checks)
         series.update(per_frame)
     if est.joint_std is not None:
@@ -522,21 +523,28 @@ def compute_metrics(prep: Prepared, est: Estimate, reproj: torch.Tensor) -> tupl
     return summary, series
 
 
-def detections_as_read(prep: Prepared, reproj: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The observed keypoints (T, K, 2) and confidences (T, K) as the run read them: on real footage whose run read
-    each frame's labels both ways (`FootageFrame.swap_cost` > 0), the frames that the result fits better with every
-    left and right label exchanged (`metrics.exchanged_label_frames`) in that reading, so that their reprojection
-    error is the one of the labels the run used; else as detected. reproj: (T, K, 2) the result reprojected."""
+def exchanged_frames(prep: Prepared, reproj: torch.Tensor) -> torch.Tensor | None:
+    """Real footage: the frames (T,) bool whose detections the result fits better with every left and right label
+    exchanged (`metrics.exchanged_label_frames`); None off real footage or for a keypoint set without pairs.
+    reproj: (T, K, 2) the result reprojected."""
+    if prep.footage is None:
+        return None
     obs, kps = prep.problem.observations, prep.problem.keypoints
-    if prep.footage is None or not prep.footage.swap_cost:
+    return M.exchanged_label_frames(reproj.cpu(), obs.keypoints.cpu(), obs.confidence.cpu(), kps.mirror_index())
+
+
+def detections_as_read(prep: Prepared, exchanged: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The observed keypoints (T, K, 2) and confidences (T, K) as the run read them: on real footage whose run read
+    each frame's labels both ways (`FootageFrame.swap_cost` > 0), the `exchanged` frames (`exchanged_frames`) with
+    every left and right label exchanged, so that their reprojection error is the one of the labels the run used;
+    else as detected."""
+    obs, kps = prep.problem.observations, prep.problem.keypoints
+    if prep.footage is None or not prep.footage.swap_cost or exchanged is None:
         return obs.keypoints, obs.confidence
     mirror = kps.mirror_index(obs.keypoints.device)
-    exchanged = M.exchanged_label_frames(reproj.cpu(), obs.keypoints.cpu(), obs.confidence.cpu(), mirror.cpu())
-    if exchanged is None:
-        return obs.keypoints, obs.confidence
-    exchanged = exchanged.to(obs.keypoints.device)
-    observed = torch.where(exchanged[:, None, None], obs.keypoints.index_select(1, mirror), obs.keypoints)
-    return observed, torch.where(exchanged[:, None], obs.confidence.index_select(1, mirror), obs.confidence)
+    at = exchanged.to(obs.keypoints.device)
+    observed = torch.where(at[:, None, None], obs.keypoints.index_select(1, mirror), obs.keypoints)
+    return observed, torch.where(at[:, None], obs.confidence.index_select(1, mirror), obs.confidence)
 
 
 #: the heaviest mode counts as the best one in a frame when its MPJPE is within this of the best mode's (mm)
@@ -573,14 +581,20 @@ FOOT_LANDMARKS = ("l_ankle", "r_ankle", "l_heel", "r_heel", "l_big_toe", "r_big_
 
 
 def footage_checks(
-    prep: Prepared, est: Estimate, est_kp: torch.Tensor, reproj: torch.Tensor
+    prep: Prepared,
+    est: Estimate,
+    est_kp: torch.Tensor,
+    reproj: torch.Tensor,
+    read: tuple[torch.Tensor, torch.Tensor],
+    exchanged: torch.Tensor | None,
 ) -> tuple[dict, dict[str, np.ndarray]]:
     """What a person checks without ground truth (real footage): the median reprojection error of each
     keypoint (px), each keypoint's jitter (mean second difference, mm/frame^2) and their means, the skating
     of the feet (horizontal mm/frame while within 5 cm of their lowest height; the model frame is Y up), and
     with hypotheses the share of frames where the modes disagree about some limb's depth order (summed weight
     between 0.1 and 0.9), and the input frames whose detections the result fits better with every left and right
-    label exchanged (a detector's mirrored body; `costs.swap_cost`). est_kp: (T, K, 3) the estimate's keypoints.
+    label exchanged (a detector's mirrored body; `costs.swap_cost`). est_kp: (T, K, 3) the estimate's keypoints;
+    read: the detections as the run read them (`detections_as_read`); exchanged: `exchanged_frames`.
     -> (summary, per-frame series (T,) for the rerun log's plots: the jitter (NaN at the two ends), the feet's
     mean sliding step (NaN at frame 0 and where no foot is on the floor), whether some limb is ambiguous (0/1) and
     the share of the limbs that are, whether the result reads the labels exchanged (0/1) and whether the person is
@@ -590,8 +604,7 @@ def footage_checks(
     obs, kps = prob.observations, prob.keypoints
     names = kps.names
     kp = est_kp.detach().double().cpu()
-    observed, confidence = detections_as_read(prep, reproj)
-    per_kp = M.reprojection_error_per_keypoint(reproj.cpu(), observed.cpu(), confidence.cpu())
+    per_kp = M.reprojection_error_per_keypoint(reproj.cpu(), read[0].cpu(), read[1].cpu())
     shake = M.second_differences_mm(kp)  # (T-2, K)
     jitter = shake.mean(0) if len(shake) else shake.new_full((len(names),), float("nan"))
     out: dict = {
@@ -615,7 +628,6 @@ def footage_checks(
         out["ambiguous_frame_share_per_limb"] = {
             f"{names[a]}-{names[b]}": float(v) for (a, b), v in zip(kps.limbs, ambiguous.double().mean(0))
         }
-    exchanged = M.exchanged_label_frames(reproj.cpu(), obs.keypoints.cpu(), obs.confidence.cpu(), kps.mirror_index())
     if exchanged is not None:  # where the result reads the detector's left and right the other way round
         out["left_right_exchanged_frames"] = [int(f) for f in np.asarray(prep.footage.frames)[exchanged.numpy()]]
         series["left_right_exchanged"] = exchanged.double().numpy()  # 0/1
