@@ -531,7 +531,7 @@ def test_lowpass_trajectory_smooths_between_jumps_and_keeps_the_body():
 def test_filter_hz_not_under_half_the_frame_rate_is_a_warning(synthetic, tmp_path, caplog):
     """configs/video.yaml low-passes at 6 Hz; footage at 10 fps or less cannot hold that: a warning, no filter."""
     from ptrack.pipeline.config import load_config
-    from ptrack.pipeline.run import check_filter, prepare
+    from ptrack.pipeline.run import prepare, with_filter
 
     folder, info = synthetic
     base = [f"observations.file={folder / 'keypoints.json'}", f"camera.file={folder / 'camera.yml'}"]
@@ -540,8 +540,9 @@ def test_filter_hz_not_under_half_the_frame_rate_is_a_warning(synthetic, tmp_pat
         caplog.clear()
         cfg = load_config(VIDEO_YAML, [*base, f"observations.fps={fps}"])
         assert cfg.observations.filter_hz == 6
-        check_filter(cfg, prepare(cfg, tmp_path))
+        prep = with_filter(cfg, prepare(cfg, tmp_path))
         assert ("not under half the frame rate" in caplog.text) == warned, fps
+        assert prep.footage is not None and prep.footage.filter_hz == (None if warned else 6), fps
 
 
 def test_fill_frames_interpolates_the_pose_and_moves_the_hypotheses():

@@ -826,10 +826,8 @@ def estimate(cfg: RunConfig, progress: bool = False, work_dir: Path | None = Non
     `execute` computes them (same seed, same result), without writing anything. progress: a progress
     bar on stderr (on a terminal only)."""
     prep, est = _estimate(cfg, progress, work_dir)
-    hz = cfg.observations.filter_hz
-    if hz is not None and prep.footage is not None and hz < prep.footage.fps / 2:  # else `check_filter` warned
-        est = lowpass_trajectory(prep.problem.skeleton, est, prep.footage.fps, hz)
-        prep = dataclasses.replace(prep, footage=dataclasses.replace(prep.footage, filter_hz=hz))
+    if prep.footage is not None and prep.footage.filter_hz is not None:  # `with_filter`
+        est = lowpass_trajectory(prep.problem.skeleton, est, prep.footage.fps, prep.footage.filter_hz)
     return prep, est
 
 
@@ -837,7 +835,7 @@ def _estimate(cfg: RunConfig, progress: bool, work_dir: Path | None) -> tuple[Pr
     """`estimate` before `observations.filter_hz`."""
     prep = prepare(cfg, work_dir)
     cfg, prep = with_swap_cost(cfg, prep)
-    check_filter(cfg, prep)
+    prep = with_filter(cfg, prep)
     if cfg.subject.static:  # the segment lengths of a static trial (ptrack.pipeline.static)
         from ptrack.pipeline.static import apply_static
 
@@ -892,20 +890,25 @@ JUMP_FACTOR = 5.0
 FILTER_ORDER = 2
 
 
-def check_filter(cfg: RunConfig, prep: Prepared) -> None:
-    """A warning, before anything is tracked, where `observations.filter_hz` will not be used: without real footage,
-    and at or above half the footage's frame rate (a trajectory sampled at that rate holds nothing faster)."""
+def with_filter(cfg: RunConfig, prep: Prepared) -> Prepared:
+    """`observations.filter_hz` decided before anything is tracked: on real footage, under half its frame rate, it
+    goes into the footage record (`FootageFrame.filter_hz`), which `estimate` filters the result at; else a warning
+    that it will not be used (without real footage, or at or above half the frame rate: a trajectory sampled at that
+    rate holds nothing faster) and `prep` as it was."""
     hz = cfg.observations.filter_hz
     if hz is None:
-        return
+        return prep
     if prep.footage is None:
         log.warning("observations.filter_hz is for real footage; it is not used on simulated observations")
-    elif hz >= prep.footage.fps / 2:
+        return prep
+    if hz >= prep.footage.fps / 2:
         log.warning(
             "observations.filter_hz (%g Hz) is not under half the frame rate (%g fps): the trajectory is not filtered",
             hz,
             prep.footage.fps,
         )
+        return prep
+    return dataclasses.replace(prep, footage=dataclasses.replace(prep.footage, filter_hz=hz))
 
 
 def lowpass_trajectory(sk: Skeleton, est: Estimate, fps: float, cutoff_hz: float) -> Estimate:
