@@ -100,9 +100,13 @@ class Reprojection(RobustMixin):
             )
         return p
 
-    def _whitened(self, p: Tensor) -> Tensor:
-        """`_pixels`' output (..., *O, K, 2) -> its whitened residuals, same shape."""
-        return (p - self._target.to(p)) * self._sqrt_conf.to(p)[..., None]
+    def _whitened(self, p: Tensor, order: Tensor | None = None) -> Tensor:
+        """`_pixels`' output (..., *O, K, 2) -> its whitened residuals, same shape; with `order` (K,) against the
+        detections (and their confidences) read in that order, keypoint k against detection order[k]."""
+        target, sc = self._target.to(p), self._sqrt_conf.to(p)
+        if order is not None:
+            target, sc = target.index_select(-2, order), sc.index_select(-1, order)
+        return (p - target) * sc[..., None]
 
     def _read_rows(self, d_pixels: Tensor) -> Tensor:
         """Derivatives of ev.pixels (..., K_ev, 2, V) -> those of the keypoints the term reads (..., K, 2, V)."""
@@ -169,11 +173,8 @@ class SwapReprojection(Reprojection):
     def _readings(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """pixels (..., K, 2) of the read keypoints -> residuals as read (..., K*2) and with the labels
         exchanged (..., K*2), and which reading each problem takes (...,) bool (True: exchanged)."""
-        sc = self._sqrt_conf.to(p)
-        target = self._target.to(p)
-        part = self._partners(p.device)
         r_a = self._whitened(p).flatten(-2)
-        r_b = ((p - target.index_select(-2, part)) * sc.index_select(-1, part)[..., None]).flatten(-2)
+        r_b = self._whitened(p, self._partners(p.device)).flatten(-2)
         swapped = super().energy_of(r_b) + self.swap_cost < super().energy_of(r_a)
         return r_a, r_b, swapped
 
