@@ -117,16 +117,12 @@ def first_modes(s: Setup, strategy: Strategy, t: int = 0) -> Modes:
     return make_modes(s, q[keep], cost[keep], hessian[keep], w, q[keep])
 
 
-def backward_start(s: Setup, last: Modes, strategy: Strategy) -> Modes:
-    """The backward pass's first modes: the forward pass's last ones, moving the other way, and after a
-    tree start also a tree start on the last frame, taken in turn (`merge_mixtures`, the forward pass's heaviest
-    first). The forward pass may have lost the true reading of the whole body from frame 0 on (49_18 at
-    2 px); the last frame's own tree start gives the backward pass a second chance at it."""
-    last = last._replace(velocity=-last.velocity)
-    t = s.problem.observations.num_frames - 1
-    if s.cfg.kjs.init != "tree" or not bool((s.problem.observations.confidence[t] > 0).any()):
-        return last
-    return merge_mixtures(s, last, first_modes(s, strategy, t), 0)
+def backward_start(s: Setup, last: Modes) -> Modes:
+    """The first modes of the backward pass after a keyframe start: the forward pass's last ones, moving the other
+    way. (After a tree start the backward pass is a pass of its own: a tree start on the last frame, as the
+    forward pass's on the first. The forward pass may have lost the true reading of the whole body from frame 0
+    on (49_18 at 2 px); the last frame's own tree start gives the backward pass a second chance at it.)"""
+    return last._replace(velocity=-last.velocity)
 
 
 def feed_backward(s: Setup, backward: Modes, forward: Modes) -> Modes:

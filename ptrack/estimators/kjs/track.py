@@ -3,14 +3,14 @@ three estimators `kjs`, `css` and `ss` (the package docstring)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 
 import torch
 from torch import Tensor
 
 from ptrack.estimators.kjs.config import KjsRunConfig
 from ptrack.estimators.kjs.lattice import STAGES, best_path, lead_pass, make_lattice, principal_directions
-from ptrack.estimators.kjs.model import CSS, KJS, SS, Strategy, make_setup
+from ptrack.estimators.kjs.model import CSS, KJS, SS, Setup, Strategy, make_setup
 from ptrack.estimators.kjs.start import backward_start, feed_backward, first_modes
 from ptrack.estimators.kjs.step import merge_mixtures, track_step
 from ptrack.hypotheses.mixture import Modes
@@ -62,25 +62,18 @@ def _track(
     progress: Callable[[Iterable], Iterable],
 ) -> Estimate:
     s = make_setup(problem, cfg, strategy)
-    sk, obs = problem.skeleton, problem.observations
     k = cfg.kjs
-    steps = range(obs.num_frames)
+    steps = range(problem.observations.num_frames)
     backward = k.backward_pass == "always" or (k.backward_pass == "tree" and k.init == "tree")
-    schedule = [(t, False) for t in steps] + ([(t, True) for t in reversed(steps)] if backward else [])
-    passes: list[list[tuple[Modes, Tensor]]] = [[], []]  # forward, backward (in reverse time order)
-    modes = None
-    for t, back in progress(schedule):
-        if modes is None:
-            modes, counts = first_modes(s, strategy), torch.zeros(len(s.chains), dtype=torch.long)
-        elif back and not passes[1]:  # the forward pass's last modes (and a tree start there: backward_start)
-            modes, counts = backward_start(s, modes, strategy), torch.zeros_like(counts)
-        elif back and k.init == "keyframe":  # from its own modes of frame t+1 and the forward pass's (`feed_backward`)
-            modes, counts = track_step(
-                s, t, feed_backward(s, modes, passes[0][t + 1][0]), strategy, generator, orders=True
-            )
-        else:
-            modes, counts = track_step(s, t, modes, strategy, generator)
-        passes[back].append((modes, counts.to(modes.q.device)))
+    # after a tree start the backward pass is a pass of its own, from the last frame's tree start with its own
+    # draws (a generator seeded from `generator` before the forward pass draws)
+    alone = backward and k.init == "tree"
+    back_gen = torch.Generator(generator.device).manual_seed(_draw_seed(generator)) if alone else generator
+    passes: list[list[tuple[Modes, Tensor]]] = [run_pass(s, strategy, steps, generator, progress=progress), []]
+    if alone:
+        passes[1] = run_pass(s, strategy, steps[::-1], back_gen)
+    elif backward:  # after a keyframe start: from the forward pass's last modes, fed its modes on the way
+        passes[1] = run_pass(s, strategy, steps[::-1], generator, feed=passes[0])
     forward = [m for m, _ in passes[0]]
     jumps = [c for _, c in passes[0]]
     lat = make_lattice(s, forward)
@@ -99,7 +92,7 @@ def _track(
     with torch.no_grad():
         frames = torch.arange(hq.shape[0], device=hq.device)
         joints = hyp_joints[frames, path]
-        directions = principal_directions(sk, hq, hl, k.scale)
+        directions = principal_directions(problem.skeleton, hq, hl, k.scale)
     q = hq[frames, path]
     return Estimate(
         q=q,
@@ -112,6 +105,50 @@ def _track(
         hypothesis_directions=directions,
         jumps={c.name: x for c, x in zip(s.chains, torch.stack(jumps).T)} if strategy.jumps else None,
     )
+
+
+def run_pass(
+    s: Setup,
+    strategy: Strategy,
+    frames: Sequence[int],
+    generator: torch.Generator,
+    feed: list[tuple[Modes, Tensor]] | None = None,
+    progress: Callable[[Iterable], Iterable] = lambda x: x,
+) -> list[tuple[Modes, Tensor]]:
+    """One pass of the tracker over `frames` (forwards or backwards in time) -> each frame's (modes, flipped
+    leaves per chain (C,)), in the pass's order.
+
+    It starts from a keyframe on frame 0, or with a tree start on the pass's first frame with a detection (the
+    frames before that one, in the pass's order, take its modes) (`first_modes`). feed: the forward pass's
+    output, for the backward pass after a keyframe start: that pass starts from the forward pass's last modes
+    turned round (`backward_start`) and takes the forward pass's modes of the frame after at each step
+    (`feed_backward`)."""
+    k = s.cfg.kjs
+    if feed is not None:
+        start, modes = frames[0], backward_start(s, feed[-1][0])
+    else:
+        seen = s.problem.observations.confidence.flatten(1).gt(0).any(-1)
+        start = next((t for t in frames if bool(seen[t])), frames[0]) if k.init == "tree" else frames[0]
+        modes = first_modes(s, strategy, start)
+    zero = torch.zeros(len(s.chains), dtype=torch.long, device=modes.q.device)
+    out: list[tuple[Modes, Tensor]] = []
+    begun = False
+    for t in progress(frames):
+        begun = begun or t == start
+        if not begun or t == start:
+            out.append((modes, zero))
+            continue
+        if feed is not None:
+            modes, counts = track_step(s, t, feed_backward(s, modes, feed[t + 1][0]), strategy, generator, orders=True)
+        else:
+            modes, counts = track_step(s, t, modes, strategy, generator)
+        out.append((modes, counts.to(modes.q.device)))
+    return out
+
+
+def _draw_seed(generator: torch.Generator) -> int:
+    """A seed for another generator, drawn from `generator` (which moves on by one draw)."""
+    return int(torch.randint(0, 2**62, (1,), generator=generator, device=generator.device))
 
 
 def estimate_kjs(problem: Problem, cfg: KjsRunConfig, generator: torch.Generator, progress=lambda x: x) -> Estimate:
