@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import importlib
 import json
 import math
+import os
 from pathlib import Path
 
 import pytest
@@ -108,6 +110,28 @@ def test_inference_mode_changes_nothing(monkeypatch):
             assert torch.equal(a, b)
     prep, lb = _run("data.stop=12", "kjs.polisher=lbfgs", seed=3)
     assert torch.isfinite(lb.hypotheses).all() and _errors(prep, lb)[1] < 30.0
+
+
+def test_tree_start_passes_in_two_processes_give_what_one_gives(monkeypatch):
+    """After a tree start the two passes are independent (the backward one from the last frame's tree start, with
+    its own generator): with a thread budget of 2 they run in two processes at once (`ptrack.threads`), with 1 one
+    after the other, and the result is the same bit for bit."""
+    kjs_track = importlib.import_module("ptrack.estimators.kjs.track")  # the package exports a function `track`
+    forks = []
+    real = kjs_track.in_two_processes
+    monkeypatch.setattr(kjs_track, "in_two_processes", lambda a, b: forks.append(1) or real(a, b))
+    before = torch.get_num_threads()
+    runs = {}
+    try:
+        for budget in (1, 2):
+            torch.set_num_threads(budget)
+            runs[budget] = _run("data.stop=24", "kjs.init=tree", seed=3)[1]
+    finally:
+        torch.set_num_threads(before)
+    assert len(forks) == (1 if hasattr(os, "fork") else 0)
+    for a, b in zip(runs[1], runs[2]):
+        if isinstance(a, torch.Tensor):
+            assert torch.equal(a, b)
 
 
 def test_tree_init_needs_no_3d():

@@ -1,9 +1,12 @@
-"""Tests for ptrack.threads: the thread budget and the two-thread split."""
+"""Tests for ptrack.threads: the thread budget, the two-thread split and the two processes."""
 
 from __future__ import annotations
 
+import os
 import threading
+import time
 
+import pytest
 import torch
 
 from ptrack import threads as th
@@ -26,3 +29,46 @@ def test_thread_budget_and_two_threads():
     names = th.on_two_threads(lambda x: (x, threading.current_thread().name), (1,), (2,))
     assert [n[0] for n in names] == [1, 2]
     assert names[0][1].startswith("ptrack-banded") and names[1][1] == threading.current_thread().name
+
+
+def test_two_processes(tmp_path):
+    """in_two_processes returns (first(), second()) with first() computed in a forked child; the child's exception
+    is raised here with its type; a child that dies without an answer has first() run here instead; an
+    exception in second() kills the child before it is raised. parallel_processes: a budget of 2 on the CPU."""
+    here = os.getpid()
+    assert th.in_two_processes(os.getpid, lambda: "second")[1] == "second"
+    assert th.in_two_processes(os.getpid, os.getpid)[0] not in (here, None)
+
+    def fails():
+        raise ValueError("bad frame 7")
+
+    with pytest.raises(ValueError, match="bad frame 7"):
+        th.in_two_processes(fails, lambda: None)
+    assert th.in_two_processes(lambda: os._exit(3) if os.getpid() != here else "ran here", lambda: 0) == ("ran here", 0)
+
+    marker = tmp_path / "child"
+
+    def slow():
+        marker.write_text(str(os.getpid()))
+        time.sleep(60)
+
+    def second():
+        while not marker.exists() or not marker.read_text():
+            time.sleep(0.01)
+        raise KeyboardInterrupt
+
+    start = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        th.in_two_processes(slow, second)
+    assert time.monotonic() - start < 30
+    with pytest.raises(ProcessLookupError):  # killed and reaped: no such process left
+        os.kill(int(marker.read_text()), 0)
+    before = torch.get_num_threads()
+    try:
+        for budget in (1, 2):
+            torch.set_num_threads(budget)
+            with th.one_thread():
+                assert th.parallel_processes(torch.device("cpu")) == (budget >= 2 and hasattr(os, "fork"))
+                assert not th.parallel_processes(torch.device("meta"))
+    finally:
+        torch.set_num_threads(before)

@@ -3,6 +3,8 @@ three estimators `kjs`, `css` and `ss` (the package docstring)."""
 
 from __future__ import annotations
 
+import functools
+import itertools
 from collections.abc import Callable, Iterable, Sequence
 
 import torch
@@ -15,7 +17,7 @@ from ptrack.estimators.kjs.start import backward_start, feed_backward, first_mod
 from ptrack.estimators.kjs.step import merge_mixtures, track_step
 from ptrack.hypotheses.mixture import Modes
 from ptrack.problem import Estimate, Problem
-from ptrack.threads import one_thread
+from ptrack.threads import in_two_processes, one_thread, parallel_processes
 
 
 def track(
@@ -65,15 +67,23 @@ def _track(
     k = cfg.kjs
     steps = range(problem.observations.num_frames)
     backward = k.backward_pass == "always" or (k.backward_pass == "tree" and k.init == "tree")
-    # after a tree start the backward pass is a pass of its own, from the last frame's tree start with its own
-    # draws (a generator seeded from `generator` before the forward pass draws)
-    alone = backward and k.init == "tree"
-    back_gen = torch.Generator(generator.device).manual_seed(_draw_seed(generator)) if alone else generator
-    passes: list[list[tuple[Modes, Tensor]]] = [run_pass(s, strategy, steps, generator, progress=progress), []]
-    if alone:
-        passes[1] = run_pass(s, strategy, steps[::-1], back_gen)
-    elif backward:  # after a keyframe start: from the forward pass's last modes, fed its modes on the way
-        passes[1] = run_pass(s, strategy, steps[::-1], generator, feed=passes[0])
+    forward_pass = functools.partial(run_pass, s, strategy, steps, generator)
+    passes: list[list[tuple[Modes, Tensor]]]
+    if not backward:
+        passes = [forward_pass(progress=progress), []]
+    elif k.init == "tree":  # two passes of their own (`run_pass`), the backward one with its own generator
+        own = torch.Generator(generator.device).manual_seed(_seed(generator))
+        backward_pass = functools.partial(run_pass, s, strategy, steps[::-1], own)
+        if parallel_processes(problem.observations.keypoints.device):  # at once: the same passes, in half the time
+            back, ahead = in_two_processes(backward_pass, functools.partial(forward_pass, progress=progress))
+            passes = [ahead, back]
+        else:
+            along = _one_display(progress, len(steps))
+            passes = [forward_pass(progress=along), backward_pass(progress=along)]
+    else:  # after a keyframe start: from the forward pass's last modes, fed its modes on the way
+        along = _one_display(progress, len(steps))
+        ahead = forward_pass(progress=along)
+        passes = [ahead, run_pass(s, strategy, steps[::-1], generator, feed=ahead, progress=along)]
     forward = [m for m, _ in passes[0]]
     jumps = [c for _, c in passes[0]]
     lat = make_lattice(s, forward)
@@ -146,9 +156,19 @@ def run_pass(
     return out
 
 
-def _draw_seed(generator: torch.Generator) -> int:
-    """A seed for another generator, drawn from `generator` (which moves on by one draw)."""
-    return int(torch.randint(0, 2**62, (1,), generator=generator, device=generator.device))
+def _seed(generator: torch.Generator) -> int:
+    """A seed for another generator, drawn from a copy of `generator` (which itself does not move on: the forward
+    pass draws what it draws without a backward pass)."""
+    copy = torch.Generator(generator.device)
+    copy.set_state(generator.get_state())
+    return int(torch.randint(0, 2**62, (1,), generator=copy, device=generator.device))
+
+
+def _one_display(progress: Callable[[Iterable], Iterable], frames: int) -> Callable[[Iterable], Iterable]:
+    """Two passes of `frames` frames each under one progress display: -> a `progress` whose first call yields the
+    display's first `frames` items (the forward pass's frames), its second the rest (the backward pass's)."""
+    display = iter(progress([*range(frames), *range(frames - 1, -1, -1)]))
+    return lambda items: itertools.islice(display, len(list(items)))
 
 
 def estimate_kjs(problem: Problem, cfg: KjsRunConfig, generator: torch.Generator, progress=lambda x: x) -> Estimate:
