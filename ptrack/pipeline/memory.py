@@ -11,7 +11,8 @@ or window row, temporaries included; they were read off the code and then checke
 real runs (`scripts/check_memory.py`, bundled clip, 2-core machine: estimate / measured peak RSS 1.3 for
 frame, 1.7-2.1 for kjs and css at 256-2048 samples and 8-64 modes, 3.9 for a kjs tree start (the bound
 counts every flip combination of the chains as kept; most are pruned), 1.5-1.6 for batch at 15-300 frames,
-1.2-1.4 for pca at 8-256 headings).
+1.2-1.4 for pca at 8-256 headings). A kjs tree start with a backward pass counts its polishing twice: its two
+passes may run at once, in two processes (`ptrack.estimators.kjs.track`).
 """
 
 from __future__ import annotations
@@ -137,6 +138,8 @@ def _need(
         per_hypothesis = HYPOTHESIS_D2 * d * d + HYPOTHESIS_JACOBIAN * 3 * j * d
         per_hypothesis += HYPOTHESIS_ROWS * 2 * k * d + HYPOTHESIS_FK * 12 * j
         polish = n * per_hypothesis * w + n * n  # + the distinct minima's (n, n) table of close pairs
+        if c.init == "tree" and c.backward_pass != "never":  # the two passes may polish at once (two processes)
+            polish *= 2
         lattice = t * c.modes * (LATTICE_D2 * d * d + LATTICE_JOINTS * 3 * j) * w
         viterbi = 4 * c.modes * c.modes * w  # the (K, K) pairwise costs between consecutive frames
         total = polish + lattice + viterbi

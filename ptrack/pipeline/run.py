@@ -48,6 +48,7 @@ from ptrack.body.subject import floor_points, segment_lengths
 from ptrack.errors import EstimationError, InputError
 from ptrack.estimators import ESTIMATORS
 from ptrack.io.export import write_bvh
+from ptrack.motion import lowpass
 from ptrack.observe.camera import camera_for_motion
 from ptrack.observe.correspondences import Correspondences, simulate_correspondences
 from ptrack.observe.observations import ChannelConfig, Observations, simulate_observations
@@ -886,8 +887,6 @@ def _estimate(cfg: RunConfig, progress: bool, work_dir: Path | None) -> tuple[Pr
 #: `lowpass_trajectory`: a frame whose joints move more than this many times the clip's median step from the frame
 #: before starts a new stretch (a change of reading, which a filter would smear over its neighbours)
 JUMP_FACTOR = 5.0
-#: `lowpass_trajectory`'s Butterworth order (run forwards and backwards: zero phase, twice the roll-off)
-FILTER_ORDER = 2
 
 
 def with_filter(cfg: RunConfig, prep: Prepared) -> Prepared:
@@ -913,12 +912,11 @@ def with_filter(cfg: RunConfig, prep: Prepared) -> Prepared:
 
 def lowpass_trajectory(sk: Skeleton, est: Estimate, fps: float, cutoff_hz: float) -> Estimate:
     """The reported trajectory low-passed in time: each dof of q (T, D) (angles unwrapped) through a zero-phase
-    Butterworth filter (`FILTER_ORDER`, `scipy.signal.filtfilt`) at `cutoff_hz`, in stretches between jumps (a frame
-    whose joints move more than `JUMP_FACTOR` times the clip's median step from the frame before); stretches too
-    short for the filter stay as they are. The poses are kept within the joint limits and the joints are their
-    forward kinematics; the hypotheses, costs and weights stay as tracked (they are each frame's own)."""
-    from scipy.signal import butter, filtfilt
-
+    second-order Butterworth filter (`ptrack.motion.lowpass`: forwards and backwards) at `cutoff_hz`, in stretches
+    between jumps (a frame whose joints move more than `JUMP_FACTOR` times the clip's median step from the frame
+    before); stretches too short for the filter stay as they are. The poses are kept within the joint limits and the
+    joints are their forward kinematics; the hypotheses, costs and weights stay as tracked (they are each frame's
+    own)."""
     q = est.q.detach().double().cpu().numpy()
     frames = q.shape[0]
     joints = est.joints.detach().double().cpu().numpy()
@@ -928,11 +926,11 @@ def lowpass_trajectory(sk: Skeleton, est: Estimate, fps: float, cutoff_hz: float
     angular = np.asarray(sk.angular_dofs(), dtype=bool)
     unwrapped = q.copy()
     unwrapped[:, angular] = np.unwrap(q[:, angular], axis=0)
-    b, a = butter(FILTER_ORDER, cutoff_hz / (fps / 2))
+    b, a = lowpass.butterworth2(cutoff_hz, fps)
     smooth = unwrapped.copy()
     for start, end in itertools.pairwise(bounds):
-        if end - start > 3 * max(len(a), len(b)):  # filtfilt's padding needs more frames than this
-            smooth[start:end] = filtfilt(b, a, unwrapped[start:end], axis=0)
+        if end - start > lowpass.PAD:  # the filter's end padding needs more frames than this
+            smooth[start:end] = lowpass.filtfilt(b, a, unwrapped[start:end])
     lower, upper = (x.double().cpu().numpy() for x in sk.limits(dtype=torch.float64))
     out = torch.as_tensor(np.clip(q + (smooth - unwrapped), lower, upper), dtype=est.q.dtype, device=est.q.device)
     return est._replace(q=out, joints=sk.forward_kinematics(out))

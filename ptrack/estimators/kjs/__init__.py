@@ -54,11 +54,13 @@ Inside the passes a new minimum's weight is its prior times exp(-cost / `kjs.tem
 it is the predicted mixture at the minimum, the sum over the previous modes of weight times the dynamics'
 density around that mode's prediction (the paper's, `step.prior_weights`).
 
-A second pass runs backwards in time from the forward pass's last modes (`kjs.backward_pass: always`;
-`tree`: after a tree start only). After a tree start it also starts from a tree start on the last frame
-(`backward_start`): without 3D input the forward pass can hold a limb's wrong branch, or the whole
-body's, from frame 0 on, and the backward pass brings the later reading back. After a keyframe start each
-backward step also starts from the forward pass's modes of the frame after (`feed_backward`): where a limb crosses
+A second pass runs backwards in time (`kjs.backward_pass: always`; `tree`: after a tree start only). After a tree
+start it is a pass of its own, from a tree start on the last frame, with its own generator (`run_pass`): without 3D
+input the forward pass can hold a limb's wrong branch, or the whole body's, from frame 0 on, and the backward pass
+brings the later reading back. The two passes then run at once in two processes when torch may use two threads
+(`ptrack.threads.in_two_processes`), with the same result as one after the other. After a keyframe start it
+starts from the forward pass's last modes (`backward_start`), and each backward step also from the forward pass's
+modes of the frame after (`feed_backward`): where a limb crosses
 the image plane both passes lag on the side they came from, and the forward pass's true reading, found a
 few frames after the crossing in a light mode, is carried back to the crossing; the backward pass keeps
 the heaviest mode of each depth order of the limbs before any order's second (`_orders_first`), so that
