@@ -102,7 +102,7 @@ def in_two_processes(first: Callable[[], object], second: Callable[[], object]) 
     For jobs of many small torch ops, where two threads would wait on each other for the GIL (the kjs tracker's two
     passes: 1.4x on two threads, 2.0x in two processes, on 2 idle cores). The child runs on the same thread count as
     the caller, so its result is the one first() gives here. It comes back pickled through a pipe; an exception
-    raised in the child is raised here (after second() is done). A child that dies without an answer (killed,
+    raised in the child is raised here (after second() is done). A child that dies without a whole answer (killed,
     out of memory) is not an error: first() then runs here. If this process stops (an exception in second(), Ctrl-C,
     SIGTERM) the child is killed first; on Linux it also dies with this process when that is killed outright."""
     parent = os.getpid()
@@ -130,13 +130,13 @@ def in_two_processes(first: Callable[[], object], second: Callable[[], object]) 
         with os.fdopen(read, "rb") as pipe:
             read = -1
             data = pipe.read()
-        os.waitpid(pid, 0)
+        _, status = os.waitpid(pid, 0)
     except BaseException:
         if read >= 0:
             os.close(read)
         _stop(pid)
         raise
-    if not data:  # the child died without an answer
+    if status != 0 or not data:  # the child died without a whole answer
         return first(), mine
     ok, value = pickle.loads(data)
     if not ok:

@@ -166,9 +166,16 @@ def _seed(generator: torch.Generator) -> int:
 
 def _one_display(progress: Callable[[Iterable], Iterable], frames: int) -> Callable[[Iterable], Iterable]:
     """Two passes of `frames` frames each under one progress display: -> a `progress` whose first call yields the
-    display's first `frames` items (the forward pass's frames), its second the rest (the backward pass's)."""
+    display's first `frames` items (the forward pass's frames), its second the rest (the backward pass's), to the
+    display's end (where a bar closes)."""
     display = iter(progress([*range(frames), *range(frames - 1, -1, -1)]))
-    return lambda items: itertools.islice(display, len(list(items)))
+    calls: list[Iterable] = []
+
+    def along(items: Iterable) -> Iterable:
+        calls.append(items)
+        return itertools.islice(display, frames) if len(calls) == 1 else display
+
+    return along
 
 
 def estimate_kjs(problem: Problem, cfg: KjsRunConfig, generator: torch.Generator, progress=lambda x: x) -> Estimate:
