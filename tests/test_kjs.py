@@ -469,9 +469,10 @@ def test_backward_pass_keeps_a_branch_the_forward_pass_lost(cmu_file):
     """CMU 49_18 at 1 px from the tree start (no 3D input), as `ptrack evaluate` runs seed 0. On frame 0
     the true branch of the right arm reprojects like the flipped one but costs more in the start prior:
     the forward pass weighted it 0.01 and lost it by frame 57; its modes are right again only from frame
-    75. The backward pass from the last frame's modes carries that reading back to frame 0 (measured
-    best-of-K: 32.6 mm forward only, 19.2 mm with both passes started from the forward pass's last modes
-    alone, 15.9 mm with the last frame's own tree start beside them). The two passes' trajectories face
+    75. The backward pass from the last frame carries that reading back to frame 0 (measured best-of-K: 32.6 mm
+    forward only, 19.2 mm with both passes started from the forward pass's last modes alone, 15.9 mm with the last
+    frame's own tree start beside them; since 2026-11-30 the backward pass starts from that tree start alone, on its
+    own generator: 15.4 mm, 22.0 forward only). The two passes' trajectories face
     the same way (within `HEADING_SPLIT_DEG`), so the forward pass's modes lead the merge (without `decode` in
     `kjs.stages` the run reports that path; compared without the smoother, which moves each pose towards its
     neighbours among either run's hypotheses)."""
@@ -566,11 +567,12 @@ def test_backward_pass_restarts_on_the_last_frame(cmu_file):
     """CMU 49_18 from the tree start at the issue's evaluation setting (2 px, 10% missing), seeds 0-2 as
     `ptrack evaluate` runs them. Frame 0's tree start misses the body's reading (its best mode 69-196 mm
     off over seeds 0-4) and the forward pass never finds it (seed 0: best trajectory 243 mm, its body turned 52°
-    from the truth's). The backward pass also starts from the last frame's own tree start, which gets it
+    from the truth's). The backward pass starts from the last frame's own tree start, which gets it
     right (seed 0 best-of-K 22.2 mm; 98.3 when the backward pass started from the forward pass's last
-    modes alone). Measured with the pose prior fitted without the held-out clips (2026-11-29): best-of-K 20.4,
-    24.3, 26.0 mm, best trajectory 45.8, 47.4, 48.7 (24.8 on seed 0 with the old prior): the modes hold the
-    body's reading on every seed, and the best trajectory, one of them in every frame, is far from the forward
+    modes alone). Measured with the pose prior fitted without the held-out clips (2026-11-29), the tree start beside
+    the forward pass's last modes: best-of-K 20.4, 24.3, 26.0 mm, best trajectory 45.8, 47.4, 48.7 (24.8 on seed 0
+    with the old prior); from the tree start alone (2026-11-30): 20.5, 24.1, 26.5 and 45.8, 25.7, 49.2. The modes hold
+    the body's reading on every seed, and the best trajectory, one of them in every frame, is far from the forward
     pass's."""
     for seed in range(3):
         cfg = _clip(cmu_file, "49_18.amc", "kjs.init=tree", f"seed={seed}")

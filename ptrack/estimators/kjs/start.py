@@ -117,7 +117,7 @@ def first_modes(s: Setup, strategy: Strategy, t: int = 0) -> Modes:
     return make_modes(s, q[keep], cost[keep], hessian[keep], w, q[keep])
 
 
-def backward_start(s: Setup, last: Modes) -> Modes:
+def backward_start(last: Modes) -> Modes:
     """The first modes of the backward pass after a keyframe start: the forward pass's last ones, moving the other
     way. (After a tree start the backward pass is a pass of its own: a tree start on the last frame, as the
     forward pass's on the first. The forward pass may have lost the true reading of the whole body from frame 0

@@ -135,7 +135,7 @@ def run_pass(
     (`feed_backward`)."""
     k = s.cfg.kjs
     if feed is not None:
-        start, modes = frames[0], backward_start(s, feed[-1][0])
+        start, modes = frames[0], backward_start(feed[-1][0])
     else:
         seen = s.problem.observations.confidence.flatten(1).gt(0).any(-1)
         start = next((t for t in frames if bool(seen[t])), frames[0]) if k.init == "tree" else frames[0]
