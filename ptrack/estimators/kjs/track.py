@@ -30,7 +30,9 @@ def track(
     """Run the tracker `strategy` over every frame of `problem` (`ptrack.estimators.kjs`' docstring), on one
     intra-op thread (`ptrack.threads.one_thread`): its products are small batched ones, and
     `scripts/bench_kjs.py` measured 6.1 fps on one thread and on two on an idle 2-core machine, but
-    0.7 fps on two threads when another job held a core.
+    0.7 fps on two threads when another job held a core. The second core serves the two passes after a tree start
+    instead: they run at once, in two processes, each on one thread (`ptrack.threads.in_two_processes`), when the
+    thread budget this replaces is 2 or more.
 
     With the Levenberg-Marquardt polisher nothing here needs autograd (the Jacobians are closed form), so
     the tracker runs in `torch.inference_mode`, which spares torch the view and version bookkeeping of each
