@@ -591,7 +591,8 @@ def footage_checks(
 ) -> tuple[dict, dict[str, np.ndarray]]:
     """What a person checks without ground truth (real footage): the median reprojection error of each
     keypoint (px), each keypoint's jitter (mean second difference, mm/frame^2) and their means, the skating
-    of the feet (horizontal mm/frame while within 5 cm of their lowest height; the model frame is Y up), and
+    of the feet (horizontal mm/frame while within 5 cm of their floor height, `M.foot_skating_mm`; the model frame is
+    Y up), and
     with hypotheses the share of frames where the modes disagree about some limb's depth order (summed weight
     between 0.1 and 0.9), and the input frames whose detections the result fits better with every left and right
     label exchanged (a detector's mirrored body; `costs.swap_cost`). est_kp: (T, K, 3) the estimate's keypoints;

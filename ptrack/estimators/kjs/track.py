@@ -139,15 +139,14 @@ def run_pass(
     if feed is not None:
         start, modes = frames[0], backward_start(feed[-1][0])
     else:
-        seen = s.problem.observations.confidence.flatten(1).gt(0).any(-1)
+        seen = (s.problem.observations.confidence > 0).any(-1)
         start = next((t for t in frames if bool(seen[t])), frames[0]) if k.init == "tree" else frames[0]
         modes = first_modes(s, strategy, start)
+    first = list(frames).index(start)  # the start's place in the pass: it and the frames before take its modes
     zero = torch.zeros(len(s.chains), dtype=torch.long, device=modes.q.device)
     out: list[tuple[Modes, Tensor]] = []
-    begun = False
-    for t in progress(frames):
-        begun = begun or t == start
-        if not begun or t == start:
+    for i, t in enumerate(progress(frames)):
+        if i <= first:
             out.append((modes, zero))
             continue
         if feed is not None:
@@ -171,13 +170,8 @@ def _one_display(progress: Callable[[Iterable], Iterable], frames: int) -> Calla
     display's first `frames` items (the forward pass's frames), its second the rest (the backward pass's), to the
     display's end (where a bar closes)."""
     display = iter(progress([*range(frames), *range(frames - 1, -1, -1)]))
-    calls: list[Iterable] = []
-
-    def along(items: Iterable) -> Iterable:
-        calls.append(items)
-        return itertools.islice(display, frames) if len(calls) == 1 else display
-
-    return along
+    parts = iter([itertools.islice(display, frames), display])
+    return lambda items: next(parts)
 
 
 def estimate_kjs(problem: Problem, cfg: KjsRunConfig, generator: torch.Generator, progress=lambda x: x) -> Estimate:
