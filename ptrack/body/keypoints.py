@@ -77,13 +77,16 @@ class KeypointSet:
     """K named keypoints placed on skeleton joints.
 
     names: (K,) keypoint names; joints: (K,) skeleton joint indices; swap_pairs: left/right partner
-    keypoint index pairs; limbs: (start, end) keypoint index pairs for the flip metric.
+    keypoint index pairs; limbs: (start, end) keypoint index pairs for the flip metric; landmarks: (K,) the
+    landmark each marks in the shared vocabulary (`ptrack.body.keypoint_sets.LANDMARKS`: "l_hip", not a
+    format's "LHip" or "left_hip"), None where the names are those landmarks (the simulated sets).
     """
 
     names: tuple[str, ...]
     joints: tuple[int, ...]
     swap_pairs: tuple[tuple[int, int], ...]
     limbs: tuple[tuple[int, int], ...]
+    landmarks: tuple[str, ...] | None = None
 
     @property
     def num_keypoints(self) -> int:
@@ -100,6 +103,12 @@ class KeypointSet:
         for a, b in self.swap_pairs:
             partners[a], partners[b] = b, a
         return partners
+
+    def find(self, landmark: str) -> int | None:
+        """The index of the keypoint that marks `landmark` ("l_hip"; by name where `landmarks` is None), or None
+        when the set has none."""
+        marks = self.names if self.landmarks is None else self.landmarks
+        return marks.index(landmark) if landmark in marks else None
 
     def limb_joints(self) -> list[tuple[int, int]]:
         """Limbs as skeleton joint index pairs."""
@@ -150,4 +159,4 @@ def landmark_keypoints(
     pos = {m: i for i, m in enumerate(landmarks)}
     swaps = tuple((pos[m], pos["r_" + m[2:]]) for m in landmarks if m.startswith("l_") and "r_" + m[2:] in pos)
     limbs = tuple((pos[a], pos[b]) for a, b in LANDMARK_LIMBS if a in pos and b in pos)
-    return KeypointSet(names=names, joints=index, swap_pairs=swaps, limbs=limbs)
+    return KeypointSet(names=names, joints=index, swap_pairs=swaps, limbs=limbs, landmarks=tuple(landmarks))

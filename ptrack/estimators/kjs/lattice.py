@@ -118,11 +118,13 @@ HEADING_SPLIT_DEG = 30.0
 
 
 def _hips(s: Setup) -> tuple[int, int] | None:
-    """The skeleton joints of the keypoints "l_hip" and "r_hip", or None when the keypoint set lacks one."""
+    """The skeleton joints of the keypoints that mark the landmarks "l_hip" and "r_hip" (a detector's "LHip",
+    "left_hip", ...), or None when the keypoint set lacks one."""
     kp = s.problem.keypoints
-    if "l_hip" not in kp.names or "r_hip" not in kp.names:
+    left, right = kp.find("l_hip"), kp.find("r_hip")
+    if left is None or right is None:
         return None
-    return kp.joints[kp.names.index("l_hip")], kp.joints[kp.names.index("r_hip")]
+    return kp.joints[left], kp.joints[right]
 
 
 def _heading(joints: Tensor, hips: tuple[int, int]) -> Tensor:

@@ -27,7 +27,7 @@ from ptrack.optim.solvers import levenberg_marquardt
 def initial_timing(s: Setup) -> tuple[Tensor, Tensor]:
     """Key-posture frames (P,) from the 2D wrists and every frame's normalised time (T,)."""
     obs, kps = s.problem.observations, s.problem.keypoints
-    wrists = [kps.names.index(k) for k in ("l_wrist", "r_wrist") if k in kps.names]
+    wrists = [i for i in (kps.find("l_wrist"), kps.find("r_wrist")) if i is not None]
     if not wrists:
         raise InputError(
             "method pca finds the key postures from the 2D wrists: the keypoint set needs "
