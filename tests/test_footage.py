@@ -893,3 +893,27 @@ def test_footage_floor_model_fits_the_reference_and_the_2d_moves_it():
     pa_polished = float(pa_mpjpe(torch.as_tensor(polished), torch.as_tensor(ref)).mean())
     assert pa_fit < 30.0  # mm: the model can stand where the reference stands
     assert pa_fit + 10.0 < pa_polished < 250.0
+
+
+def test_every_format_finds_its_hips_and_wrists_by_landmark():
+    """A detector's keypoint set names its points its own way ("LHip", "left_hip", "LEFT_HIP"); the estimators find
+    them by landmark (`KeypointSet.find`): the kjs tracker's lead-pass check the hips (`lattice._hips`; before,
+    it looked for the name "l_hip" and found none on any detector's file), pca the wrists."""
+    from ptrack.body.keypoint_sets import KEYPOINT_SETS
+    from ptrack.body.keypoints import landmark_keypoints
+    from ptrack.body.subject import landmark_joints
+    from ptrack.estimators.kjs.lattice import _hips
+
+    sk = add_landmark_joints(scale_to_height(Skeleton.from_asf(data_file("10.asf")), 1.7), 1.7)
+    for name, ks in KEYPOINT_SETS.items():
+        joints = landmark_joints(sk, ks.landmarks)
+        placed = [k for k, j in enumerate(joints) if j is not None]  # as `prepare_footage` places them
+        names, landmarks = tuple(ks.names[k] for k in placed), tuple(ks.landmarks[k] for k in placed)
+        kps = landmark_keypoints(sk, names, landmarks, [str(joints[k]) for k in placed])
+        for landmark in ("l_hip", "r_hip", "l_wrist", "r_wrist"):
+            k = kps.find(landmark)
+            assert k is not None and ks.landmarks[placed[k]] == landmark, (name, landmark)
+            assert kps.names[k] == ks.names[placed[k]] != landmark, (name, landmark)  # the format's own name
+        assert kps.find("l_hip") != kps.find("r_hip") and kps.find("nowhere") is None
+        setup = type("S", (), {"problem": type("P", (), {"keypoints": kps})()})()
+        assert _hips(setup) == (kps.joints[kps.find("l_hip")], kps.joints[kps.find("r_hip")]), name
