@@ -896,9 +896,11 @@ def test_footage_floor_model_fits_the_reference_and_the_2d_moves_it():
 
 
 def test_every_format_finds_its_hips_and_wrists_by_landmark():
-    """A detector's keypoint set names its points its own way ("LHip", "left_hip", "LEFT_HIP"); the estimators find
+    """A detector's keypoint set names its points its own way (BODY_25B "LHip", COCO-17 "left_hip"); the estimators find
     them by landmark (`KeypointSet.find`): the kjs tracker's lead-pass check the hips (`lattice._hips`; before,
     it looked for the name "l_hip" and found none on any detector's file), pca the wrists."""
+    from types import SimpleNamespace
+
     from ptrack.body.keypoint_sets import KEYPOINT_SETS
     from ptrack.body.keypoints import landmark_keypoints
     from ptrack.body.subject import landmark_joints
@@ -915,5 +917,5 @@ def test_every_format_finds_its_hips_and_wrists_by_landmark():
             assert k is not None and ks.landmarks[placed[k]] == landmark, (name, landmark)
             assert kps.names[k] == ks.names[placed[k]] != landmark, (name, landmark)  # the format's own name
         assert kps.find("l_hip") != kps.find("r_hip") and kps.find("nowhere") is None
-        setup = type("S", (), {"problem": type("P", (), {"keypoints": kps})()})()
+        setup = SimpleNamespace(problem=SimpleNamespace(keypoints=kps))  # what `_hips` reads of a kjs Setup
         assert _hips(setup) == (kps.joints[kps.find("l_hip")], kps.joints[kps.find("r_hip")]), name
