@@ -10,7 +10,7 @@ for two independent halves of a sequence, two processes for two independent loop
 `one_thread` remembers the count it replaced (the outermost one's), the thread budget
 `parallel_halves` and `parallel_processes` read. Used by `ptrack.optim.banded` (its sequential sweeps), the
 batch estimator (its whole solve; the linearisation's two halves) and the kjs trackers (each pass on one
-thread; the two passes after a tree start in two processes).
+thread; the two passes after a tree start, and the halves of the stages' batched polishing, in two processes).
 """
 
 from __future__ import annotations

@@ -115,11 +115,14 @@ def test_inference_mode_changes_nothing(monkeypatch):
 def test_tree_start_passes_in_two_processes_give_what_one_gives(monkeypatch):
     """After a tree start the two passes are independent (the backward one from the last frame's tree start, with
     its own generator): with a thread budget of 2 they run in two processes at once (`ptrack.threads`), with 1 one
-    after the other, and the result is the same bit for bit."""
+    after the other, and the result is the same bit for bit. So do the halves of the stages' batched polishing
+    (`polish_rows`: here the recombination's 240 grafts)."""
     kjs_track = importlib.import_module("ptrack.estimators.kjs.track")  # the package exports a function `track`
-    forks = []
+    kjs_model = importlib.import_module("ptrack.estimators.kjs.model")
+    forks, splits = [], []
     real = kjs_track.in_two_processes
     monkeypatch.setattr(kjs_track, "in_two_processes", lambda a, b: forks.append(1) or real(a, b))
+    monkeypatch.setattr(kjs_model, "in_two_processes", lambda a, b: splits.append(1) or real(a, b))
     before = torch.get_num_threads()
     runs = {}
     try:
@@ -129,6 +132,7 @@ def test_tree_start_passes_in_two_processes_give_what_one_gives(monkeypatch):
     finally:
         torch.set_num_threads(before)
     assert len(forks) == (1 if hasattr(os, "fork") else 0)
+    assert (len(splits) > 0) == hasattr(os, "fork")
     for a, b in zip(runs[1], runs[2]):
         if isinstance(a, torch.Tensor):
             assert torch.equal(a, b)
@@ -809,3 +813,16 @@ def test_the_stage_names_are_the_stages():
     from ptrack.estimators.kjs.lattice import STAGES
 
     assert tuple(STAGES) == STAGE_NAMES
+
+
+def test_polish_chunks_depend_on_the_row_count_alone():
+    """`polish_rows`' calls: every row once, in order, in chunks of sizes within one of each other; one call up to
+    `SPLIT_ROWS` rows, else an even number of calls of at most `POLISH_CHUNK` rows (two processes take half each)."""
+    from ptrack.estimators.kjs.model import POLISH_CHUNK, SPLIT_ROWS, polish_chunks
+
+    for n in (1, SPLIT_ROWS, SPLIT_ROWS + 1, 400, 2 * POLISH_CHUNK, 2 * POLISH_CHUNK + 1, 4000):
+        chunks = polish_chunks(n)
+        assert torch.equal(torch.cat(chunks), torch.arange(n)), n
+        sizes = [len(c) for c in chunks]
+        assert max(sizes) - min(sizes) <= 1 and max(sizes) <= POLISH_CHUNK, (n, sizes)
+        assert len(chunks) == 1 if n <= SPLIT_ROWS else len(chunks) % 2 == 0, (n, sizes)

@@ -32,6 +32,7 @@ from ptrack.hypotheses.samplers import scaled_covariance
 from ptrack.optim.jacobians import objective_linearization
 from ptrack.optim.solvers import lbfgs, levenberg_marquardt
 from ptrack.problem import Problem, first_keyframe, pose_eval_from_joints
+from ptrack.threads import in_two_processes, parallel_processes
 
 
 @dataclass(frozen=True)
@@ -321,16 +322,41 @@ def keyframe_cost(s: Setup, q: Tensor) -> Tensor:
 #: frame costs a linearisation's overhead per frame; on the bundled clip 320 rows a call measured faster than
 #: 1280 or 5920 (`recombine` 1.5 s against 1.8 and 2.8 s), and memory stays bounded on long clips
 POLISH_CHUNK = 320
+#: `polish_rows` splits more rows than this into an even number of calls (at most `POLISH_CHUNK` rows each), so
+#: that two processes can take half each; fewer go in one call (a second call's overhead would outweigh it)
+SPLIT_ROWS = 64
+
+
+def polish_chunks(n: int) -> list[Tensor]:
+    """The calls `polish_rows` makes for n rows: (n,) split into consecutive chunks of sizes differing by at most
+    one; one chunk up to `SPLIT_ROWS` rows, else an even number of them, each at most `POLISH_CHUNK`. The chunks
+    depend on n alone, not on how many processes run them, so the result is the same either way."""
+    count = 1 if n <= SPLIT_ROWS else 2 * math.ceil(n / (2 * POLISH_CHUNK))
+    return list(torch.tensor_split(torch.arange(n), count))
 
 
 def polish_rows(
     s: Setup, t: Tensor, q: Tensor, mean: Tensor, iterations: int, sigma: float | Tensor, tracking: bool = False
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """`polish` of poses from many frames, in calls of `POLISH_CHUNK` rows: t (N,) each pose's frame, q and
-    mean (N, D), sigma a float, (D,) or (N, D) -> q (N, D), cost (N,), hessian (N, D, D)."""
-    out = []
-    for rows in torch.split(torch.arange(q.shape[0], device=q.device), POLISH_CHUNK):
-        sig = sigma[rows] if isinstance(sigma, Tensor) and sigma.ndim == 2 else sigma
-        out.append(polish(s, t[rows], q[rows], mean[rows], iterations, sig, tracking))
-    q_out, cost, hessian = (torch.cat(x) for x in zip(*out))
+    """`polish` of poses from many frames, in the calls `polish_chunks` makes: t (N,) each pose's frame, q and
+    mean (N, D), sigma a float, (D,) or (N, D) -> q (N, D), cost (N,), hessian (N, D, D). With two or more
+    calls and a thread budget of 2 or more (`ptrack.threads.parallel_processes`), the second half of the calls
+    runs at once in a second process (`in_two_processes`), with the same result bit for bit."""
+
+    def run(chunks: list[Tensor]) -> list[tuple[Tensor, Tensor, Tensor]]:
+        out = []
+        for rows in chunks:
+            rows = rows.to(q.device)
+            sig = sigma[rows] if isinstance(sigma, Tensor) and sigma.ndim == 2 else sigma
+            out.append(polish(s, t[rows], q[rows], mean[rows], iterations, sig, tracking))
+        return out
+
+    chunks = polish_chunks(q.shape[0])
+    half = len(chunks) // 2
+    if half and parallel_processes(q.device):
+        later, first = in_two_processes(lambda: run(chunks[half:]), lambda: run(chunks[:half]))
+        parts = first + later
+    else:
+        parts = run(chunks)
+    q_out, cost, hessian = (torch.cat(x) for x in zip(*parts))
     return q_out, cost, hessian
