@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ptrack.body.keypoints import KeypointSet
 from ptrack.body.skeleton import Skeleton
 from ptrack.costs.ray_silhouette import mask_samples
 from ptrack.errors import InputError
@@ -86,6 +87,23 @@ class Setup:
         return self.radii * self.cfg.pca.silhouette_radius_scale
 
 
+#: where a keypoint set has no point of that name, `pca.joints`' "head" (the simulated set's) is the first of these
+#: landmarks the set has: the top of the head (OpenPose BODY_25B's HeadTop), else the nose (COCO-17, MediaPipe)
+HEAD_LANDMARKS = ("head_top", "nose")
+
+
+def tracked_keypoint(kps: KeypointSet, name: str) -> int | None:
+    """The keypoint `pca.joints` names: by the set's own name ("LKnee" in BODY_25B), else by landmark ("l_knee" on
+    any detector's set, `KeypointSet.find`); "head" also by `HEAD_LANDMARKS`. -> its index, or None."""
+    if name in kps.names:
+        return kps.names.index(name)
+    for landmark in HEAD_LANDMARKS if name == "head" else (name,):
+        k = kps.find(landmark)
+        if k is not None:
+            return k
+    return None
+
+
 def make_setup(problem: Problem, cfg: PcaRunConfig) -> Setup:
     sk, obs, kps = problem.skeleton, problem.observations, problem.keypoints
     p = cfg.pca
@@ -103,12 +121,14 @@ def make_setup(problem: Problem, cfg: PcaRunConfig) -> Setup:
         log.warning(
             "pca: %d dofs are not in the motion model and held at zero (e.g. %s)", len(other), sk.dof_names[other[0]]
         )
-    missing = [j for j in p.joints if j not in kps.names]
-    if missing:
+    found = [tracked_keypoint(kps, j) for j in p.joints]
+    kp = [k for k in found if k is not None]
+    if len(kp) < len(found):
+        missing = p.joints[found.index(None)]
         raise InputError(
-            f"config key 'pca.joints': unknown keypoint {missing[0]!r} (keypoints: {', '.join(kps.names)})"
+            f"config key 'pca.joints': unknown keypoint {missing!r} (keypoints: {', '.join(kps.names)}; or a landmark "
+            "such as l_knee)"
         )
-    kp = [kps.names.index(j) for j in p.joints]
     tracked = torch.as_tensor([kps.joints[k] for k in kp], dtype=torch.long, device=device)
     observed = obs.keypoints[:, kp].to(dtype)
     conf = obs.confidence[:, kp].to(dtype)
