@@ -429,8 +429,10 @@ def test_heldout_swing_from_a_detectors_keypoint_file(cmu_file, heldout_model, t
     """Golf on real-footage input: the held-out swing as a detector would give it (HALPE-26 results JSON, 2 px, a
     camera with intrinsics only; `scripts/synthetic_footage.py`) through `ptrack run configs/golf.yaml` with the
     model that never saw it, no silhouettes. `pca.joints` (l_knee, ..., head) are found on the format's own names
-    (LKnee..., the head by its top): before, the run stopped at "unknown keypoint 'l_knee'". The swing's 3D comes
-    within 60 mm PA-MPJPE of the truth (43.4 mm measured at seed 0, the kjs tracker of configs/video.yaml 46.3)."""
+    (LKnee..., the head by its top): before, the run stopped at "unknown keypoint 'l_knee'". With the limbs and the
+    trunk measured in the 2D (configs/golf.yaml's `subject.lengths: observed`) the swing's 3D comes within 40 mm
+    PA-MPJPE of the truth: 25.7 mm measured, 43.4 on the height's proportions, 55.9 with configs/video.yaml's kjs
+    tracker (`scripts/eval_golf_footage.py`)."""
     sys.path.insert(0, str(REPO / "scripts"))
     import synthetic_footage
 
@@ -444,4 +446,4 @@ def test_heldout_swing_from_a_detectors_keypoint_file(cmu_file, heldout_model, t
     argv += ["observations.silhouettes=false", f"motion.model_file={heldout_model}", "progress=false", f"out_dir={out}"]
     assert main(argv) == 0, capsys.readouterr().err
     score = synthetic_footage.score(out / "result.npz", footage / "truth.npz")
-    assert score["frames"] > 100 and score["pa_mpjpe_mm"] < 60, score
+    assert score["frames"] > 100 and score["pa_mpjpe_mm"] < 40, score
