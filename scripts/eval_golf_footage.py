@@ -74,6 +74,9 @@ def main() -> None:
     ap.add_argument("--methods", default="pca,pca_template,pca_asf,kjs")
     args = ap.parse_args()
     methods = args.methods.split(",")
+    unknown = sorted(set(methods) - {"pca", "kjs", *LENGTHS})
+    if unknown:
+        ap.error(f"unknown method(s) {', '.join(unknown)}: pca, {', '.join(LENGTHS)}, kjs")
     rows: dict[str, dict[str, tuple[float, float]]] = {}
     for swing in swings():
         name = swing.stem
