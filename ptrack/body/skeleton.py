@@ -138,6 +138,34 @@ class Skeleton:
 
         return with_limits(self, source, path)
 
+    def root_twin_dofs(self) -> tuple[int, int, int] | None:
+        """The root's three rotation dofs (a, b, c) in the order their axes apply, when the root turns about three
+        orthogonal axes, each by its own dof (scale 1, nothing frozen): then every orientation has two sets of
+        angles, (a, b, c) and (a + pi, pi - b, c + pi) (`root_twin`). None otherwise."""
+        dofs = self.axis_dof[0]
+        if (dofs < 0).any() or len(set(dofs.tolist())) != 3 or not np.allclose(self.axis_scale[0], 1.0):
+            return None
+        if not np.allclose(self.frozen_axes[0], 0.0):
+            return None
+        axes = self.axes[0]
+        if not np.allclose(axes @ axes.T, np.eye(3), atol=1e-9):
+            return None
+        a, b, c = (int(d) for d in dofs)
+        return a, b, c
+
+    def root_twin(self, q: Tensor) -> Tensor:
+        """q (..., D) -> the same poses with the root's other set of angles (`root_twin_dofs`): the same joints, the
+        root's angles (a + pi, pi - b, c + pi). q itself where the root has no twin."""
+        dofs = self.root_twin_dofs()
+        if dofs is None:
+            return q
+        a, b, c = dofs
+        twin = q.clone()
+        twin[..., a] = q[..., a] + math.pi
+        twin[..., b] = math.pi - q[..., b]
+        twin[..., c] = q[..., c] + math.pi
+        return twin
+
     def angular_dofs(self) -> np.ndarray:
         """(D,) bool: True for dofs that drive a rotation (periodic angles), False for translations."""
         mask = np.zeros(self.num_dofs, dtype=bool)
