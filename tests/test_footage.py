@@ -919,3 +919,35 @@ def test_every_format_finds_its_hips_and_wrists_by_landmark():
         assert kps.find("l_hip") != kps.find("r_hip") and kps.find("nowhere") is None
         setup = SimpleNamespace(problem=SimpleNamespace(keypoints=kps))  # what `_hips` reads of a kjs Setup
         assert _hips(setup) == (kps.joints[kps.find("l_hip")], kps.joints[kps.find("r_hip")]), name
+
+
+def test_the_path_keeps_one_set_of_root_angles_through_the_low_pass():
+    """Every root orientation has two sets of angles (`Skeleton.root_twin`: the same joints). A path through modes
+    of two tree starts can change sets between frames where the body hardly moves; `continuous_root` puts every
+    frame in the set nearest the frame before's, and the low-pass (`lowpass_trajectory`) then follows the motion.
+    Filtering the angles across the change instead turned the body over (the trial's cam02, seed 1)."""
+    from ptrack.pipeline.run import continuous_root, lowpass_trajectory
+    from ptrack.problem import Estimate
+
+    sk = Skeleton.from_asf(data_file("10.asf"))
+    assert sk.root_twin_dofs() is not None
+    T = 60
+    gen = torch.Generator().manual_seed(0)
+    t = torch.linspace(0, 1, T, dtype=torch.float64)[:, None]
+    q = 0.1 * torch.randn(1, sk.num_dofs, generator=gen, dtype=torch.float64) + 0.4 * torch.sin(2 * math.pi * t)
+    q[:, [sk.dof_names.index(n) for n in ("root.tx", "root.ty", "root.tz")]] = 0.0
+    joints = sk.forward_kinematics(q)
+    twin = sk.root_twin(q)
+    torch.testing.assert_close(sk.forward_kinematics(twin), joints)  # the same body
+    assert (twin - q).abs().max() > 3.0  # other angles
+    mixed = torch.where((torch.arange(T) % 3 == 1)[:, None], twin, q)  # every third frame in the other set
+    fixed = continuous_root(sk, mixed)
+    turns = torch.remainder(fixed - q + math.pi, 2 * math.pi) - math.pi  # back in frame 0's set (up to whole turns)
+    torch.testing.assert_close(turns, torch.zeros_like(q), atol=1e-9, rtol=0)
+    torch.testing.assert_close(continuous_root(sk, q), q)
+    est = Estimate(q=mixed, joints=joints, cost=torch.zeros(T), terms={})
+    smooth = lowpass_trajectory(sk, est._replace(q=q), 60.0, 6.0).joints  # the path that never changed sets
+    good = lowpass_trajectory(sk, est._replace(q=fixed), 60.0, 6.0).joints
+    torch.testing.assert_close(good, smooth, atol=1e-9, rtol=0)
+    bad = lowpass_trajectory(sk, est, 60.0, 6.0).joints  # across the changes of set: the body turned
+    assert float((bad - smooth).norm(dim=-1).mean()) > 0.2  # metres
