@@ -447,3 +447,29 @@ def test_heldout_swing_from_a_detectors_keypoint_file(cmu_file, heldout_model, t
     assert main(argv) == 0, capsys.readouterr().err
     score = synthetic_footage.score(out / "result.npz", footage / "truth.npz")
     assert score["frames"] > 100 and score["pa_mpjpe_mm"] < 40, score
+
+
+def test_tracked_keypoints_by_a_detectors_names_on_real_footage(tmp_path, capsys):
+    """On a detector's file `pca.joints` may use the format's own names (HALPE-26's LKnee): they are checked once the
+    file's set is known, and a name it lacks is one error line that lists the file's names; on simulated
+    observations the names are checked against the simulated set when the config is read."""
+    sys.path.insert(0, str(REPO / "scripts"))
+    import synthetic_footage
+
+    from ptrack.pipeline.config import load_config as load
+
+    footage = tmp_path / "footage"
+    synthetic_footage.make(REPO / "ptrack" / "data" / "10_02.amc", REPO / "ptrack" / "data" / "10.asf", footage, 12)
+    given = [f"observations.file={footage / 'keypoints.json'}", f"camera.file={footage / 'camera.yml'}"]
+    cfg = load(GOLF, [*given, "pca.joints=[left_knee,right_knee,l_ankle]"])  # COCO-17's names and a landmark
+    assert cfg.pca.joints == ("left_knee", "right_knee", "l_ankle")
+    with pytest.raises(Exception, match="unknown keypoint 'LKnee'"):
+        load(GOLF, ["pca.joints=[LKnee]"])  # simulated: the H36M-17 names
+    out = tmp_path / "run"
+    capsys.readouterr()
+    argv = ["run", str(GOLF), *given, "subject.height_m=1.7", "observations.fps=30", "pca.joints=[left_knee,foo]"]
+    assert main([*argv, f"out_dir={out}"]) == 2
+    err = capsys.readouterr().err  # the warning that data.amc is not used, then the error
+    errors = [line for line in err.splitlines() if line.startswith("ptrack: error:")]
+    assert len(errors) == 1 and "unknown keypoint 'foo'" in errors[0] and "left_knee" in errors[0], err
+    assert "Traceback" not in err and not out.exists()

@@ -691,7 +691,10 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         )
     if cfg.costs.loss not in ROBUST_LOSSES:
         raise InputError(f"config key 'costs.loss' must be one of {', '.join(ROBUST_LOSSES)}, got {cfg.costs.loss!r}")
-    validate_pca(cfg.pca, cfg.model.keypoints, names=cfg.method == "pca")
+    # the tracked keypoints are checked against the simulated set here; a detector's file is checked once its set is
+    # known (`ptrack.estimators.pca.setup.tracked_keypoint`: its own names or landmarks)
+    footage = cfg.observations.file is not None or cfg.observations.video is not None
+    validate_pca(cfg.pca, cfg.model.keypoints, names=cfg.method == "pca" and not footage)
 
 
 def check_device(device: str) -> None:

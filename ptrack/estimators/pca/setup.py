@@ -108,6 +108,14 @@ def make_setup(problem: Problem, cfg: PcaRunConfig) -> Setup:
     sk, obs, kps = problem.skeleton, problem.observations, problem.keypoints
     p = cfg.pca
     dtype, device = obs.keypoints.dtype, obs.keypoints.device
+    found = [tracked_keypoint(kps, j) for j in p.joints]
+    kp = [k for k in found if k is not None]
+    if len(kp) < len(found):
+        missing = p.joints[found.index(None)]
+        raise InputError(
+            f"config key 'pca.joints': unknown keypoint {missing!r} (keypoints: {', '.join(kps.names)}; or a landmark "
+            "such as l_knee)"
+        )
     model = motion_model_for(cfg, sk)
     model_dofs = dof_index(model, sk).to(device)
     root = [int(d) for d in (*sk.translation_dof, *sorted(sk.axis_dof[0].tolist())) if d >= 0]
@@ -120,14 +128,6 @@ def make_setup(problem: Problem, cfg: PcaRunConfig) -> Setup:
     if other:
         log.warning(
             "pca: %d dofs are not in the motion model and held at zero (e.g. %s)", len(other), sk.dof_names[other[0]]
-        )
-    found = [tracked_keypoint(kps, j) for j in p.joints]
-    kp = [k for k in found if k is not None]
-    if len(kp) < len(found):
-        missing = p.joints[found.index(None)]
-        raise InputError(
-            f"config key 'pca.joints': unknown keypoint {missing!r} (keypoints: {', '.join(kps.names)}; or a landmark "
-            "such as l_knee)"
         )
     tracked = torch.as_tensor([kps.joints[k] for k in kp], dtype=torch.long, device=device)
     observed = obs.keypoints[:, kp].to(dtype)
