@@ -140,11 +140,13 @@ class Skeleton:
 
     def root_twin_dofs(self) -> tuple[int, int, int] | None:
         """The root's three rotation dofs (a, b, c) in the order their axes apply, when the root turns about three
-        orthogonal axes, each by its own dof (scale 1, nothing frozen): then every orientation has two sets of
-        angles, (a, b, c) and (a + pi, pi - b, c + pi) (`root_twin`). None otherwise."""
+        orthogonal axes, each by its own dof (scale 1, nothing frozen, no limits): then every orientation has two
+        sets of angles, (a, b, c) and (a + pi, pi - b, c + pi) (`root_twin`). None otherwise."""
         dofs = self.axis_dof[0]
         if (dofs < 0).any() or len(set(dofs.tolist())) != 3 or not np.allclose(self.axis_scale[0], 1.0):
             return None
+        if np.isfinite(self.lower[dofs]).any() or np.isfinite(self.upper[dofs]).any():
+            return None  # the other set could lie outside the limits
         if not np.allclose(self.frozen_axes[0], 0.0):
             return None
         axes = self.axes[0]
