@@ -28,7 +28,8 @@ class PcaMethodConfig:
     iterations: int = setting(2, "Levenberg-Marquardt iterations per window; 0 = the start alone (the mean motion)")
     joints: tuple[str, ...] = setting(
         ("l_knee", "r_knee", "l_ankle", "r_ankle", "l_wrist", "r_wrist", "head"),
-        "tracked keypoints (names of the keypoint set): the paper's knees, ankles, wrists, head",
+        "tracked keypoints (the keypoint set's names; on a detector's file also landmarks, head: its top or the nose): "
+        "the paper's knees, ankles, wrists, head",
     )
     joint_weight: float = setting(1.0, "w of the joint projections (pixels / costs.sigma_px, robust by costs.loss)")
     silhouette_weight: float = setting(1.0, "w of the foreground term (section 4.1); 0 = joints only")
