@@ -91,9 +91,12 @@ def on_two_threads(fn: Callable, first: tuple, second: tuple) -> tuple:
 
 
 def parallel_processes(device: torch.device) -> bool:
-    """Whether two jobs may run in two processes (`in_two_processes`): on the CPU, with a thread budget (`one_thread`)
-    of 2 or more, where this process can fork (POSIX)."""
-    return parallel_halves(device) and hasattr(os, "fork") and sys.platform != "darwin"
+    """Whether two jobs may run in two processes (`in_two_processes`): on the CPU, inside `one_thread` (torch on one
+    intra-op thread) with a thread budget of 2 or more, where this process can fork (POSIX). Outside `one_thread`
+    torch's intra-op pool may be running, and a child forked then can wait forever on a lock the pool held: the
+    recombination called on two threads (a test calling it directly) hung in its child so."""
+    one = torch.get_num_threads() == 1
+    return one and parallel_halves(device) and hasattr(os, "fork") and sys.platform != "darwin"
 
 
 def in_two_processes(first: Callable[[], object], second: Callable[[], object]) -> tuple:

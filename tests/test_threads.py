@@ -34,7 +34,8 @@ def test_thread_budget_and_two_threads():
 def test_two_processes(tmp_path):
     """in_two_processes returns (first(), second()) with first() computed in a forked child; the child's exception
     is raised here with its type; a child that dies without an answer has first() run here instead; an
-    exception in second() kills the child before it is raised. parallel_processes: a budget of 2 on the CPU."""
+    exception in second() kills the child before it is raised. parallel_processes: a budget of 2 on the CPU, inside
+    `one_thread` only."""
     here = os.getpid()
     assert th.in_two_processes(os.getpid, lambda: "second")[1] == "second"
     assert th.in_two_processes(os.getpid, os.getpid)[0] not in (here, None)
@@ -70,5 +71,6 @@ def test_two_processes(tmp_path):
             with th.one_thread():
                 assert th.parallel_processes(torch.device("cpu")) == (budget >= 2 and hasattr(os, "fork"))
                 assert not th.parallel_processes(torch.device("meta"))
+            assert not th.parallel_processes(torch.device("cpu"))  # outside one_thread: torch's pool may run
     finally:
         torch.set_num_threads(before)
