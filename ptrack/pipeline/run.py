@@ -924,8 +924,9 @@ def continuous_root(sk: Skeleton, q: torch.Tensor) -> torch.Tensor:
     if dofs is None or q.shape[0] < 2:
         return q
     idx = list(dofs)
+    twin = sk.root_twin(q)
     angles = q[:, idx].detach().double().cpu().numpy()
-    twins = sk.root_twin(q)[:, idx].detach().double().cpu().numpy()
+    twins = twin[:, idx].detach().double().cpu().numpy()
     use_twin = np.zeros(q.shape[0], dtype=bool)
     prev = angles[0]
     for t in range(1, q.shape[0]):
@@ -935,7 +936,7 @@ def continuous_root(sk: Skeleton, q: torch.Tensor) -> torch.Tensor:
         prev = twins[t] if use_twin[t] else angles[t]
     if not use_twin.any():
         return q
-    return torch.where(torch.as_tensor(use_twin, device=q.device)[:, None], sk.root_twin(q), q)
+    return torch.where(torch.as_tensor(use_twin, device=q.device)[:, None], twin, q)
 
 
 def lowpass_trajectory(sk: Skeleton, est: Estimate, fps: float, cutoff_hz: float) -> Estimate:
