@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 import synthetic_footage
 
+from ptrack.body.acclaim import skeleton_beside
+from ptrack.body.skeleton import Skeleton, load_amc
 from ptrack.motion.motion_model import fit_motion_model, read_clips, save_motion_model
 from ptrack.pipeline.config import load_config
 
@@ -82,8 +84,9 @@ def main() -> None:
         name = swing.stem
         footage = args.out / "footage" / f"{name}-s{args.seed}"
         if not (footage / "truth.npz").is_file():
-            frames = len([ln for ln in swing.read_text().splitlines() if ln.strip().isdigit()]) // 4
-            asf = swing.with_name("64.asf")
+            asf = skeleton_beside(swing)
+            assert asf is not None  # the CMU swings' folder holds 64.asf
+            frames = load_amc(swing, Skeleton.from_asf(asf)).q.shape[0] // 4  # the whole clip at 30 fps
             synthetic_footage.make(swing, asf, footage, frames, keypoints="halpe26", seed=args.seed)
         with np.load(footage / "truth.npz") as t:
             height = float(t["height_m"])
