@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from ptrack.body.keypoints import make_keypoints
+from ptrack.body.limits import wrapped_difference
 from ptrack.body.skeleton import Motion, Skeleton, load_amc
 from ptrack.body.subject import floor_points, segment_lengths
 from ptrack.errors import EstimationError, InputError
@@ -923,20 +924,18 @@ def continuous_root(sk: Skeleton, q: torch.Tensor) -> torch.Tensor:
     dofs = sk.root_twin_dofs()
     if dofs is None or q.shape[0] < 2:
         return q
-    idx = list(dofs)
     twin = sk.root_twin(q)
-    angles = q[:, idx].detach().double().cpu().numpy()
-    twins = twin[:, idx].detach().double().cpu().numpy()
-    use_twin = np.zeros(q.shape[0], dtype=bool)
-    prev = angles[0]
+    both = torch.stack([q, twin], 1)[:, :, list(dofs)].detach().double().cpu()  # (T, 2, 3): each frame's two sets
+    angular = torch.ones(3, dtype=torch.bool)
+    use_twin = torch.zeros(q.shape[0], dtype=torch.bool)
+    prev = both[0, 0]
     for t in range(1, q.shape[0]):
-        near = np.abs(np.remainder(angles[t] - prev + np.pi, 2 * np.pi) - np.pi).sum()
-        far = np.abs(np.remainder(twins[t] - prev + np.pi, 2 * np.pi) - np.pi).sum()
+        near, far = wrapped_difference(both[t] - prev, angular).abs().sum(-1)
         use_twin[t] = far < near
-        prev = twins[t] if use_twin[t] else angles[t]
+        prev = both[t, int(use_twin[t])]
     if not use_twin.any():
         return q
-    return torch.where(torch.as_tensor(use_twin, device=q.device)[:, None], twin, q)
+    return torch.where(use_twin.to(q.device)[:, None], twin, q)
 
 
 def lowpass_trajectory(sk: Skeleton, est: Estimate, fps: float, cutoff_hz: float) -> Estimate:
@@ -1013,7 +1012,7 @@ def fill_frames(sk: Skeleton, est: Estimate, n: int, frames: int) -> Estimate:
     tracked = torch.arange(frames) == lo * n  # the others filled (and any held after the last tracked frame)
     step = est.q[hi] - est.q[lo]
     angular = torch.as_tensor(sk.angular_dofs(), device=est.q.device)
-    step = torch.where(angular, torch.remainder(step + math.pi, 2 * math.pi) - math.pi, step)
+    step = wrapped_difference(step, angular)
     q = est.q[lo] + w.to(est.q.dtype)[:, None] * step
     with torch.no_grad():
         joints = sk.forward_kinematics(q).to(est.joints.dtype)
