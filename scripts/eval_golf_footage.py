@@ -34,6 +34,7 @@ import synthetic_footage
 
 from ptrack.body.acclaim import skeleton_beside
 from ptrack.body.skeleton import Skeleton, load_amc
+from ptrack.clips import parse_clips
 from ptrack.motion.motion_model import fit_motion_model, read_clips, save_motion_model
 from ptrack.pipeline.config import load_config
 
@@ -44,9 +45,8 @@ LENGTHS = {"pca_template": "template", "pca_asf": "asf"}
 
 
 def swings() -> list[Path]:
-    """The golf swings' AMC files (configs/clips/golf.txt, paths relative to it)."""
-    lines = [line.strip() for line in CLIPS.read_text().splitlines()]
-    return [(CLIPS.parent / line).resolve() for line in lines if line and not line.startswith("#")]
+    """The golf swings' AMC files (configs/clips/golf.txt)."""
+    return parse_clips(str(CLIPS))
 
 
 def model_without(swing: Path, out: Path) -> Path:
