@@ -691,8 +691,9 @@ def validate(cfg: RunConfig, run: bool = True) -> None:
         )
     if cfg.costs.loss not in ROBUST_LOSSES:
         raise InputError(f"config key 'costs.loss' must be one of {', '.join(ROBUST_LOSSES)}, got {cfg.costs.loss!r}")
-    # the tracked keypoints are checked against the simulated set here; a detector's file is checked once its set is
-    # known (`ptrack.estimators.pca.setup.tracked_keypoint`: its own names or landmarks)
+    # the tracked keypoints are checked against the simulated set here; observations read from a file (a detector's,
+    # or saved ones) are checked once the file's set is known (`ptrack.estimators.pca.setup.tracked_keypoint`: its own
+    # names or landmarks)
     footage = cfg.observations.file is not None or cfg.observations.video is not None
     validate_pca(cfg.pca, cfg.model.keypoints, names=cfg.method == "pca" and not footage)
 
